@@ -1,0 +1,39 @@
+# One-command set-up and runs. `make demo` and `make test` do everything on a fresh machine.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+RUN ?= runs/demo
+
+.PHONY: demo test test-fast notebook bench eval-tables sysdeps venv clean
+
+$(STAMP): pyproject.toml requirements-cpu.txt scripts/install_system_deps.sh
+	bash scripts/install_system_deps.sh
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -r requirements-cpu.txt
+	$(PY) -m pip install --quiet -c requirements-cpu.txt -e ".[test,notebook]"
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: $(STAMP)
+	$(VENV)/bin/stochastic-fields demo --out $(RUN)
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+test-fast: $(STAMP)
+	$(PY) -m pytest -q -m "not slow"
+
+notebook: $(STAMP)
+	$(VENV)/bin/jupyter lab notebooks/inspect_run.ipynb
+
+bench: $(STAMP)
+	$(PY) benchmarks/speed_vs_error.py
+
+eval-tables: $(STAMP)
+	$(PY) benchmarks/eval_tables.py
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache

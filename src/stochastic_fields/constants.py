@@ -1,0 +1,40 @@
+"""Stability constants, named and justified in one place.
+
+Every numerical guard in the package refers to a name from this module; no bare ``1e-10``
+elsewhere. Values are chosen for float32 unless stated; they are harmless in float64.
+"""
+
+from __future__ import annotations
+
+import math
+
+#: Smallest standard deviation a field may output (softplus(raw) + floor). Below this the
+#: rectified-normal and logistic-normal KLs grow like -log(sigma) and gradients like 1/sigma;
+#: 1e-4 keeps them finite in float32 while being far below any uncertainty a scene shows.
+FIELD_STD_FLOOR: float = 1e-4
+
+#: Prior standard deviation on random scene points (paper Sec. 3.2.3: "fixed to 10").
+RANDOM_POINT_PRIOR_STD: float = 10.0
+
+#: Optical depth beyond which transmittance is treated as exactly zero when skipping work.
+#: exp(-30) ~ 1e-13, below float32 resolution of any colour.
+MAX_OPTICAL_DEPTH_FOR_SKIP: float = 30.0
+
+#: Accumulated opacity above which a ray is "opaque" for early termination in rendering loops.
+#: Derived from MAX_OPTICAL_DEPTH_FOR_SKIP: 1 - exp(-30).
+OPAQUE_TRANSMITTANCE: float = math.exp(-MAX_OPTICAL_DEPTH_FOR_SKIP)
+
+#: Divisor floor when normalising depth by accumulated opacity (expected depth given a hit).
+#: Relative to opacity in [0, 1]; an opacity below this is a ray that hit nothing.
+OPACITY_EPS: float = 1e-6
+
+#: Minimum variance used by the Gaussian NLL metric (SPEC 6): colours are 8-bit, so a variance
+#: below (1/255)^2 / 12 (uniform quantisation noise) claims more than the data can hold.
+NLL_VARIANCE_FLOOR: float = (1.0 / 255.0) ** 2 / 12.0
+
+#: Probability clamp for logit() of colours in [0, 1] (8-bit data never reaches 0 or 1 exactly
+#: in a meaningful way): half of one 8-bit step away from the ends.
+COLOUR_PROB_CLAMP: float = 0.5 / 255.0
+
+#: Stand-in for an unbounded last interval in alpha compositing when no far plane is given.
+FAR_INTERVAL: float = 1e10
