@@ -47,3 +47,7 @@ FAR_INTERVAL: float = 1e10
 #: (near ~ 17) are coarser, so the floor never binds there unless a model claims sub-resolution
 #: certainty. It is in absolute units: pass var_floor * scale**2 if a scene is rescaled.
 DEPTH_NLL_VARIANCE_FLOOR: float = 1e-6
+
+#: density_loc a field reports outside its modelled region: relu(loc + scale * eps) is then 0
+#: for any draw within 1e3 standard deviations, i.e. empty space.
+OUTSIDE_DENSITY_LOC: float = -1e4

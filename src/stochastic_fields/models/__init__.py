@@ -1,0 +1,1 @@
+"""Trainable models behind one protocol (``RadianceModel``): S-NeRF and the baselines."""

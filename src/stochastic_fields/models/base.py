@@ -1,0 +1,37 @@
+"""The protocol the trainer, evaluation and products use: every method (S-NeRF, its
+ablations, the baselines) trains through ``training_loss`` and renders through
+``render_view``, so all of them share one pipeline, split, budget and metrics."""
+
+from __future__ import annotations
+
+import abc
+
+import torch
+from torch import Tensor, nn
+
+from ..rays import RayBundle
+from ..renderer import RenderSettings
+
+
+class RadianceModel(nn.Module, abc.ABC):
+    """A method that learns from pixels and renders colour/depth means and variances."""
+
+    render_settings: RenderSettings
+
+    @abc.abstractmethod
+    def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
+                      generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
+        """rays [R], target colours [R, 3] -> (scalar loss, logged scalars)."""
+
+    @abc.abstractmethod
+    def render_view(self, rays: RayBundle, *, num_draws: int | None = None,
+                    generator: torch.Generator | None = None, keep_draws: bool = False,
+                    progress: bool = False) -> dict[str, Tensor]:
+        """rays [H, W] -> maps (see renderer.MAP_NAMES) in ray-distance units plus ``z_scale``."""
+
+    def after_step(self, step: int) -> None:
+        """Hook after each optimiser step (occupancy updates and similar)."""
+
+    def param_groups(self, lr: float) -> list[dict]:
+        """Optimiser parameter groups; backends may use their own learning rates."""
+        return [{"params": [p for p in self.parameters() if p.requires_grad], "lr": lr}]
