@@ -1,0 +1,110 @@
+"""Plots of sparsification and calibration curves, one line per method, saved as PNG.
+
+Uses matplotlib's Agg canvas directly (no pyplot, no global backend switch), so it works headless
+and never touches a user's interactive backend. Files are written atomically: the figure goes to
+a temporary file in the target directory, then ``os.replace`` moves it into place, so a reader
+never sees a half-written PNG.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Mapping
+
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from .metrics import CalibrationResult, SparsificationResult
+
+
+def _save_atomic(fig: Figure, path: str | os.PathLike, dpi: int) -> Path:
+    """Render ``fig`` to PNG at ``path`` through a temporary file and ``os.replace``."""
+    target = Path(path)
+    if target.suffix.lower() != ".png":
+        raise ValueError(f"plot path must end in .png, got {str(target)!r}")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    FigureCanvasAgg(fig)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=".png.tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fig.savefig(fh, format="png", dpi=dpi)
+        os.replace(tmp, target)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+    return target
+
+
+def plot_sparsification(
+    curves: Mapping[str, SparsificationResult],
+    path: str | os.PathLike,
+    normalised: bool = True,
+    title: str | None = None,
+    dpi: int = 120,
+) -> Path:
+    """Plot each method's sparsification curve (solid) and its oracle (dashed, same colour).
+
+    Args:
+        curves: method name -> ``SparsificationResult``.
+        path: output ``.png`` (parent directories are created).
+        normalised: plot curves divided by the metric on all pixels (the AUSE convention).
+    Returns:
+        the written path.
+    """
+    if not curves:
+        raise ValueError("plot_sparsification needs at least one curve")
+    metrics = {r.metric for r in curves.values()}
+    if len(metrics) != 1:
+        raise ValueError(f"all curves must use the same metric, got {sorted(metrics)}")
+    metric = metrics.pop().upper()
+    fig = Figure(figsize=(6.0, 4.5))
+    ax = fig.add_subplot(1, 1, 1)
+    for i, (name, r) in enumerate(curves.items()):
+        colour = f"C{i % 10}"
+        model = r.model_normalised if normalised else r.model
+        oracle = r.oracle_normalised if normalised else r.oracle
+        area = r.ause_normalised if normalised else r.ause
+        ax.plot(r.fractions, model, color=colour, label=f"{name} (AUSE {area:.4g})")
+        ax.plot(r.fractions, oracle, color=colour, linestyle="--", label=f"{name} oracle")
+    ax.set_xlabel("fraction of pixels removed (most uncertain first)")
+    ax.set_ylabel(f"{metric} of remaining pixels" + (f" / {metric} of all pixels" if normalised else ""))
+    ax.set_title(title or f"Sparsification ({metric})")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize="small")
+    fig.tight_layout()
+    return _save_atomic(fig, path, dpi)
+
+
+def plot_calibration(
+    curves: Mapping[str, CalibrationResult],
+    path: str | os.PathLike,
+    title: str | None = None,
+    dpi: int = 120,
+) -> Path:
+    """Plot empirical coverage against nominal level per method, with the ideal diagonal.
+
+    Args:
+        curves: method name -> ``CalibrationResult``.
+        path: output ``.png`` (parent directories are created).
+    Returns:
+        the written path.
+    """
+    if not curves:
+        raise ValueError("plot_calibration needs at least one curve")
+    fig = Figure(figsize=(5.0, 5.0))
+    ax = fig.add_subplot(1, 1, 1)
+    ax.plot([0.0, 1.0], [0.0, 1.0], color="0.5", linestyle=":", label="ideal")
+    for i, (name, r) in enumerate(curves.items()):
+        ax.plot(r.levels, r.coverage, color=f"C{i % 10}", label=f"{name} (AUCE {r.auce:.3f}, {r.verdict})")
+    ax.set_xlabel("nominal level p of the central interval")
+    ax.set_ylabel("empirical coverage")
+    ax.set_xlim(0.0, 1.0)
+    ax.set_ylim(0.0, 1.0)
+    ax.set_title(title or "Calibration")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize="small", loc="upper left")
+    fig.tight_layout()
+    return _save_atomic(fig, path, dpi)
