@@ -118,8 +118,8 @@ def render_image(field: StochasticField, rays: RayBundle, settings: RenderSettin
         for name in MAP_NAMES:
             out[name].append(getattr(r.stats, name))
         if keep_draws:
-            out["depth_draws"].append(r.stats.depth)
-            out["colour_draws"].append(r.stats.colour)
+            out["depth_draws"].append(r.stats.depth_draws)
+            out["colour_draws"].append(r.stats.colour_draws)
     maps = {name: torch.cat(v).reshape(*shape, *torch.cat(v).shape[1:]) for name, v in out.items()}
     maps["z_scale"] = rays.z_scale
     return maps

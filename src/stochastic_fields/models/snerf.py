@@ -31,7 +31,7 @@ class SNeRF(RadianceModel):
         cfg = self.loss_config
         out = render_rays(self.field, rays, self.render_settings, num_draws=self.train_draws,
                           stratified=True, generator=generator)
-        nll = gaussian_likelihood_nll(out.stats.colour, target, cfg.likelihood_std)
+        nll = gaussian_likelihood_nll(out.stats.colour_draws, target, cfg.likelihood_std)
         loss = nll
         logs = {"nll": float(nll), "mse": float(((out.stats.colour_mean - target) ** 2).mean())}
         if cfg.kl in ("fixed_prior", "full"):

@@ -1,0 +1,180 @@
+"""Training loop: seeded, resumable, with progress bars, periodic evaluation and atomic checkpoints.
+
+A run folder holds ``config.json``, ``checkpoint.pt`` (model, optimiser, scheduler, step and
+random-generator state) and ``train_log.jsonl``. Starting a run whose folder already has a
+checkpoint resumes from it, so an interrupted run loses at most ``checkpoint_every`` steps and
+nothing already on disk.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from tqdm.auto import tqdm
+
+from .cameras import generate_rays
+from .checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
+from .config import ExperimentConfig, save_config, to_dict
+from .models.base import RadianceModel
+from .models.registry import build_model, resolve_device
+from .rays import RayBundle
+
+
+@dataclass
+class TrainingRays:
+    """Every training pixel as a flat ray with its colour: rays [P], colours [P, 3]."""
+
+    rays: RayBundle
+    colours: torch.Tensor
+
+    @staticmethod
+    def from_dataset(dataset, device: torch.device) -> "TrainingRays":
+        from .cameras import select_cameras
+
+        idx = list(dataset.train_indices)
+        cams = select_cameras(dataset.cameras, idx)
+        rays = generate_rays(cams, dataset.near[idx], dataset.far[idx]).flatten().to(device)
+        colours = dataset.images[idx].reshape(-1, 3).to(device)
+        return TrainingRays(rays, colours)
+
+    def batch(self, n: int, generator: torch.Generator) -> tuple[RayBundle, torch.Tensor]:
+        idx = torch.randint(0, len(self.colours), (n,), generator=generator).to(self.colours.device)
+        return self.rays[idx], self.colours[idx]
+
+
+def make_optimizer(model: RadianceModel, cfg: ExperimentConfig):
+    opt = torch.optim.Adam(model.param_groups(cfg.train.lr), eps=1e-15)
+    gamma = cfg.train.lr_final_factor ** (1.0 / max(1, cfg.train.iterations))
+    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=gamma)
+    return opt, sched
+
+
+def quick_eval(model: RadianceModel, dataset, view: int, device: torch.device) -> dict[str, float]:
+    """PSNR of the mean colour on one test view (a cheap progress signal)."""
+    from .cameras import generate_rays_for_view
+
+    model.eval()
+    rays = generate_rays_for_view(dataset.cameras, view, dataset.near, dataset.far).to(device)
+    maps = model.render_view(rays, num_draws=4)
+    model.train()
+    mse = float(((maps["colour_mean"].cpu() - dataset.images[view]) ** 2).mean())
+    return {"eval_view": view, "eval_psnr": -10.0 * math.log10(max(mse, 1e-12))}
+
+
+class Trainer:
+    def __init__(self, cfg: ExperimentConfig, run_dir: Path, dataset):
+        self.cfg = cfg
+        self.run_dir = Path(run_dir)
+        self.dataset = dataset
+        self.device = resolve_device(cfg.train.device)
+        torch.manual_seed(cfg.train.seed)
+        self.model = build_model(cfg, dataset).to(self.device)
+        self.optimizer, self.scheduler = make_optimizer(self.model, cfg)
+        self.generator = torch.Generator().manual_seed(cfg.train.seed)
+        self.draw_generator = torch.Generator(device=self.device).manual_seed(cfg.train.seed + 1)
+        self.step = 0
+        self.elapsed = 0.0
+
+    # ------------------------------------------------------------------ checkpoints
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.run_dir / CHECKPOINT_NAME
+
+    def state(self) -> dict:
+        return {
+            "model": self.model.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "scheduler": self.scheduler.state_dict(),
+            "step": self.step,
+            "elapsed_s": self.elapsed,
+            "batch_rng": self.generator.get_state(),
+            "draw_rng": self.draw_generator.get_state().cpu(),
+            "config_json": json.dumps(to_dict(self.cfg)),
+        }
+
+    def save(self) -> None:
+        save_checkpoint(self.checkpoint_path, self.state())
+
+    def try_resume(self) -> bool:
+        if not self.checkpoint_path.exists():
+            return False
+        state = load_checkpoint(self.checkpoint_path, map_location=self.device)
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.step = int(state["step"])
+        self.elapsed = float(state.get("elapsed_s", 0.0))
+        self.generator.set_state(state["batch_rng"])
+        self.draw_generator.set_state(state["draw_rng"].to(self.draw_generator.device) if self.device.type == "cuda" else state["draw_rng"])
+        return True
+
+    # ------------------------------------------------------------------ loop
+    def train(self, *, progress: bool = True, max_steps: int | None = None) -> RadianceModel:
+        """Train to ``cfg.train.iterations`` (or stop after ``max_steps`` more steps, for tests)."""
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        save_config(self.cfg, self.run_dir / "config.json")
+        resumed = self.try_resume()
+        data = TrainingRays.from_dataset(self.dataset, self.device)
+        total = self.cfg.train.iterations
+        stop_at = total if max_steps is None else min(total, self.step + max_steps)
+        log_path = self.run_dir / "train_log.jsonl"
+        eval_view = self.dataset.test_indices[0] if len(self.dataset.test_indices) else None
+        bar = tqdm(total=total, initial=self.step, desc="train" + (" (resumed)" if resumed else ""),
+                   disable=not progress, dynamic_ncols=True)
+        self.model.train()
+        t_last = time.perf_counter()
+        with log_path.open("a") as log:
+            while self.step < stop_at:
+                rays, target = data.batch(self.cfg.train.rays_per_batch, self.generator)
+                loss, logs = self.model.training_loss(rays, target, step=self.step, generator=self.draw_generator)
+                if not torch.isfinite(loss):
+                    raise FloatingPointError(f"loss is {float(loss)} at step {self.step}: {logs}")
+                self.optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                self.optimizer.step()
+                self.scheduler.step()
+                self.model.after_step(self.step)
+                self.step += 1
+                now = time.perf_counter()
+                self.elapsed += now - t_last
+                t_last = now
+                record = {"step": self.step, "loss": float(loss), "elapsed_s": round(self.elapsed, 3), **logs}
+                if self.cfg.train.eval_every and eval_view is not None and self.step % self.cfg.train.eval_every == 0:
+                    record.update(quick_eval(self.model, self.dataset, eval_view, self.device))
+                    t_last = time.perf_counter()
+                if self.step % 10 == 0 or "eval_psnr" in record:
+                    log.write(json.dumps(record) + "\n")
+                    bar.set_postfix({k: f"{v:.4g}" for k, v in record.items() if k in ("loss", "mse", "eval_psnr")})
+                if self.cfg.train.checkpoint_every and self.step % self.cfg.train.checkpoint_every == 0:
+                    self.save()
+                bar.update(1)
+        bar.close()
+        self.save()
+        self.model.eval()
+        return self.model
+
+
+def load_trained_model(run_dir: Path, dataset=None, device: str | None = None):
+    """(cfg, model, dataset) from a run folder; the model is in eval mode."""
+    from .config import load_config
+    from .scenes import load_run_dataset
+
+    run_dir = Path(run_dir)
+    ckpt = run_dir / CHECKPOINT_NAME
+    if not ckpt.is_file():
+        raise FileNotFoundError(f"run folder {run_dir} has no {CHECKPOINT_NAME}: train it first")
+    cfg = load_config(run_dir / "config.json")
+    if device is not None:
+        cfg.train.device = device
+    dataset = load_run_dataset(cfg, run_dir) if dataset is None else dataset
+    dev = resolve_device(cfg.train.device)
+    model = build_model(cfg, dataset).to(dev)
+    state = load_checkpoint(ckpt, map_location=dev)
+    model.load_state_dict(state["model"])
+    model.eval()
+    return cfg, model, dataset
