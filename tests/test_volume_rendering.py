@@ -215,7 +215,8 @@ def test_both_rules_converge_to_analytic_and_to_each_other(case):
             if max(errors) < 1e-10:  # alpha's opacity is exact when the density is constant
                 continue
             if case == "gaussian_bump":  # smooth: every refinement by 4 divides the error by >= 8
-                assert all(fine < coarse / 8 for coarse, fine in zip(errors[:-1], errors[1:])), (quadrature, key, errors)
+                steps = zip(errors[:-1], errors[1:])
+                assert all(fine < coarse / 8 for coarse, fine in steps), (quadrature, key, errors)
             else:  # steps and end truncation: errors oscillate with grid alignment, their envelope falls as h
                 assert errors[-1] < max(errors[:-1]) / 4, (quadrature, key, errors)
                 assert all(err <= 2.0 * (FAR - NEAR) / n for err, n in zip(errors, nums)), (quadrature, key, errors)
@@ -261,7 +262,8 @@ def test_trapezoid_converges_on_opaque_step_only_when_h_resolves_one_over_sigma(
     ref = slab_reference(wall, far, sigma)
     density_fn = slab_density(wall, far, sigma)
     for quadrature in vr.QUADRATURES:
-        errors = [abs(render_1d(density_fn, n, quadrature, near, far)["colour"] - ref["colour"]) for n in (16, 128, 1024)]
+        colours = [render_1d(density_fn, n, quadrature, near, far)["colour"] for n in (16, 128, 1024)]
+        errors = [abs(colour - ref["colour"]) for colour in colours]
         assert errors[2] < errors[0] / 10, (quadrature, errors)
         assert errors[2] < 2e-3, (quadrature, errors)
 
@@ -420,7 +422,8 @@ def test_leading_batch_dims_match_row_by_row(batch, quadrature):
 def naive_statistics(density, rgb, t_starts, t_ends, far, background):
     """float64 per-ray, per-draw python loop (alpha compositing), moments via the statistics module."""
     num_rays, num_draws, num_samples = density.shape
-    out = {k: [] for k in ("colour_mean", "colour_var", "depth_mean", "depth_var_epistemic", "depth_var_spread", "opacity")}
+    keys = ("colour_mean", "colour_var", "depth_mean", "depth_var_epistemic", "depth_var_spread", "opacity")
+    out = {k: [] for k in keys}
     for r in range(num_rays):
         colours, depths, spreads, accs = [], [], [], []
         for k in range(num_draws):
@@ -432,7 +435,10 @@ def naive_statistics(density, rgb, t_starts, t_ends, far, background):
                 transmittance *= 1.0 - alpha
             t = [0.5 * float(t_starts[r, i] + t_ends[r, i]) for i in range(num_samples)]
             acc = sum(weights)
-            colour = [sum(w * float(rgb[r, k, i, c]) for i, w in enumerate(weights)) + (1 - acc) * background[c] for c in range(3)]
+            colour = [
+                sum(w * float(rgb[r, k, i, c]) for i, w in enumerate(weights)) + (1 - acc) * background[c]
+                for c in range(3)
+            ]
             if acc < OPACITY_EPS:
                 depth, spread = float(far[r]), 0.0
             else:
@@ -457,7 +463,8 @@ def random_rays(num_rays=5, num_draws=4, num_samples=6, seed=4, dtype=torch.floa
     density[0] = 0.0  # a ray through empty space: every draw hits nothing
     density[1, :2] = 0.0  # a ray where half the draws hit nothing
     rgb = torch.rand(num_rays, num_draws, num_samples, 3, generator=gen, dtype=dtype)
-    edges = NEAR + torch.sort(torch.rand(num_rays, num_samples + 1, generator=gen, dtype=dtype), dim=-1).values * (FAR - NEAR)
+    unit = torch.sort(torch.rand(num_rays, num_samples + 1, generator=gen, dtype=dtype), dim=-1).values
+    edges = NEAR + unit * (FAR - NEAR)
     far = torch.full((num_rays,), FAR, dtype=dtype)
     return density, rgb, edges[:, :-1], edges[:, 1:], far
 
@@ -539,7 +546,8 @@ def test_gradcheck_trajectory_statistics():
 
     def all_outputs(w, c, t):
         s = vr.trajectory_statistics(w, c, t, far, background)
-        return (s.colour_mean, s.colour_var, s.depth_mean, s.depth_var_epistemic, s.depth_var_spread, s.depth_var_total, s.opacity)
+        return (s.colour_mean, s.colour_var, s.depth_mean, s.depth_var_epistemic, s.depth_var_spread,
+                s.depth_var_total, s.opacity)
 
     assert torch.autograd.gradcheck(all_outputs, (weights, rgb, t_mids))
 
@@ -578,8 +586,9 @@ def test_packed_cumsum_long_concatenation_float32():
     relative = np.abs(ours - reference) / np.maximum(np.abs(reference), 1.0)
     assert relative.max() < 2e-6
     # the naive global-offset formulation fails on the same data (so this test can tell them apart)
-    glob = torch.cumsum(x, 0) - x
-    naive = (glob - glob[torch.from_numpy(starts[:-1][lengths > 0])].repeat_interleave(torch.from_numpy(lengths[lengths > 0]))).double().numpy()
+    glob = torch.cumsum(x, 0) - x  # global exclusive cumsum
+    first = torch.from_numpy(starts[:-1])[ray_indices]  # index of each sample's first sample in its ray
+    naive = (glob - glob[first]).double().numpy()
     naive_relative = np.abs(naive - reference) / np.maximum(np.abs(reference), 1.0)
     assert naive_relative.max() > 100 * relative.max()
 
@@ -588,7 +597,8 @@ def ragged_layout(num_rays, num_draws, seed, dtype, max_len=7):
     """Random ragged samples (some rays empty, one ray of zero density) plus the equivalent dense layout.
 
     Dense padding uses zero-length intervals at the last midpoint (which neither rule weights).
-    Returns (packed dict, function mapping packed per-sample [K, N] tensors to dense [R, K, S]).
+    Returns (packed dict, dense interval dict [R, 1, S], function mapping packed per-sample
+    [K, N, *C] tensors to dense [R, K, S, *C]).
     """
     gen = torch.Generator().manual_seed(seed)
     lengths = torch.randint(0, max_len + 1, (num_rays,), generator=gen)
@@ -599,12 +609,14 @@ def ragged_layout(num_rays, num_draws, seed, dtype, max_len=7):
     n = int(lengths.sum())
     starts = torch.cumsum(lengths, 0) - lengths
     position = torch.arange(n) - starts[ray_indices]
-    edges = NEAR + torch.sort(torch.rand(num_rays, num_samples + 1, generator=gen, dtype=dtype), -1).values * (FAR - NEAR)
+    unit = torch.sort(torch.rand(num_rays, num_samples + 1, generator=gen, dtype=dtype), -1).values
+    edges = NEAR + unit * (FAR - NEAR)
     t_starts, t_ends = edges[ray_indices, position], edges[ray_indices, position + 1]
     density = torch.rand(num_draws, n, generator=gen, dtype=dtype) * 3
     density[:, ray_indices == 1] = 0.0  # ray 1: samples through empty space
     rgb = torch.rand(num_draws, n, 3, generator=gen, dtype=dtype)
-    last_mid = 0.5 * (edges[torch.arange(num_rays), lengths] + edges[torch.arange(num_rays), (lengths - 1).clamp_min(0)])
+    rays = torch.arange(num_rays)
+    last_mid = 0.5 * (edges[rays, lengths] + edges[rays, (lengths - 1).clamp_min(0)])
     pad_t = torch.where(lengths > 0, last_mid, torch.full_like(last_mid, NEAR))
 
     def to_dense(values, fill):
@@ -637,7 +649,9 @@ def test_packed_equals_dense_values_and_gradients(quadrature, dtype, seed):
         density = packed["density"].clone().requires_grad_(True)
         rgb = packed["rgb"].clone().requires_grad_(True)
         if layout == "packed":
-            w = vr.render_weights_packed(density, packed["t_starts"], packed["t_ends"], ray_indices, num_rays, quadrature)
+            w = vr.render_weights_packed(
+                density, packed["t_starts"], packed["t_ends"], ray_indices, num_rays, quadrature
+            )
             t_mids = 0.5 * (packed["t_starts"] + packed["t_ends"])
             stats = vr.trajectory_statistics_packed(w, rgb, t_mids, ray_indices, num_rays, far, background)
         else:

@@ -207,7 +207,9 @@ class OccupancyGrid(nn.Module):
         points = self._cell_points(indices, generator)
         density = torch.cat([density_fn(chunk).reshape(-1) for chunk in points.split(chunk_size)])
         if density.shape[0] != indices.shape[0]:
-            raise ValueError(f"density_fn must return one value per point: got {density.shape[0]} for {indices.shape[0]}")
+            raise ValueError(
+                f"density_fn must return one value per point: got {density.shape[0]} for {indices.shape[0]} points"
+            )
 
         ema = self.density_ema.reshape(-1).clone()
         ema[indices] = ema[indices] * decay
@@ -244,7 +246,9 @@ class OccupancyGrid(nn.Module):
         """
         if len(rays.shape) != 1:
             raise ValueError(f"rays must be a flat bundle [R], got shape {tuple(rays.shape)}; call .flatten()")
-        dense = sample_along_rays(rays, num_samples_per_ray, spacing=spacing, stratified=stratified, generator=generator)
+        dense = sample_along_rays(
+            rays, num_samples_per_ray, spacing=spacing, stratified=stratified, generator=generator
+        )
         keep = self.occupied(dense.positions)  # [R, S]
         ray_indices, sample_indices = torch.nonzero(keep, as_tuple=True)  # row-major: sorted by ray, then t
         return PackedRaySamples(

@@ -581,7 +581,9 @@ def opacity_packed(weights: Tensor, ray_indices: Tensor, num_rays: int) -> Tenso
 def expected_depth_packed(
     weights: Tensor, t_mids: Tensor, ray_indices: Tensor, num_rays: int, far: Tensor | float
 ) -> Tensor:
-    """``expected_depth`` in the packed layout: ``D_r = sum_{i in r} w_i t_i / sum_{i in r} w_i``, ``far`` for empty rays.
+    """``expected_depth`` in the packed layout: ``D_r = sum_{i in r} w_i t_i / sum_{i in r} w_i``.
+
+    Rays whose opacity is below ``OPACITY_EPS`` (including rays without samples) get ``far``.
 
     Shapes:
         weights: [..., N]; t_mids: broadcastable to [..., N]; far: scalar or broadcastable to
