@@ -1,0 +1,27 @@
+"""Datasets: LLFF and Blender/nerfstudio loaders, a COLMAP reader and the embedded synthetic scene.
+
+Every loader returns a :class:`SceneDataset` with OpenCV cameras (SPEC 1) and raises
+:class:`DatasetError` (naming the file) on bad input.
+"""
+
+from .blender import load_blender
+from .colmap import ColmapCamera, ColmapPoints, read_cameras_binary, read_points3d_binary
+from .dataset import SceneDataset, detect_format, fit_scene_aabb, load_dataset
+from .errors import DatasetError
+from .llff import load_llff
+from .synthetic import make_synthetic_scene
+
+__all__ = [
+    "ColmapCamera",
+    "ColmapPoints",
+    "DatasetError",
+    "SceneDataset",
+    "detect_format",
+    "fit_scene_aabb",
+    "load_blender",
+    "load_dataset",
+    "load_llff",
+    "make_synthetic_scene",
+    "read_cameras_binary",
+    "read_points3d_binary",
+]

@@ -1,0 +1,344 @@
+"""Blender / nerfstudio scenes described by ``transforms*.json``.
+
+Each frame has ``file_path`` (relative to the json, with or without extension) and
+``transform_matrix``, an OpenGL camera-to-world matrix (camera x right, y up, z back),
+converted to OpenCV at this boundary
+(:func:`~stochastic_fields.cameras.opengl_c2w_to_opencv_w2c`).
+
+Intrinsics, top level or per frame: ``fl_x``/``fl_y``/``cx``/``cy``/``w``/``h`` (nerfstudio;
+pixel centres at +0.5) or ``camera_angle_x`` (Blender: ``fx = fy = W / (2 tan(angle_x / 2))``,
+principal point at the image centre). Distortion coefficients must be zero.
+
+RGBA images are composited on white (or on a top-level ``"background": [r, g, b]``) and
+``background`` records it; for RGB images that key states the background they show. An optional per-frame
+``depth_file_path`` loads camera-z depth into ``depths`` (``.npy`` float32 in scene units, 0 =
+no surface, as our synthetic scenes write; or a 16-bit PNG times ``depth_unit_scale_factor``,
+nerfstudio's convention, default 1e-3).
+
+Optional top-level hints written by :mod:`~stochastic_fields.data.synthetic`: ``near``, ``far``
+(camera-z), ``aabb`` ([2, 3]), ``split_every``. Without near/far hints the Blender convention
+near = 2, far = 6 applies.
+
+Splits: a folder with ``transforms_train.json`` and ``transforms_test.json`` loads both, and
+the files give the split; a single json (``transforms.json`` or one named file) is split with
+``split_every`` (the file's own ``split_every`` hint wins when the caller passes none).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..cameras import backproject_depths, make_cameras, opengl_c2w_to_opencv_w2c
+from .dataset import (
+    IMAGE_SUFFIXES,
+    SceneDataset,
+    check_split,
+    fit_scene_aabb,
+    read_image,
+    split_every_indices,
+    stack_images,
+)
+from .errors import DatasetError
+
+#: near/far (camera-z) of the original Blender scenes, used when the json gives no hints.
+BLENDER_NEAR: float = 2.0
+BLENDER_FAR: float = 6.0
+#: Scene-units per unit of 16-bit PNG depth when the json gives no ``depth_unit_scale_factor``.
+DEFAULT_DEPTH_UNIT_SCALE: float = 1e-3
+#: At most this many back-projected depth points are used to fit the scene box.
+_MAX_AABB_POINTS: int = 200_000
+
+_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        raise DatasetError(path, "missing transforms file")
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise DatasetError(path, f"unreadable JSON ({exc})") from exc
+    if not isinstance(meta, dict) or not isinstance(meta.get("frames"), list) or not meta["frames"]:
+        raise DatasetError(path, "expected a JSON object with a non-empty 'frames' list")
+    return meta
+
+
+def _resolve_file(json_path: Path, rel: str, what: str) -> Path:
+    """The file ``rel`` names (relative to the json's folder), trying image suffixes if it has none."""
+    base = json_path.parent / rel
+    if base.is_file():
+        return base
+    for suffix in IMAGE_SUFFIXES + tuple(s.upper() for s in IMAGE_SUFFIXES):
+        cand = base.with_name(base.name + suffix)
+        if cand.is_file():
+            return cand
+    raise DatasetError(base, f"missing {what} (listed in {json_path.name})")
+
+
+def _frame_pose(json_path: Path, index: int, frame: dict[str, Any]) -> np.ndarray:
+    if "transform_matrix" not in frame:
+        raise DatasetError(json_path, f"frame {index} has no transform_matrix")
+    try:
+        m = np.asarray(frame["transform_matrix"], dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise DatasetError(json_path, f"frame {index}: transform_matrix is not numeric ({exc})") from exc
+    if m.shape not in ((4, 4), (3, 4)):
+        raise DatasetError(json_path, f"frame {index}: transform_matrix must be 4x4 or 3x4, got shape {m.shape}")
+    if not np.isfinite(m).all():
+        raise DatasetError(json_path, f"frame {index}: transform_matrix has NaN/inf entries")
+    full = np.eye(4)
+    full[:3] = m[:3]
+    return full
+
+
+def _frame_intrinsics(json_path: Path, meta: dict, frame: dict, index: int, H: int, W: int) -> np.ndarray:
+    """[3, 3] K at the file's image size."""
+
+    def get(key: str):
+        return frame.get(key, meta.get(key))
+
+    for key in _DISTORTION_KEYS:
+        value = get(key)
+        if value not in (None, 0, 0.0):
+            raise DatasetError(json_path, f"frame {index}: lens distortion {key}={value} is not supported "
+                               "(undistort the images first)")
+    w, h = get("w"), get("h")
+    if (w is not None and int(w) != W) or (h is not None and int(h) != H):
+        raise DatasetError(json_path, f"frame {index}: json says {w}x{h} but the image is {W}x{H}")
+    fl_x, fl_y = get("fl_x"), get("fl_y")
+    if fl_x is None and get("camera_angle_x") is not None:
+        fl_x = 0.5 * W / math.tan(0.5 * float(get("camera_angle_x")))
+    if fl_y is None and get("camera_angle_y") is not None:
+        fl_y = 0.5 * H / math.tan(0.5 * float(get("camera_angle_y")))
+    if fl_x is None and fl_y is None:
+        raise DatasetError(json_path, "no focal length: need fl_x/fl_y or camera_angle_x")
+    fl_x = float(fl_y if fl_x is None else fl_x)
+    fl_y = float(fl_x if fl_y is None else fl_y)
+    cx = float(get("cx")) if get("cx") is not None else W / 2.0
+    cy = float(get("cy")) if get("cy") is not None else H / 2.0
+    if not all(math.isfinite(x) for x in (fl_x, fl_y, cx, cy)) or fl_x <= 0 or fl_y <= 0:
+        raise DatasetError(json_path, f"frame {index}: bad intrinsics fl_x={fl_x} fl_y={fl_y} cx={cx} cy={cy}")
+    return np.array([[fl_x, 0.0, cx], [0.0, fl_y, cy], [0.0, 0.0, 1.0]])
+
+
+def _read_depth(path: Path, scale: float) -> np.ndarray:
+    """[H, W] float32 camera-z depth, 0 = no surface."""
+    if path.suffix == ".npy":
+        try:
+            depth = np.load(path, allow_pickle=False)
+        except Exception as exc:
+            raise DatasetError(path, f"unreadable depth array ({type(exc).__name__}: {exc})") from exc
+        depth = np.asarray(depth, dtype=np.float32)
+    elif path.suffix.lower() == ".png":
+        import imageio.v3 as iio
+
+        raw = iio.imread(path)
+        if raw.dtype != np.uint16 or raw.ndim != 2:
+            raise DatasetError(path, f"depth PNG must be single-channel 16-bit, got {raw.dtype} {raw.shape}")
+        depth = raw.astype(np.float32) * scale
+    else:
+        raise DatasetError(path, "unsupported depth format (use .npy float32 or 16-bit .png)")
+    if depth.ndim != 2:
+        raise DatasetError(path, f"depth map must be [H, W], got shape {depth.shape}")
+    if not np.isfinite(depth).all() or (depth < 0).any():
+        raise DatasetError(path, "depth map has NaN/inf or negative values")
+    return depth
+
+
+def _area_downscale(image: np.ndarray, factor: int) -> np.ndarray:
+    """[H, W, C] -> [round(H / f), round(W / f), C] by area averaging (identity for f = 1)."""
+    if factor == 1:
+        return image
+    H, W = image.shape[:2]
+    size = (max(1, round(H / factor)), max(1, round(W / factor)))
+    x = torch.from_numpy(image).permute(2, 0, 1)[None]
+    return F.interpolate(x, size=size, mode="area")[0].permute(1, 2, 0).contiguous().numpy()
+
+
+def _load_frames(json_path: Path, meta: dict, want_depth: bool, downscale: int, frame_stride: int):
+    """Load the frames of one json (every ``frame_stride``-th), composited and downscaled.
+
+    Returns images [V, H, W, 3], K [V, 3, 3] at the loaded size, c2w_gl [V, 4, 4], depths
+    [V, H, W] or None, image paths, background.
+    """
+    frames = meta["frames"][::frame_stride]
+    background = meta.get("background")
+    if background is not None:
+        try:
+            background = tuple(float(c) for c in background)
+        except (TypeError, ValueError):
+            background = ()
+        if len(background) != 3:
+            raise DatasetError(json_path, f"'background' must be 3 numbers, got {meta['background']}")
+    has_depth = [("depth_file_path" in f) for f in frames]
+    want_depth = want_depth and any(has_depth)
+    if want_depth and not all(has_depth):
+        raise DatasetError(json_path, "some frames have depth_file_path and others not")
+    if want_depth and downscale > 1:
+        raise DatasetError(json_path, f"downscale={downscale} with depth maps: area-averaging mixes surfaces; "
+                           "render the scene at the wanted size or pass load_depth=False")
+    depth_scale = float(meta.get("depth_unit_scale_factor", DEFAULT_DEPTH_UNIT_SCALE))
+    arrays, paths, Ks, poses, depths = [], [], [], [], []
+    for i, frame in enumerate(frames):
+        if "file_path" not in frame:
+            raise DatasetError(json_path, f"frame {i} has no file_path")
+        path = _resolve_file(json_path, str(frame["file_path"]), "image")
+        poses.append(_frame_pose(json_path, i, frame))
+        image = read_image(path)
+        H0, W0 = image.shape[:2]
+        K = _frame_intrinsics(json_path, meta, frame, i, H0, W0)
+        if image.shape[-1] == 4:
+            background = background or (1.0, 1.0, 1.0)
+            alpha = image[..., 3:]
+            image = image[..., :3] * alpha + (1.0 - alpha) * np.asarray(background, dtype=np.float32)
+        image = _area_downscale(np.ascontiguousarray(image[..., :3]), downscale)
+        H, W = image.shape[:2]
+        K[0] *= W / W0
+        K[1] *= H / H0
+        if want_depth:
+            dpath = json_path.parent / str(frame["depth_file_path"])
+            if not dpath.is_file():
+                raise DatasetError(dpath, f"missing depth map (listed in {json_path.name})")
+            d = _read_depth(dpath, depth_scale)
+            if d.shape != (H, W):
+                raise DatasetError(dpath, f"depth map shape {d.shape} differs from image shape {(H, W)}")
+            depths.append(d)
+        arrays.append(image)
+        paths.append(path)
+        Ks.append(K)
+    imgs = stack_images(arrays, paths)
+    depth_t = torch.from_numpy(np.stack(depths)) if want_depth else None
+    return imgs, np.stack(Ks), np.stack(poses), depth_t, paths, background
+
+
+def _json_files(path: Path) -> list[tuple[Path, str]]:
+    """[(json file, split name)] to load for a folder or a file."""
+    if path.is_file():
+        return [(path, "all")]
+    train, test = path / "transforms_train.json", path / "transforms_test.json"
+    if train.is_file() and test.is_file():
+        return [(train, "train"), (test, "test")]
+    single = path / "transforms.json"
+    if single.is_file():
+        return [(single, "all")]
+    raise DatasetError(path, "no transforms.json or transforms_train.json + transforms_test.json in folder")
+
+
+def _hint(path: Path, metas: list[dict], key: str):
+    values = [m[key] for m in metas if key in m]
+    return values[0] if values else None
+
+
+def load_blender(
+    path: str | Path,
+    *,
+    downscale: int = 1,
+    split_every: int | None = None,
+    near: float | None = None,
+    far: float | None = None,
+    load_depth: bool = True,
+    frame_stride: int = 1,
+) -> SceneDataset:
+    """Load a Blender/nerfstudio scene.
+
+    Args:
+        path: a folder (``transforms_train.json`` + ``transforms_test.json``, or
+            ``transforms.json``) or a single json file.
+        downscale: integer area-resize factor for the images (e.g. 8: lego 800 -> 100); the
+            intrinsics scale with the picture. Depth maps cannot be area-averaged without mixing
+            surfaces, so ``downscale > 1`` with depth maps present raises (render smaller instead,
+            or pass ``load_depth=False``).
+        split_every: split of a single json (train = ``index % split_every == 0``); default:
+            the file's ``split_every`` hint, else 5.
+        near, far: camera-z bounds; default the file's hints, else 2 and 6 (Blender).
+        load_depth: read ``depth_file_path`` maps when frames list them.
+        frame_stride: load every n-th frame of each json only (quick looks, tests); the split
+            is then made among the loaded frames.
+
+    Returns:
+        SceneDataset (OpenCV cameras; ``forward_facing=False``).
+    """
+    path = Path(path)
+    if int(downscale) != downscale or downscale < 1:
+        raise DatasetError(path, f"downscale must be a positive integer, got {downscale}")
+    files = _json_files(path)
+    metas = [_read_json(f) for f, _ in files]
+    if int(frame_stride) != frame_stride or frame_stride < 1:
+        raise DatasetError(path, f"frame_stride must be a positive integer, got {frame_stride}")
+    loaded = [_load_frames(f, m, load_depth, int(downscale), int(frame_stride)) for (f, _), m in zip(files, metas)]
+    first = files[0][0]
+    shapes = {tuple(x[0].shape[1:3]) for x in loaded}
+    if len(shapes) > 1:
+        raise DatasetError(files[-1][0], f"image sizes differ between split files: {sorted(shapes)}")
+    imgs = torch.cat([x[0] for x in loaded])
+    K = torch.from_numpy(np.concatenate([x[1] for x in loaded])).float()
+    c2w_gl = torch.from_numpy(np.concatenate([x[2] for x in loaded]))
+    has_depth = [x[3] is not None for x in loaded]
+    if any(has_depth) and not all(has_depth):
+        raise DatasetError(first, "depth maps are listed in some split files but not others")
+    depths = torch.cat([x[3] for x in loaded]) if all(has_depth) else None
+    paths = [p for x in loaded for p in x[4]]
+    backgrounds = {x[5] for x in loaded}
+    background = loaded[0][5] if len(backgrounds) == 1 else (1.0, 1.0, 1.0)
+
+    V, H, W = imgs.shape[:3]
+
+    near_v = near if near is not None else _hint(first, metas, "near")
+    far_v = far if far is not None else _hint(first, metas, "far")
+    near_v = BLENDER_NEAR if near_v is None else float(near_v)
+    far_v = BLENDER_FAR if far_v is None else float(far_v)
+    if not (0 < near_v < far_v) or not math.isfinite(far_v):
+        raise DatasetError(first, f"need 0 < near < far, got near={near_v} far={far_v}")
+
+    if files[0][1] == "all":
+        every = split_every if split_every is not None else int(_hint(first, metas, "split_every") or 5)
+        train, test = split_every_indices(V, every, first)
+    else:
+        n_train = loaded[0][0].shape[0]
+        train, test = list(range(n_train)), list(range(n_train, V))
+        check_split(train, test, path)
+
+    w2c = opengl_c2w_to_opencv_w2c(c2w_gl).float()
+    cameras = make_cameras(K, w2c, H, W)
+    near_t = torch.full((V,), near_v)
+    far_t = torch.full((V,), far_v)
+    depth_mask = None if depths is None else depths > 0
+
+    aabb_hint = _hint(first, metas, "aabb")
+    if aabb_hint is not None:
+        aabb = torch.as_tensor(aabb_hint, dtype=torch.float32)
+        if aabb.shape != (2, 3) or not bool(torch.all(aabb[1] > aabb[0])):
+            raise DatasetError(first, f"'aabb' must be [[xmin, ymin, zmin], [xmax, ymax, zmax]], got {aabb_hint}")
+    else:
+        pts = None
+        if depths is not None:
+            pts = backproject_depths(cameras, depths, depth_mask)
+            if pts.shape[0] > _MAX_AABB_POINTS:
+                step = math.ceil(pts.shape[0] / _MAX_AABB_POINTS)
+                pts = pts[::step]
+        aabb = fit_scene_aabb(cameras, near_t, far_t, pts, forward_facing=False)
+
+    root = path if path.is_dir() else path.parent
+    return SceneDataset(
+        name=root.name,
+        root=root,
+        images=imgs,
+        cameras=cameras,
+        near=near_t,
+        far=far_t,
+        train_indices=train,
+        test_indices=test,
+        aabb=aabb,
+        depths=depths,
+        depth_mask=depth_mask,
+        background=background,
+        image_paths=paths,
+        forward_facing=False,
+    )

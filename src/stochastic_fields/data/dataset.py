@@ -1,0 +1,344 @@
+"""The in-memory multi-view scene every loader returns, its scene box, and format autodetection.
+
+Conventions (SPEC 1): cameras are OpenCV (x right, y down, z forward), pixel centres at +0.5,
+``near``/``far``/``depths`` are camera-z depths in the scene's own units.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Sequence
+
+import imageio.v3 as iio
+import numpy as np
+import torch
+from kornia.geometry.camera import PinholeCamera
+from torch import Tensor
+
+from ..cameras import (
+    camera_to_world,
+    generate_rays_for_view,
+    image_size,
+    intrinsics_3x3,
+    select_cameras,
+)
+from ..rays import RayBundle
+from .errors import DatasetError
+
+#: Default training split (SPEC 7): views with ``index % 5 == 0`` train, the rest test.
+DEFAULT_SPLIT_EVERY: int = 5
+#: Views processed together when counting covisibility in :func:`fit_scene_aabb`.
+_VIEWS_PER_CHUNK: int = 16
+
+
+@dataclass
+class SceneDataset:
+    """A multi-view scene: images, cameras, depth bounds and the views' split.
+
+    Attributes:
+        name: scene name (folder name).
+        root: folder the scene was read from.
+        images: [V, H, W, 3] float32 in [0, 1] (RGBA composited on ``background``).
+        cameras: V kornia PinholeCameras (OpenCV, world-to-camera extrinsics).
+        near, far: [V] float32 camera-z bounds per view (scene units); rays get them via
+            ``generate_rays(..., bounds="camera_z")``.
+        train_indices, test_indices: view indices of the split.
+        aabb: [2, 3] float32 scene box (lower, upper corner), see :func:`fit_scene_aabb`.
+        depths: [V, H, W] float32 camera-z metric depth, 0 where no surface; or None.
+        depth_mask: [V, H, W] bool, True where ``depths`` holds a surface; or None.
+        background: RGB in [0, 1] that empty pixels show (white for Blender RGBA); or None.
+        points3d: [P, 3] float32 sparse world points (COLMAP) or None.
+        points3d_rgb: [P, 3] float32 in [0, 1], their colours, or None.
+        image_paths: source file of each view.
+        forward_facing: True for LLFF-style captures (all cameras look the same way).
+    """
+
+    name: str
+    root: Path
+    images: Tensor
+    cameras: PinholeCamera
+    near: Tensor
+    far: Tensor
+    train_indices: list[int]
+    test_indices: list[int]
+    aabb: Tensor
+    depths: Tensor | None = None
+    depth_mask: Tensor | None = None
+    background: tuple[float, float, float] | None = None
+    points3d: Tensor | None = None
+    points3d_rgb: Tensor | None = None
+    image_paths: list[Path] = field(default_factory=list)
+    forward_facing: bool = False
+
+    # ------------------------------------------------------------------ sizes
+    @property
+    def num_views(self) -> int:
+        return int(self.images.shape[0])
+
+    @property
+    def height(self) -> int:
+        return int(self.images.shape[1])
+
+    @property
+    def width(self) -> int:
+        return int(self.images.shape[2])
+
+    def __len__(self) -> int:
+        return self.num_views
+
+    # ------------------------------------------------------------------ rays
+    def rays(self, view: int) -> RayBundle:
+        """RayBundle [H, W] through the pixel centres of one view, bounded by its near/far planes."""
+        return generate_rays_for_view(self.cameras, view, self.near, self.far, bounds="camera_z")
+
+    # ------------------------------------------------------------------ splits
+    def subset(self, indices: Sequence[int]) -> "SceneDataset":
+        """The views ``indices`` (in that order) as a new dataset.
+
+        Train/test membership is kept: ``train_indices`` of the result are the positions in
+        ``indices`` of views that were training views here (same for test).
+        """
+        idx = [int(i) % self.num_views for i in indices]
+        for i in indices:
+            if not -self.num_views <= int(i) < self.num_views:
+                raise IndexError(f"view {i} out of range for {self.num_views} views of {self.name}")
+        train, test = set(self.train_indices), set(self.test_indices)
+        t_idx = torch.as_tensor(idx, dtype=torch.long)
+        return replace(
+            self,
+            images=self.images[t_idx],
+            cameras=select_cameras(self.cameras, idx),
+            near=self.near[t_idx],
+            far=self.far[t_idx],
+            depths=None if self.depths is None else self.depths[t_idx],
+            depth_mask=None if self.depth_mask is None else self.depth_mask[t_idx],
+            image_paths=[self.image_paths[i] for i in idx] if self.image_paths else [],
+            train_indices=[k for k, i in enumerate(idx) if i in train],
+            test_indices=[k for k, i in enumerate(idx) if i in test],
+        )
+
+    def train(self) -> "SceneDataset":
+        """The training views only."""
+        return self.subset(self.train_indices)
+
+    def test(self) -> "SceneDataset":
+        """The test views only."""
+        return self.subset(self.test_indices)
+
+    def split_every(self, n: int) -> "SceneDataset":
+        """Re-split: views with ``index % n == 0`` train, the rest test (SPEC 7 uses n = 5)."""
+        train, test = split_every_indices(self.num_views, n, self.root)
+        return replace(self, train_indices=train, test_indices=test)
+
+
+def split_every_indices(num_views: int, n: int, path: str | Path) -> tuple[list[int], list[int]]:
+    """(train, test) indices with train = ``index % n == 0``; DatasetError if either is empty."""
+    if int(n) < 1:
+        raise DatasetError(path, f"split_every must be >= 1, got {n}")
+    train = [i for i in range(num_views) if i % n == 0]
+    test = [i for i in range(num_views) if i % n != 0]
+    check_split(train, test, path)
+    return train, test
+
+
+def check_split(train: Sequence[int], test: Sequence[int], path: str | Path) -> None:
+    """DatasetError naming ``path`` if the split leaves no training or no test view."""
+    if len(train) == 0:
+        raise DatasetError(path, "the split leaves no training view")
+    if len(test) == 0:
+        raise DatasetError(path, f"the split leaves no test view ({len(train)} views, all training)")
+
+
+# ---------------------------------------------------------------------- scene box
+def frustum_corners(cameras: PinholeCamera, near: Tensor, far: Tensor) -> Tensor:
+    """[V, 8, 3] world corners of each view's frustum between its near and far depth planes."""
+    V = cameras.batch_size
+    H, W = image_size(cameras)
+    like = cameras.intrinsics
+    uv = torch.tensor([[0.0, 0.0], [W, 0.0], [0.0, H], [W, H]], dtype=like.dtype, device=like.device)
+    K = intrinsics_3x3(cameras)
+    d_cam = torch.cat([(uv[None] - K[:, None, :2, 2]) / torch.stack([K[:, 0, 0], K[:, 1, 1]], -1)[:, None],
+                       torch.ones(V, 4, 1, dtype=like.dtype, device=like.device)], dim=-1)  # [V, 4, 3], z = 1
+    z = torch.stack([near, far], dim=1).to(like)  # [V, 2]
+    cam = (d_cam[:, None, :, :] * z[:, :, None, None]).reshape(V, 8, 3)
+    c2w = camera_to_world(cameras)
+    return cam @ c2w[:, :3, :3].transpose(1, 2) + c2w[:, None, :3, 3]
+
+
+def _robust_box(points: Tensor, percentiles: tuple[float, float], padding: float) -> Tensor:
+    """[2, 3] per-axis percentile box of points [P, 3], padded by ``padding`` x its extent."""
+    p = points.double()
+    q = torch.tensor([percentiles[0] / 100.0, percentiles[1] / 100.0], dtype=p.dtype)
+    lo_hi = torch.quantile(p, q, dim=0)  # [2, 3]
+    pad = (lo_hi[1] - lo_hi[0]) * padding
+    return torch.stack([lo_hi[0] - pad, lo_hi[1] + pad]).float()
+
+
+def _intersect(a: Tensor, b: Tensor) -> Tensor:
+    box = torch.stack([torch.maximum(a[0], b[0]), torch.minimum(a[1], b[1])])
+    if not bool(torch.all(box[1] > box[0])):
+        return a  # disjoint: the points disagree with the frusta, keep the camera-derived box
+    return box
+
+
+def fit_scene_aabb(
+    cameras: PinholeCamera,
+    near: Tensor | float,
+    far: Tensor | float,
+    points: Tensor | None = None,
+    *,
+    forward_facing: bool = False,
+    percentiles: tuple[float, float] = (1.0, 99.0),
+    padding: float = 0.05,
+    min_view_fraction: float = 0.5,
+    grid: int = 32,
+) -> Tensor:
+    """The scene box [2, 3] (lower, upper corner), fitted from cameras, near/far and points.
+
+    The choice:
+      * Nothing outside the union of the frusta (between each view's near and far depth planes)
+        can be seen, so the box never exceeds the AABB of the frustum corners.
+      * With ``points`` (COLMAP sparse points, or surface points back-projected from depth maps):
+        the per-axis ``percentiles`` box of the points, padded by ``padding`` x its extent (so a
+        few outliers do not inflate it), intersected with the frusta box. This is the choice for
+        forward-facing LLFF scenes, whose frusta reach far behind the content.
+      * Bounded scenes without points: the AABB of the *covisible* volume, grid points of the
+        frusta box that at least ``min_view_fraction`` of the views see (inside the image and
+        between near and far), padded by one grid cell plus ``padding`` x its extent. For cameras
+        ringed around an object this is the region around the object, not the cameras' ring.
+      * Forward-facing without points: the frusta box.
+
+    Shapes: near/far floats or [V]; points [P, 3].
+    """
+    V = cameras.batch_size
+    like = cameras.extrinsics
+    near_v = torch.as_tensor(near, dtype=like.dtype, device=like.device).reshape(-1).expand(V)
+    far_v = torch.as_tensor(far, dtype=like.dtype, device=like.device).reshape(-1).expand(V)
+    if not bool(torch.all(far_v > near_v)):
+        raise ValueError(f"fit_scene_aabb: need far > near for every view, "
+                         f"got near={near_v.tolist()} far={far_v.tolist()}")
+    corners = frustum_corners(cameras, near_v, far_v).reshape(-1, 3)
+    frusta_box = torch.stack([corners.min(0).values, corners.max(0).values]).float().cpu()
+    if points is not None and len(points) > 0:
+        box = _robust_box(torch.as_tensor(points).float().cpu(), percentiles, padding)
+        return _intersect(frusta_box, box)
+    if forward_facing:
+        return frusta_box
+    # covisible volume on a grid inside the frusta box
+    axes = [torch.linspace(float(frusta_box[0, k]), float(frusta_box[1, k]), grid, dtype=like.dtype) for k in range(3)]
+    gx, gy, gz = torch.meshgrid(*axes, indexing="ij")
+    pts = torch.stack([gx, gy, gz], dim=-1).reshape(-1, 3).to(like.device)
+    counts = torch.zeros(pts.shape[0], dtype=torch.long, device=like.device)
+    K = intrinsics_3x3(cameras)
+    E = cameras.extrinsics
+    for start in range(0, V, _VIEWS_PER_CHUNK):  # a few views at a time: memory O(chunk * grid^3)
+        sl = slice(start, start + _VIEWS_PER_CHUNK)
+        cam = pts[None] @ E[sl, :3, :3].transpose(1, 2) + E[sl, None, :3, 3]  # [v, G, 3]
+        z = cam[..., 2]
+        safe_z = torch.where(z > 0, z, torch.ones_like(z))
+        u = K[sl, None, 0, 0] * cam[..., 0] / safe_z + K[sl, None, 0, 2]
+        v = K[sl, None, 1, 1] * cam[..., 1] / safe_z + K[sl, None, 1, 2]
+        seen = (z >= near_v[sl, None]) & (z <= far_v[sl, None]) & (z > 0)
+        seen &= (u >= 0) & (u < cameras.width[sl, None]) & (v >= 0) & (v < cameras.height[sl, None])
+        counts += seen.long().sum(0)
+    need = max(1, math.ceil(min_view_fraction * V))
+    keep = pts[counts >= need].cpu()
+    if keep.shape[0] == 0:
+        return frusta_box
+    cell = (frusta_box[1] - frusta_box[0]) / (grid - 1)
+    lo, hi = keep.min(0).values.float() - cell, keep.max(0).values.float() + cell
+    pad = (hi - lo) * padding
+    return _intersect(frusta_box, torch.stack([lo - pad, hi + pad]))
+
+
+# ---------------------------------------------------------------------- autodetection
+def detect_format(path: str | Path) -> str:
+    """'llff' (a folder with poses_bounds.npy) or 'blender' (transforms*.json); DatasetError otherwise."""
+    path = Path(path)
+    if path.is_file() and path.suffix == ".json":
+        return "blender"
+    if path.is_file() and path.name == "poses_bounds.npy":
+        return "llff"
+    if not path.exists():
+        raise DatasetError(path, "dataset path does not exist")
+    if (path / "poses_bounds.npy").is_file():
+        return "llff"
+    if any(path.glob("transforms*.json")):
+        return "blender"
+    raise DatasetError(path, "unknown dataset format: expected poses_bounds.npy (LLFF) "
+                       "or transforms*.json (Blender/nerfstudio)")
+
+
+def load_dataset(
+    path: str | Path,
+    *,
+    images: str | int | None = None,
+    split_every: int = DEFAULT_SPLIT_EVERY,
+    downscale: int = 1,
+    **kwargs,
+) -> SceneDataset:
+    """Load a scene, autodetecting the format.
+
+    Args:
+        path: an LLFF scene folder (``poses_bounds.npy``), a folder with ``transforms*.json``,
+            or one ``transforms*.json`` file.
+        images: LLFF only: the image folder name (``"images_8"``) or its factor (8). Default 8.
+        split_every: views with ``index % split_every == 0`` train (LLFF, single transforms.json).
+        downscale: Blender only: integer area-resize factor (lego 800x800 -> 100x100 with 8).
+        **kwargs: passed to :func:`~stochastic_fields.data.llff.load_llff` or
+            :func:`~stochastic_fields.data.blender.load_blender`.
+    """
+    kind = detect_format(path)
+    path = Path(path)
+    if kind == "llff":
+        from .llff import load_llff
+
+        if downscale != 1:
+            raise DatasetError(path, f"LLFF scenes pick a resolution with images=..., not downscale={downscale}")
+        root = path.parent if path.is_file() else path
+        return load_llff(root, images=8 if images is None else images, split_every=split_every, **kwargs)
+    from .blender import load_blender
+
+    if images is not None:
+        raise DatasetError(path, f"Blender/nerfstudio scenes take downscale=..., not images={images!r}")
+    return load_blender(path, downscale=downscale, split_every=split_every, **kwargs)
+
+
+# ---------------------------------------------------------------------- image files
+IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg")
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """[H, W, C] float32 in [0, 1] (C = 3 or 4) from an 8- or 16-bit image file.
+
+    Raises DatasetError naming the file if it is missing, unreadable or not RGB(A).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(path, "missing image")
+    try:
+        img = iio.imread(path)
+    except Exception as exc:  # imageio raises many types for corrupt files
+        raise DatasetError(path, f"unreadable image ({type(exc).__name__}: {exc})") from exc
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=-1)
+    if img.ndim != 3 or img.shape[-1] not in (3, 4):
+        raise DatasetError(path, f"expected an RGB or RGBA image, got array of shape {img.shape}")
+    if img.dtype == np.uint8:
+        return img.astype(np.float32) / 255.0
+    if img.dtype == np.uint16:
+        return img.astype(np.float32) / 65535.0
+    if np.issubdtype(img.dtype, np.floating):
+        return img.astype(np.float32)
+    raise DatasetError(path, f"unsupported image dtype {img.dtype}")
+
+
+def stack_images(arrays: list[np.ndarray], paths: list[Path]) -> Tensor:
+    """[V, H, W, C] float32 tensor; DatasetError naming the first image whose size differs."""
+    shape = arrays[0].shape
+    for a, p in zip(arrays, paths):
+        if a.shape != shape:
+            raise DatasetError(p, f"image shape {a.shape} differs from {shape} of {paths[0].name}")
+    return torch.from_numpy(np.stack(arrays, axis=0))

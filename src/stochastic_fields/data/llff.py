@@ -1,0 +1,153 @@
+"""LLFF forward-facing scenes (``poses_bounds.npy`` + ``images_<factor>/`` + optional COLMAP model).
+
+``poses_bounds.npy`` is [V, 17]: per view a row-major [3, 5] matrix (columns: the camera's
+*down*, *right*, *back* axes in world coordinates, the camera centre, and ``(h, w, f)`` of the
+full-resolution originals) followed by the near and far depth bounds. Views are the image files
+in sorted order. Poses are converted to OpenCV at this boundary
+(:func:`~stochastic_fields.cameras.llff_poses_to_opencv_w2c`).
+
+Intrinsics: ``fx = fy = f * W / w`` (focal scaled by the image downsampling factor), principal
+point at the image centre ``(W / 2, H / 2)`` with pixel centres at +0.5. The originals' small
+COLMAP radial distortion is ignored, as LLFF and NeRF do (fern: about 3 pixels at the corners of
+``images_8``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..cameras import llff_poses_to_opencv_w2c, make_cameras
+from .colmap import read_points3d_binary
+from .dataset import (
+    IMAGE_SUFFIXES,
+    SceneDataset,
+    fit_scene_aabb,
+    read_image,
+    split_every_indices,
+    stack_images,
+)
+from .errors import DatasetError
+
+#: Relative disagreement allowed between the width and height downsampling factors.
+_ASPECT_TOLERANCE: float = 0.01
+
+
+def read_poses_bounds(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """(poses [V, 3, 5], bounds [V, 2]) from ``poses_bounds.npy``, validated.
+
+    DatasetError naming the file for: unreadable file, shape other than [V, 17], non-finite
+    values, near <= 0 or near >= far.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(path, "missing poses_bounds.npy")
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except Exception as exc:
+        raise DatasetError(path, f"unreadable array ({type(exc).__name__}: {exc})") from exc
+    if arr.ndim != 2 or arr.shape[1] != 17 or arr.shape[0] == 0:
+        raise DatasetError(path, f"expected an array of shape [V, 17] (3x5 pose-hwf + near, far), got {arr.shape}")
+    arr = arr.astype(np.float64)
+    bad = ~np.isfinite(arr).all(axis=1)
+    if bad.any():
+        raise DatasetError(path, f"non-finite (NaN/inf) pose or bounds in rows {np.flatnonzero(bad).tolist()}")
+    poses = arr[:, :15].reshape(-1, 3, 5)
+    bounds = arr[:, 15:17]
+    bad = (bounds[:, 0] >= bounds[:, 1]) | (bounds[:, 0] <= 0)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise DatasetError(path, f"need 0 < near < far, got near={bounds[i, 0]} far={bounds[i, 1]} in row {i}"
+                           f" (rows {np.flatnonzero(bad).tolist()})")
+    hwf = poses[:, :, 4]
+    if (hwf <= 0).any():
+        raise DatasetError(path, "hwf column (height, width, focal) must be positive")
+    return poses, bounds
+
+
+def list_images(folder: Path) -> list[Path]:
+    """Image files of a folder in sorted order; DatasetError if the folder is missing or empty."""
+    if not folder.is_dir():
+        raise DatasetError(folder, "missing image folder")
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise DatasetError(folder, f"no images ({'/'.join(IMAGE_SUFFIXES)}) in folder")
+    return files
+
+
+def load_llff(
+    root: str | Path,
+    *,
+    images: str | int = 8,
+    split_every: int = 5,
+    load_points: bool = True,
+) -> SceneDataset:
+    """Load an LLFF scene.
+
+    Args:
+        root: scene folder holding ``poses_bounds.npy``.
+        images: image folder name (``"images_8"``) or downsampling factor (8 -> ``images_8``,
+            1 -> ``images``).
+        split_every: SPEC 7 split, train = ``index % split_every == 0``, test = the rest.
+        load_points: read ``sparse/0/points3D.bin`` (if present) into ``points3d``; the points
+            also bound the scene box.
+
+    Returns:
+        SceneDataset with OpenCV cameras, near/far from the file (camera-z), no depth maps,
+        ``forward_facing=True``.
+    """
+    root = Path(root)
+    poses_file = root / "poses_bounds.npy"
+    poses, bounds = read_poses_bounds(poses_file)
+    if isinstance(images, int):
+        folder = root / ("images" if images == 1 else f"images_{images}")
+    else:
+        folder = root / images
+    files = list_images(folder)
+    if len(files) != poses.shape[0]:
+        raise DatasetError(poses_file, f"{poses.shape[0]} poses but {len(files)} images in {folder}")
+    arrays = [read_image(p)[..., :3] for p in files]
+    imgs = stack_images(arrays, files)  # [V, H, W, 3]
+    V, H, W = imgs.shape[:3]
+
+    h0, w0, f0 = poses[:, 0, 4], poses[:, 1, 4], poses[:, 2, 4]
+    scale_w, scale_h = W / w0, H / h0
+    if np.any(np.abs(scale_w / scale_h - 1.0) > _ASPECT_TOLERANCE):
+        raise DatasetError(folder, f"images are {W}x{H} but poses_bounds.npy says the originals are "
+                           f"{w0[0]:.0f}x{h0[0]:.0f}: the aspect ratios differ")
+    K = np.zeros((V, 3, 3))
+    K[:, 0, 0] = f0 * scale_w
+    K[:, 1, 1] = f0 * scale_w
+    K[:, 0, 2] = W / 2.0
+    K[:, 1, 2] = H / 2.0
+    K[:, 2, 2] = 1.0
+    w2c = llff_poses_to_opencv_w2c(torch.from_numpy(poses))
+    cameras = make_cameras(torch.from_numpy(K).float(), w2c.float(), H, W)
+    near = torch.from_numpy(bounds[:, 0]).float()
+    far = torch.from_numpy(bounds[:, 1]).float()
+
+    points = rgb = None
+    points_file = root / "sparse" / "0" / "points3D.bin"
+    if load_points and points_file.is_file():
+        colmap = read_points3d_binary(points_file)
+        points = torch.from_numpy(colmap.xyz).float()
+        rgb = torch.from_numpy(colmap.rgb).float() / 255.0
+    aabb = fit_scene_aabb(cameras, near, far, points, forward_facing=True)
+    train, test = split_every_indices(V, split_every, poses_file)
+    return SceneDataset(
+        name=root.name,
+        root=root,
+        images=imgs,
+        cameras=cameras,
+        near=near,
+        far=far,
+        train_indices=train,
+        test_indices=test,
+        aabb=aabb,
+        points3d=points,
+        points3d_rgb=rgb,
+        image_paths=files,
+        forward_facing=True,
+    )

@@ -1,0 +1,30 @@
+"""Shared fixtures: the read-only reference data and a tiny generated synthetic scene."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+#: Reference data lives beside the clone (``<repo>/../shared/data``), never inside it.
+SHARED_DATA = (REPO_ROOT / ".." / "shared" / "data").resolve()
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """``<repo>/../shared/data`` (LLFF fern/flower, Blender lego); skips when it is absent."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"reference data not found at {SHARED_DATA} (expected ../shared/data beside the repository)")
+    return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory) -> Path:
+    """A small synthetic scene (20 views of 64x48, depth maps, scene.ply) in a session tmp dir.
+
+    Load it with ``stochastic_fields.data.load_dataset(tiny_scene)``; split: every 5th view trains.
+    """
+    from stochastic_fields.data.synthetic import make_synthetic_scene
+
+    return make_synthetic_scene(tmp_path_factory.mktemp("tiny_scene"), num_views=20, width=64, height=48, seed=0)
