@@ -61,3 +61,9 @@ OCCUPANCY_ALPHA_THRESHOLD: float = 1e-4
 #: Density upper estimate for occupancy updates: relu(mu_a + n * s_a) with n = 3 standard
 #: deviations, exceeded by a draw with probability 1 - Phi(3) = 0.13%.
 OCCUPANCY_UPPER_NUM_STD: float = 3.0
+
+#: NeRF-W's beta_min (Martin-Brualla et al. 2021, Sec. 4.2: 0.03): floor of the rendered colour
+#: standard deviation of the ``nerfw`` baseline, v = sum_i w_i beta_i^2 + beta_min^2. Without it
+#: the learned-variance NLL rewards v -> 0 on well-fitted pixels and diverges (log v -> -inf);
+#: 0.03 is about 8 levels of 8-bit colour, above the pixel noise of real captures.
+NERFW_BETA_MIN: float = 0.03

@@ -65,3 +65,10 @@ def resolve_device(name: str) -> torch.device:
     if name == "cuda" and not torch.cuda.is_available():
         raise ValueError("train.device='cuda' but no CUDA device is available")
     return torch.device(name)
+
+
+# --------------------------------------------------------------------------- baselines (SPEC 5)
+# Registered last: models.baselines imports build_field from this module lazily.
+from .baselines import BASELINE_BUILDERS as _BASELINE_BUILDERS  # noqa: E402
+
+METHODS.update(_BASELINE_BUILDERS)

@@ -1,0 +1,501 @@
+"""The paper's baselines (Table 1, SPEC 5) as real ``RadianceModel``s.
+
+Every baseline uses the configured field backend (``field.backend``: the same backbone as
+S-NeRF), the same samplers, quadrature, background and chunked rendering, and trains through
+the same ``Trainer`` (same budget, split, seeds). None of them models a distribution over
+fields, so all of them render the *mean field* (``draw_trajectories(deterministic=True)``:
+density relu(mu_a), colour sigmoid(mu_c); the field's scale outputs are unused, except NeRF-W's,
+which reads the colour-scale head as its beta).
+
+Methods (registry names):
+
+* ``deterministic``: one field, K = 1, Gaussian likelihood with S-NeRF's noise scale
+  ``loss.likelihood_std`` (= MSE / (2 sigma_n^2) + const). It has no uncertainty: its colour
+  variance is exactly zero (NLL is scored at the metric's variance floor, correlations are
+  undefined). Its depth variance is the termination spread of its single trajectory (the
+  epistemic part is zero).
+* ``mc_dropout``: one field with dropout (rate ``field.dropout``, ``DEFAULT_DROPOUT_RATE`` when
+  the config says 0). MLP backend: dropout after the odd trunk layers (``MLPField``). Grid
+  backend: dropout on the interpolated grid features (every channel, before the density
+  read-out and the colour decoder: the grid plays the MLP trunk's role) and on the colour
+  decoder's hidden layer (``GridDropoutField``). Trained with dropout on; renders P passes
+  (default ``DEFAULT_MC_DROPOUT_PASSES`` = 5, ``num_draws`` overrides) with dropout on; colour
+  mean/variance, depth mean, epistemic depth variance across passes, spread averaged.
+* ``ensemble``: M = ``DEFAULT_ENSEMBLE_SIZE`` (5) independently initialised deterministic
+  fields trained together on the same batches (sum of their likelihoods); moments across
+  members as for MC-Dropout.
+* ``nerfw``: NeRF-W-style uncertainty without appearance/transient embeddings. Per point
+  ``beta_ic = softplus(raw_ic)`` from the colour-scale head (per channel), rendered as an extra
+  channel ``v_rc = sum_i w_i beta_ic^2 + beta_min^2`` (``constants.NERFW_BETA_MIN``) and
+  trained with the Gaussian NLL ``sum_c [0.5 (c_c - C_c)^2 / v_c + 0.5 log v_c] + const``
+  (NeRF-W's transient-density sparsity term has no counterpart without a transient field and is
+  left out). Predicted colour variance = ``v``; depth as the deterministic NeRF.
+
+Dropout masks are drawn from the generator the caller passes (the trainer's draw generator,
+the evaluation seed), so training and renders are reproducible (``SeededDropout``).
+
+Grid backend and deterministic draws: relu(mu_a) has zero gradient where mu_a < 0, and the grid
+starts every cell at ``field.grid_init_density_loc`` (-1 by default, chosen for S-NeRF's random
+draws). Deterministic methods therefore start the grid at the *same mean density* S-NeRF starts
+from, ``E[relu(N(mu_0, s_0^2))] = mu_0 Phi(mu_0/s_0) + s_0 phi(mu_0/s_0)`` (0.083 for
+mu_0 = -1, s_0 = 1), so their density can learn (``deterministic_density_init``). Ensemble
+members on the grid also get independent density-cell noise (``ENSEMBLE_GRID_DENSITY_NOISE``)
+since the grid's density cells otherwise start identical in every member.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import math
+from dataclasses import replace
+from typing import Callable, Iterator
+
+import torch
+from torch import Tensor, nn
+
+from ..constants import NERFW_BETA_MIN, OUTSIDE_DENSITY_LOC
+from ..fields.base import FieldParams, StochasticField, positive_scale
+from ..fields.grid import GridField
+from ..losses import LossConfig, gaussian_likelihood_nll
+from ..rays import RayBundle
+from ..renderer import MAP_NAMES, RenderSettings, RayRender, render_rays
+from ..volume_rendering import TrajectoryStatistics, accumulate, statistics_from_draws
+from .base import RadianceModel
+
+#: Dropout rate of ``mc_dropout`` when ``field.dropout`` is 0 (the common MC-Dropout choice).
+DEFAULT_DROPOUT_RATE: float = 0.2
+#: Stochastic forward passes of MC-Dropout at render time (the paper: 5).
+DEFAULT_MC_DROPOUT_PASSES: int = 5
+#: Members of the deep ensemble (the paper: 5).
+DEFAULT_ENSEMBLE_SIZE: int = 5
+#: Std of the per-member density-cell noise of grid ensembles, relative to the initial mean
+#: density: N(0, (0.5 mu_0)^2) per point, so about 2% of points start below zero.
+ENSEMBLE_GRID_DENSITY_NOISE: float = 0.5
+
+
+# --------------------------------------------------------------------------------------------
+# dropout with an explicit generator
+# --------------------------------------------------------------------------------------------
+
+
+class SeededDropout(nn.Module):
+    """Inverted dropout ``x * m / (1 - p)``, ``m ~ Bernoulli(1 - p)`` elementwise.
+
+    Active while the module is in training mode or ``always_on`` is set (MC-Dropout renders).
+    Masks come from ``generator`` (set by the owning model for the duration of a call; None:
+    torch's global generator), so runs are reproducible and resumable.
+
+    Shapes: x [*B] -> [*B].
+    """
+
+    def __init__(self, p: float):
+        super().__init__()
+        if not 0.0 <= p < 1.0:
+            raise ValueError(f"dropout rate must be in [0, 1), got {p}")
+        self.p = float(p)
+        self.generator: torch.Generator | None = None
+        self.always_on = False
+
+    def forward(self, x: Tensor) -> Tensor:
+        if self.p == 0.0 or not (self.training or self.always_on):
+            return x
+        keep = torch.rand(x.shape, generator=self.generator, device=x.device, dtype=x.dtype) >= self.p
+        return x * keep / (1.0 - self.p)
+
+    def extra_repr(self) -> str:
+        return f"p={self.p}"
+
+
+@contextlib.contextmanager
+def dropout_control(module: nn.Module, generator: torch.Generator | None, *, always_on: bool | None = None) -> Iterator[None]:
+    """Set the generator (and optionally ``always_on``) of every ``SeededDropout`` in ``module``
+    for the duration of the block; restore them afterwards."""
+    layers = [m for m in module.modules() if isinstance(m, SeededDropout)]
+    saved = [(m.generator, m.always_on) for m in layers]
+    for m in layers:
+        m.generator = generator
+        if always_on is not None:
+            m.always_on = always_on
+    try:
+        yield
+    finally:
+        for m, (g, on) in zip(layers, saved):
+            m.generator, m.always_on = g, on
+
+
+class GridDropoutField(StochasticField):
+    """A ``GridField`` with MC-Dropout: dropout on the interpolated features and on the colour
+    decoder's hidden layer.
+
+        v = dropout(g(x))                              all grid channels [P, 2 + F]
+        mu_a = v_0 (outside the region: OUTSIDE_DENSITY_LOC)
+        mu_c, raw_s_c = W_2 dropout(relu(W_1 [v_2.., PE(d)]))   (decoder_width > 0)
+
+    Zeroing a negative mu_a keeps the point empty (relu(0) = 0): dropout never creates density
+    in empty space. Parameters are those of the wrapped grid (its state-dict keys get the
+    ``grid.`` prefix).
+    """
+
+    def __init__(self, grid: GridField, p: float):
+        super().__init__()
+        self.grid = grid
+        self.feature_dropout = SeededDropout(p)
+        self.hidden_dropout = SeededDropout(p)
+
+    def forward(self, positions: Tensor, directions: Tensor) -> FieldParams:
+        g = self.grid
+        batch = positions.shape[:-1]
+        unit = g.region.to_unit(positions.reshape(-1, 3))
+        values = self.feature_dropout(g._interpolate(unit))  # [P, C]
+        outside = ~(unit.abs() <= 1.0).all(-1)
+        density_loc = torch.where(outside, torch.full_like(values[:, 0], OUTSIDE_DENSITY_LOC), values[:, 0])
+        if g.decoder_width > 0:
+            d = g.dir_enc(directions.reshape(-1, 3))
+            first, last = g.decoder[0], g.decoder[-1]
+            hidden = self.hidden_dropout(torch.relu(first(torch.cat([values[:, 2:], d], dim=-1))))
+            col = last(hidden)
+        else:
+            col = values[:, 2:8]
+        return FieldParams(
+            density_loc=density_loc.reshape(batch),
+            density_scale=positive_scale(values[:, 1]).reshape(batch),
+            rgb_loc=col[:, :3].reshape(*batch, 3),
+            rgb_scale=positive_scale(col[:, 3:]).reshape(*batch, 3),
+        )
+
+    def density_params(self, positions: Tensor) -> tuple[Tensor, Tensor]:
+        """Without dropout (occupancy-style queries want the mean field)."""
+        return self.grid.density_params(positions)
+
+
+# --------------------------------------------------------------------------------------------
+# rendering helpers
+# --------------------------------------------------------------------------------------------
+
+
+def render_mean_field(field: StochasticField, rays: RayBundle, settings: RenderSettings, *, stratified: bool = False,
+                      generator: torch.Generator | None = None) -> RayRender:
+    """One trajectory of the mean field (eps = 0) per ray: rays [R] -> stats with K = 1."""
+    return render_rays(field, rays, settings, num_draws=1, stratified=stratified, deterministic=True,
+                       generator=generator)
+
+
+def stack_draws(parts: list[TrajectoryStatistics]) -> TrajectoryStatistics:
+    """Moments over the union of the draws of several renders of the same rays.
+
+    Each part has per-draw fields [R, K_j, ...]; the result treats all sum_j K_j trajectories
+    (dropout passes, ensemble members) as the draws: colour mean/variance, depth mean, epistemic
+    variance Var D_k, spread E V_k, total = their sum.
+    """
+    return statistics_from_draws(torch.cat([p.colour_draws for p in parts], dim=1),
+                                 torch.cat([p.depth_draws for p in parts], dim=1),
+                                 torch.cat([p.spread_draws for p in parts], dim=1),
+                                 torch.cat([p.opacity_draws for p in parts], dim=1))
+
+
+@torch.no_grad()
+def render_chunked(render_chunk: Callable[[RayBundle], TrajectoryStatistics], rays: RayBundle, chunk_rays: int, *,
+                   keep_draws: bool = False, progress: bool = False) -> dict[str, Tensor]:
+    """``renderer.render_image`` for any per-chunk renderer: rays [H, W] -> maps [H, W] /
+    [H, W, 3] (``MAP_NAMES``, ray-distance units), ``z_scale`` [H, W], and with ``keep_draws``
+    ``depth_draws`` [H, W, K] and ``colour_draws`` [H, W, K, 3]."""
+    from tqdm.auto import tqdm
+
+    shape = rays.shape
+    flat = rays.flatten()
+    out: dict[str, list[Tensor]] = {name: [] for name in MAP_NAMES}
+    if keep_draws:
+        out["depth_draws"], out["colour_draws"] = [], []
+    for start in tqdm(range(0, len(flat), chunk_rays), desc="render", disable=not progress, leave=False):
+        stats = render_chunk(flat[start:start + chunk_rays])
+        for name in MAP_NAMES:
+            out[name].append(getattr(stats, name))
+        if keep_draws:
+            out["depth_draws"].append(stats.depth_draws)
+            out["colour_draws"].append(stats.colour_draws)
+    maps = {}
+    for name, parts in out.items():
+        flat_map = torch.cat(parts)
+        maps[name] = flat_map.reshape(*shape, *flat_map.shape[1:])
+    maps["z_scale"] = rays.z_scale
+    return maps
+
+
+def grid_total_variation(module: nn.Module, generator: torch.Generator | None) -> Tensor | None:
+    """Sum of ``GridField.total_variation`` over every grid inside ``module`` (None: no grid)."""
+    grids = [m for m in module.modules() if isinstance(m, GridField)]
+    if not grids:
+        return None
+    return torch.stack([g.total_variation(generator=generator) for g in grids]).sum()
+
+
+class _MeanFieldModel(RadianceModel):
+    """Shared parts: settings, the grid TV term and the grid learning rates (as S-NeRF)."""
+
+    def __init__(self, render_settings: RenderSettings, loss: LossConfig, *, num_draws: int, tv_weight: float):
+        super().__init__()
+        # num_draws here is what a render produces (passes, members or 1), so reports that read
+        # render_settings.num_draws state the right K.
+        self.render_settings = replace(render_settings, num_draws=num_draws)
+        self.loss_config = loss
+        self.tv_weight = tv_weight
+
+    def _regularise(self, loss: Tensor, logs: dict[str, float], generator: torch.Generator | None) -> Tensor:
+        if self.tv_weight > 0:
+            tv = grid_total_variation(self, generator)
+            if tv is not None:
+                logs["tv"] = float(tv.detach())
+                return loss + self.tv_weight * tv
+        return loss
+
+    def param_groups(self, lr: float) -> list[dict]:
+        """Grid cells at 10 x lr (as S-NeRF), everything else at lr."""
+        grid = [p for m in self.modules() if isinstance(m, GridField) for p in m.levels.parameters()]
+        if not grid:
+            return super().param_groups(lr)
+        ids = {id(p) for p in grid}
+        rest = [p for p in self.parameters() if id(p) not in ids and p.requires_grad]
+        return [{"params": grid, "lr": lr * 10.0}, {"params": rest, "lr": lr}]
+
+
+# --------------------------------------------------------------------------------------------
+# the baselines
+# --------------------------------------------------------------------------------------------
+
+
+class DeterministicNeRF(_MeanFieldModel):
+    """A deterministic NeRF on the configured backbone: K = 1, colour variance 0."""
+
+    def __init__(self, field: StochasticField, render_settings: RenderSettings, loss: LossConfig, *,
+                 tv_weight: float = 0.0):
+        super().__init__(render_settings, loss, num_draws=1, tv_weight=tv_weight)
+        self.field = field
+
+    def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
+                      generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
+        out = render_mean_field(self.field, rays, self.render_settings, stratified=True, generator=generator)
+        nll = gaussian_likelihood_nll(out.stats.colour_draws, target, self.loss_config.likelihood_std)
+        logs = {"nll": float(nll.detach()), "mse": float(((out.stats.colour_mean.detach() - target) ** 2).mean())}
+        return self._regularise(nll, logs, generator), logs
+
+    def render_view(self, rays: RayBundle, *, num_draws: int | None = None,
+                    generator: torch.Generator | None = None, keep_draws: bool = False,
+                    progress: bool = False) -> dict[str, Tensor]:
+        """``num_draws`` is ignored (one trajectory)."""
+        def chunk(r: RayBundle) -> TrajectoryStatistics:
+            return render_mean_field(self.field, r, self.render_settings, generator=generator).stats
+
+        return render_chunked(chunk, rays, self.render_settings.chunk_rays, keep_draws=keep_draws, progress=progress)
+
+
+class MCDropoutNeRF(_MeanFieldModel):
+    """MC-Dropout: trained with dropout on, rendered as P stochastic passes with dropout on."""
+
+    def __init__(self, field: StochasticField, render_settings: RenderSettings, loss: LossConfig, *,
+                 passes: int = DEFAULT_MC_DROPOUT_PASSES, tv_weight: float = 0.0):
+        super().__init__(render_settings, loss, num_draws=passes, tv_weight=tv_weight)
+        if not any(isinstance(m, SeededDropout) for m in field.modules()):
+            raise ValueError("MCDropoutNeRF needs a field with SeededDropout layers (see build_mc_dropout)")
+        if passes < 1:
+            raise ValueError(f"MC-Dropout needs at least one pass, got passes={passes}")
+        self.field = field
+        self.passes = passes
+
+    def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
+                      generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
+        with dropout_control(self, generator, always_on=True):
+            out = render_mean_field(self.field, rays, self.render_settings, stratified=True, generator=generator)
+        nll = gaussian_likelihood_nll(out.stats.colour_draws, target, self.loss_config.likelihood_std)
+        logs = {"nll": float(nll.detach()), "mse": float(((out.stats.colour_mean.detach() - target) ** 2).mean())}
+        return self._regularise(nll, logs, generator), logs
+
+    def render_view(self, rays: RayBundle, *, num_draws: int | None = None,
+                    generator: torch.Generator | None = None, keep_draws: bool = False,
+                    progress: bool = False) -> dict[str, Tensor]:
+        """``num_draws``: number of dropout passes P (default ``self.passes``)."""
+        passes = self.passes if num_draws is None else int(num_draws)
+        if passes < 1:
+            raise ValueError(f"MC-Dropout needs at least one pass, got num_draws={num_draws}")
+
+        def chunk(r: RayBundle) -> TrajectoryStatistics:
+            return stack_draws([render_mean_field(self.field, r, self.render_settings, generator=generator).stats
+                                for _ in range(passes)])
+
+        with dropout_control(self, generator, always_on=True):
+            return render_chunked(chunk, rays, self.render_settings.chunk_rays, keep_draws=keep_draws,
+                                  progress=progress)
+
+
+class DeepEnsemble(_MeanFieldModel):
+    """M independently initialised mean fields trained on the same batches; moments across members."""
+
+    def __init__(self, fields: list[StochasticField], render_settings: RenderSettings, loss: LossConfig, *,
+                 tv_weight: float = 0.0):
+        if len(fields) < 1:
+            raise ValueError("an ensemble needs at least one member")
+        super().__init__(render_settings, loss, num_draws=len(fields), tv_weight=tv_weight)
+        self.members = nn.ModuleList(fields)
+
+    def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
+                      generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
+        """Sum over members of each member's Gaussian likelihood NLL (members are independent:
+        the sum's gradient w.r.t. a member is that member's own gradient)."""
+        nlls, mses = [], []
+        for field in self.members:
+            out = render_mean_field(field, rays, self.render_settings, stratified=True, generator=generator)
+            nlls.append(gaussian_likelihood_nll(out.stats.colour_draws, target, self.loss_config.likelihood_std))
+            mses.append(float(((out.stats.colour_mean.detach() - target) ** 2).mean()))
+        loss = torch.stack(nlls).sum()
+        logs = {"nll": float(loss.detach()) / len(nlls), "mse": sum(mses) / len(mses)}
+        return self._regularise(loss, logs, generator), logs
+
+    def render_view(self, rays: RayBundle, *, num_draws: int | None = None,
+                    generator: torch.Generator | None = None, keep_draws: bool = False,
+                    progress: bool = False) -> dict[str, Tensor]:
+        """``num_draws`` is ignored: the draws are the M members."""
+        def chunk(r: RayBundle) -> TrajectoryStatistics:
+            return stack_draws([render_mean_field(f, r, self.render_settings, generator=generator).stats
+                                for f in self.members])
+
+        return render_chunked(chunk, rays, self.render_settings.chunk_rays, keep_draws=keep_draws, progress=progress)
+
+
+def nerfw_point_variance(params: FieldParams) -> Tensor:
+    """Per-point, per-channel beta_i^2 from the colour-scale head: params [*B] -> [*B, 3].
+
+    ``beta = softplus(raw) = rgb_scale - FIELD_STD_FLOOR`` (``rgb_scale`` is softplus(raw) + floor);
+    clamped at 0 against rounding.
+    """
+    from ..constants import FIELD_STD_FLOOR
+
+    return (params.rgb_scale - FIELD_STD_FLOOR).clamp_min(0.0) ** 2
+
+
+def nerfw_ray_variance(weights: Tensor, point_variance: Tensor, beta_min: float = NERFW_BETA_MIN) -> Tensor:
+    """The rendered variance channel: ``v_rc = sum_i w_i beta_ic^2 + beta_min^2``.
+
+    Shapes: weights [R, S], point_variance [R, S, 3] -> [R, 3].
+    """
+    return accumulate(weights, point_variance) + beta_min ** 2
+
+
+def gaussian_nll_learned_variance(colour: Tensor, target: Tensor, variance: Tensor) -> Tensor:
+    """Mean over rays of ``sum_c [0.5 (C_c - c_c)^2 / v_c + 0.5 log v_c + 0.5 log 2 pi]``.
+
+    Shapes: colour, target, variance [R, 3] -> scalar.
+    """
+    per = 0.5 * (colour - target) ** 2 / variance + 0.5 * torch.log(variance) + 0.5 * math.log(2 * math.pi)
+    return per.sum(-1).mean()
+
+
+class NeRFWUncertainty(_MeanFieldModel):
+    """NeRF-W-style uncertainty: a per-point variance rendered as an extra channel, Gaussian NLL."""
+
+    def __init__(self, field: StochasticField, render_settings: RenderSettings, loss: LossConfig, *,
+                 beta_min: float = NERFW_BETA_MIN, tv_weight: float = 0.0):
+        super().__init__(render_settings, loss, num_draws=1, tv_weight=tv_weight)
+        if not beta_min > 0:
+            raise ValueError(f"beta_min must be > 0, got {beta_min}")
+        self.field = field
+        self.beta_min = float(beta_min)
+
+    def _render(self, rays: RayBundle, *, stratified: bool,
+                generator: torch.Generator | None) -> tuple[TrajectoryStatistics, Tensor]:
+        """(stats with K = 1, rendered variance [R, 3])."""
+        out = render_mean_field(self.field, rays, self.render_settings, stratified=stratified, generator=generator)
+        weights = out.extras["weights"][:, 0]  # [R, S]
+        var = nerfw_ray_variance(weights, nerfw_point_variance(out.params), self.beta_min)
+        return out.stats, var
+
+    def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
+                      generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
+        stats, var = self._render(rays, stratified=True, generator=generator)
+        nll = gaussian_nll_learned_variance(stats.colour_mean, target, var)
+        logs = {"nll": float(nll.detach()), "mse": float(((stats.colour_mean.detach() - target) ** 2).mean()),
+                "beta_rms": float(var.detach().mean().sqrt())}
+        return self._regularise(nll, logs, generator), logs
+
+    def render_view(self, rays: RayBundle, *, num_draws: int | None = None,
+                    generator: torch.Generator | None = None, keep_draws: bool = False,
+                    progress: bool = False) -> dict[str, Tensor]:
+        """``num_draws`` is ignored (one trajectory); ``colour_var`` is the rendered variance."""
+        def chunk(r: RayBundle) -> TrajectoryStatistics:
+            stats, var = self._render(r, stratified=False, generator=generator)
+            return replace(stats, colour_var=var)
+
+        return render_chunked(chunk, rays, self.render_settings.chunk_rays, keep_draws=keep_draws, progress=progress)
+
+
+# --------------------------------------------------------------------------------------------
+# builders (registered in models.registry.METHODS)
+# --------------------------------------------------------------------------------------------
+
+
+def mean_relu(loc: float, scale: float) -> float:
+    """E[relu(X)], X ~ N(loc, scale^2): ``loc Phi(loc/scale) + scale phi(loc/scale)``."""
+    z = loc / scale
+    Phi = 0.5 * math.erfc(-z / math.sqrt(2.0))
+    phi = math.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+    return loc * Phi + scale * phi
+
+
+def deterministic_density_init(cfg):
+    """A copy of ``cfg`` whose grid starts at S-NeRF's initial *mean* density (see module doc)."""
+    cfg = copy.deepcopy(cfg)
+    if cfg.field.backend == "grid":
+        cfg.field.grid_init_density_loc = mean_relu(cfg.field.grid_init_density_loc, cfg.field.init_std)
+    return cfg
+
+
+def _build_field(cfg, dataset, region):
+    from .registry import build_field  # late import: registry imports this module at its end
+
+    return build_field(cfg, region, dataset)
+
+
+def build_deterministic(cfg, dataset, region) -> RadianceModel:
+    c = deterministic_density_init(cfg)
+    return DeterministicNeRF(_build_field(c, dataset, region), cfg.render, cfg.loss, tv_weight=cfg.train.tv_weight)
+
+
+def build_mc_dropout(cfg, dataset, region, *, passes: int = DEFAULT_MC_DROPOUT_PASSES) -> RadianceModel:
+    c = deterministic_density_init(cfg)
+    rate = c.field.dropout if c.field.dropout > 0 else DEFAULT_DROPOUT_RATE
+    c.field.dropout = rate
+    field = _build_field(c, dataset, region)
+    if isinstance(field, GridField):
+        field = GridDropoutField(field, rate)
+    elif isinstance(getattr(field, "dropout", None), nn.Dropout):
+        field.dropout = SeededDropout(rate)  # MLPField: dropout after the odd trunk layers
+    else:
+        raise ValueError(f"mc_dropout does not know where to put dropout in a {type(field).__name__}")
+    return MCDropoutNeRF(field, cfg.render, cfg.loss, passes=passes, tv_weight=cfg.train.tv_weight)
+
+
+def build_ensemble(cfg, dataset, region, *, members: int = DEFAULT_ENSEMBLE_SIZE) -> RadianceModel:
+    c = deterministic_density_init(cfg)
+    fields = []
+    for _ in range(members):
+        field = _build_field(c, dataset, region)  # each draws its own initial weights
+        if isinstance(field, GridField):
+            noise = ENSEMBLE_GRID_DENSITY_NOISE * abs(c.field.grid_init_density_loc) / math.sqrt(len(field.levels))
+            with torch.no_grad():
+                for level in field.levels:  # independent per level: the summed std is noise * sqrt(L)
+                    level[:, 0].add_(noise * torch.randn_like(level[:, 0]))
+        fields.append(field)
+    return DeepEnsemble(fields, cfg.render, cfg.loss, tv_weight=cfg.train.tv_weight)
+
+
+def build_nerfw(cfg, dataset, region) -> RadianceModel:
+    c = deterministic_density_init(cfg)
+    return NeRFWUncertainty(_build_field(c, dataset, region), cfg.render, cfg.loss, tv_weight=cfg.train.tv_weight)
+
+
+#: Registry entries: method name -> builder(cfg, dataset, region).
+BASELINE_BUILDERS: dict[str, Callable] = {
+    "deterministic": build_deterministic,
+    "mc_dropout": build_mc_dropout,
+    "ensemble": build_ensemble,
+    "nerfw": build_nerfw,
+}
