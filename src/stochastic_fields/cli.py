@@ -18,8 +18,6 @@ from . import config as C
 def _add_experiment_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default=None, choices=C.PRESETS,
                    help="Start from a named preset (default: 'default', or the run's saved config when resuming).")
-    p.add_argument("--method", default=argparse.SUPPRESS,
-                   help="Method to train: snerf or a baseline (deterministic, mc_dropout, ensemble, nerfw when available).")
     C.add_config_arguments(p)
 
 
@@ -30,8 +28,6 @@ def experiment_from_args(args: argparse.Namespace, run_dir: Path) -> C.Experimen
         cfg = C.load_config(saved)
     else:
         cfg = C.preset(args.preset or "default")
-    if getattr(args, "method", None):
-        cfg.method = args.method
     return C.apply_overrides(cfg, args)
 
 

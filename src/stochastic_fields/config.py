@@ -13,7 +13,7 @@ import inspect
 import json
 import textwrap
 import typing
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field as dc_field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -95,11 +95,11 @@ class ExperimentConfig:
 
     method: str = "snerf"
     """Method: snerf (S-NeRF) or a baseline (see stochastic_fields.models.registry)."""
-    data: DataConfig = field(default_factory=DataConfig)
-    field: FieldConfig = field(default_factory=FieldConfig)
-    render: RenderSettings = field(default_factory=RenderSettings)
-    loss: LossConfig = field(default_factory=LossConfig)
-    train: TrainConfig = field(default_factory=TrainConfig)
+    data: DataConfig = dc_field(default_factory=DataConfig)
+    field: FieldConfig = dc_field(default_factory=FieldConfig)
+    render: RenderSettings = dc_field(default_factory=RenderSettings)
+    loss: LossConfig = dc_field(default_factory=LossConfig)
+    train: TrainConfig = dc_field(default_factory=TrainConfig)
 
 
 def preset(name: str) -> ExperimentConfig:

@@ -33,25 +33,25 @@ class SNeRF(RadianceModel):
                           stratified=True, generator=generator)
         nll = gaussian_likelihood_nll(out.stats.colour_draws, target, cfg.likelihood_std)
         loss = nll
-        logs = {"nll": float(nll), "mse": float(((out.stats.colour_mean - target) ** 2).mean())}
+        logs = {"nll": nll.item(), "mse": ((out.stats.colour_mean.detach() - target) ** 2).mean().item()}
         if cfg.kl in ("fixed_prior", "full"):
             pts = self.region.sample_stratified(cfg.random_points_per_axis, generator=generator)
             dirs = random_unit_directions(len(pts), generator=generator, device=pts.device)
             kl_rand = field_kl(self.field(pts, dirs), self.priors.random(), estimator=cfg.kl_estimator,
                                mc_samples=cfg.kl_mc_samples, generator=generator).mean()
             loss = loss + cfg.lambda_random * kl_rand
-            logs["kl_random"] = float(kl_rand)
+            logs["kl_random"] = kl_rand.item()
         if cfg.kl == "full":
             kl_obs = field_kl(out.params, self.priors.observed(), estimator=cfg.kl_estimator,
                               mc_samples=cfg.kl_mc_samples, generator=generator).mean()
             loss = loss + cfg.lambda_observed * kl_obs
-            logs["kl_observed"] = float(kl_obs)
+            logs["kl_observed"] = kl_obs.item()
         elif cfg.kl != "none":
             raise ValueError(f"loss.kl must be 'none', 'fixed_prior' or 'full', got {cfg.kl!r}")
         if self.tv_weight > 0 and isinstance(self.field, GridField):
             tv = self.field.total_variation(generator=generator)
             loss = loss + self.tv_weight * tv
-            logs["tv"] = float(tv)
+            logs["tv"] = tv.item()
         return loss, logs
 
     def render_view(self, rays: RayBundle, *, num_draws: int | None = None,
