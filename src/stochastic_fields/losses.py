@@ -44,6 +44,8 @@ class LossConfig:
     """Weight of the mean KL over the training-ray samples."""
     random_points_per_axis: int = 12
     """Stratified random KL points: n per axis, n^3 points per step."""
+    observed_kl_samples: int = 4096
+    """Training-ray samples per step on which the observed-prior KL is evaluated (a uniform random subset: an unbiased estimate of the mean over all samples at a fraction of the cost; 0 = all)."""
 
 
 class Priors(nn.Module):

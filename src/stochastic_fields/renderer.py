@@ -74,6 +74,19 @@ class RayRender:
     extras: dict = dataclass_field(default_factory=dict)
 
 
+def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSettings, *, num_draws: int,
+                   deterministic: bool = False, generator: torch.Generator | None = None) -> RayRender:
+    """K trajectories from field parameters already evaluated at ``samples`` ([R, S])."""
+    density, rgb = draw_trajectories(params, num_draws, shared_noise=settings.shared_noise,
+                                     deterministic=deterministic, generator=generator)
+    weights = render_weights(density, samples.t_starts[:, None, :], samples.t_ends[:, None, :], settings.quadrature)
+    background = None
+    if settings.background is not None:
+        background = torch.tensor(settings.background, device=rgb.device, dtype=rgb.dtype)
+    stats = trajectory_statistics(weights, rgb, samples.t_mids[:, None, :], samples.rays.far, background=background)
+    return RayRender(stats=stats, params=params, samples=samples, extras={"weights": weights})
+
+
 def render_rays(field: StochasticField, rays: RayBundle, settings: RenderSettings, *, num_draws: int | None = None,
                 stratified: bool = False, deterministic: bool = False,
                 generator: torch.Generator | None = None) -> RayRender:
@@ -82,14 +95,7 @@ def render_rays(field: StochasticField, rays: RayBundle, settings: RenderSetting
     samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing,
                                 stratified=stratified, generator=generator)
     params = field(samples.positions, samples.directions)
-    density, rgb = draw_trajectories(params, K, shared_noise=settings.shared_noise,
-                                     deterministic=deterministic, generator=generator)
-    weights = render_weights(density, samples.t_starts[:, None, :], samples.t_ends[:, None, :], settings.quadrature)
-    background = None
-    if settings.background is not None:
-        background = torch.tensor(settings.background, device=rgb.device, dtype=rgb.dtype)
-    stats = trajectory_statistics(weights, rgb, samples.t_mids[:, None, :], rays.far, background=background)
-    return RayRender(stats=stats, params=params, samples=samples, extras={"weights": weights})
+    return render_samples(params, samples, settings, num_draws=K, deterministic=deterministic, generator=generator)
 
 
 MAP_NAMES = ("colour_mean", "colour_var", "depth_mean", "depth_var_epistemic", "depth_var_spread",

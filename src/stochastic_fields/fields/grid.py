@@ -123,10 +123,11 @@ class GridField(StochasticField):
             z = torch.randint(0, Z - 1, (num_cells,), generator=generator, device=dev)
             y = torch.randint(0, Y - 1, (num_cells,), generator=generator, device=dev)
             x = torch.randint(0, X - 1, (num_cells,), generator=generator, device=dev)
-            g = level[0]
-            centre = g[:, z, y, x]
-            losses.append(((g[:, z + 1, y, x] - centre) ** 2 + (g[:, z, y + 1, x] - centre) ** 2
-                           + (g[:, z, y, x + 1] - centre) ** 2).mean())
+            centre = (z * Y + y) * X + x
+            # one gather per level (one sparse gradient scatter instead of four)
+            g = level.reshape(C, -1)[:, torch.cat([centre, centre + Y * X, centre + X, centre + 1])]
+            c, nz, ny, nx = g.split(num_cells, dim=1)
+            losses.append(((nz - c) ** 2 + (ny - c) ** 2 + (nx - c) ** 2).mean())
         return torch.stack(losses).sum()
 
 
@@ -138,29 +139,32 @@ def resolution_from_footprint(region: SceneRegion, intrinsics: Tensor, w2c: Tens
     A voxel should cover about ``pixels_per_voxel`` pixels where the cameras see it: the extent of
     the region in unit coordinates is measured against the unit-coordinate distance between the
     projections of neighbouring pixels, at the frustum points of every camera (median).
-    The result is capped at ``max_cells`` cells (isotropically rescaled).
+    Per axis of the unit cube, so a flat region gets few cells across its thin axis. The result
+    is capped at ``max_cells`` cells (all axes scaled by the same factor).
     """
     from ..scene_region import frustum_points
 
     K = intrinsics[:, :3, :3].float()
     pts = frustum_points(K, w2c, height, width, near.reshape(-1).expand(w2c.shape[0]), far.reshape(-1).expand(w2c.shape[0]), grid=5, depths=8)
-    # neighbouring point one pixel to the right, at the same camera depth
+    # world length of one pixel footprint at each frustum point: camera depth / focal length
     V = w2c.shape[0]
     per_view = pts.reshape(V, -1, 3)
     fx = K[:, 0, 0]
     c2w = torch.linalg.inv(w2c.float())
-    right = c2w[:, :3, 0]  # camera x axis in world
     cam_z = ((per_view - c2w[:, None, :3, 3]) * c2w[:, None, :3, 2]).sum(-1)  # [V, P]
-    step = right[:, None, :] * (cam_z / fx[:, None])[..., None]
-    du = (region.to_unit(per_view + step) - region.to_unit(per_view)).abs()  # [V, P, 3]
-    inside = region.contains(per_view)
+    footprint = (cam_z / fx[:, None]).reshape(-1)  # [V * P]
+    flat = per_view.reshape(-1, 3)
+    inside = region.contains(flat)
     if not bool(inside.any()):
         raise ValueError("resolution_from_footprint: no camera frustum point lies inside the scene region")
-    # unit-coordinate size of one pixel footprint: the largest component of the step (any axis)
-    pixel_unit = du.norm(dim=-1)[inside].median()
-    res = int(math.ceil(2.0 / (float(pixel_unit) * pixels_per_voxel)))
-    res = max(min_resolution, res)
-    cells = res ** 3
+    flat, footprint = flat[inside], footprint[inside]
+    base = region.to_unit(flat)
+    # per unit axis a: the largest change of u_a for a footprint-long step along any world axis
+    steps = torch.eye(3, device=flat.device)[:, None, :] * footprint[None, :, None]  # [3, P, 3]
+    du = (region.to_unit(flat[None] + steps) - base[None]).abs().amax(dim=0)  # [P, 3]
+    pixel_unit = du.median(dim=0).values.clamp_min(1e-9)  # [3]
+    res = torch.ceil(2.0 / (pixel_unit * pixels_per_voxel)).clamp_min(min_resolution)
+    cells = float(res.prod())
     if cells > max_cells:
-        res = int(max_cells ** (1 / 3))
-    return (res, res, res)
+        res = torch.ceil(res * (max_cells / cells) ** (1.0 / 3.0)).clamp_min(min_resolution)
+    return tuple(int(r) for r in res.tolist())
