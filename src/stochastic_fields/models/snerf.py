@@ -1,18 +1,39 @@
-"""S-NeRF: a stochastic field trained by variational inference (SPEC 2-4)."""
+"""S-NeRF: a stochastic field trained by variational inference (SPEC 2-4).
+
+Empty-space skipping (``render_settings.skip_empty_space``): an ``OccupancyGrid`` over the scene
+region's unit cube [-1, 1]^3 (``SceneRegion.to_unit``), so the same code serves box (aabb) and
+forward-facing (ndc) regions; in NDC the cells are uniform in image space and disparity, like
+the samples. After each optimiser step (``after_step``, every ``occupancy_update_every`` steps)
+cells are refreshed from the per-sample optical-depth upper estimate
+
+    tau_up(x) = relu(mu_a(x) + 3 s_a(x)) * delta(x)
+
+(uncertain space is not empty: a cell whose density is uncertain stays occupied), where
+``delta(x)`` is the length of one render interval at x: ``(far - near) / S`` for linear spacing,
+``t^2 (1/near - 1/far) / S`` for disparity spacing (t: the distance from the reference camera in
+NDC regions, the largest far bound otherwise; both measured on the training rays). A cell is
+occupied where ``1 - exp(-tau_up) > OCCUPANCY_ALPHA_THRESHOLD`` (then dilated by one cell).
+Training and rendering evaluate the field only at occupied samples (packed layout, alpha
+compositing); the observed-ray KL is then taken over the kept samples.
+"""
 
 from __future__ import annotations
 
 import torch
 from torch import Tensor
 
+from ..constants import OCCUPANCY_UPPER_NUM_STD
 from ..fields.base import StochasticField
 from ..fields.grid import GridField
 from ..losses import LossConfig, Priors, field_kl, gaussian_likelihood_nll
+from ..occupancy import OccupancyGrid, density_threshold
 from ..rays import RayBundle
-from ..renderer import RenderSettings, render_image, render_samples
+from ..renderer import RenderSettings, pack_samples, render_image, render_samples, render_samples_packed
 from ..samplers import sample_along_rays
 from ..scene_region import SceneRegion, random_unit_directions
 from .base import RadianceModel
+
+UNIT_CUBE = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
 
 class SNeRF(RadianceModel):
@@ -26,6 +47,59 @@ class SNeRF(RadianceModel):
         self.loss_config = loss
         self.train_draws = train_draws
         self.tv_weight = tv_weight
+        self.occupancy: OccupancyGrid | None = None
+        if render_settings.skip_empty_space:
+            if render_settings.quadrature != "alpha":
+                raise ValueError("render.skip_empty_space needs render.quadrature='alpha' (the packed trapezoid "
+                                 f"interpolates across skipped gaps), got {render_settings.quadrature!r}")
+            self.occupancy = OccupancyGrid(UNIT_CUBE, render_settings.occupancy_resolution)
+            # (c, t_max): interval length c (linear) or c * t^2 (disparity); 0 until a training batch sets it
+            self.register_buffer("interval_scale", torch.zeros(2))
+
+    # ------------------------------------------------------------------ empty-space skipping
+    def occupied(self, positions: Tensor) -> Tensor:
+        """[*B, 3] world points -> [*B] bool: inside the region in an occupied cell."""
+        if self.occupancy is None:
+            return torch.ones(positions.shape[:-1], dtype=torch.bool, device=positions.device)
+        return self.occupancy.occupied(self.region.to_unit(positions))
+
+    def _record_interval_scale(self, rays: RayBundle) -> None:
+        S = self.render_settings.num_samples
+        if self.render_settings.spacing == "linear":
+            c = ((rays.far - rays.near) / S).max()
+        else:
+            c = ((1.0 / rays.near - 1.0 / rays.far) / S).max()
+        self.interval_scale.copy_(torch.stack([torch.maximum(c, self.interval_scale[0]),
+                                               torch.maximum(rays.far.max(), self.interval_scale[1])]))
+
+    def interval_length(self, unit: Tensor) -> Tensor:
+        """[P] length (ray distance) of one render interval at unit-cube points [P, 3] (see module doc)."""
+        c, t_max = self.interval_scale.to(unit).unbind()
+        if self.render_settings.spacing == "linear":
+            return c.expand(unit.shape[:-1])
+        if self.region.kind == "ndc":
+            world = self.region.from_unit(unit)
+            R, t = self.region.ref_w2c[:3, :3].to(unit), self.region.ref_w2c[:3, 3].to(unit)
+            z = (world @ R.T + t)[..., 2].clamp_min(0.0)
+            tan_x, tan_y, _ = self.region.ndc_scale.to(unit).unbind()
+            # ray distance <= z / cos(corner angle): 1/cos^2 = 1 + tan_x^2 + tan_y^2 at the image corner
+            return c * z ** 2 * (1.0 + tan_x ** 2 + tan_y ** 2)
+        return (c * t_max ** 2).expand(unit.shape[:-1])
+
+    def optical_depth_upper(self, unit: Tensor) -> Tensor:
+        """[P] upper estimate relu(mu_a + 3 s_a) * delta of one interval's optical depth at unit points [P, 3]."""
+        loc, scale = self.field.density_params(self.region.from_unit(unit))
+        return torch.relu(loc + OCCUPANCY_UPPER_NUM_STD * scale) * self.interval_length(unit)
+
+    def after_step(self, step: int) -> None:
+        """Refresh the occupancy grid (every ``occupancy_update_every`` steps; seeded by the step)."""
+        if self.occupancy is None or not bool(self.interval_scale[0] > 0):
+            return
+        settings = self.render_settings
+        gen = torch.Generator(device=self.occupancy.occupancy.device).manual_seed(int(step))
+        self.occupancy.update(self.optical_depth_upper, step, threshold=density_threshold(1.0),
+                              warmup_steps=settings.occupancy_warmup_steps,
+                              update_every_n_steps=settings.occupancy_update_every, generator=gen)
 
     def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
                       generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
@@ -33,6 +107,10 @@ class SNeRF(RadianceModel):
         settings = self.render_settings
         samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing, stratified=True,
                                     generator=generator)
+        if self.occupancy is not None:
+            with torch.no_grad():
+                self._record_interval_scale(rays)
+                samples = pack_samples(samples, self.occupied(samples.positions))
         positions, directions = samples.positions.reshape(-1, 3), samples.directions.reshape(-1, 3)
         use_random_kl = cfg.kl in ("fixed_prior", "full")
         if use_random_kl:
@@ -43,17 +121,21 @@ class SNeRF(RadianceModel):
         params_all = self.field(positions, directions)
         n_ray = samples.t_starts.numel()
         params = params_all.map(lambda t: t[:n_ray]).reshape(*samples.t_starts.shape)
-        out = render_samples(params, samples, settings, num_draws=self.train_draws, generator=generator)
+        if self.occupancy is not None:
+            out = render_samples_packed(params, samples, settings, num_draws=self.train_draws, generator=generator)
+        else:
+            out = render_samples(params, samples, settings, num_draws=self.train_draws, generator=generator)
         nll = gaussian_likelihood_nll(out.stats.colour_draws, target, cfg.likelihood_std)
         loss = nll
-        logs = {"nll": nll.item(), "mse": ((out.stats.colour_mean.detach() - target) ** 2).mean().item()}
+        logs = {"nll": nll.item(), "mse": ((out.stats.colour_mean.detach() - target) ** 2).mean().item(),
+                "field_evals_per_ray": n_ray / max(len(rays), 1)}
         if use_random_kl:
             kl_rand = field_kl(params_all.map(lambda t: t[n_ray:]), self.priors.random(), estimator=cfg.kl_estimator,
                                mc_samples=cfg.kl_mc_samples, generator=generator).mean()
             loss = loss + cfg.lambda_random * kl_rand
             logs["kl_random"] = kl_rand.item()
         if cfg.kl == "full":
-            obs = out.params.map(lambda t: t.reshape(-1, *t.shape[2:]))
+            obs = out.params.map(lambda t: t.reshape(-1, *t.shape[out.params.density_loc.dim():]))
             n_obs = cfg.observed_kl_samples
             if 0 < n_obs < obs.density_loc.shape[0]:
                 pick = torch.randperm(obs.density_loc.shape[0], generator=generator, device=obs.density_loc.device)[:n_obs]
@@ -62,7 +144,7 @@ class SNeRF(RadianceModel):
                               mc_samples=cfg.kl_mc_samples, generator=generator).mean()
             loss = loss + cfg.lambda_observed * kl_obs
             logs["kl_observed"] = kl_obs.item()
-        elif cfg.kl != "none":
+        elif cfg.kl not in ("none", "fixed_prior"):
             raise ValueError(f"loss.kl must be 'none', 'fixed_prior' or 'full', got {cfg.kl!r}")
         if self.tv_weight > 0 and isinstance(self.field, GridField):
             tv = self.field.total_variation(generator=generator)
@@ -73,8 +155,17 @@ class SNeRF(RadianceModel):
     def render_view(self, rays: RayBundle, *, num_draws: int | None = None,
                     generator: torch.Generator | None = None, keep_draws: bool = False,
                     progress: bool = False) -> dict[str, Tensor]:
-        return render_image(self.field, rays, self.render_settings, num_draws=num_draws, generator=generator,
-                            keep_draws=keep_draws, progress=progress)
+        """Maps of ``rays`` [H, W]; adaptive K when ``render_settings.adaptive_draws`` and no ``num_draws``
+        is given (then maps hold ``num_draws`` [H, W], the K each chunk of pixels needed)."""
+        occupied = self.occupied if self.occupancy is not None else None
+        settings = self.render_settings
+        if settings.adaptive_draws and num_draws is None:
+            from ..adaptive import render_image_adaptive
+
+            return render_image_adaptive(self.field, rays, settings, generator=generator, keep_draws=keep_draws,
+                                         progress=progress, occupied=occupied)
+        return render_image(self.field, rays, settings, num_draws=num_draws, generator=generator,
+                            keep_draws=keep_draws, progress=progress, occupied=occupied)
 
     def param_groups(self, lr: float) -> list[dict]:
         if isinstance(self.field, GridField):
