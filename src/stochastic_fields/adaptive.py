@@ -10,8 +10,10 @@ from all K draws so far, and drawing stops when both changed by less than ``rtol
 (a relative L1 change over the chunk's pixels; single pixels are too noisy to test one by
 one), or when ``K`` reaches ``max_draws``. Variances below the floors are what the metrics
 cannot tell apart (``NLL_VARIANCE_FLOOR`` for colour, ``DEPTH_NLL_VARIANCE_FLOOR`` for depth):
-if after the first batch every pixel of the chunk is below both floors (a near-deterministic
-field, sigma -> 0) there is nothing left to estimate and drawing stops at K = b.
+if after the first batch the colour variance and the epistemic depth variance (variance of
+D_k over draws) of every pixel of the chunk are below them, the draws are (nearly) identical
+(a near-deterministic field, sigma -> 0), every estimate including the termination spread is
+already exact, and drawing stops at K = b.
 
 The K each chunk needed is returned as a map ``num_draws`` [H, W] (every pixel of a chunk shares
 its chunk's K; the view's mean and max K follow from it).
@@ -78,13 +80,14 @@ def render_rays_adaptive(field: StochasticField, rays: RayBundle, settings: Rend
         K = b * len(parts)
         if K + b > cap:
             break
-        cv, dv = _colour_var(stats), stats.depth_var_total
+        cv = _colour_var(stats)
         if previous is None:
-            if bool((cv <= NLL_VARIANCE_FLOOR).all() and (dv <= DEPTH_NLL_VARIANCE_FLOOR).all()):
+            # draws (nearly) identical: every estimate is already exact
+            if bool((cv <= NLL_VARIANCE_FLOOR).all() and (stats.depth_var_epistemic <= DEPTH_NLL_VARIANCE_FLOOR).all()):
                 break
             continue
         if (relative_change(cv, _colour_var(previous), NLL_VARIANCE_FLOOR) < tol
-                and relative_change(dv, previous.depth_var_total, DEPTH_NLL_VARIANCE_FLOOR) < tol):
+                and relative_change(stats.depth_var_total, previous.depth_var_total, DEPTH_NLL_VARIANCE_FLOOR) < tol):
             break
     if occupied is not None:
         evals = torch.bincount(samples.ray_indices, minlength=len(rays))
