@@ -143,12 +143,13 @@ class Trainer:
                 now = time.perf_counter()
                 self.elapsed += now - t_last
                 t_last = now
-                record = {"step": self.step, "loss": float(loss), "elapsed_s": round(self.elapsed, 3), **logs}
+                record = {"step": self.step, "loss": loss.item(), "elapsed_s": round(self.elapsed, 3), **logs}
                 if self.cfg.train.eval_every and eval_view is not None and self.step % self.cfg.train.eval_every == 0:
                     record.update(quick_eval(self.model, self.dataset, eval_view, self.device))
                     t_last = time.perf_counter()
                 if self.step % 10 == 0 or "eval_psnr" in record:
                     log.write(json.dumps(record) + "\n")
+                    log.flush()
                     bar.set_postfix({k: f"{v:.4g}" for k, v in record.items() if k in ("loss", "mse", "eval_psnr")})
                 if self.cfg.train.checkpoint_every and self.step % self.cfg.train.checkpoint_every == 0:
                     self.save()
