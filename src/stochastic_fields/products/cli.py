@@ -1,0 +1,96 @@
+"""``stochastic-fields export``: command-line options mapped onto :class:`.export.ExportOptions`.
+
+Registered by ``stochastic_fields.cli.EXTRA_COMMANDS``; bad input raises ValueError or
+FileNotFoundError, which ``cli.main`` turns into a one-line message and exit code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from .export import FORMATS, ExportOptions, export_run
+
+
+def _floats(name: str):
+    def parse(text: str) -> tuple[float, ...]:
+        try:
+            return tuple(float(t) for t in text.split(",") if t.strip())
+        except ValueError as exc:
+            raise argparse.ArgumentTypeError(f"{name} must be comma-separated numbers, got {text!r}") from exc
+    return parse
+
+
+def _formats(text: str) -> tuple[str, ...]:
+    items = tuple(t.strip() for t in text.split(",") if t.strip())
+    bad = [t for t in items if t not in FORMATS]
+    if bad or not items:
+        raise argparse.ArgumentTypeError(f"--formats takes a comma-separated subset of {','.join(FORMATS)}, got {text!r}")
+    return items
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    d = ExportOptions()
+    p.add_argument("--run", required=True, help="Trained run folder (with checkpoint.pt and config.json).")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--views", default=d.views, help="'test' (default), 'train', 'all' or dataset view indices like 1,2,3.")
+    src.add_argument("--cameras", type=Path, default=None,
+                     help='JSON list of {"K": 3x3, "world_to_camera": 4x4, "width", "height"} (OpenCV; optional '
+                          '"near", "far" camera-z and "name").')
+    p.add_argument("--out", type=Path, default=None, help="Output folder (default: RUN/export).")
+    p.add_argument("--num-draws", type=int, default=None, help="K depth trajectories per pixel (default: the run's).")
+    p.add_argument("--formats", type=_formats, default=d.formats,
+                   help=f"Per-view map formats, comma-separated subset of {','.join(FORMATS)} (default: all).")
+    p.add_argument("--quantiles", type=_floats("--quantiles"), default=d.quantiles,
+                   help="Depth quantile levels from the K draws (default 0.05,0.95).")
+    p.add_argument("--min-opacity", type=float, default=d.min_opacity,
+                   help="Pixels with lower accumulated opacity get no depth and no point (default 0.5).")
+    p.add_argument("--max-std", type=float, default=None, help="Drop points whose total depth std exceeds this (scene units).")
+    p.add_argument("--max-rel-std", type=float, default=None, help="Drop points whose depth_std / depth exceeds this.")
+    p.add_argument("--keep-fraction", type=float, default=None,
+                   help="Keep only this fraction of each view's most confident points (0..1].")
+    p.add_argument("--colour-by", choices=("rgb", "uncertainty"), default=d.colour_by,
+                   help="PLY colours: rendered RGB or depth std through a perceptual colour map (range recorded).")
+    p.add_argument("--fuse", action="store_true", help="Also fuse all views into fused.ply (inverse-variance per voxel).")
+    p.add_argument("--voxel-size", type=float, default=None, help="Fusion voxel size (default: median pixel footprint).")
+    p.add_argument("--free-space-thresholds", type=_floats("--free-space-thresholds"), default=(),
+                   help="Camera-z distances d: write P(depth > d) volumes [T, H, W] per view.")
+    p.add_argument("--covariance", action="store_true", help="Add per-point 3x3 covariances (cov_xx..cov_zz) to the PLYs.")
+    p.add_argument("--save-draws", action="store_true", help="Keep the per-draw depths [H, W, K] in each npz.")
+    p.add_argument("--units", default=d.units, help="Name of the length unit written into the files.")
+    p.add_argument("--seed", type=int, default=d.seed, help="Seed of the K draws.")
+    p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
+    p.add_argument("--quiet", action="store_true", help="No progress bars.")
+
+
+def options_from_args(args: argparse.Namespace) -> ExportOptions:
+    return ExportOptions(
+        views=args.views, cameras=args.cameras, out=args.out, num_draws=args.num_draws, formats=tuple(args.formats),
+        quantiles=tuple(args.quantiles), min_opacity=args.min_opacity, max_std=args.max_std,
+        max_rel_std=args.max_rel_std, keep_fraction=args.keep_fraction, colour_by=args.colour_by, fuse=args.fuse,
+        voxel_size=args.voxel_size, free_space_thresholds=tuple(args.free_space_thresholds),
+        covariance=args.covariance, save_draws=args.save_draws, units=args.units, seed=args.seed,
+        device=args.device, progress=not args.quiet)
+
+
+def run(args: argparse.Namespace) -> None:
+    opts = options_from_args(args)
+    summary = export_run(args.run, opts)
+    out = Path(args.out) if args.out else Path(args.run) / "export"
+    c = summary["counts"]
+    line = f"exported {len(summary['views'])} views (K={summary['num_draws']}) into {out}: " \
+           f"{c['after_opacity']} valid pixels -> {c['after_filters']} points"
+    if "after_fusion" in c:
+        line += f" -> {c['after_fusion']} fused"
+    print(line)
+    gt = summary.get("ground_truth", {})
+    if "surface_distance" in gt:
+        s = gt["surface_distance"]
+        print(f"  distance to the true surface: mean {s['mean']:.4g}, 50% most confident {s['most_confident_50_mean']:.4g} "
+              f"[{s['units']}]")
+    if "calibration" in gt:
+        cal = gt["calibration"]
+        print(f"  GT depth inside mean +- z std: 68% -> {cal['gaussian_total_std']['68']:.3f}, "
+              f"95% -> {cal['gaussian_total_std']['95']:.3f}; draw-quantile intervals: "
+              f"68% -> {cal['draw_quantiles']['68']:.3f}, 95% -> {cal['draw_quantiles']['95']:.3f}")
+    print(f"  summary: {out / 'summary.json'}")

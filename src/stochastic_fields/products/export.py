@@ -1,0 +1,449 @@
+"""``stochastic-fields export``: depth-uncertainty products of a trained run for a set of cameras.
+
+For each camera (dataset views, or a ``cameras.json`` of intrinsics/poses), render K depth
+trajectories and write (every file atomically, so an interrupted export leaves complete files
+or none; ``summary.json`` is written last and marks a finished export):
+
+    OUT/views/<name>.npz                 all maps, float32, + intrinsics/pose/units/K (depth_maps.write_npz)
+    OUT/views/<name>_depth_mean.png/.json 16-bit depth + scale sidecar (also _depth_std, _depth_q<p>)
+    OUT/views/<name>.tiff                float32 pages, NaN where invalid
+    OUT/views/<name>_depth_vis.png       colourised depth mean/std with colour bars
+    OUT/views/<name>_free_space.npz      P(depth > d) [T, H, W] for --free-space-thresholds
+    OUT/clouds/<name>.ply                filtered point cloud of the view (pointcloud.write_ply)
+    OUT/fused.ply, OUT/fused_cloud.png   inverse-variance fusion of all views (--fuse)
+    OUT/summary.json                     counts per stage, files, colour mapping, ground-truth checks
+
+Ground-truth checks (when the scene has them): mean unsigned distance of the exported points to
+the scene's ``scene.ply`` surface (Open3D ``RaycastingScene.compute_distance``), for all points
+and for the 50% most confident; calibration of the depth intervals against ground-truth
+camera-z depth over pixels that are valid and have a ground truth: Gaussian intervals
+``mean +- z * depth_std`` (total std) and empirical draw-quantile intervals.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from ..cameras import generate_rays_for_view, intrinsics_3x3, make_cameras
+from ..io_utils import atomic_path, atomic_write_text
+from .depth_maps import (CONVENTIONS, DepthProducts, check_quantile_levels, compute_depth_products,
+                         draw_quantiles, quantile_name, write_colourised, write_npz, write_png16, write_tiff)
+from .free_space import free_space_volume
+from .fusion import fuse_clouds
+from .pointcloud import (CloudArrays, PointFilter, cloud_from_products, filter_cloud, most_confident,
+                         uncertainty_range, write_ply)
+from .render_cloud import render_cloud_png
+
+FORMATS: tuple[str, ...] = ("npz", "png16", "tiff", "png")
+#: Central interval levels checked against ground truth, and their Gaussian half-widths in std.
+CALIBRATION_LEVELS: dict[str, tuple[float, float]] = {"68": (0.682689492, 1.0), "95": (0.95, 1.959963985)}
+
+
+@dataclass
+class ExportOptions:
+    """What ``export`` writes; every field is a CLI option (see products/cli.py)."""
+
+    views: str = "test"
+    """'test', 'train', 'all' or comma-separated dataset view indices; ignored with ``cameras``."""
+    cameras: Path | None = None
+    """JSON list of {"K": 3x3, "world_to_camera": 4x4, "width", "height"[, "near", "far", "name"]} (OpenCV)."""
+    out: Path | None = None
+    """Output folder (default: RUN/export)."""
+    num_draws: int | None = None
+    """K depth trajectories per pixel (default: the run's render.num_draws)."""
+    formats: tuple[str, ...] = FORMATS
+    """Per-view map formats: npz, png16, tiff, png (colourised)."""
+    quantiles: tuple[float, ...] = (0.05, 0.95)
+    """Depth quantile levels from the K draws."""
+    min_opacity: float = 0.5
+    """Pixels with lower accumulated opacity are invalid (no depth, no point)."""
+    max_std: float | None = None
+    """Drop points with total depth std above this (scene units)."""
+    max_rel_std: float | None = None
+    """Drop points with depth_std / depth above this."""
+    keep_fraction: float | None = None
+    """Keep only this fraction of each view's most confident points."""
+    colour_by: str = "rgb"
+    """PLY colours: 'rgb' (rendered colour) or 'uncertainty' (depth_std through a colour map)."""
+    fuse: bool = False
+    """Also write one fused cloud of all views."""
+    voxel_size: float | None = None
+    """Fusion voxel size (default: the median pixel footprint)."""
+    free_space_thresholds: tuple[float, ...] = ()
+    """Camera-z distances d for a per-view P(depth > d) volume [T, H, W]."""
+    covariance: bool = False
+    """Add per-point 3x3 covariances (cov_xx .. cov_zz) to the PLYs."""
+    save_draws: bool = False
+    """Store the [H, W, K] per-draw depths in the npz (for free-space queries at any distance)."""
+    units: str = "scene units"
+    """Name of the length unit written into every file."""
+    seed: int = 0
+    """Seed of the K draws."""
+    device: str | None = None
+    """auto, cpu or cuda (default: the run's)."""
+    progress: bool = True
+    """Show progress bars."""
+
+    def validate(self) -> None:
+        bad = [f for f in self.formats if f not in FORMATS]
+        if bad:
+            raise ValueError(f"unknown format(s) {bad}; choose from {list(FORMATS)}")
+        check_quantile_levels(self.quantiles)
+        if not 0.0 <= self.min_opacity <= 1.0:
+            raise ValueError(f"min_opacity must be in [0, 1], got {self.min_opacity}")
+        if self.colour_by not in ("rgb", "uncertainty"):
+            raise ValueError(f"colour_by must be 'rgb' or 'uncertainty', got {self.colour_by!r}")
+        if self.num_draws is not None and self.num_draws < 2:
+            raise ValueError(f"num_draws must be >= 2 for depth uncertainty, got {self.num_draws}")
+        if self.voxel_size is not None and not self.voxel_size > 0:
+            raise ValueError(f"voxel_size must be positive, got {self.voxel_size}")
+        if any(not (math.isfinite(t) and t > 0) for t in self.free_space_thresholds):
+            raise ValueError(f"free-space thresholds must be positive distances, got {list(self.free_space_thresholds)}")
+        self.point_filter()
+
+    def point_filter(self) -> PointFilter:
+        return PointFilter(min_opacity=self.min_opacity, max_std=self.max_std, max_rel_std=self.max_rel_std,
+                           keep_fraction=self.keep_fraction)
+
+
+@dataclass
+class ViewSpec:
+    """One camera to export: name, K [3, 3], world_to_camera [4, 4], size, camera-z bounds,
+    and the ground-truth depth [H, W] (0 = none) when known."""
+
+    name: str
+    intrinsics: np.ndarray
+    world_to_camera: np.ndarray
+    height: int
+    width: int
+    near: float
+    far: float
+    gt_depth: np.ndarray | None = field(default=None, repr=False)
+
+
+# ------------------------------------------------------------------------------- inputs
+def parse_views(spec: str, num_views: int, train: Sequence[int], test: Sequence[int]) -> list[int]:
+    """'test' | 'train' | 'all' | '1,2,3' -> indices; ValueError for bad tokens or out of range."""
+    spec = (spec or "test").strip()
+    if spec == "test":
+        return list(test)
+    if spec == "train":
+        return list(train)
+    if spec == "all":
+        return list(range(num_views))
+    try:
+        views = [int(v) for v in spec.split(",") if v.strip()]
+    except ValueError as exc:
+        raise ValueError(f"--views must be 'test', 'train', 'all' or comma-separated indices, got {spec!r}") from exc
+    if not views:
+        raise ValueError(f"--views {spec!r} names no view")
+    bad = [v for v in views if not 0 <= v < num_views]
+    if bad:
+        raise ValueError(f"--views {bad} out of range: the scene has {num_views} views (0..{num_views - 1})")
+    return views
+
+
+def _matrix(path: Path, i: int, cam: dict, key: str, shape: tuple[int, int]) -> np.ndarray:
+    if key not in cam:
+        raise ValueError(f"{path}: camera {i} has no {key!r} (need K, world_to_camera, width, height)")
+    try:
+        arr = np.asarray(cam[key], dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: camera {i}: {key!r} is not a numeric matrix: {cam[key]!r}") from exc
+    if arr.shape != shape:
+        raise ValueError(f"{path}: camera {i}: {key!r} must be {shape[0]}x{shape[1]}, got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{path}: camera {i}: {key!r} has non-finite values: {arr.tolist()}")
+    return arr
+
+
+def load_cameras_json(path: str | Path, *, default_near: float, default_far: float) -> list[ViewSpec]:
+    """Cameras from a JSON file: a list (or ``{"cameras": [...]}``) of objects with ``K`` (3x3,
+    OpenCV, pixel centres at +0.5), ``world_to_camera`` (4x4 OpenCV, rigid), ``width``,
+    ``height``, optional ``near``/``far`` (camera-z; default: the run's bounds) and ``name``.
+    Raises FileNotFoundError / ValueError naming the file, the camera and the bad value."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"cameras file {path} does not exist")
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+    if isinstance(data, dict) and "cameras" in data:
+        data = data["cameras"]
+    if not isinstance(data, list) or not data:
+        raise ValueError(f"{path}: expected a non-empty list of cameras, got {type(data).__name__}")
+    specs = []
+    for i, cam in enumerate(data):
+        if not isinstance(cam, dict):
+            raise ValueError(f"{path}: camera {i} must be an object, got {cam!r}")
+        K = _matrix(path, i, cam, "K", (3, 3))
+        w2c = _matrix(path, i, cam, "world_to_camera", (4, 4))
+        if not (K[0, 0] > 0 and K[1, 1] > 0 and K[0, 1] == 0 and np.allclose(K[2], [0, 0, 1])):
+            raise ValueError(f"{path}: camera {i}: K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, "
+                             f"got {K.tolist()}")
+        R = w2c[:3, :3]
+        if not np.allclose(w2c[3], [0, 0, 0, 1]) or not np.allclose(R.T @ R, np.eye(3), atol=1e-4) \
+                or np.linalg.det(R) <= 0:
+            raise ValueError(f"{path}: camera {i}: world_to_camera must be a rigid transform [[R, t], [0, 0, 0, 1]] "
+                             f"with R a rotation, got {w2c.tolist()}")
+        size = {}
+        for key in ("width", "height"):
+            v = cam.get(key)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or v != int(v) or int(v) < 1:
+                raise ValueError(f"{path}: camera {i}: {key!r} must be a positive integer, got {v!r}")
+            size[key] = int(v)
+        near = float(cam.get("near", default_near))
+        far = float(cam.get("far", default_far))
+        if not (0 < near < far and math.isfinite(far)):
+            raise ValueError(f"{path}: camera {i}: need 0 < near < far, got near={near} far={far}")
+        specs.append(ViewSpec(str(cam.get("name", f"cam_{i:03d}")), K, w2c, size["height"], size["width"], near, far))
+    names = [s.name for s in specs]
+    if len(set(names)) != len(names):
+        raise ValueError(f"{path}: camera names must be unique, got {names}")
+    return specs
+
+
+def dataset_view_specs(dataset, views: Sequence[int]) -> list[ViewSpec]:
+    """ViewSpecs of dataset views (with ground-truth depth when the dataset has it)."""
+    K = intrinsics_3x3(dataset.cameras).double().cpu().numpy()
+    w2c = dataset.cameras.extrinsics.double().cpu().numpy()
+    specs = []
+    for v in views:
+        gt = dataset.depths[v].numpy() if getattr(dataset, "depths", None) is not None else None
+        specs.append(ViewSpec(f"view_{v:03d}", K[v], w2c[v], dataset.height, dataset.width, float(dataset.near[v]),
+                              float(dataset.far[v]), gt))
+    return specs
+
+
+# ------------------------------------------------------------------------------- rendering
+def render_products(model, spec: ViewSpec, opts: ExportOptions, generator: torch.Generator) -> DepthProducts:
+    """Render one camera with K draws and return its depth products (draws kept)."""
+    device = next(model.parameters()).device
+    cams = make_cameras(torch.from_numpy(spec.intrinsics).float()[None], torch.from_numpy(spec.world_to_camera).float()[None],
+                        spec.height, spec.width)
+    rays = generate_rays_for_view(cams, 0, spec.near, spec.far).to(device)
+    maps = model.render_view(rays, num_draws=opts.num_draws, generator=generator, keep_draws=True)
+    return compute_depth_products(maps, intrinsics_3x3(cams)[0].double().numpy(), cams.extrinsics[0].double().numpy(),
+                                  near=spec.near, far=spec.far, quantiles=opts.quantiles,
+                                  min_opacity=opts.min_opacity, units=opts.units, keep_draws=True)
+
+
+def write_view_files(out_dir: Path, name: str, products: DepthProducts, opts: ExportOptions) -> list[Path]:
+    """Write the per-view map files of ``opts.formats`` (+ free-space volume). Returns the paths."""
+    views_dir = out_dir / "views"
+    files: list[Path] = []
+    if "npz" in opts.formats:
+        files.append(write_npz(views_dir / f"{name}.npz", products, include_draws=opts.save_draws))
+    if "png16" in opts.formats:
+        maps = products.maps()
+        for qname in ["depth_mean", "depth_std"] + [quantile_name(float(q)) for q in products.quantile_levels]:
+            files.extend(write_png16(views_dir / f"{name}_{qname}.png", maps[qname], products.valid,
+                                     max_depth=products.far, units=products.units, quantity=qname))
+    if "tiff" in opts.formats:
+        files.append(write_tiff(views_dir / f"{name}.tiff", products))
+    if "png" in opts.formats:
+        files.append(write_colourised(views_dir / f"{name}_depth_vis.png", products, title=name))
+    if opts.free_space_thresholds:
+        vol = free_space_volume(torch.from_numpy(products.depth_draws), opts.free_space_thresholds).float().numpy()
+        path = views_dir / f"{name}_free_space.npz"
+        with atomic_path(path) as tmp:
+            with open(tmp, "wb") as fh:
+                np.savez_compressed(fh, prob_depth_greater=vol,
+                                    thresholds=np.asarray(opts.free_space_thresholds, np.float32),
+                                    num_draws=np.int64(products.num_draws), units=np.str_(products.units),
+                                    conventions=np.str_("prob_depth_greater[t, i, j] = fraction of the K draws whose "
+                                                        "camera-z depth at pixel (i, j) exceeds thresholds[t]; "
+                                                        + CONVENTIONS))
+        files.append(path)
+    return files
+
+
+# ------------------------------------------------------------------------------- ground truth
+class CalibrationAccumulator:
+    """Pools (gt, mean, std, draw quantiles) over the valid pixels with a ground truth."""
+
+    QUANTILE_LEVELS = (0.158655254, 0.841344746, 0.025, 0.975)  # central 68.27% and 95% draw intervals
+
+    def __init__(self) -> None:
+        self.rows: list[np.ndarray] = []
+        self.num_gt = 0
+        self.num_valid = 0
+
+    def add(self, products: DepthProducts, gt_depth: np.ndarray | None) -> None:
+        if gt_depth is None:
+            return
+        has_gt = gt_depth > 0
+        self.num_gt += int(has_gt.sum())
+        self.num_valid += int(products.valid.sum())
+        m = has_gt & products.valid
+        if not m.any():
+            return
+        q = draw_quantiles(torch.from_numpy(products.depth_draws[m]).double(), self.QUANTILE_LEVELS).numpy()  # [4, P]
+        self.rows.append(np.stack([gt_depth[m], products.depth_mean[m], products.depth_std[m], *q]).astype(np.float64))
+
+    def summary(self) -> dict | None:
+        if not self.rows:
+            return None
+        gt, mean, std, q16, q84, q025, q975 = np.concatenate(self.rows, axis=1)
+        err = np.abs(mean - gt)
+        out = {
+            "num_pixels": int(gt.size),
+            "fraction_of_gt_pixels_valid": gt.size / max(self.num_gt, 1),
+            "fraction_of_valid_pixels_with_gt": gt.size / max(self.num_valid, 1),
+            "depth_abs_error_mean": float(err.mean()),
+            "depth_abs_error_median": float(np.median(err)),
+            "depth_std_mean": float(std.mean()),
+            "gaussian_total_std": {},
+            "draw_quantiles": {
+                "68": float(np.mean((gt >= q16) & (gt <= q84))),
+                "95": float(np.mean((gt >= q025) & (gt <= q975))),
+            },
+            "convention": "fraction of ground-truth camera-z depths inside the central interval, over pixels with "
+                          "opacity >= min_opacity and a ground truth; gaussian_total_std: |mean - gt| <= z * depth_std "
+                          "(z = 1 for 68.27%, 1.96 for 95%); draw_quantiles: empirical quantiles of the K draws "
+                          "(15.87-84.13% and 2.5-97.5%), which cover only the epistemic part",
+        }
+        for key, (_, z) in CALIBRATION_LEVELS.items():
+            out["gaussian_total_std"][key] = float(np.mean(err <= z * std))
+        return out
+
+
+def surface_distances(points: np.ndarray, mesh_path: str | Path) -> np.ndarray:
+    """Unsigned distance [N] of world points [N, 3] to the triangle mesh in ``mesh_path``
+    (Open3D RaycastingScene.compute_distance, float32)."""
+    import open3d as o3d
+    import trimesh
+
+    mesh = trimesh.load(str(mesh_path), force="mesh", process=False)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
+                        o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
+    if len(points) == 0:
+        return np.zeros(0)
+    return scene.compute_distance(o3d.core.Tensor(np.asarray(points, dtype=np.float32))).numpy().astype(np.float64)
+
+
+def surface_report(cloud: CloudArrays, mesh_path: Path) -> dict:
+    """Mean/median distance of the points to the surface, for all and the 50% most confident
+    (and, for comparison, the 50% with the smallest depth_std)."""
+    dist = surface_distances(cloud.positions, mesh_path)
+    if dist.size == 0:
+        return {"num_points": 0}
+    conf_half = most_confident(cloud.attributes["confidence"], 0.5)
+    std_half = most_confident(-cloud.attributes["depth_std"].astype(np.float64), 0.5)
+    return {
+        "mesh": str(mesh_path),
+        "num_points": int(dist.size),
+        "mean": float(dist.mean()),
+        "median": float(np.median(dist)),
+        "most_confident_50_mean": float(dist[conf_half].mean()),
+        "least_confident_50_mean": float(dist[~conf_half].mean()) if (~conf_half).any() else math.nan,
+        "smallest_std_50_mean": float(dist[std_half].mean()),
+        "units": cloud.metadata.get("units", "scene units"),
+    }
+
+
+# ------------------------------------------------------------------------------- driver
+def export_run(run_dir: str | Path, opts: ExportOptions) -> dict:
+    """Export the products of a trained run (see the module doc). Returns the summary it saves."""
+    from ..trainer import load_trained_model
+
+    opts.validate()
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"run folder {run_dir} does not exist")
+    cfg, model, dataset = load_trained_model(run_dir, device=opts.device)
+    if opts.cameras is not None:
+        specs = load_cameras_json(opts.cameras, default_near=float(dataset.near.min()),
+                                  default_far=float(dataset.far.max()))
+    else:
+        views = parse_views(opts.views, dataset.num_views, dataset.train_indices, dataset.test_indices)
+        specs = dataset_view_specs(dataset, views)
+    out = Path(opts.out) if opts.out is not None else run_dir / "export"
+    mesh_path = Path(dataset.root) / "scene.ply"
+    return export_views(model, specs, out, opts, mesh_path=mesh_path if mesh_path.is_file() else None,
+                        run_name=str(run_dir))
+
+
+def export_views(model, specs: Sequence[ViewSpec], out: Path, opts: ExportOptions, *, mesh_path: Path | None = None,
+                 run_name: str = "") -> dict:
+    """Render, write and summarise ``specs`` into ``out`` (see the module doc)."""
+    opts.validate()
+    out = Path(out)
+    device = next(model.parameters()).device
+    generator = torch.Generator(device=device).manual_seed(opts.seed)
+    flt = opts.point_filter()
+    calib = CalibrationAccumulator()
+    clouds: list[CloudArrays] = []
+    per_view: dict[str, dict] = {}
+    files: list[Path] = []
+    num_draws = None
+    for index, spec in enumerate(tqdm(specs, desc="export", disable=not opts.progress, dynamic_ncols=True)):
+        products = render_products(model, spec, opts, generator)
+        num_draws = products.num_draws
+        files += write_view_files(out, spec.name, products, opts)
+        calib.add(products, spec.gt_depth)
+        cloud = cloud_from_products(products, view=index, covariance=opts.covariance)  # valid pixels
+        kept, counts = filter_cloud(cloud, flt)
+        counts = {"pixels": int(products.valid.size), **counts}  # input = opacity >= min_opacity
+        per_view[spec.name] = {"counts": counts, "view_index_in_clouds": index}
+        clouds.append(kept)
+    all_points = CloudArrays.concatenate(clouds)
+    colour_range = None
+    if opts.colour_by == "uncertainty":
+        colour_range = uncertainty_range(all_points.attributes.get("depth_std", np.zeros(0)))
+    mapping = {}
+    for spec, kept in zip(specs, clouds):
+        path = out / "clouds" / f"{spec.name}.ply"
+        mapping = write_ply(path, kept, opts.colour_by, value_range=colour_range,
+                            comments=[f"view {spec.name}", f"units {opts.units}"])
+        files.append(path)
+    totals = {
+        "pixels": sum(v["counts"]["pixels"] for v in per_view.values()),
+        "after_opacity": sum(v["counts"]["input"] for v in per_view.values()),
+        "after_filters": len(all_points),
+    }
+    summary: dict = {
+        "run": run_name,
+        "views": [s.name for s in specs],
+        "num_draws": num_draws,
+        "options": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(opts).items()},
+        "units": opts.units,
+        "conventions": CONVENTIONS,
+        "colour_mapping": mapping,
+        "per_view": per_view,
+    }
+    fused = None
+    if opts.fuse and len(all_points):
+        fused, report = fuse_clouds(all_points, opts.voxel_size)
+        totals["after_fusion"] = report["fused"]
+        summary["fusion"] = report
+        fused_mapping = write_ply(out / "fused.ply", fused, opts.colour_by, value_range=colour_range,
+                                  comments=["fused", f"units {opts.units}"])
+        summary["fused_colour_mapping"] = fused_mapping
+        files.append(out / "fused.ply")
+        files.append(render_cloud_png(out / "fused_cloud.png", fused, value_range=colour_range,
+                                      title=f"fused cloud, {len(fused):,} points, coloured by depth std"))
+    summary["counts"] = totals
+    gt: dict = {}
+    if mesh_path is not None and len(all_points):
+        gt["surface_distance"] = surface_report(all_points, mesh_path)
+        if fused is not None:
+            gt["surface_distance_fused"] = surface_report(fused, mesh_path)
+    cal = calib.summary()
+    if cal is not None:
+        gt["calibration"] = cal
+    if gt:
+        summary["ground_truth"] = gt
+    summary["files"] = sorted(str(p.relative_to(out)) for p in files)
+    atomic_write_text(out / "summary.json", json.dumps(summary, indent=2, default=float))
+    return summary
