@@ -91,3 +91,10 @@ OCCUPANCY_UPPER_NUM_STD: float = 3.0
 #: the learned-variance NLL rewards v -> 0 on well-fitted pixels and diverges (log v -> -inf);
 #: 0.03 is about 8 levels of 8-bit colour, above the pixel noise of real captures.
 NERFW_BETA_MIN: float = 0.03
+
+#: Floor of a point's depth variance (scene units squared) when it becomes an inverse-variance
+#: weight in point-cloud fusion (products.fusion): a deterministic method or a fully collapsed
+#: pixel can report variance 0, whose weight would be infinite. Same reasoning and value as
+#: DEPTH_NLL_VARIANCE_FLOOR: no renderer resolves depth finer than its sample spacing (~1e-3
+#: scene units at the finest sampling we use), so claims below that are not information.
+PRODUCT_DEPTH_VARIANCE_FLOOR: float = DEPTH_NLL_VARIANCE_FLOOR
