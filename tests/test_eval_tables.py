@@ -1,0 +1,378 @@
+"""COLMAP sparse depth, the evaluation tables and the benchmark pipeline.
+
+References: hand-projected points, scipy (pearsonr, spearmanr, norm), brute-force loops for
+coverage and AUSE, an oracle uncertainty (AUSE 0); end-to-end runs on the tiny synthetic scene
+and on fern images_16 (marked slow)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.stats
+import torch
+from torch import nn
+
+from stochastic_fields.cameras import make_cameras
+from stochastic_fields.config import save_config
+from stochastic_fields.constants import DEPTH_NLL_VARIANCE_FLOOR, NLL_VARIANCE_FLOOR
+from stochastic_fields.data import load_dataset
+from stochastic_fields.data.colmap import ColmapPoints, read_points3d_binary
+from stochastic_fields.eval import colmap_depth as CD
+from stochastic_fields.eval import tables as T
+from stochastic_fields.models.registry import METHODS
+from stochastic_fields.renderer import MAP_NAMES, RenderSettings
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+# ------------------------------------------------------------------------------ sparse depth
+
+
+def _hand_camera():
+    K = torch.tensor([[[100.0, 0.0, 32.0], [0.0, 100.0, 24.0], [0.0, 0.0, 1.0]]])
+    return make_cameras(K, torch.eye(4)[None], 48, 64)
+
+
+def test_projection_of_hand_placed_points():
+    pts = np.array([
+        [0.0, 0.0, 2.0],      # u = 32, v = 24 -> pixel (24, 32), depth 2
+        [0.1, -0.05, 4.0],    # u = 34.5, v = 22.75 -> pixel (22, 34), depth 4
+        [0.0, 0.0, -1.0],     # behind the camera
+        [10.0, 0.0, 1.0],     # u = 1032: outside the image
+        [0.001, 0.0, 3.0],    # u = 32.033: same pixel as the first, farther -> hidden
+    ])
+    sd = CD.project_sparse_depth(_hand_camera(), pts, [0])[0]
+    got = sorted(zip(sd.rows.tolist(), sd.cols.tolist(), sd.depth.tolist(), sd.point_index.tolist()))
+    assert got == [(22, 34, pytest.approx(4.0), 1), (24, 32, pytest.approx(2.0), 0)]
+    assert sd.num_candidates == 3 and sd.visibility == "zbuffer"
+    assert np.allclose(sd.uv[np.argsort(sd.point_index)], [[32.0, 24.0], [34.5, 22.75]])
+    depth_map = np.arange(48 * 64, dtype=np.float64).reshape(48, 64)
+    assert sorted(sd.sample(depth_map).tolist()) == [22 * 64 + 34, 24 * 64 + 32]
+
+
+def _fake_points(xyz: np.ndarray, tracks: list[list[int]]) -> ColmapPoints:
+    lengths = np.array([len(t) for t in tracks])
+    offsets = np.concatenate([[0], np.cumsum(lengths)])
+    ids = np.concatenate([np.array(t, dtype=np.int32) for t in tracks])
+    P = len(tracks)
+    return ColmapPoints(ids=np.arange(P, dtype=np.uint64), xyz=xyz, rgb=np.zeros((P, 3), np.uint8),
+                        error=np.zeros(P), track_offsets=offsets, track_image_ids=ids,
+                        track_point2d_idx=np.zeros(ids.size, np.int32))
+
+
+def test_track_visibility_maps_image_ids_to_views():
+    pts = _fake_points(np.zeros((4, 3)), [[1, 2], [2], [3, 1], [2, 3]])
+    vis = CD.track_visibility(pts, 3)
+    assert [v.tolist() for v in vis] == [[0, 2], [0, 1, 3], [2, 3]]
+    assert CD.track_visibility(pts, 2) is None  # image id 3 does not exist among 2 views
+
+
+@pytest.fixture(scope="module")
+def fern16(shared_data):
+    return load_dataset(shared_data / "nerf_llff_data" / "fern", images="images_16")
+
+
+def test_fern_points_project_inside_with_plausible_depths(fern16):
+    sparse = CD.sparse_depth_for_dataset(fern16)
+    assert sorted(sparse) == fern16.test_indices
+    for v, sd in sparse.items():
+        assert sd.visibility == "tracks"
+        assert len(sd) > 500
+        assert ((sd.rows >= 0) & (sd.rows < fern16.height) & (sd.cols >= 0) & (sd.cols < fern16.width)).all()
+        assert len(set(zip(sd.rows.tolist(), sd.cols.tolist()))) == len(sd)  # one point per pixel
+        near, far = float(fern16.near[v]), float(fern16.far[v])
+        inside = (sd.depth >= near) & (sd.depth <= far)
+        assert inside.mean() > 0.99, (v, inside.mean())  # LLFF bounds are percentiles of these depths
+        # the points sit on the pixel they were projected to: uv inside that pixel
+        assert np.all(np.floor(sd.uv[:, 0]) == sd.cols) and np.all(np.floor(sd.uv[:, 1]) == sd.rows)
+
+
+def test_wrong_image_id_match_falls_back_to_zbuffer(fern16, shared_data):
+    pts = read_points3d_binary(CD.points_file(shared_data / "nerf_llff_data" / "fern"))
+    V = fern16.num_views
+    pts.track_image_ids = (pts.track_image_ids % V + 1).astype(np.int32)  # every id off by one view
+    views = fern16.test_indices[:4]
+    auto = CD.sparse_depth_for_dataset(fern16, views, points=pts)
+    assert {sd.visibility for sd in auto.values()} == {"zbuffer"}
+    zbuf = CD.sparse_depth_for_dataset(fern16, views, visibility="zbuffer")
+    assert all(np.array_equal(auto[v].depth, zbuf[v].depth) for v in views)
+    with pytest.raises(ValueError, match="do not match"):
+        CD.sparse_depth_for_dataset(fern16, views, points=pts, visibility="tracks")
+
+
+def test_missing_points_file_is_named(tmp_path, tiny_scene):
+    ds = load_dataset(tiny_scene)
+    with pytest.raises(FileNotFoundError, match="points3D.bin"):
+        CD.sparse_depth_for_dataset(ds)
+
+
+def _brute_ause_rmse(err: np.ndarray, unc: np.ndarray, F: int = 100) -> float:
+    P = err.size
+
+    def curve(key):
+        order = sorted(range(P), key=lambda i: -key[i])  # stable: ties keep input order
+        vals = []
+        for i in range(F):
+            kept = order[(i * P) // F:]
+            vals.append(math.sqrt(sum(err[j] ** 2 for j in kept) / len(kept)))
+        return np.array(vals)
+
+    diff = curve(unc) - curve(np.abs(err))
+    f = np.arange(F) / F
+    return float(np.sum(0.5 * (diff[1:] + diff[:-1]) * np.diff(f)))
+
+
+def test_paired_depth_scores_against_references():
+    rng = np.random.default_rng(3)
+    gt = rng.uniform(10.0, 50.0, 300)
+    std = rng.uniform(0.05, 2.0, 300)
+    std[:5] = 1e-5  # below the NLL floor's std (1e-3)
+    pred = gt + std * rng.normal(size=300) * rng.uniform(0.5, 2.0, 300)
+    s = CD.paired_depth_scores(gt, pred, std)
+    err = pred - gt
+    assert s["num_used"] == 300
+    assert s["abs_rel"] == pytest.approx(np.mean(np.abs(err) / gt), rel=1e-12)
+    assert s["rmse"] == pytest.approx(np.sqrt(np.mean(err ** 2)), rel=1e-12)
+    nll = -scipy.stats.norm.logpdf(gt, pred, np.sqrt(np.maximum(std ** 2, DEPTH_NLL_VARIANCE_FLOOR))).mean()
+    assert s["nll"] == pytest.approx(nll, rel=1e-10)
+    assert s["pearson"].value == pytest.approx(scipy.stats.pearsonr(np.abs(err), std)[0], abs=1e-12)
+    assert s["spearman"].value == pytest.approx(scipy.stats.spearmanr(np.abs(err), std)[0], abs=1e-12)
+    for level, key in zip(CD.COVERAGE_LEVELS, ("coverage_68", "coverage_95")):
+        z = scipy.stats.norm.ppf(0.5 + level / 2)
+        assert s[key] == pytest.approx(sum(abs(e) <= z * sd for e, sd in zip(err, std)) / 300, abs=1e-12)
+    assert s["ause_rmse"] == pytest.approx(_brute_ause_rmse(err, std ** 2), rel=1e-9, abs=1e-12)
+
+
+def test_paired_depth_scores_undefined_cases():
+    few = CD.paired_depth_scores(np.array([2.0]), np.array([2.1]), np.array([0.1]))
+    assert few["num_used"] == 1 and math.isnan(few["rmse"]) and not few["pearson"].defined
+    const = CD.paired_depth_scores(np.array([2.0, 3.0, 4.0]), np.array([2.1, 2.5, 4.0]), np.full(3, 0.2))
+    assert not const["pearson"].defined and "constant depth std" in const["pearson"].reason
+    assert math.isnan(const["ause_rmse"]) and const["sparsification"] is None
+    assert const["rmse"] == pytest.approx(math.sqrt((0.01 + 0.25) / 3))
+
+
+def test_sparse_depth_scores_mask_low_opacity():
+    pts = np.array([[0.0, 0.0, 2.0], [0.1, -0.05, 4.0], [-0.1, 0.1, 3.0]])
+    sd = CD.project_sparse_depth(_hand_camera(), pts, [0])[0]
+    depth = np.full((48, 64), 3.5)
+    std = np.full((48, 64), 0.5)
+    std[24, 32] = 0.25
+    opacity = np.ones((48, 64))
+    opacity[22, 34] = 0.2  # the point at depth 4 is on a ray that hit nothing
+    s = CD.sparse_depth_scores(depth, std, sd, opacity=opacity, opacity_mask=0.5)
+    assert s["num_points"] == 3 and s["num_used"] == 2
+    assert s["rmse"] == pytest.approx(math.sqrt((1.5 ** 2 + 0.5 ** 2) / 2))
+
+
+# ------------------------------------------------------------------------------ configuration
+
+
+def test_method_specs_build_valid_configs(tmp_path):
+    base = T.base_config(T.BenchmarkSettings(tiny=True, overrides=(("render.num_samples", 12),)))
+    assert base.render.num_samples == 12 and base.data.images == "images_8"
+    kls = {}
+    for name, spec in T.METHOD_SPECS.items():
+        cfg = T.method_config(spec, base, tmp_path)
+        assert cfg.method in METHODS
+        assert cfg.train.iterations == base.train.iterations and cfg.train.seed == base.train.seed
+        kls[name] = cfg.loss.kl
+    assert (kls["snerf"], kls["snerf_kl_none"], kls["snerf_kl_fixed_prior"]) == ("full", "none", "fixed_prior")
+    with pytest.raises(ValueError, match="unknown config path 'loss.nope'"):
+        T.set_dotted(base, "loss.nope", 1)
+
+
+def test_resuming_needs_the_same_config(tmp_path):
+    cfg = T.method_config(T.METHOD_SPECS["snerf"], T.base_config(T.BenchmarkSettings(tiny=True)), tmp_path)
+    save_config(cfg, tmp_path / "config.json")
+    T.check_compatible(tmp_path, cfg)
+    more = T.method_config(T.METHOD_SPECS["snerf"], T.base_config(T.BenchmarkSettings(tiny=True, iterations=99,
+                                                                                       device="cpu")), tmp_path)
+    T.check_compatible(tmp_path, more)  # more iterations, another device: resumable
+    assert T.config_fingerprint(more) != T.config_fingerprint(cfg)
+    other = T.method_config(T.METHOD_SPECS["snerf_kl_none"], T.base_config(T.BenchmarkSettings(tiny=True)), tmp_path)
+    with pytest.raises(ValueError, match="loss.kl"):
+        T.check_compatible(tmp_path, other)
+
+
+# ------------------------------------------------------------------------------ tables
+
+
+def _fake_result(nll, pearson, render_s, train_s, psnr=20.0, undefined=0):
+    names = ("nll", "pearson_mse_var", "spearman_mse_var", "psnr", "ssim", "ause_rmse", "ause_rmse_normalised",
+             "ause_mae", "ause_mae_normalised", "auce_colour", "calibration_gap_colour", "render_s")
+    values = {"nll": nll, "pearson_mse_var": pearson, "spearman_mse_var": pearson, "psnr": psnr}
+    summary = {k: {"mean": values.get(k, 0.1), "num_views": 3,
+                   "num_undefined": undefined if k in ("pearson_mse_var", "spearman_mse_var") else 0} for k in names}
+    return {"metrics": {"summary": summary, "pooled": {"pearson_mse_var": pearson}, "num_draws": 4,
+                        "depth_source": None, "conventions": {"nll": "test convention"}},
+            "stages": {"train": {"train_s": train_s, "steps": 10}}, "timing": {"render_s": render_s},
+            "config": {"train": {"iterations": 10, "rays_per_batch": 64, "seed": 0},
+                       "field": {"backend": "grid", "grid_max_cells": 100},
+                       "render": {"num_samples": 8, "num_draws": 4},
+                       "data": {"images": "images_16", "split_every": 5}},
+            "curves": {}}
+
+
+def test_tables_from_results():
+    nan = float("nan")
+    results = {
+        "fern": {"deterministic": _fake_result(9000.0, nan, 2.0, 10.0, undefined=3),
+                 "snerf": _fake_result(1.0, 0.5, 4.0, 30.0), "snerf_kl_none": _fake_result(2.0, 0.3, 4.0, 25.0)},
+        "flower": {"deterministic": _fake_result(8000.0, nan, 1.0, 20.0, undefined=3),
+                   "snerf": _fake_result(3.0, 0.7, 5.0, 40.0), "snerf_kl_none": _fake_result(4.0, 0.1, 5.0, 50.0)},
+    }
+    tables = T.build_tables(results, command="python benchmarks/eval_tables.py --tiny")
+    t1 = tables["table1"]
+    assert list(t1) == ["snerf", "deterministic"]  # Table-1 order, methods that ran
+    assert t1["snerf"]["nll"] == {"fern": 1.0, "flower": 3.0, "average": 2.0}
+    assert t1["snerf"]["paper"]["fern"] == (2.01, 0.69)
+    assert math.isnan(t1["deterministic"]["pearson"]["average"])
+    assert t1["deterministic"]["correlation_undefined_views"] == {"fern": 3, "flower": 3}
+    t2 = tables["table2"]["snerf"]
+    assert t2["render_ratio"]["fern"] == pytest.approx(2.0) and t2["render_ratio"]["flower"] == pytest.approx(5.0)
+    assert t2["train_ratio"]["average"] == pytest.approx(np.mean([3.0, 2.0]))
+    assert list(tables["table3"]) == ["snerf_kl_none", "snerf"]
+    assert tables["table3"]["snerf_kl_none"]["paper"]["flower"] == (1.41, 0.54)
+    md = T.format_markdown(tables)
+    for text in ("Table 1", "Table 2", "Table 3", "1.000 [2.01]", "undef.", "S-NeRF w/o KL", "test convention",
+                 "--tiny", "iterations=10"):
+        assert text in md, text
+    json.dumps(tables, default=T._json_default)
+
+
+# ------------------------------------------------------------------------------ evaluate_run
+
+
+class StubModel(nn.Module):
+    """Returns fixed maps for one view (a stand-in for a trained model)."""
+
+    def __init__(self, maps: dict[str, torch.Tensor], num_draws: int = 4):
+        super().__init__()
+        self.anchor = nn.Parameter(torch.zeros(1))
+        self.maps = maps
+        self.render_settings = RenderSettings(num_draws=num_draws)
+
+    def render_view(self, rays, *, num_draws=None, generator=None, keep_draws=False, progress=False):
+        return {**self.maps, "z_scale": rays.z_scale}
+
+
+def _stub_maps(ds, view, colour_var, rng):
+    gt = ds.images[view].double()
+    noise = torch.as_tensor(rng.normal(0, 0.05, tuple(gt.shape)))
+    z = ds.rays(view).z_scale.double()
+    gt_depth = ds.depths[view].double()
+    depth_cam = torch.where(gt_depth > 0, gt_depth * 1.02 + 0.01, torch.full_like(gt_depth, 5.0))
+    H, W = gt_depth.shape
+    maps = {"colour_mean": (gt + noise).float(), "colour_var": colour_var(noise).float(),
+            "depth_mean": (depth_cam / z).float(), "depth_var_epistemic": torch.zeros(H, W),
+            "depth_var_spread": torch.as_tensor(rng.uniform(1e-4, 1e-2, (H, W))).float(),
+            "opacity": (gt_depth > 0).float()}
+    maps["depth_var_total"] = maps["depth_var_epistemic"] + maps["depth_var_spread"]
+    assert set(MAP_NAMES) <= set(maps)
+    return maps, gt.numpy(), noise
+
+
+def test_evaluate_run_with_an_oracle_uncertainty(tiny_scene, tmp_path):
+    ds = load_dataset(tiny_scene)
+    v = ds.test_indices[0]
+    rng = np.random.default_rng(0)
+    maps, gt, noise = _stub_maps(ds, v, lambda e: e ** 2, rng)
+    result = T.evaluate_run(StubModel(maps), ds, tmp_path, views=[v], product_views=0, progress=False)
+    s = result["summary"]
+    mean = maps["colour_mean"].double().numpy()
+    var = maps["colour_var"].double().numpy()
+    nll = -scipy.stats.norm.logpdf(gt, mean, np.sqrt(np.maximum(var, NLL_VARIANCE_FLOOR))).mean()
+    assert s["nll"]["mean"] == pytest.approx(nll, rel=1e-9)
+    mse = ((gt - mean) ** 2).mean(-1).ravel()
+    assert s["pearson_mse_var"]["mean"] == pytest.approx(scipy.stats.pearsonr(mse, var.mean(-1).ravel())[0], abs=1e-6)
+    # oracle: per-pixel uncertainty = per-pixel MSE, so RMSE sparsification is the oracle curve
+    assert s["ause_rmse"]["mean"] == pytest.approx(0.0, abs=1e-12)
+    assert result["pooled"]["ause_rmse"] == pytest.approx(0.0, abs=1e-12)
+    assert s["ause_mae"]["mean"] > 0  # ranking by variance is not the MAE oracle
+    # depth against the dataset's exact depth maps, on pixels with a surface
+    assert result["depth_source"] == "dense"
+    gt_depth = ds.depths[v].numpy().astype(np.float64)
+    mask = gt_depth > 0
+    assert s["depth/abs_rel"]["mean"] == pytest.approx(np.mean((0.02 * gt_depth[mask] + 0.01) / gt_depth[mask]),
+                                                       rel=1e-5)
+    assert s["depth/num_used"]["mean"] == mask.sum()
+    with np.load(tmp_path / "curves.npz") as curves:
+        assert {"colour_sparsification_rmse.ause", "colour_calibration.coverage",
+                "depth_calibration.coverage"} <= set(curves.files)
+    assert json.loads((tmp_path / "metrics.json").read_text())["summary"]["nll"]["mean"] == pytest.approx(nll)
+
+
+def test_evaluate_run_with_a_constant_uncertainty(tiny_scene, tmp_path):
+    ds = load_dataset(tiny_scene)
+    v = ds.test_indices[0]
+    maps, _, _ = _stub_maps(ds, v, lambda e: torch.zeros_like(e), np.random.default_rng(1))
+    result = T.evaluate_run(StubModel(maps, num_draws=1), ds, tmp_path, views=[v], product_views=1, progress=False)
+    s = result["summary"]
+    assert s["pearson_mse_var"]["num_undefined"] == 1 and math.isnan(s["pearson_mse_var"]["mean"])
+    assert math.isnan(s["ause_rmse"]["mean"]) and math.isnan(result["pooled"]["ause_rmse"])
+    assert result["pooled"]["correlation_undefined_reason"] == "constant uncertainty"
+    assert math.isfinite(s["nll"]["mean"]) and s["auce_colour"]["mean"] == pytest.approx(0.5, abs=0.01)
+    assert (tmp_path / "views" / f"view_{v:03d}_colour_mean.png").is_file()
+
+
+# ------------------------------------------------------------------------------ end to end
+
+TINY_OVERRIDES = (("render.num_samples", 8), ("render.num_draws", 4), ("field.grid_max_cells", 12 ** 3),
+                  ("train.rays_per_batch", 64), ("loss.random_points_per_axis", 4))
+
+
+@pytest.mark.slow
+def test_every_method_end_to_end_on_the_synthetic_scene(tiny_scene, tmp_path):
+    settings = T.BenchmarkSettings(iterations=2, max_views=1, timing_repeats=1, tiny=True, device="cpu",
+                                   overrides=TINY_OVERRIDES, product_views=1)
+    logs: list[str] = []
+    tables = T.run_benchmark([str(tiny_scene)], T.DEFAULT_METHODS, tmp_path, settings, progress=False,
+                             log=logs.append)
+    scene = Path(tiny_scene).name
+    assert set(tables["table2"]) == set(T.DEFAULT_METHODS)
+    for m, e in tables["table2"].items():
+        assert e["render_s"][scene] > 0 and math.isfinite(e["nll"][scene]), m
+    assert tables["depth_sources"] == ["dense"]
+    assert (tmp_path / "tables.md").is_file() and (tmp_path / "tables.json").is_file()
+    # (after 2 steps no ray is opaque enough for depth scores: depth plots are covered on fern)
+    assert {Path(p).name for p in tables["plots"]} >= {f"{scene}_sparsification_rmse.png",
+                                                       f"{scene}_calibration_colour.png",
+                                                       f"{scene}_ablation_calibration_colour.png"}
+    assert "Table 5: depth against dense" in (tmp_path / "tables.md").read_text()
+    stamps = {p: p.stat().st_mtime_ns for p in tmp_path.glob("*/*/stages.json")}
+    assert len(stamps) == len(T.DEFAULT_METHODS)
+    logs.clear()
+    T.run_benchmark([str(tiny_scene)], T.DEFAULT_METHODS, tmp_path, settings, progress=False, log=logs.append)
+    assert all(line.endswith("skipped") for line in logs), logs
+    assert stamps == {p: p.stat().st_mtime_ns for p in tmp_path.glob("*/*/stages.json")}
+
+
+@pytest.mark.slow
+def test_benchmark_script_on_fern_images_16(shared_data, tmp_path, capsys):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("eval_tables", REPO_ROOT / "benchmarks" / "eval_tables.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    argv = ["--tiny", "--scenes", "fern", "--methods", "deterministic", "snerf", "--iterations", "5",
+            "--max-views", "1", "--data-root", str(shared_data / "nerf_llff_data"), "--out", str(tmp_path),
+            "--device", "cpu", "--quiet", "--no-timing", "--product-views", "0"]
+    argv += [a for k, v in TINY_OVERRIDES for a in ("--set", f"{k}={v}")]
+    assert script.main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "Table 1" in printed and "[2.01]" in printed
+    tables = json.loads((tmp_path / "tables.json").read_text())
+    assert tables["scenes"] == ["fern"] and tables["depth_sources"] == ["colmap"]
+    assert tables["budget"]["images"] == "images_16" and tables["budget"]["num_samples"] == 8
+    assert math.isnan(tables["table2"]["snerf"]["render_s"]["fern"])  # --no-timing: Table 2 has no render time
+    assert tables["per_scene"]["fern"]["snerf"]["depth"]["num_used"] > 100
+    assert math.isnan(tables["table1"]["deterministic"]["pearson"]["fern"])  # JSON NaN: undefined
+    for name in ("fern_sparsification_rmse.png", "fern_calibration_colour.png", "fern_calibration_depth.png"):
+        assert (tmp_path / "plots" / name).stat().st_size > 1000
+    with pytest.raises(SystemExit):
+        script.main(argv + ["--set", "nonsense"])
