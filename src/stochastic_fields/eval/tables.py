@@ -154,6 +154,11 @@ def base_config(settings: BenchmarkSettings, dataset=None) -> ExperimentConfig:
         cfg.render.spacing = "linear"
         background = getattr(dataset, "background", None)
         cfg.render.background = None if background is None else tuple(float(c) for c in background)
+    # Every method renders the same dense samples with a fixed K: empty-space skipping and adaptive
+    # K exist for S-NeRF only, so they are off here unless an override turns them on.
+    for key in ("skip_empty_space", "adaptive_draws"):
+        if hasattr(cfg.render, key):
+            setattr(cfg.render, key, False)
     cfg.data.images = settings.images
     cfg.data.split_every = 5
     cfg.train.seed = settings.seed
@@ -684,6 +689,8 @@ def build_tables(results: dict[str, dict[str, dict]], *, methods: Sequence[str] 
         "timing": "median wall time of repeated full renders of the first test view after an untimed warm-up "
                   "chunk, this machine, same run; ratios are to the deterministic NeRF",
         "paper_figures": "the paper's numbers are context only: their NLL convention and hardware are not ours",
+        "same_pipeline": "every method renders the same dense samples (render.skip_empty_space and "
+                         "render.adaptive_draws off unless overridden; the baselines never use them)",
     })
     budget = None
     if any_result:
