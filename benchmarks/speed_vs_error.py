@@ -1,0 +1,22 @@
+"""Speed against error (issue 5): the same benchmark as ``stochastic-fields bench``.
+
+    .venv/bin/python benchmarks/speed_vs_error.py --quick --out benchmarks/results
+
+See ``stochastic_fields.bench`` for what is measured; ``--help`` lists the budget flags.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from stochastic_fields import bench
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=bench.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    bench.add_arguments(parser)
+    bench.run(parser.parse_args())
+
+
+if __name__ == "__main__":
+    main()
