@@ -45,7 +45,9 @@ def make_products(depth: np.ndarray, std: np.ndarray, K: np.ndarray, w2c: np.nda
     """DepthProducts straight from arrays (no renderer)."""
     H, W = depth.shape
     opacity = np.ones((H, W), np.float32) if opacity is None else opacity.astype(np.float32)
-    q = np.zeros((len(levels), H, W), np.float32) if draws is None else np.quantile(draws, levels, axis=-1).astype(np.float32)
+    q = np.zeros((len(levels), H, W), np.float32)
+    if draws is not None:
+        q = np.quantile(draws, levels, axis=-1).astype(np.float32)
     return DepthProducts(
         depth_mean=depth.astype(np.float32), depth_std=std.astype(np.float32),
         depth_std_epistemic=std.astype(np.float32), depth_std_spread=np.zeros((H, W), np.float32),
@@ -267,7 +269,8 @@ def test_tiff_and_npz_round_trip(tmp_path):
             np.testing.assert_array_equal(maps[name][p.valid], m[p.valid])
             assert np.all(np.isnan(maps[name][~p.valid]))
     z = np.load(write_npz(tmp_path / "v.npz", p, include_draws=True))
-    for name in ("depth_mean", "depth_std", "depth_std_epistemic", "depth_std_spread", "opacity", "depth_q5", "depth_q95"):
+    names = ("depth_mean", "depth_std", "depth_std_epistemic", "depth_std_spread", "opacity", "depth_q5", "depth_q95")
+    for name in names:
         assert z[name].dtype == np.float32 and z[name].shape == (H, W)
     np.testing.assert_array_equal(z["intrinsics"], p.intrinsics)
     np.testing.assert_array_equal(z["world_to_camera"], p.world_to_camera)

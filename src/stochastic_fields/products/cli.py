@@ -25,7 +25,8 @@ def _formats(text: str) -> tuple[str, ...]:
     items = tuple(t.strip() for t in text.split(",") if t.strip())
     bad = [t for t in items if t not in FORMATS]
     if bad or not items:
-        raise argparse.ArgumentTypeError(f"--formats takes a comma-separated subset of {','.join(FORMATS)}, got {text!r}")
+        raise argparse.ArgumentTypeError(
+            f"--formats takes a comma-separated subset of {','.join(FORMATS)}, got {text!r}")
     return items
 
 
@@ -33,7 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     d = ExportOptions()
     p.add_argument("--run", required=True, help="Trained run folder (with checkpoint.pt and config.json).")
     src = p.add_mutually_exclusive_group()
-    src.add_argument("--views", default=d.views, help="'test' (default), 'train', 'all' or dataset view indices like 1,2,3.")
+    src.add_argument("--views", default=d.views,
+                     help="'test' (default), 'train', 'all' or dataset view indices like 1,2,3.")
     src.add_argument("--cameras", type=Path, default=None,
                      help='JSON list of {"K": 3x3, "world_to_camera": 4x4, "width", "height"} (OpenCV; optional '
                           '"near", "far" camera-z and "name").')
@@ -45,17 +47,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="Depth quantile levels from the K draws (default 0.05,0.95).")
     p.add_argument("--min-opacity", type=float, default=d.min_opacity,
                    help="Pixels with lower accumulated opacity get no depth and no point (default 0.5).")
-    p.add_argument("--max-std", type=float, default=None, help="Drop points whose total depth std exceeds this (scene units).")
+    p.add_argument("--max-std", type=float, default=None,
+                   help="Drop points whose total depth std exceeds this (scene units).")
     p.add_argument("--max-rel-std", type=float, default=None, help="Drop points whose depth_std / depth exceeds this.")
     p.add_argument("--keep-fraction", type=float, default=None,
                    help="Keep only this fraction of each view's most confident points (0..1].")
     p.add_argument("--colour-by", choices=("rgb", "uncertainty"), default=d.colour_by,
                    help="PLY colours: rendered RGB or depth std through a perceptual colour map (range recorded).")
-    p.add_argument("--fuse", action="store_true", help="Also fuse all views into fused.ply (inverse-variance per voxel).")
-    p.add_argument("--voxel-size", type=float, default=None, help="Fusion voxel size (default: median pixel footprint).")
+    p.add_argument("--fuse", action="store_true",
+                   help="Also fuse all views into fused.ply (inverse-variance per voxel).")
+    p.add_argument("--voxel-size", type=float, default=None,
+                   help="Fusion voxel size (default: median pixel footprint).")
     p.add_argument("--free-space-thresholds", type=_floats("--free-space-thresholds"), default=(),
                    help="Camera-z distances d: write P(depth > d) volumes [T, H, W] per view.")
-    p.add_argument("--covariance", action="store_true", help="Add per-point 3x3 covariances (cov_xx..cov_zz) to the PLYs.")
+    p.add_argument("--covariance", action="store_true",
+                   help="Add per-point 3x3 covariances (cov_xx..cov_zz) to the PLYs.")
     p.add_argument("--save-draws", action="store_true", help="Keep the per-draw depths [H, W, K] in each npz.")
     p.add_argument("--units", default=d.units, help="Name of the length unit written into the files.")
     p.add_argument("--seed", type=int, default=d.seed, help="Seed of the K draws.")
@@ -86,8 +92,8 @@ def run(args: argparse.Namespace) -> None:
     gt = summary.get("ground_truth", {})
     if "surface_distance" in gt:
         s = gt["surface_distance"]
-        print(f"  distance to the true surface: mean {s['mean']:.4g}, 50% most confident {s['most_confident_50_mean']:.4g} "
-              f"[{s['units']}]")
+        print(f"  distance to the true surface: mean {s['mean']:.4g}, "
+              f"50% most confident {s['most_confident_50_mean']:.4g} [{s['units']}]")
     if "calibration" in gt:
         cal = gt["calibration"]
         print(f"  GT depth inside mean +- z std: 68% -> {cal['gaussian_total_std']['68']:.3f}, "

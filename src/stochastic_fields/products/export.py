@@ -106,7 +106,8 @@ class ExportOptions:
         if self.voxel_size is not None and not self.voxel_size > 0:
             raise ValueError(f"voxel_size must be positive, got {self.voxel_size}")
         if any(not (math.isfinite(t) and t > 0) for t in self.free_space_thresholds):
-            raise ValueError(f"free-space thresholds must be positive distances, got {list(self.free_space_thresholds)}")
+            raise ValueError(
+                f"free-space thresholds must be positive distances, got {list(self.free_space_thresholds)}")
         self.point_filter()
 
     def point_filter(self) -> PointFilter:
@@ -228,8 +229,8 @@ def dataset_view_specs(dataset, views: Sequence[int]) -> list[ViewSpec]:
 def render_products(model, spec: ViewSpec, opts: ExportOptions, generator: torch.Generator) -> DepthProducts:
     """Render one camera with K draws and return its depth products (draws kept)."""
     device = next(model.parameters()).device
-    cams = make_cameras(torch.from_numpy(spec.intrinsics).float()[None], torch.from_numpy(spec.world_to_camera).float()[None],
-                        spec.height, spec.width)
+    cams = make_cameras(torch.from_numpy(spec.intrinsics).float()[None],
+                        torch.from_numpy(spec.world_to_camera).float()[None], spec.height, spec.width)
     rays = generate_rays_for_view(cams, 0, spec.near, spec.far).to(device)
     maps = model.render_view(rays, num_draws=opts.num_draws, generator=generator, keep_draws=True)
     return compute_depth_products(maps, intrinsics_3x3(cams)[0].double().numpy(), cams.extrinsics[0].double().numpy(),

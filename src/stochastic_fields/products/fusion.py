@@ -42,7 +42,8 @@ def _weighted_mean(values: np.ndarray, w: np.ndarray, inverse: np.ndarray, m: in
     v = values.astype(np.float64)
     if v.ndim == 1:
         return np.bincount(inverse, weights=w * v, minlength=m) / wsum
-    return np.stack([np.bincount(inverse, weights=w * v[:, c], minlength=m) for c in range(v.shape[1])], 1) / wsum[:, None]
+    sums = [np.bincount(inverse, weights=w * v[:, c], minlength=m) for c in range(v.shape[1])]
+    return np.stack(sums, 1) / wsum[:, None]
 
 
 def fuse_clouds(clouds: list[CloudArrays] | CloudArrays, voxel_size: float | None = None) -> tuple[CloudArrays, dict]:

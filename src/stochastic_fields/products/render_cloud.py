@@ -44,7 +44,9 @@ def render_cloud_png(path: str | Path, cloud: CloudArrays, *, quantity: str = "d
     if quantity not in cloud.attributes:
         raise ValueError(f"render_cloud_png: no attribute {quantity!r}; have {sorted(cloud.attributes)}")
     rng = np.random.default_rng(seed)
-    idx = np.arange(len(cloud)) if len(cloud) <= max_points else np.sort(rng.choice(len(cloud), max_points, replace=False))
+    idx = np.arange(len(cloud))
+    if len(cloud) > max_points:
+        idx = np.sort(rng.choice(len(cloud), max_points, replace=False))
     pts = cloud.positions[idx]
     vals = cloud.attributes[quantity][idx].astype(np.float64)
     lo, hi = uncertainty_range(cloud.attributes[quantity]) if value_range is None else value_range
