@@ -173,3 +173,13 @@ def test_model_packed_equals_dense_after_occupancy_update():
         torch.testing.assert_close(maps_s[name], maps_d[name], rtol=1e-10, atol=1e-12, msg=name)
     assert float(maps_s["field_evals_per_ray"].mean()) < 0.95 * float(maps_d["field_evals_per_ray"].mean())
     assert float(maps_d["opacity"].max()) > 0.5
+
+
+def test_checkpoint_without_occupancy_loads_into_skipping_model():
+    dense, skip, _ = make_models(LossConfig(kl="none"))
+    state = dense.state_dict()
+    assert not any("occupancy" in k for k in state)
+    skip.load_state_dict(state)  # strict: only the occupancy buffers may be missing
+    assert skip.occupancy.occupied_fraction == 1.0
+    with pytest.raises(RuntimeError, match="Missing key"):
+        skip.load_state_dict({k: v for k, v in state.items() if not k.startswith("field.colour")})

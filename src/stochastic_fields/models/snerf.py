@@ -36,6 +36,14 @@ from .base import RadianceModel
 UNIT_CUBE = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
 
 
+def _allow_missing_occupancy(module, incompatible_keys) -> None:
+    """Checkpoints written without skipping load into a model with it: the grid stays all-occupied
+    (exact: nothing inside the region is skipped) until training updates it."""
+    for key in list(incompatible_keys.missing_keys):
+        if "occupancy." in key or key.endswith("interval_scale"):
+            incompatible_keys.missing_keys.remove(key)
+
+
 class SNeRF(RadianceModel):
     def __init__(self, field: StochasticField, region: SceneRegion, render_settings: RenderSettings,
                  loss: LossConfig, *, train_draws: int = 8, tv_weight: float = 0.0):
@@ -55,6 +63,7 @@ class SNeRF(RadianceModel):
             self.occupancy = OccupancyGrid(UNIT_CUBE, render_settings.occupancy_resolution)
             # (c, t_max): interval length c (linear) or c * t^2 (disparity); 0 until a training batch sets it
             self.register_buffer("interval_scale", torch.zeros(2))
+            self.register_load_state_dict_post_hook(_allow_missing_occupancy)
 
     # ------------------------------------------------------------------ empty-space skipping
     def occupied(self, positions: Tensor) -> Tensor:
