@@ -366,7 +366,7 @@ def make_plots(results: dict, out: Path) -> list[str]:
             a0.annotate(f"K={s['K']}", (s["time_s"], s["nll"]), textcoords="offset points", xytext=(4, 4), fontsize=8)
         for a in r.get("adaptive_by_rtol", [ad]):
             a0.plot([a["time_s"]], [a["nll"]], "*", ms=13, label=f"adaptive rtol {a['rtol']} (mean K {a['K_mean']:.0f})")
-        a0.set(xscale="log", xlabel="render time of the view [s]", ylabel="NLL [nats/channel]",
+        a0.set(xscale="log", yscale="symlog", xlabel="render time of the view [s]", ylabel="NLL [nats/channel] (symlog)",
                title=f"{scene}: speed against error")
         a0.grid(alpha=0.3)
         a0.legend()
