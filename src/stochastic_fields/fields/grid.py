@@ -88,14 +88,22 @@ class GridField(StochasticField):
         return out + off.to(out)
 
     def forward(self, positions: Tensor, directions: Tensor) -> FieldParams:
-        batch = positions.shape[:-1]
         unit = self.region.to_unit(positions.reshape(-1, 3))
-        values = self._interpolate(unit)
+        return self.decode(self._interpolate(unit), unit, directions, positions.shape[:-1])
+
+    def decode(self, values: Tensor, unit: Tensor, directions: Tensor, batch: torch.Size,
+               hidden_transform=None) -> FieldParams:
+        """Grid values [P, C] at unit coordinates [P, 3] -> FieldParams [*batch].
+
+        ``hidden_transform`` (e.g. dropout) is applied to the decoder's hidden layer."""
         outside = ~(unit.abs() <= 1.0).all(-1)
         density_loc = torch.where(outside, torch.full_like(values[:, 0], OUTSIDE_DENSITY_LOC), values[:, 0])
         if self.decoder_width > 0:
             d = self.dir_enc(directions.reshape(-1, 3))
-            col = self.decoder(torch.cat([values[:, 2:], d], dim=-1))
+            hidden = torch.relu(self.decoder[0](torch.cat([values[:, 2:], d], dim=-1)))
+            if hidden_transform is not None:
+                hidden = hidden_transform(hidden)
+            col = self.decoder[-1](hidden)
         else:
             col = values[:, 2:8]
         return FieldParams(

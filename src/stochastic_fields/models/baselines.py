@@ -54,8 +54,8 @@ from typing import Callable, Iterator
 import torch
 from torch import Tensor, nn
 
-from ..constants import NERFW_BETA_MIN, OUTSIDE_DENSITY_LOC
-from ..fields.base import FieldParams, StochasticField, positive_scale
+from ..constants import NERFW_BETA_MIN
+from ..fields.base import FieldParams, StochasticField
 from ..fields.grid import GridField
 from ..losses import LossConfig, gaussian_likelihood_nll
 from ..rays import RayBundle
@@ -148,21 +148,7 @@ class GridDropoutField(StochasticField):
         batch = positions.shape[:-1]
         unit = g.region.to_unit(positions.reshape(-1, 3))
         values = self.feature_dropout(g._interpolate(unit))  # [P, C]
-        outside = ~(unit.abs() <= 1.0).all(-1)
-        density_loc = torch.where(outside, torch.full_like(values[:, 0], OUTSIDE_DENSITY_LOC), values[:, 0])
-        if g.decoder_width > 0:
-            d = g.dir_enc(directions.reshape(-1, 3))
-            first, last = g.decoder[0], g.decoder[-1]
-            hidden = self.hidden_dropout(torch.relu(first(torch.cat([values[:, 2:], d], dim=-1))))
-            col = last(hidden)
-        else:
-            col = values[:, 2:8]
-        return FieldParams(
-            density_loc=density_loc.reshape(batch),
-            density_scale=positive_scale(values[:, 1]).reshape(batch),
-            rgb_loc=col[:, :3].reshape(*batch, 3),
-            rgb_scale=positive_scale(col[:, 3:]).reshape(*batch, 3),
-        )
+        return g.decode(values, unit, directions, batch, hidden_transform=self.hidden_dropout)
 
     def density_params(self, positions: Tensor) -> tuple[Tensor, Tensor]:
         """Without dropout (occupancy-style queries want the mean field)."""
