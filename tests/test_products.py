@@ -388,3 +388,20 @@ def test_colourised_png_and_cloud_picture(tmp_path):
     with pytest.raises(ValueError, match="empty"):
         render_cloud_png(tmp_path / "none.png", cloud.select(np.zeros(len(cloud), bool)))
     assert not (tmp_path / "none.png").exists()
+
+
+def test_splat_keeps_the_nearest_point_at_its_projection():
+    from stochastic_fields.products.render_cloud import splat
+
+    w2c = np.eye(4)  # camera at the origin looking along +z
+    focal, W, H = 100.0, 40, 30
+    # near, far behind it on the same ray, far alone, behind the camera
+    pts = np.array([[0.1, -0.05, 2.0], [0.2, -0.1, 4.0], [0.4, -0.05, 4.0], [0.0, 0.0, -1.0]])
+    cols = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]])
+    img = splat(pts, cols, w2c, focal, (W, H), radius_world=0.0)  # 1-pixel splats
+    # (u, v) = f x / z + W / 2: near point -> (25, 12.5); the far point on the same ray is hidden
+    np.testing.assert_array_equal(img[12, 25], [1.0, 0.0, 0.0])
+    np.testing.assert_array_equal(img[13, 25], [1.0, 0.0, 0.0])  # radius 1 px reaches the next row
+    np.testing.assert_array_equal(img[13, 30], [0.0, 1.0, 0.0])  # (30, 13.75)
+    assert not np.any(np.all(img == [0.0, 0.0, 1.0], axis=-1))  # the hidden point never shows
+    assert np.sum(np.any(img != 1.0, axis=-1)) <= 2 * 5  # two 1-px-radius disks, nothing from behind the camera

@@ -353,6 +353,18 @@ def surface_report(cloud: CloudArrays, mesh_path: Path) -> dict:
     }
 
 
+def picture_viewpoint(specs: Sequence[ViewSpec], points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(up, eye direction) for the cloud picture: up is the cameras' mean up axis (OpenCV -y in
+    world), the eye looks from the first camera's side of the cloud's centre."""
+    R = np.stack([s.world_to_camera[:3, :3] for s in specs])
+    up = -R[:, 1, :].mean(0)  # camera y points down; row 1 of R is that axis in world
+    c0 = -R[0].T @ specs[0].world_to_camera[:3, 3]
+    eye = c0 - np.median(points, axis=0)
+    if np.linalg.norm(up) < 1e-6 or np.linalg.norm(eye) < 1e-9:
+        return np.array([0.0, 0.0, 1.0]), None
+    return up / np.linalg.norm(up), eye
+
+
 # ------------------------------------------------------------------------------- driver
 def export_run(run_dir: str | Path, opts: ExportOptions) -> dict:
     """Export the products of a trained run (see the module doc). Returns the summary it saves."""
@@ -432,7 +444,9 @@ def export_views(model, specs: Sequence[ViewSpec], out: Path, opts: ExportOption
                                   comments=["fused", f"units {opts.units}"])
         summary["fused_colour_mapping"] = fused_mapping
         files.append(out / "fused.ply")
-        files.append(render_cloud_png(out / "fused_cloud.png", fused, value_range=colour_range,
+        up, eye = picture_viewpoint(specs, fused.positions)
+        files.append(render_cloud_png(out / "fused_cloud.png", fused, value_range=colour_range, up=up,
+                                      eye_direction=eye,
                                       title=f"fused cloud, {len(fused):,} points, coloured by depth std"))
     summary["counts"] = totals
     gt: dict = {}
