@@ -39,6 +39,8 @@ import torch
 from ..evaluate import camera_z_maps
 from ..io_utils import atomic_path, atomic_write_text
 
+#: Colour range (relative) given to a constant map so matplotlib can draw it.
+FLAT_MAP_RANGE: float = 1e-3
 #: Largest value of a 16-bit PNG; 0 is reserved for "no depth".
 PNG16_MAX: int = 65535
 
@@ -339,7 +341,7 @@ def write_colourised(path: str | Path, products: DepthProducts, *, title: str = 
         lo = float(np.percentile(vals, 1)) if vals.size and vmin is None else (vmin or 0.0)
         hi = float(np.percentile(vals, 99)) if vals.size else 1.0
         if hi <= lo:
-            hi = lo + max(abs(lo), 1.0) * 1e-3
+            hi = lo + max(abs(lo), 1.0) * FLAT_MAP_RANGE
         cm = matplotlib.colormaps[cmap].with_extremes(bad=(0.6, 0.6, 0.6))
         im = ax.imshow(np.ma.masked_array(values, ~valid), cmap=cm, vmin=lo, vmax=hi, interpolation="nearest")
         ax.set_title(label, fontsize=9)

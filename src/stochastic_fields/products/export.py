@@ -43,6 +43,9 @@ from .pointcloud import (CloudArrays, PointFilter, cloud_from_products, filter_c
 from .render_cloud import render_cloud_png
 
 FORMATS: tuple[str, ...] = ("npz", "png16", "tiff", "png")
+#: Tolerance on R^T R = I for a user's world_to_camera: poses typed or exported with 5-6
+#: significant digits pass, a scaled or sheared matrix (off by 1e-2 or more) does not.
+ROTATION_TOLERANCE: float = 1e-4
 #: Central interval levels checked against ground truth, and their Gaussian half-widths in std.
 CALIBRATION_LEVELS: dict[str, tuple[float, float]] = {"68": (0.682689492, 1.0), "95": (0.95, 1.959963985)}
 
@@ -192,7 +195,7 @@ def load_cameras_json(path: str | Path, *, default_near: float, default_far: flo
             raise ValueError(f"{path}: camera {i}: K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0, "
                              f"got {K.tolist()}")
         R = w2c[:3, :3]
-        if not np.allclose(w2c[3], [0, 0, 0, 1]) or not np.allclose(R.T @ R, np.eye(3), atol=1e-4) \
+        if not np.allclose(w2c[3], [0, 0, 0, 1]) or not np.allclose(R.T @ R, np.eye(3), atol=ROTATION_TOLERANCE) \
                 or np.linalg.det(R) <= 0:
             raise ValueError(f"{path}: camera {i}: world_to_camera must be a rigid transform [[R, t], [0, 0, 0, 1]] "
                              f"with R a rotation, got {w2c.tolist()}")
@@ -360,7 +363,7 @@ def picture_viewpoint(specs: Sequence[ViewSpec], points: np.ndarray) -> tuple[np
     up = -R[:, 1, :].mean(0)  # camera y points down; row 1 of R is that axis in world
     c0 = -R[0].T @ specs[0].world_to_camera[:3, 3]
     eye = c0 - np.median(points, axis=0)
-    if np.linalg.norm(up) < 1e-6 or np.linalg.norm(eye) < 1e-9:
+    if np.linalg.norm(up) < ROTATION_TOLERANCE or not np.linalg.norm(eye) > 0:  # cameras' up axes cancel
         return np.array([0.0, 0.0, 1.0]), None
     return up / np.linalg.norm(up), eye
 

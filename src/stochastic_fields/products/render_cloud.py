@@ -29,6 +29,10 @@ from .pointcloud import CloudArrays, uncertainty_range
 MAX_SPLAT_RADIUS_PX: int = 4
 #: Light not coming from the headlight (0: pure Lambert, 1: no shading).
 SHADING_AMBIENT: float = 0.55
+#: Relative size below which a direction counts as degenerate (view axis parallel to ``up``;
+#: a point in the camera's own plane): far above float64 round-off (~1e-16), far below any
+#: meaningful angle or depth ratio in a picture.
+DEGENERATE_FRACTION: float = 1e-9
 
 
 def _look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
@@ -36,7 +40,7 @@ def _look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
     fwd = target - eye
     fwd = fwd / np.linalg.norm(fwd)
     right = np.cross(fwd, up)
-    if np.linalg.norm(right) < 1e-9:  # looking along up: any perpendicular will do
+    if np.linalg.norm(right) < DEGENERATE_FRACTION:  # looking along up: any perpendicular will do
         right = np.cross(fwd, np.array([1.0, 0.0, 0.0]) if abs(fwd[0]) < 0.9 else np.array([0.0, 1.0, 0.0]))
     right = right / np.linalg.norm(right)
     down = np.cross(fwd, right)
@@ -57,7 +61,7 @@ def splat(points: np.ndarray, colours: np.ndarray, world_to_camera: np.ndarray, 
     W, H = size
     cam = points @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
     z = cam[:, 2]
-    front = z > 1e-9 * max(float(np.abs(z).max(initial=0.0)), 1.0)
+    front = z > DEGENERATE_FRACTION * max(float(np.abs(z).max(initial=0.0)), 1.0)
     cam, z, colours = cam[front], z[front], colours[front]
     r_world = np.broadcast_to(np.asarray(radius_world, dtype=np.float64), front.shape)[front]
     u = focal * cam[:, 0] / z + W / 2.0
