@@ -38,9 +38,9 @@ class LossConfig:
     """Exact KL or the paper's Monte-Carlo estimate."""
     kl_mc_samples: int = 8
     """Draws per point for the Monte-Carlo KL."""
-    lambda_random: float = 1e-3
+    lambda_random: float = 1e-2
     """Weight of the mean KL over random scene points."""
-    lambda_observed: float = 1e-4
+    lambda_observed: float = 5e-2
     """Weight of the mean KL over the training-ray samples."""
     random_points_per_axis: int = 12
     """Stratified random KL points: n per axis, n^3 points per step."""
