@@ -619,7 +619,7 @@ def plotly_cloud_figure(points: np.ndarray, colours: np.ndarray, values: np.ndar
 
 def static_cloud_figure(points: np.ndarray, colours: np.ndarray, values: np.ndarray, threshold: float | None = None,
                         *, max_points: int = 20000, value_label: str = f"depth std ({DEPTH_UNITS})",
-                        elev: float = 25.0, azim: float = -60.0) -> Figure:
+                        elev: float = 50.0, azim: float = -100.0) -> Figure:
     """Static fallback of ``plotly_cloud_figure``: matplotlib 3D scatters coloured by RGB and by
     uncertainty, of the points with ``values <= threshold``."""
     idx = _select(values, threshold, max_points)
