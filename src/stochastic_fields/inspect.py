@@ -42,6 +42,7 @@ from matplotlib.figure import Figure
 from .cameras import generate_rays_for_view, image_size, intrinsics_3x3
 from .distributions import RectifiedNormal
 from .eval import metrics as M
+from .eval.plots import calibration_figure
 from .evaluate import OPACITY_MASK, camera_z_maps, score_view
 from .models.snerf import SNeRF
 from .products.depth_maps import DepthProducts, compute_depth_products
@@ -542,25 +543,6 @@ def sparsification_figure(curves: dict[str, M.SparsificationResult], title: str 
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle(title, fontsize=11)
-    fig.tight_layout()
-    return fig
-
-
-def calibration_figure(curves: dict[str, M.CalibrationResult], title: str = "calibration") -> Figure:
-    """Empirical coverage of central intervals against their level, with the ideal diagonal
-    (the layout of ``eval.plots.plot_calibration``)."""
-    fig = Figure(figsize=(4.8, 4.6))
-    ax = fig.add_subplot(1, 1, 1)
-    ax.plot([0, 1], [0, 1], color="0.5", linestyle=":", label="ideal")
-    for i, (name, r) in enumerate(curves.items()):
-        ax.plot(r.levels, r.coverage, color=f"C{i}", label=f"{name} (AUCE {r.auce:.3f}, {r.verdict})")
-    ax.set_xlabel("nominal level p of the central interval")
-    ax.set_ylabel("empirical coverage")
-    ax.set_xlim(0, 1)
-    ax.set_ylim(0, 1)
-    ax.set_title(title, fontsize=10)
-    ax.grid(True, alpha=0.3)
-    ax.legend(fontsize=8, loc="upper left")
     fig.tight_layout()
     return fig
 

@@ -147,32 +147,24 @@ def frustum_points(intrinsics: Tensor, w2c: Tensor, height: int, width: int, nea
 
 
 def fit_region(intrinsics: Tensor, w2c: Tensor, height: int, width: int, near: Tensor, far: Tensor, *,
-               forward_facing: bool, aabb: Tensor | None = None, points: Tensor | None = None,
-               padding: float = 0.05) -> SceneRegion:
-    """Fit the modelled region from cameras (and optional known bounds / sparse points).
+               forward_facing: bool, aabb: Tensor | None = None, padding: float = 0.05) -> SceneRegion:
+    """The modelled region of a scene.
 
-    * object-centric (``forward_facing=False``): the given ``aabb`` if any, else the box of
-      all frustum points, intersected with the box of sparse points (padded) when present.
+    * object-centric (``forward_facing=False``): the scene box ``aabb`` the loaders fit
+      (``data.dataset.fit_scene_aabb``: cameras, near/far and sparse points), mapped linearly.
     * forward-facing: NDC of the average camera; its box covers the frustum points of every
       camera (1st-99th percentiles per axis, padded), so no capacity is spent on the thin
       slivers only one extreme corner ray reaches.
     """
+    if not forward_facing:
+        if aabb is None:
+            raise ValueError("fit_region: an object-centric scene needs its aabb (see data.dataset.fit_scene_aabb)")
+        return SceneRegion("aabb", torch.as_tensor(aabb, dtype=torch.float32))
     near = torch.as_tensor(near, dtype=torch.float32).reshape(-1).expand(w2c.shape[0])
     far = torch.as_tensor(far, dtype=torch.float32).reshape(-1).expand(w2c.shape[0])
     if not bool(torch.all(far > near)):
         raise ValueError(f"fit_region needs far > near for every camera, got near={near.tolist()} far={far.tolist()}")
     pts = frustum_points(intrinsics, w2c, height, width, near, far)
-    if not forward_facing:
-        if aabb is not None:
-            return SceneRegion("aabb", torch.as_tensor(aabb, dtype=torch.float32))
-        lo, hi = pts.min(0).values, pts.max(0).values
-        if points is not None and len(points) > 0:
-            p = torch.as_tensor(points, dtype=torch.float32)
-            plo, phi = torch.quantile(p, 0.01, dim=0), torch.quantile(p, 0.99, dim=0)
-            pad = (phi - plo) * 0.25
-            lo, hi = torch.maximum(lo, plo - pad), torch.minimum(hi, phi + pad)
-        pad = (hi - lo) * padding
-        return SceneRegion("aabb", torch.stack([lo - pad, hi + pad]))
     ref = _average_w2c(w2c)
     K = intrinsics[0, :3, :3].float()
     tan_x, tan_y = width / (2.0 * K[0, 0]), height / (2.0 * K[1, 1])

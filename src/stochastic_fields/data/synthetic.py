@@ -35,7 +35,6 @@ from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
-import open3d as o3d
 import torch
 import trimesh
 
@@ -162,6 +161,8 @@ def render_views(mesh: trimesh.Trimesh, cameras, *, nthreads: int = 0) -> tuple[
     Depth is ``t_hit * z_scale`` (t_hit along unit directions), 0 where the ray misses; colour
     is Lambert + ambient of the hit face's colour with the normal turned towards the camera.
     """
+    import open3d as o3d  # imported here: at import time it announces itself inside Jupyter
+
     rays = generate_rays(cameras, 0.0, 1.0, bounds="ray_distance")  # [V, H, W]
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(

@@ -78,22 +78,10 @@ def plot_sparsification(
     return _save_atomic(fig, path, dpi)
 
 
-def plot_calibration(
-    curves: Mapping[str, CalibrationResult],
-    path: str | os.PathLike,
-    title: str | None = None,
-    dpi: int = 120,
-) -> Path:
-    """Plot empirical coverage against nominal level per method, with the ideal diagonal.
-
-    Args:
-        curves: method name -> ``CalibrationResult``.
-        path: output ``.png`` (parent directories are created).
-    Returns:
-        the written path.
-    """
+def calibration_figure(curves: Mapping[str, CalibrationResult], title: str | None = None) -> Figure:
+    """Empirical coverage against nominal level per method, with the ideal diagonal (a Figure)."""
     if not curves:
-        raise ValueError("plot_calibration needs at least one curve")
+        raise ValueError("calibration_figure needs at least one curve")
     fig = Figure(figsize=(5.0, 5.0))
     ax = fig.add_subplot(1, 1, 1)
     ax.plot([0.0, 1.0], [0.0, 1.0], color="0.5", linestyle=":", label="ideal")
@@ -107,4 +95,20 @@ def plot_calibration(
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize="small", loc="upper left")
     fig.tight_layout()
-    return _save_atomic(fig, path, dpi)
+    return fig
+
+
+def plot_calibration(
+    curves: Mapping[str, CalibrationResult],
+    path: str | os.PathLike,
+    title: str | None = None,
+    dpi: int = 120,
+) -> Path:
+    """Write :func:`calibration_figure` to ``path`` (``.png``, parent directories created, atomic).
+
+    Returns:
+        the written path.
+    """
+    if not curves:
+        raise ValueError("plot_calibration needs at least one curve")
+    return _save_atomic(calibration_figure(curves, title), path, dpi)

@@ -13,6 +13,10 @@ from ..rays import RayBundle
 from ..renderer import RenderSettings
 
 
+#: Learning-rate multiplier of grid cells relative to network weights and priors.
+GRID_LR_FACTOR = 10.0
+
+
 class RadianceModel(nn.Module, abc.ABC):
     """A method that learns from pixels and renders colour/depth means and variances."""
 
@@ -33,5 +37,12 @@ class RadianceModel(nn.Module, abc.ABC):
         """Hook after each optimiser step (occupancy updates and similar)."""
 
     def param_groups(self, lr: float) -> list[dict]:
-        """Optimiser parameter groups; backends may use their own learning rates."""
-        return [{"params": [p for p in self.parameters() if p.requires_grad], "lr": lr}]
+        """Optimiser parameter groups: grid cells (of every GridField inside) at
+        ``GRID_LR_FACTOR * lr`` (each cell sees few rays per step), everything else at ``lr``."""
+        from ..fields.grid import GridField
+
+        grid = [p for m in self.modules() if isinstance(m, GridField) for p in m.levels.parameters()]
+        ids = {id(p) for p in grid}
+        rest = [p for p in self.parameters() if id(p) not in ids and p.requires_grad]
+        groups = [{"params": grid, "lr": lr * GRID_LR_FACTOR}] if grid else []
+        return groups + [{"params": rest, "lr": lr}]

@@ -235,14 +235,12 @@ class _MeanFieldModel(RadianceModel):
                 return loss + self.tv_weight * tv
         return loss
 
-    def param_groups(self, lr: float) -> list[dict]:
-        """Grid cells at 10 x lr (as S-NeRF), everything else at lr."""
-        grid = [p for m in self.modules() if isinstance(m, GridField) for p in m.levels.parameters()]
-        if not grid:
-            return super().param_groups(lr)
-        ids = {id(p) for p in grid}
-        rest = [p for p in self.parameters() if id(p) not in ids and p.requires_grad]
-        return [{"params": grid, "lr": lr * 10.0}, {"params": rest, "lr": lr}]
+    def _likelihood_loss(self, stats: TrajectoryStatistics, target: Tensor,
+                         generator: torch.Generator | None) -> tuple[Tensor, dict[str, float]]:
+        """The Gaussian pixel likelihood (same sigma_n as S-NeRF) plus the grid TV term."""
+        nll = gaussian_likelihood_nll(stats.colour_draws, target, self.loss_config.likelihood_std)
+        logs = {"nll": float(nll.detach()), "mse": float(((stats.colour_mean.detach() - target) ** 2).mean())}
+        return self._regularise(nll, logs, generator), logs
 
 
 # --------------------------------------------------------------------------------------------
@@ -261,9 +259,7 @@ class DeterministicNeRF(_MeanFieldModel):
     def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
                       generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
         out = render_mean_field(self.field, rays, self.render_settings, stratified=True, generator=generator)
-        nll = gaussian_likelihood_nll(out.stats.colour_draws, target, self.loss_config.likelihood_std)
-        logs = {"nll": float(nll.detach()), "mse": float(((out.stats.colour_mean.detach() - target) ** 2).mean())}
-        return self._regularise(nll, logs, generator), logs
+        return self._likelihood_loss(out.stats, target, generator)
 
     def render_view(self, rays: RayBundle, *, num_draws: int | None = None,
                     generator: torch.Generator | None = None, keep_draws: bool = False,
@@ -292,9 +288,7 @@ class MCDropoutNeRF(_MeanFieldModel):
                       generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
         with dropout_control(self, generator, always_on=True):
             out = render_mean_field(self.field, rays, self.render_settings, stratified=True, generator=generator)
-        nll = gaussian_likelihood_nll(out.stats.colour_draws, target, self.loss_config.likelihood_std)
-        logs = {"nll": float(nll.detach()), "mse": float(((out.stats.colour_mean.detach() - target) ** 2).mean())}
-        return self._regularise(nll, logs, generator), logs
+        return self._likelihood_loss(out.stats, target, generator)
 
     def render_view(self, rays: RayBundle, *, num_draws: int | None = None,
                     generator: torch.Generator | None = None, keep_draws: bool = False,

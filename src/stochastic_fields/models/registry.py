@@ -22,7 +22,7 @@ def fit_scene_region(dataset, cfg: ExperimentConfig) -> SceneRegion:
     H, W = image_size(dataset.cameras)
     return fit_region(intrinsics_3x3(dataset.cameras), dataset.cameras.extrinsics, H, W, dataset.near, dataset.far,
                       forward_facing=bool(getattr(dataset, "forward_facing", False)),
-                      aabb=getattr(dataset, "aabb", None), points=getattr(dataset, "points3d", None))
+                      aabb=dataset.aabb)
 
 
 def build_field(cfg: ExperimentConfig, region: SceneRegion, dataset) -> StochasticField:

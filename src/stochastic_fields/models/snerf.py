@@ -175,11 +175,3 @@ class SNeRF(RadianceModel):
                                          progress=progress, occupied=occupied)
         return render_image(self.field, rays, settings, num_draws=num_draws, generator=generator,
                             keep_draws=keep_draws, progress=progress, occupied=occupied)
-
-    def param_groups(self, lr: float) -> list[dict]:
-        if isinstance(self.field, GridField):
-            grid = list(self.field.levels.parameters())
-            grid_ids = {id(p) for p in grid}
-            rest = [p for p in self.parameters() if id(p) not in grid_ids]
-            return [{"params": grid, "lr": lr * 10.0}, {"params": rest, "lr": lr}]
-        return super().param_groups(lr)
