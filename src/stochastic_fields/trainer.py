@@ -9,7 +9,6 @@ nothing already on disk.
 from __future__ import annotations
 
 import json
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,13 +56,13 @@ def make_optimizer(model: RadianceModel, cfg: ExperimentConfig):
 def quick_eval(model: RadianceModel, dataset, view: int, device: torch.device) -> dict[str, float]:
     """PSNR of the mean colour on one test view (a cheap progress signal)."""
     from .cameras import generate_rays_for_view
+    from .eval.metrics import psnr
 
     model.eval()
     rays = generate_rays_for_view(dataset.cameras, view, dataset.near, dataset.far).to(device)
     maps = model.render_view(rays, num_draws=4)
     model.train()
-    mse = float(((maps["colour_mean"].cpu() - dataset.images[view]) ** 2).mean())
-    return {"eval_view": view, "eval_psnr": -10.0 * math.log10(max(mse, 1e-12))}
+    return {"eval_view": view, "eval_psnr": psnr(maps["colour_mean"].cpu(), dataset.images[view])}
 
 
 class Trainer:
