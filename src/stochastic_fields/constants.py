@@ -98,3 +98,8 @@ NERFW_BETA_MIN: float = 0.03
 #: DEPTH_NLL_VARIANCE_FLOOR: no renderer resolves depth finer than its sample spacing (~1e-3
 #: scene units at the finest sampling we use), so claims below that are not information.
 PRODUCT_DEPTH_VARIANCE_FLOOR: float = DEPTH_NLL_VARIANCE_FLOOR
+
+#: Adam's epsilon (denominator floor sqrt(v) + eps). Grid cells see few rays per step, so their
+#: second moments are tiny; 1e-8 would cap their steps well below the learning rate. 1e-15 (as
+#: instant-NGP) keeps Adam scale-free down to gradients of ~1e-13.
+ADAM_EPS: float = 1e-15

@@ -1,6 +1,6 @@
 """Training loop: seeded, resumable, with progress bars, periodic evaluation and atomic checkpoints.
 
-A run folder holds ``config.json``, ``checkpoint.pt`` (model, optimiser, scheduler, step and
+A run folder holds ``config.json``, ``checkpoint.pt`` (model, optimiser, step and
 random-generator state) and ``train_log.jsonl``. Starting a run whose folder already has a
 checkpoint resumes from it, so an interrupted run loses at most ``checkpoint_every`` steps and
 nothing already on disk.
@@ -21,6 +21,7 @@ from .checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
 from .config import ExperimentConfig, save_config, to_dict
 from .models.base import RadianceModel
 from .models.registry import build_model, resolve_device
+from .optim import FieldOptimizer
 from .rays import RayBundle
 
 
@@ -46,11 +47,9 @@ class TrainingRays:
         return self.rays[idx], self.colours[idx]
 
 
-def make_optimizer(model: RadianceModel, cfg: ExperimentConfig):
-    opt = torch.optim.Adam(model.param_groups(cfg.train.lr), eps=1e-15)
-    gamma = cfg.train.lr_final_factor ** (1.0 / max(1, cfg.train.iterations))
-    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=gamma)
-    return opt, sched
+def make_optimizer(model: RadianceModel, cfg: ExperimentConfig) -> FieldOptimizer:
+    return FieldOptimizer(model.param_groups(cfg.train.lr), total_steps=cfg.train.iterations,
+                          final_factor=cfg.train.lr_final_factor)
 
 
 def quick_eval(model: RadianceModel, dataset, view: int, device: torch.device) -> dict[str, float]:
@@ -73,7 +72,7 @@ class Trainer:
         self.device = resolve_device(cfg.train.device)
         torch.manual_seed(cfg.train.seed)
         self.model = build_model(cfg, dataset).to(self.device)
-        self.optimizer, self.scheduler = make_optimizer(self.model, cfg)
+        self.optimizer = make_optimizer(self.model, cfg)
         self.generator = torch.Generator().manual_seed(cfg.train.seed)
         self.draw_generator = torch.Generator(device=self.device).manual_seed(cfg.train.seed + 1)
         self.step = 0
@@ -88,7 +87,6 @@ class Trainer:
         return {
             "model": self.model.state_dict(),
             "optimizer": self.optimizer.state_dict(),
-            "scheduler": self.scheduler.state_dict(),
             "step": self.step,
             "elapsed_s": self.elapsed,
             "batch_rng": self.generator.get_state(),
@@ -105,7 +103,6 @@ class Trainer:
         state = load_checkpoint(self.checkpoint_path, map_location=self.device)
         self.model.load_state_dict(state["model"])
         self.optimizer.load_state_dict(state["optimizer"])
-        self.scheduler.load_state_dict(state["scheduler"])
         self.step = int(state["step"])
         self.elapsed = float(state.get("elapsed_s", 0.0))
         self.generator.set_state(state["batch_rng"])
@@ -135,8 +132,8 @@ class Trainer:
                     raise FloatingPointError(f"loss is {float(loss)} at step {self.step}: {logs}")
                 self.optimizer.zero_grad(set_to_none=True)
                 loss.backward()
+                self.optimizer.set_step(self.step)
                 self.optimizer.step()
-                self.scheduler.step()
                 self.model.after_step(self.step)
                 self.step += 1
                 now = time.perf_counter()

@@ -2,19 +2,26 @@
 
 Parameters live in L dense grids of increasing resolution over the scene region's unit cube
 (level l has resolution ``base * 2^l`` per axis, up to the finest resolution chosen from the
-image footprint). Trilinear interpolation (``torch.nn.functional.grid_sample``) of every level
-is summed:
+image footprint). Each level is a table of cells ``[Z * Y * X, C]`` (channels last); the
+trilinear interpolation of every level is summed:
 
-    g(x) = sum_l trilinear(G_l, u(x))                       u: SceneRegion.to_unit
+    g(x) = sum_l sum_{8 corners j} w_j(u) G_l[idx_j(u)]      u = SceneRegion.to_unit(x)
     mu_a, raw_s_a = g_0(x), g_1(x)                           (density read straight from the grid)
     mu_c, raw_s_c = decoder([g_2..(x), PE(d)])               (view-dependent colour, 2-layer MLP)
     or, with ``decoder_width=0``: mu_c, raw_s_c = g_2..7(x)  (view-independent, no MLP)
 
-Why this design (measured in benchmarks/): on 2 CPU cores, a dense ``grid_sample`` costs a few
+The corners are gathered with ``row_gather.gather_rows``, so a training step touches only the
+cells its samples fall in: their gradients are summed per row (``RowGradient``) and the grid is
+optimised with ``optim.RowSparseAdam`` (Adam moments updated only where a cell received gradient,
+as instant-NGP does for its hash tables). ``torch.nn.functional.grid_sample`` gives the same
+values (tested) but its backward writes a dense gradient of every cell, and a dense Adam then
+updates all cells each step: at 2M cells that was 80% of a training step (benchmarks/).
+
+Why a dense grid (measured in benchmarks/): on 2 CPU cores a trilinear gather costs a few
 hundred nanoseconds per point, the paper's 8x256 MLP about a hundred times more; coarse
 levels propagate gradients to unobserved cells quickly and the fine level adds detail.
-A hash grid would save memory at high resolution but scatters its gradient updates, which
-is slower on CPU; the regions we model need at most a few million cells per level.
+A hash grid would save memory at high resolution but needs a hash per corner and resolves
+collisions by training; the regions we model need at most a few million cells per level.
 """
 
 from __future__ import annotations
@@ -29,6 +36,7 @@ from ..constants import OUTSIDE_DENSITY_LOC
 from ..scene_region import SceneRegion
 from .base import FieldParams, StochasticField, inverse_positive_scale, positive_scale
 from .encoding import PositionalEncoding
+from .row_gather import gather_rows
 
 
 def level_resolutions(finest: tuple[int, int, int], num_levels: int) -> list[tuple[int, int, int]]:
@@ -50,9 +58,10 @@ class GridField(StochasticField):
         self.decoder_width = decoder_width
         colour_channels = feature_dim if decoder_width > 0 else 6
         self.num_channels = 2 + colour_channels
+        self.level_shapes = level_resolutions(self.resolution, num_levels)  # (X, Y, Z) per level
         self.levels = nn.ParameterList()
-        for lvl, (rx, ry, rz) in enumerate(level_resolutions(self.resolution, num_levels)):
-            g = torch.zeros(1, self.num_channels, rz, ry, rx)
+        for rx, ry, rz in self.level_shapes:
+            g = torch.zeros(rz * ry * rx, self.num_channels)  # cell (x, y, z) is row (z * Y + y) * X + x
             if decoder_width > 0:
                 g[:, 2:] = 0.1 * torch.randn_like(g[:, 2:])
             self.levels.append(nn.Parameter(g))
@@ -76,16 +85,28 @@ class GridField(StochasticField):
         return sum(p.numel() for p in self.parameters())
 
     def _interpolate(self, unit: Tensor, channels: slice | None = None) -> Tensor:
-        """unit [P, 3] in [-1, 1] -> [P, C] summed trilinear values of every level."""
-        grid = unit.reshape(1, -1, 1, 1, 3)
+        """unit [P, 3] in [-1, 1] -> [P, C] summed trilinear values of every level (plus offsets).
+
+        Points outside the cube read the border cells (their density is replaced in ``decode``).
+        The cells' gradients go to each level's ``RowGradient`` (rows of the touched corners)."""
         total = None
-        for level in self.levels:
-            g = level if channels is None else level[:, channels]
-            v = F.grid_sample(g, grid, mode="bilinear", padding_mode="border", align_corners=True)
+        for table, shape in zip(self.levels, self.level_shapes):
+            idx, w = trilinear_corners(unit, shape)  # [P, 8], [P, 8]
+            v = gather_rows(table, idx, w)  # [P, C]
             total = v if total is None else total + v
-        out = total.reshape(total.shape[1], -1).T
+        if channels is not None:
+            total = total[:, channels]
         off = self.offset if channels is None else self.offset[channels]
-        return out + off.to(out)
+        return total + off.to(total)
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # checkpoints from before the channels-last layout stored levels as [1, C, Z, Y, X]
+        for i in range(len(self.levels)):
+            key = f"{prefix}levels.{i}"
+            t = state_dict.get(key)
+            if t is not None and t.dim() == 5:
+                state_dict[key] = t[0].permute(1, 2, 3, 0).reshape(-1, t.shape[1])
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def forward(self, positions: Tensor, directions: Tensor) -> FieldParams:
         unit = self.region.to_unit(positions.reshape(-1, 3))
@@ -125,18 +146,39 @@ class GridField(StochasticField):
         every level (squared finite differences along x, y, z). Smooths the unobserved space the
         data leaves free."""
         losses = []
-        for level in self.levels:
-            _, C, Z, Y, X = level.shape
-            dev = level.device
+        for table, (X, Y, Z) in zip(self.levels, self.level_shapes):
+            dev = table.device
             z = torch.randint(0, Z - 1, (num_cells,), generator=generator, device=dev)
             y = torch.randint(0, Y - 1, (num_cells,), generator=generator, device=dev)
             x = torch.randint(0, X - 1, (num_cells,), generator=generator, device=dev)
             centre = (z * Y + y) * X + x
-            # one gather per level (one sparse gradient scatter instead of four)
-            g = level.reshape(C, -1)[:, torch.cat([centre, centre + Y * X, centre + X, centre + 1])]
-            c, nz, ny, nx = g.split(num_cells, dim=1)
+            # one gather per level: the cells and their +z, +y, +x neighbours
+            g = gather_rows(table, torch.cat([centre, centre + Y * X, centre + X, centre + 1]))
+            c, nz, ny, nx = g.split(num_cells, dim=0)
             losses.append(((nz - c) ** 2 + (ny - c) ** 2 + (nx - c) ** 2).mean())
         return torch.stack(losses).sum()
+
+
+def trilinear_corners(unit: Tensor, shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
+    """Corner rows and weights of trilinear interpolation in a cell table of ``shape`` (X, Y, Z).
+
+    unit [P, 3] (x, y, z) in [-1, 1] (clamped: border padding) maps to the continuous cell
+    coordinate ``p = (u + 1) / 2 * (R - 1)`` (cell centres at the cube's faces, as
+    ``grid_sample(align_corners=True)``). Returns idx [P, 8] int64 rows ``(z * Y + y) * X + x`` and
+    w [P, 8] weights ``prod_a (f_a if corner_a else 1 - f_a)``, ``f = p - floor(p)``; they sum to 1.
+    """
+    res = torch.tensor(shape, device=unit.device, dtype=unit.dtype)
+    pos = (unit.clamp(-1.0, 1.0) + 1.0) * 0.5 * (res - 1)
+    base = pos.detach().floor().clamp(max=res - 2)  # the last cell interpolates with f = 1
+    frac = pos - base
+    b = base.long()
+    X, Y = shape[0], shape[1]
+    bits = torch.tensor([[i & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], device=unit.device)  # [8, 3]
+    corner = b[:, None, :] + bits[None]  # [P, 8, 3]
+    idx = (corner[..., 2] * Y + corner[..., 1]) * X + corner[..., 0]
+    fb = bits[None].to(unit.dtype)
+    w = (fb * frac[:, None, :] + (1 - fb) * (1 - frac[:, None, :])).prod(dim=-1)
+    return idx, w
 
 
 def resolution_from_footprint(region: SceneRegion, intrinsics: Tensor, w2c: Tensor, height: int, width: int,

@@ -38,11 +38,12 @@ class RadianceModel(nn.Module, abc.ABC):
 
     def param_groups(self, lr: float) -> list[dict]:
         """Optimiser parameter groups: grid cells (of every GridField inside) at
-        ``GRID_LR_FACTOR * lr`` (each cell sees few rays per step), everything else at ``lr``."""
+        ``GRID_LR_FACTOR * lr`` (each cell sees few rays per step) and marked ``sparse`` (their
+        gradients are sparse, see ``optim.FieldOptimizer``), everything else at ``lr``."""
         from ..fields.grid import GridField
 
         grid = [p for m in self.modules() if isinstance(m, GridField) for p in m.levels.parameters()]
         ids = {id(p) for p in grid}
         rest = [p for p in self.parameters() if id(p) not in ids and p.requires_grad]
-        groups = [{"params": grid, "lr": lr * GRID_LR_FACTOR}] if grid else []
+        groups = [{"params": grid, "lr": lr * GRID_LR_FACTOR, "sparse": True}] if grid else []
         return groups + [{"params": rest, "lr": lr}]

@@ -1,0 +1,142 @@
+"""The optimiser of every method: Adam, with SparseAdam for parameters that get sparse gradients.
+
+Grid cells (``fields.grid``) receive sparse gradients (only the cells a batch touches), which
+``torch.optim.Adam`` rejects. :class:`RowSparseAdam` updates their moments and values only in the
+rows where a gradient arrived (lazy Adam, as ``torch.optim.SparseAdam`` and instant-NGP), and
+finds those rows with a bitmap instead of sorting the gradient's indices: ``SparseAdam``'s
+coalesce (a sort of every corner index of the batch) was half of a training step at 2M cells.
+Everything else (decoders, MLPs, priors) uses Adam. One object steps, zeroes, schedules and
+checkpoints both.
+
+Learning rate: exponential decay from ``lr`` to ``lr * final_factor`` over ``total_steps``,
+``lr(step) = lr * final_factor ** (step / total_steps)``, set from the step number (so a
+resumed run has the same schedule without a scheduler state).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .constants import ADAM_EPS
+
+
+class FieldOptimizer:
+    """Adam for dense groups, SparseAdam for groups marked ``{"sparse": True}``."""
+
+    def __init__(self, param_groups: list[dict], *, total_steps: int, final_factor: float):
+        dense = [dict(g) for g in param_groups if not g.get("sparse") and g["params"]]
+        sparse = [dict(g) for g in param_groups if g.get("sparse") and g["params"]]
+        for g in dense + sparse:
+            g.pop("sparse", None)
+            g["initial_lr"] = g["lr"]
+        self.optimizers: list[torch.optim.Optimizer] = []
+        if dense:
+            self.optimizers.append(torch.optim.Adam(dense, eps=ADAM_EPS))
+        if sparse:
+            self.optimizers.append(RowSparseAdam(sparse, eps=ADAM_EPS))
+        self.total_steps = max(1, int(total_steps))
+        self.final_factor = float(final_factor)
+
+    @property
+    def param_groups(self) -> list[dict]:
+        return [g for opt in self.optimizers for g in opt.param_groups]
+
+    def set_step(self, step: int) -> None:
+        """Learning rates for optimiser step ``step`` (0-based) of the decay schedule."""
+        factor = self.final_factor ** (min(step, self.total_steps) / self.total_steps)
+        for g in self.param_groups:
+            g["lr"] = g["initial_lr"] * factor
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        for opt in self.optimizers:
+            opt.zero_grad(set_to_none=set_to_none)
+
+    def step(self) -> None:
+        for opt in self.optimizers:
+            opt.step()
+
+    def state_dict(self) -> dict:
+        return {"optimizers": [opt.state_dict() for opt in self.optimizers]}
+
+    def load_state_dict(self, state: dict) -> None:
+        saved = state.get("optimizers")
+        if saved is None or len(saved) != len(self.optimizers):
+            raise ValueError("checkpoint optimiser state does not match this model's parameter groups "
+                             f"({0 if saved is None else len(saved)} saved, {len(self.optimizers)} expected)")
+        for opt, s in zip(self.optimizers, saved):
+            opt.load_state_dict(s)
+
+
+class RowSparseAdam(torch.optim.Optimizer):
+    """Lazy Adam for tables [N, C] whose gradient arrives as rows (``fields.row_gather``).
+
+    For the rows r that received gradient g_r this step (duplicates summed), with the step
+    count t of the table:
+
+        m_r <- b1 m_r + (1 - b1) g_r,   v_r <- b2 v_r + (1 - b2) g_r^2
+        x_r <- x_r - lr * (m_r / (1 - b1^t)) / (sqrt(v_r / (1 - b2^t)) + eps)
+
+    Rows without gradient keep their values and moments (as ``torch.optim.SparseAdam``, whose
+    updates this reproduces; tested). A table's gradient is read from its ``RowGradient``; a
+    parameter with an ordinary ``.grad`` (dense or sparse) works too.
+    """
+
+    def __init__(self, params, lr: float = 1e-3, betas: tuple[float, float] = (0.9, 0.999), eps: float = ADAM_EPS):
+        super().__init__(params, dict(lr=lr, betas=betas, eps=eps))
+
+    @staticmethod
+    def _gradient_rows(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """(rows [U], summed gradient [U, C]) of p [N, C], or None without gradient."""
+        acc = getattr(p, "row_gradient", None)
+        rows = grad = None
+        if acc is not None:
+            rows, grad = acc.take(p)
+        if p.grad is not None:
+            g = p.grad.coalesce() if p.grad.is_sparse else p.grad
+            extra = torch.zeros_like(p)
+            if g.is_sparse:
+                extra.index_add_(0, g.indices()[0], g.values())
+            else:
+                extra += g
+            if rows is not None:
+                extra[rows] += grad
+            rows = torch.arange(p.shape[0], device=p.device) if not g.is_sparse else \
+                torch.unique(torch.cat([g.indices()[0]] + ([rows] if rows is not None else [])))
+            grad = extra[rows]
+        if rows is None or rows.numel() == 0:
+            return None
+        return rows, grad
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        super().zero_grad(set_to_none=set_to_none)
+        for group in self.param_groups:
+            for p in group["params"]:
+                acc = getattr(p, "row_gradient", None)
+                if acc is not None:
+                    acc.zero()
+
+    @torch.no_grad()
+    def step(self, closure=None):
+        loss = closure() if closure is not None else None
+        for group in self.param_groups:
+            b1, b2 = group["betas"]
+            for p in group["params"]:
+                taken = self._gradient_rows(p)
+                if taken is None:
+                    continue
+                rows, g = taken
+                state = self.state[p]
+                if not state:
+                    state["step"] = torch.zeros((), dtype=torch.float64)
+                    state["exp_avg"] = torch.zeros_like(p)
+                    state["exp_avg_sq"] = torch.zeros_like(p)
+                state["step"] += 1
+                t = float(state["step"])
+                m = state["exp_avg"][rows].mul_(b1).add_(g, alpha=1 - b1)
+                v = state["exp_avg_sq"][rows].mul_(b2).addcmul_(g, g, value=1 - b2)
+                state["exp_avg"].index_copy_(0, rows, m)
+                state["exp_avg_sq"].index_copy_(0, rows, v)
+                denom = (v / (1 - b2 ** t)).sqrt_().add_(group["eps"])
+                # rows are unique: a gather and an indexed copy (index_add_ is 2x slower on CPU)
+                p.index_copy_(0, rows, p[rows].sub_(m.div_(denom), alpha=group["lr"] / (1 - b1 ** t)))
+        return loss

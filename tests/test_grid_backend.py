@@ -1,0 +1,133 @@
+"""The grid backend's gather-based interpolation and its row-sparse optimiser, against torch's
+own grid_sample, dense autograd and torch.optim.SparseAdam."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from stochastic_fields.fields.grid import GridField, trilinear_corners
+from stochastic_fields.fields.row_gather import gather_rows, row_gradient
+from stochastic_fields.optim import FieldOptimizer, RowSparseAdam
+from stochastic_fields.scene_region import SceneRegion
+
+SHAPE = (5, 4, 6)  # X, Y, Z: anisotropic so that a swapped axis fails
+
+
+def _cube_region() -> SceneRegion:
+    return SceneRegion("aabb", torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
+
+
+def _unit_points(n: int, seed: int = 0, dtype=torch.float64) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    u = torch.rand(n, 3, generator=g, dtype=dtype) * 2.4 - 1.2  # some outside: border padding
+    u[:4] = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], [1.0, -1.0, 0.0], [0.0, 0.0, 0.0]], dtype=dtype)
+    return u
+
+
+def _grid_sample_reference(table: torch.Tensor, unit: torch.Tensor) -> torch.Tensor:
+    X, Y, Z = SHAPE
+    vol = table.T.reshape(1, -1, Z, Y, X)
+    out = F.grid_sample(vol, unit.reshape(1, -1, 1, 1, 3), mode="bilinear", padding_mode="border", align_corners=True)
+    return out.reshape(table.shape[1], -1).T
+
+
+def test_trilinear_corners_match_grid_sample_values():
+    X, Y, Z = SHAPE
+    table = torch.randn(X * Y * Z, 3, dtype=torch.float64)
+    unit = _unit_points(200)
+    idx, w = trilinear_corners(unit, SHAPE)
+    assert idx.min() >= 0 and idx.max() < X * Y * Z
+    torch.testing.assert_close(w.sum(-1), torch.ones(200, dtype=torch.float64))
+    torch.testing.assert_close(gather_rows(table, idx, w), _grid_sample_reference(table, unit), rtol=1e-12, atol=1e-12)
+
+
+def test_trilinear_corner_cell_is_exact():
+    X, Y, Z = SHAPE
+    table = torch.arange(X * Y * Z, dtype=torch.float64)[:, None]
+    # cell (x, y, z) = (4, 0, 5) sits at unit (1, -1, 1): row (5 * Y + 0) * X + 4
+    out = gather_rows(table, *trilinear_corners(torch.tensor([[1.0, -1.0, 1.0]], dtype=torch.float64), SHAPE))
+    assert out.item() == (5 * Y + 0) * X + 4
+
+
+def test_row_gradient_equals_dense_autograd_gradient():
+    X, Y, Z = SHAPE
+    table = torch.randn(X * Y * Z, 4, dtype=torch.float64, requires_grad=True)
+    unit = _unit_points(300, seed=1)
+    coeff = torch.randn(300, 4, dtype=torch.float64)
+    idx, w = trilinear_corners(unit, SHAPE)
+    extra = torch.randint(0, X * Y * Z, (50,))
+    loss = (gather_rows(table, idx, w) * coeff).sum() + (gather_rows(table, extra) ** 2).sum()  # two uses, duplicates
+    loss.backward()
+    assert table.grad is None
+    dense = table.detach().clone().requires_grad_(True)
+    ref = (_grid_sample_reference(dense, unit) * coeff).sum() + (dense[extra] ** 2).sum()
+    ref.backward()
+    torch.testing.assert_close(row_gradient(table).dense(table), dense.grad, rtol=1e-12, atol=1e-12)
+    rows, grad = row_gradient(table).take(table)
+    torch.testing.assert_close(grad, dense.grad[rows])
+    assert set(rows.tolist()) >= set(dense.grad.abs().sum(-1).nonzero().squeeze(1).tolist())
+    assert row_gradient(table).dense(table).abs().max() == 0  # take() resets
+
+
+def test_gather_rows_weight_gradient_gradcheck():
+    table = torch.randn(7, 2, dtype=torch.float64)
+    idx = torch.randint(0, 7, (5, 3))
+    w = torch.rand(5, 3, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(lambda ww: gather_rows(table, idx, ww), (w,))
+
+
+@pytest.mark.parametrize("steps", [1, 5])
+def test_row_sparse_adam_matches_torch_sparse_adam(steps):
+    torch.manual_seed(0)
+    N, C = 30, 3
+    ours = torch.nn.Parameter(torch.randn(N, C, dtype=torch.float64))
+    ref = torch.nn.Parameter(ours.detach().clone())
+    opt = RowSparseAdam([ours], lr=0.05, eps=1e-15)
+    ref_opt = torch.optim.SparseAdam([ref], lr=0.05, eps=1e-15)
+    for s in range(steps):
+        idx = torch.randint(0, N // 2, (20,)) + s  # duplicates; untouched rows exist
+        coeff = torch.randn(20, C, dtype=torch.float64)
+        opt.zero_grad()
+        (gather_rows(ours, idx) * coeff).sum().backward()
+        opt.step()
+        ref_opt.zero_grad()
+        (F.embedding(idx, ref, sparse=True) * coeff).sum().backward()
+        ref_opt.step()
+    torch.testing.assert_close(ours.detach(), ref.detach(), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(opt.state[ours]["exp_avg_sq"], ref_opt.state[ref]["exp_avg_sq"], rtol=1e-12, atol=1e-15)
+
+
+def test_field_optimizer_schedule_and_state_round_trip():
+    field = GridField(_cube_region(), (8, 8, 8), num_levels=2, decoder_width=8)
+    groups = [{"params": list(field.levels.parameters()), "lr": 0.1, "sparse": True},
+              {"params": list(field.decoder.parameters()), "lr": 0.01}]
+    opt = FieldOptimizer(groups, total_steps=10, final_factor=0.1)
+    opt.set_step(5)
+    assert [g["lr"] for g in opt.param_groups] == pytest.approx([0.01 * 0.1 ** 0.5, 0.1 * 0.1 ** 0.5])
+    pts = torch.rand(64, 3) * 2 - 1
+    dirs = F.normalize(torch.randn(64, 3), dim=-1)
+    p = field(pts, dirs)
+    (p.density_loc.sum() + p.rgb_loc.sum()).backward()
+    before = field.levels[1].detach().clone()
+    opt.step()
+    changed = (field.levels[1].detach() != before).any(-1)
+    assert 0 < int(changed.sum()) < before.shape[0]  # only the touched cells move
+    state = opt.state_dict()
+    opt2 = FieldOptimizer(groups, total_steps=10, final_factor=0.1)
+    opt2.load_state_dict(state)
+    with pytest.raises(ValueError, match="parameter groups"):
+        FieldOptimizer(groups[1:], total_steps=10, final_factor=0.1).load_state_dict(state)
+
+
+def test_grid_field_loads_channels_first_checkpoints():
+    field = GridField(_cube_region(), (6, 5, 4), num_levels=2)
+    old_state = {k: v.clone() for k, v in field.state_dict().items()}
+    for i, (X, Y, Z) in enumerate(field.level_shapes):
+        t = old_state[f"levels.{i}"]
+        old_state[f"levels.{i}"] = t.T.reshape(1, -1, Z, Y, X).contiguous()  # the layout grid_sample used
+    other = GridField(_cube_region(), (6, 5, 4), num_levels=2)
+    other.load_state_dict(old_state)
+    for a, b in zip(field.levels, other.levels):
+        torch.testing.assert_close(a, b)
