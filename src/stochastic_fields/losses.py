@@ -31,7 +31,9 @@ class LossConfig:
     """Weights and choices of the variational loss."""
 
     likelihood_std: float = 0.05
-    """sigma_n: standard deviation of the Gaussian pixel likelihood (colour units, [0, 1])."""
+    """sigma_n: standard deviation of the Gaussian pixel likelihood (colour units, [0, 1]); the starting value when learned."""
+    learn_likelihood_std: bool = False
+    """Learn sigma_n (one per colour channel) with the rest of the objective instead of fixing it. Render with render.colour_variance='predictive' to add sigma_n^2 to the colour variance."""
     kl: Literal["none", "fixed_prior", "full"] = "full"
     """KL terms (paper Table 3): none, fixed-prior (random points) only, or full (random + observed-ray priors)."""
     kl_estimator: Literal["closed_form", "monte_carlo"] = "closed_form"
@@ -69,13 +71,15 @@ class Priors(nn.Module):
                 self.observed_rgb_loc, positive_scale(self.observed_rgb_raw_scale))
 
 
-def gaussian_likelihood_nll(colours: Tensor, target: Tensor, std: float) -> Tensor:
-    """Mean over rays and draws of -log N(target | C_k, std^2 I), per pixel (3 channels summed).
+def gaussian_likelihood_nll(colours: Tensor, target: Tensor, std: float | Tensor) -> Tensor:
+    """Mean over rays and draws of -log N(target | C_k, diag(std^2)), per pixel (3 channels summed).
 
-    Shapes: colours [R, K, 3], target [R, 3] -> scalar.
+    Shapes: colours [R, K, 3], target [R, 3], std a float or [3] -> scalar.
     """
-    sq = ((colours - target[:, None, :]) ** 2).sum(-1)  # [R, K]
-    return (0.5 * sq / std ** 2 + 3.0 * math.log(std) + 1.5 * math.log(2 * math.pi)).mean()
+    std = torch.as_tensor(std, dtype=colours.dtype, device=colours.device).expand(3)
+    sq = (colours - target[:, None, :]) ** 2  # [R, K, 3]
+    per_channel = 0.5 * sq / std ** 2 + torch.log(std) + 0.5 * math.log(2 * math.pi)
+    return per_channel.sum(-1).mean()
 
 
 def field_kl(params: FieldParams, prior: tuple[Tensor, Tensor, Tensor, Tensor], *,

@@ -19,8 +19,10 @@ compositing); the observed-ray KL is then taken over the kept samples.
 
 from __future__ import annotations
 
+import math
+
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from ..constants import OCCUPANCY_UPPER_NUM_STD
 from ..fields.base import StochasticField
@@ -55,6 +57,11 @@ class SNeRF(RadianceModel):
         self.loss_config = loss
         self.train_draws = train_draws
         self.tv_weight = tv_weight
+        if loss.learn_likelihood_std:
+            self.log_likelihood_std = nn.Parameter(torch.full((3,), math.log(loss.likelihood_std)))
+        if render_settings.colour_variance not in ("epistemic", "predictive"):
+            raise ValueError("render.colour_variance must be 'epistemic' or 'predictive', "
+                             f"got {render_settings.colour_variance!r}")
         self.occupancy: OccupancyGrid | None = None
         if render_settings.skip_empty_space:
             if render_settings.quadrature != "alpha":
@@ -64,6 +71,12 @@ class SNeRF(RadianceModel):
             # (c, t_max): interval length c (linear) or c * t^2 (disparity); 0 until a training batch sets it
             self.register_buffer("interval_scale", torch.zeros(2))
             self.register_load_state_dict_post_hook(_allow_missing_occupancy)
+
+    def likelihood_std(self) -> Tensor:
+        """[3] sigma_n per colour channel (learned or ``loss.likelihood_std``)."""
+        if self.loss_config.learn_likelihood_std:
+            return self.log_likelihood_std.exp()
+        return torch.full((3,), self.loss_config.likelihood_std, device=self.priors.random_rgb_loc.device)
 
     # ------------------------------------------------------------------ empty-space skipping
     def occupied(self, positions: Tensor) -> Tensor:
@@ -134,10 +147,13 @@ class SNeRF(RadianceModel):
             out = render_samples_packed(params, samples, settings, num_draws=self.train_draws, generator=generator)
         else:
             out = render_samples(params, samples, settings, num_draws=self.train_draws, generator=generator)
-        nll = gaussian_likelihood_nll(out.stats.colour_draws, target, cfg.likelihood_std)
+        sigma_n = self.likelihood_std()
+        nll = gaussian_likelihood_nll(out.stats.colour_draws, target, sigma_n)
         loss = nll
         logs = {"nll": nll.item(), "mse": ((out.stats.colour_mean.detach() - target) ** 2).mean().item(),
                 "field_evals_per_ray": n_ray / max(len(rays), 1)}
+        if cfg.learn_likelihood_std:
+            logs["likelihood_std"] = sigma_n.mean().item()
         if use_random_kl:
             kl_rand = field_kl(params_all.map(lambda t: t[n_ray:]), self.priors.random(), estimator=cfg.kl_estimator,
                                mc_samples=cfg.kl_mc_samples, generator=generator).mean()
@@ -171,7 +187,12 @@ class SNeRF(RadianceModel):
         if settings.adaptive_draws and num_draws is None:
             from ..adaptive import render_image_adaptive
 
-            return render_image_adaptive(self.field, rays, settings, generator=generator, keep_draws=keep_draws,
+            maps = render_image_adaptive(self.field, rays, settings, generator=generator, keep_draws=keep_draws,
                                          progress=progress, occupied=occupied)
-        return render_image(self.field, rays, settings, num_draws=num_draws, generator=generator,
-                            keep_draws=keep_draws, progress=progress, occupied=occupied)
+        else:
+            maps = render_image(self.field, rays, settings, num_draws=num_draws, generator=generator,
+                                keep_draws=keep_draws, progress=progress, occupied=occupied)
+        if settings.colour_variance == "predictive":
+            # Var[c] = E_k Var[c | C_k] + Var_k C_k = sigma_n^2 + epistemic (law of total variance)
+            maps["colour_var"] = maps["colour_var"] + self.likelihood_std().detach().to(maps["colour_var"]) ** 2
+        return maps
