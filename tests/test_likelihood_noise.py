@@ -75,3 +75,20 @@ def test_bad_colour_variance_setting_is_rejected(dataset):
     cfg.render.colour_variance = "aleatoric"
     with pytest.raises(ValueError, match="colour_variance.*aleatoric"):
         build_model(cfg, dataset)
+
+
+def test_rebuild_occupancy_skips_more_with_a_looser_criterion(dataset, tmp_path):
+    cfg = _tiny_snerf_config()
+    cfg.render.skip_empty_space = True
+    cfg.train.iterations = 20
+    model = Trainer(cfg, tmp_path, dataset).train(progress=False)
+    settings = model.render_settings
+    fractions = []
+    for num_std, alpha in ((3.0, 1e-4), (1.0, 1e-2), (-3.0, 0.5)):
+        settings.occupancy_num_std, settings.occupancy_alpha_threshold = num_std, alpha
+        fractions.append(model.rebuild_occupancy())
+    assert fractions[0] >= fractions[1] >= fractions[2]
+    # relu(mu - 3 s) * delta with opacity above 0.5: a 20-step field is nowhere that sure
+    assert fractions[2] == 0.0
+    settings.occupancy_num_std, settings.occupancy_alpha_threshold = 1e3, 1e-4  # everything uncertain enough
+    assert model.rebuild_occupancy() == 1.0

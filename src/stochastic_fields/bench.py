@@ -49,7 +49,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--mlp-width", type=int, default=None, help="MLP trunk width (paper: 256; default 64 quick, 256).")
     parser.add_argument("--rays-per-batch", type=int, default=None, help="Training rays per step (default 512 quick, 1024).")
     parser.add_argument("--eval-pixels", type=int, default=None, help="Test pixels for the training curves (default 1024 quick, 8192).")
-    parser.add_argument("--curve-points", type=int, default=5, help="Evaluations along each training curve.")
+    parser.add_argument("--curve-points", type=int, default=8,
+                        help="Evaluations along each training curve, spaced geometrically in steps (early quality is where backends differ).")
     parser.add_argument("--view-stride", type=int, default=None, help="Pixel stride of the rendered view (default 4 quick on fern, 1).")
     parser.add_argument("--scenes", default="synthetic,fern", help="Comma-separated scenes: synthetic, fern.")
 
@@ -120,6 +121,15 @@ def _score_pixels(model, rays, colours, num_draws: int = 16) -> dict:
 
 
 # ----------------------------------------------------------------------------------- training
+def curve_marks(total: int, points: int, first: int = 10) -> list[int]:
+    """Steps at which a training curve is scored: ``points`` steps from ``min(first, total)`` to
+    ``total``, spaced geometrically (ends included, duplicates removed)."""
+    if points <= 1 or total <= 1:
+        return [max(1, total)]
+    lo = min(first, total)
+    return sorted({int(round(x)) for x in np.geomspace(lo, total, points)})
+
+
 def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: kilobytes
 
@@ -137,7 +147,7 @@ def _train_child(cfg_dict: dict, run_dir: str, budget: dict, queue) -> None:
         rss_before = _rss_mb()
         trainer = Trainer(cfg, Path(run_dir), dataset)
         total = cfg.train.iterations
-        marks = sorted({max(1, round(total * (i + 1) / budget["curve_points"])) for i in range(budget["curve_points"])})
+        marks = curve_marks(total, budget["curve_points"])
         curve = []
         for mark in marks:
             trainer.train(progress=False, max_steps=mark - trainer.step)
@@ -279,7 +289,40 @@ def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> 
         skip["render_time_ratio"] = t_dense / t_sto
         skip["occupied_fraction"] = model.occupancy.occupied_fraction if model.occupancy is not None else 1.0
         out["skipping"] = skip
+        if model.occupancy is not None and hasattr(model, "rebuild_occupancy"):
+            out["skipping_sweep"] = skipping_sweep(model, rays, settings, k_def,
+                                                   lambda m: _view_scores(m, gt, gt_depth, sparse, stride))
     return out
+
+
+#: (occupancy_num_std, occupancy_alpha_threshold) of the skipping sweep: the default first, then
+#: criteria that skip more of the space S-NeRF is unsure about.
+SKIPPING_CRITERIA = ((3.0, 1e-4), (2.0, 1e-3), (1.0, 1e-2), (0.0, 1e-2))
+
+
+def skipping_sweep(model, rays, settings, num_draws: int, score) -> list[dict]:
+    """Occupancy rebuilt from the trained field at each of SKIPPING_CRITERIA; one render each:
+    field evaluations per ray, time and scores (the trained occupancy is restored afterwards)."""
+    from .renderer import render_image
+
+    saved = {k: v.clone() for k, v in model.occupancy.state_dict().items()}
+    saved_criteria = (settings.occupancy_num_std, settings.occupancy_alpha_threshold)
+    rows = []
+    try:
+        for num_std, alpha in SKIPPING_CRITERIA:
+            settings.occupancy_num_std, settings.occupancy_alpha_threshold = num_std, alpha
+            fraction = model.rebuild_occupancy()
+            gen = torch.Generator().manual_seed(0)
+            maps, secs = _timed(lambda: render_image(model.field, rays, settings, num_draws=num_draws,
+                                                      occupied=model.occupied, generator=gen))
+            rows.append({"num_std": num_std, "alpha_threshold": alpha, "occupied_fraction": fraction, "time_s": secs,
+                         "field_evals_per_ray": float(maps["field_evals_per_ray"].mean()), **score(maps)})
+            print(f"  skipping at mu + {num_std:g} s, alpha > {alpha:g}: occupied {fraction:.3f}, "
+                  f"{rows[-1]['field_evals_per_ray']:.1f} evals/ray, PSNR {rows[-1]['psnr']:.2f}, NLL {rows[-1]['nll']:.3f}")
+    finally:
+        settings.occupancy_num_std, settings.occupancy_alpha_threshold = saved_criteria
+        model.occupancy.load_state_dict(saved)
+    return rows
 
 
 def training_step_times(model, dataset, steps: int, rays_per_batch: int) -> dict:
@@ -399,6 +442,32 @@ def make_plots(results: dict, out: Path) -> list[str]:
     fig.savefig(out / "field_evals_per_ray.png", dpi=110)
     plt.close(fig)
     files.append("field_evals_per_ray.png")
+
+    swept = [sc for sc in scenes if results["scenes"][sc]["render"].get("skipping_sweep")]
+    if swept:
+        fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
+        for sc in swept:
+            rows = results["scenes"][sc]["render"]["skipping_sweep"]
+            dense = results["scenes"][sc]["render"]["skipping"]["without"]
+            ev = [r["field_evals_per_ray"] for r in rows]
+            for ax, key, label in zip(axes, ("psnr", "nll", "time_s"), ("PSNR [dB]", "NLL [nats/channel]", "render time [s]")):
+                line, = ax.plot(ev, [r[key] for r in rows], "o-", label=sc)
+                ax.plot([dense["field_evals_per_ray"]], [dense[key]], "s", color=line.get_color(), mfc="none",
+                        label=f"{sc}, no skipping")
+                for r in rows:
+                    ax.annotate(f"n={r['num_std']:g}", (r["field_evals_per_ray"], r[key]), textcoords="offset points",
+                                xytext=(3, 3), fontsize=7)
+                ax.set(xlabel="field evaluations per ray", ylabel=label)
+        axes[0].set_title("skipping criterion relu(mu + n s): quality")
+        axes[1].set_title("uncertainty (colour NLL)")
+        axes[2].set_title("cost")
+        for ax in axes:
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(out / "skipping_sweep.png", dpi=110)
+        plt.close(fig)
+        files.append("skipping_sweep.png")
     return files
 
 

@@ -6,13 +6,13 @@ forward-facing (ndc) regions; in NDC the cells are uniform in image space and di
 the samples. After each optimiser step (``after_step``, every ``occupancy_update_every`` steps)
 cells are refreshed from the per-sample optical-depth upper estimate
 
-    tau_up(x) = relu(mu_a(x) + 3 s_a(x)) * delta(x)
+    tau_up(x) = relu(mu_a(x) + n s_a(x)) * delta(x)        n = render.occupancy_num_std (3)
 
 (uncertain space is not empty: a cell whose density is uncertain stays occupied), where
 ``delta(x)`` is the length of one render interval at x: ``(far - near) / S`` for linear spacing,
 ``t^2 (1/near - 1/far) / S`` for disparity spacing (t: the distance from the reference camera in
 NDC regions, the largest far bound otherwise; both measured on the training rays). A cell is
-occupied where ``1 - exp(-tau_up) > OCCUPANCY_ALPHA_THRESHOLD`` (then dilated by one cell).
+occupied where ``1 - exp(-tau_up) > render.occupancy_alpha_threshold`` (then dilated by one cell).
 Training and rendering evaluate the field only at occupied samples (packed layout, alpha
 compositing); the observed-ray KL is then taken over the kept samples.
 """
@@ -24,7 +24,6 @@ import math
 import torch
 from torch import Tensor, nn
 
-from ..constants import OCCUPANCY_UPPER_NUM_STD
 from ..fields.base import StochasticField
 from ..fields.grid import GridField
 from ..losses import LossConfig, Priors, field_kl, gaussian_likelihood_nll
@@ -109,9 +108,28 @@ class SNeRF(RadianceModel):
         return (c * t_max ** 2).expand(unit.shape[:-1])
 
     def optical_depth_upper(self, unit: Tensor) -> Tensor:
-        """[P] upper estimate relu(mu_a + 3 s_a) * delta of one interval's optical depth at unit points [P, 3]."""
+        """[P] upper estimate relu(mu_a + n s_a) * delta of one interval's optical depth at unit points [P, 3]
+        (n = ``render_settings.occupancy_num_std``)."""
         loc, scale = self.field.density_params(self.region.from_unit(unit))
-        return torch.relu(loc + OCCUPANCY_UPPER_NUM_STD * scale) * self.interval_length(unit)
+        return torch.relu(loc + self.render_settings.occupancy_num_std * scale) * self.interval_length(unit)
+
+    def _occupancy_threshold(self) -> float:
+        # optical depth of one interval (step 1: optical_depth_upper already multiplies by delta)
+        return density_threshold(1.0, self.render_settings.occupancy_alpha_threshold)
+
+    @torch.no_grad()
+    def rebuild_occupancy(self, passes: int = 4, seed: int = 0) -> float:
+        """Recompute the occupancy grid from the trained field with the current render settings
+        (``occupancy_num_std``, ``occupancy_alpha_threshold``): every cell evaluated at ``passes``
+        jittered points, the maximum kept. Returns the occupied fraction."""
+        if self.occupancy is None or not bool(self.interval_scale[0] > 0):
+            raise ValueError("rebuild_occupancy needs a model trained with render.skip_empty_space")
+        self.occupancy.density_ema.zero_()
+        gen = torch.Generator(device=self.occupancy.occupancy.device).manual_seed(seed)
+        for _ in range(passes):
+            self.occupancy.update(self.optical_depth_upper, 0, decay=1.0, threshold=self._occupancy_threshold(),
+                                  warmup_steps=1, update_every_n_steps=1, generator=gen)
+        return self.occupancy.occupied_fraction
 
     def after_step(self, step: int) -> None:
         """Refresh the occupancy grid (every ``occupancy_update_every`` steps; seeded by the step)."""
@@ -119,7 +137,7 @@ class SNeRF(RadianceModel):
             return
         settings = self.render_settings
         gen = torch.Generator(device=self.occupancy.occupancy.device).manual_seed(int(step))
-        self.occupancy.update(self.optical_depth_upper, step, threshold=density_threshold(1.0),
+        self.occupancy.update(self.optical_depth_upper, step, threshold=self._occupancy_threshold(),
                               warmup_steps=settings.occupancy_warmup_steps,
                               update_every_n_steps=settings.occupancy_update_every, generator=gen)
 
