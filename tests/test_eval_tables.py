@@ -376,3 +376,21 @@ def test_benchmark_script_on_fern_images_16(shared_data, tmp_path, capsys):
         assert (tmp_path / "plots" / name).stat().st_size > 1000
     with pytest.raises(SystemExit):
         script.main(argv + ["--set", "nonsense"])
+
+
+def test_view_selection_and_budget():
+    views = [1, 2, 3, 4, 6, 7, 8, 9, 11, 12, 13, 14, 16, 17, 18, 19]  # fern's 16 test views
+    cpu = T.BenchmarkSettings()
+    assert T.select_views(views, cpu) == [1, 3, 6, 8, 12, 14, 17, 19]  # 8 spread evenly, both ends
+    assert T.select_views(views, T.BenchmarkSettings(budget="full")) == views
+    assert T.select_views(views, T.BenchmarkSettings(max_views=2)) == [1, 19]
+    assert T.select_views(views[:3], T.BenchmarkSettings(max_views=10)) == views[:3]
+    with pytest.raises(ValueError, match="max_views"):
+        T.select_views(views, T.BenchmarkSettings(max_views=0))
+    cfg = T.base_config(cpu)
+    assert (cfg.train.iterations, cfg.field.grid_max_cells) == (1000, 250_000)
+    full = T.base_config(T.BenchmarkSettings(budget="full"))
+    assert (full.train.iterations, full.field.grid_max_cells) == (3000, 2_000_000)
+    assert T.base_config(T.BenchmarkSettings(iterations=7)).train.iterations == 7  # explicit beats the budget
+    with pytest.raises(ValueError, match="budget"):
+        T.base_config(T.BenchmarkSettings(budget="gpu"))
