@@ -29,11 +29,14 @@ test-fast: $(STAMP)
 notebook: $(STAMP)
 	$(VENV)/bin/jupyter lab notebooks/inspect_run.ipynb
 
+# the documented speed-against-error run (about 25 minutes on 2 CPU cores; results in benchmarks/results)
 bench: $(STAMP)
-	$(PY) benchmarks/speed_vs_error.py
+	$(PY) benchmarks/speed_vs_error.py --quick --iterations 1000 --mlp-iterations 150 --mlp-width 256 \
+		--rays-per-batch 1024 --eval-pixels 4096 --view-stride 2 --out benchmarks/results
 
+# Tables 1-3 at the documented CPU budget (about 1.5 hours on 2 CPU cores; resumable)
 eval-tables: $(STAMP)
-	$(PY) benchmarks/eval_tables.py
+	$(PY) benchmarks/eval_tables.py --scenes fern flower --timing-repeats 1 --out benchmarks/results/eval_tables
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

@@ -43,7 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--images", default=None, help="LLFF image folder (default images_8; images_16 with --tiny).")
     p.add_argument("--iterations", type=int, default=None,
                    help="Training steps of every method (default: the budget's; 20 with --tiny).")
-    p.add_argument("--out", type=Path, default=Path("results/eval_tables"), help="Output folder (resumable).")
+    p.add_argument("--out", type=Path, default=Path("benchmarks/results/eval_tables"), help="Output folder (resumable).")
     p.add_argument("--seed", type=int, default=0, help="Seed of every method (default 0).")
     p.add_argument("--device", default="auto", help="auto, cpu or cuda.")
     p.add_argument("--budget", choices=("cpu", "full"), default="cpu",
