@@ -7,7 +7,7 @@ is resumable: run the same command again after an interruption and finished stag
 
 Examples::
 
-    # the documented CPU budget (about an hour on 2 CPU cores; a GPU is used when present)
+    # the documented CPU budget (about 1.5 hours on 2 CPU cores; a GPU is used when present)
     python benchmarks/eval_tables.py --scenes fern flower --out benchmarks/results/eval_tables
 
     # the paper-scale budget (llff preset, every test view: for a GPU)
