@@ -47,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="Seed of every method (default 0).")
     p.add_argument("--device", default="auto", help="auto, cpu or cuda.")
     p.add_argument("--budget", choices=("cpu", "full"), default="cpu",
-                   help="'cpu' (default, the documented budget): 1000 steps, grid <= 250k cells, 8 test views per scene; "
+                   help="'cpu' (default, the documented budget): 1000 steps, grid <= 250k cells, 4 test views per scene; "
                    "'full': the llff preset (3000 steps, 2M cells, every test view; for a GPU).")
     p.add_argument("--max-views", type=int, default=None,
                    help="Score N test views spread evenly over the test set (default: the budget's).")

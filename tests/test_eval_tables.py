@@ -381,7 +381,7 @@ def test_benchmark_script_on_fern_images_16(shared_data, tmp_path, capsys):
 def test_view_selection_and_budget():
     views = [1, 2, 3, 4, 6, 7, 8, 9, 11, 12, 13, 14, 16, 17, 18, 19]  # fern's 16 test views
     cpu = T.BenchmarkSettings()
-    assert T.select_views(views, cpu) == [1, 3, 6, 8, 12, 14, 17, 19]  # 8 spread evenly, both ends
+    assert T.select_views(views, cpu) == [1, 7, 13, 19]  # 4 spread evenly, both ends
     assert T.select_views(views, T.BenchmarkSettings(budget="full")) == views
     assert T.select_views(views, T.BenchmarkSettings(max_views=2)) == [1, 19]
     assert T.select_views(views[:3], T.BenchmarkSettings(max_views=10)) == views[:3]
