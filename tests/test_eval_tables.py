@@ -394,3 +394,22 @@ def test_view_selection_and_budget():
     assert T.base_config(T.BenchmarkSettings(iterations=7)).train.iterations == 7  # explicit beats the budget
     with pytest.raises(ValueError, match="budget"):
         T.base_config(T.BenchmarkSettings(budget="gpu"))
+
+
+def test_resume_check_counts_missing_options_as_defaults(tmp_path):
+    from stochastic_fields.config import to_dict
+
+    cfg = T.base_config(T.BenchmarkSettings())
+    saved = to_dict(cfg)
+    del saved["render"]["occupancy_num_std"]  # a run folder from before the option existed
+    (tmp_path / "config.json").write_text(json.dumps(saved))
+    T.check_compatible(tmp_path, cfg)  # same computation: accepted
+    fp = T.config_fingerprint(cfg)
+    cfg.render.occupancy_num_std = 2.0
+    with pytest.raises(ValueError, match="occupancy_num_std"):
+        T.check_compatible(tmp_path, cfg)
+    assert T.config_fingerprint(cfg) != fp
+    cfg.render.occupancy_num_std = 3.0
+    assert T.config_fingerprint(cfg) == fp
+    cfg.train.iterations = 5000  # more steps resume the same run
+    T.check_compatible(tmp_path, cfg)

@@ -236,21 +236,28 @@ def _flat(d: dict, prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def _semantic(flat: dict[str, Any]) -> dict[str, Any]:
+    """Entries that change what a run computes, without those equal to the dataclass defaults:
+    an option added later with a default that keeps the old behaviour changes no fingerprint."""
+    defaults = _flat(to_dict(ExperimentConfig()))
+    return {k: v for k, v in flat.items() if k not in _NON_SEMANTIC and not (k in defaults and defaults[k] == v)}
+
+
 def config_fingerprint(cfg: ExperimentConfig, *extra: Any) -> str:
-    flat = {k: v for k, v in _flat(to_dict(cfg)).items() if k not in _NON_SEMANTIC}
+    flat = _semantic(_flat(to_dict(cfg)))
     text = json.dumps([flat, list(extra)], sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def check_compatible(run_dir: Path, cfg: ExperimentConfig) -> None:
-    """A run folder may only be resumed with the same config (more iterations are allowed)."""
+    """A run folder may only be resumed with the same config (more iterations are allowed).
+    Options missing from the saved config count as their defaults."""
     saved = Path(run_dir) / "config.json"
     if not saved.exists():
         return
-    old = _flat(json.loads(saved.read_text()))
-    new = _flat(to_dict(cfg))
-    differ = sorted(k for k in set(old) | set(new)
-                    if k not in _NON_SEMANTIC + ("train.iterations",) and old.get(k) != new.get(k))
+    old = _semantic(_flat(json.loads(saved.read_text())))
+    new = _semantic(_flat(to_dict(cfg)))
+    differ = sorted(k for k in set(old) | set(new) if k != "train.iterations" and old.get(k) != new.get(k))
     if differ:
         raise ValueError(f"run folder {run_dir} was trained with a different configuration "
                          f"(differs in {differ}); use another --out or remove the folder")
