@@ -221,7 +221,7 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type = Experiment
             continue
         conv, choices = _parser_for(hint)
         parser.add_argument(f"--{name}", dest=name, type=conv, choices=choices, default=argparse.SUPPRESS,
-                            help=docs.get(f.name, "") + " (default: %s)" % (f.default if f.default is not dataclasses.MISSING else "see preset"))
+                            help=docs.get(f.name, "").replace("%", "%%") + " (default: %s)" % (f.default if f.default is not dataclasses.MISSING else "see preset"))
 
 
 def apply_overrides(cfg: ExperimentConfig, args: argparse.Namespace) -> ExperimentConfig:
