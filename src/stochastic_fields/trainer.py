@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -102,7 +103,11 @@ class Trainer:
             return False
         state = load_checkpoint(self.checkpoint_path, map_location=self.device)
         self.model.load_state_dict(state["model"])
-        self.optimizer.load_state_dict(state["optimizer"])
+        try:
+            self.optimizer.load_state_dict(state["optimizer"])
+        except ValueError as exc:  # e.g. a checkpoint from before the row-sparse grid optimiser
+            warnings.warn(f"{self.checkpoint_path}: optimiser state not restored ({exc}); the model and step are, "
+                          "and Adam's moments restart from zero", stacklevel=2)
         self.step = int(state["step"])
         self.elapsed = float(state.get("elapsed_s", 0.0))
         self.generator.set_state(state["batch_rng"])
