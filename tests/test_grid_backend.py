@@ -153,3 +153,18 @@ def test_trainer_resumes_a_checkpoint_with_an_old_optimiser_state(tiny_scene, tm
     with pytest.warns(UserWarning, match="optimiser state not restored"):
         trainer.train(progress=False)
     assert trainer.step == 4
+
+
+def test_density_params_with_and_without_gradients_agree():
+    field = GridField(_cube_region(), (7, 6, 5), num_levels=2)
+    with torch.no_grad():
+        for level in field.levels:
+            level.normal_()
+    pts = torch.rand(50, 3) * 2 - 1
+    with torch.no_grad():
+        loc0, scale0 = field.density_params(pts)
+    loc1, scale1 = field.density_params(pts)
+    torch.testing.assert_close(loc0, loc1)
+    torch.testing.assert_close(scale0, scale1)
+    full = field(pts, torch.nn.functional.normalize(torch.randn(50, 3), dim=-1))
+    torch.testing.assert_close(loc1, full.density_loc)

@@ -89,12 +89,14 @@ class GridField(StochasticField):
 
         Points outside the cube read the border cells (their density is replaced in ``decode``).
         The cells' gradients go to each level's ``RowGradient`` (rows of the touched corners)."""
+        # without gradients (occupancy updates, rendering) read only the asked-for channels
+        sliced = channels is not None and not torch.is_grad_enabled()
         total = None
         for table, shape in zip(self.levels, self.level_shapes):
             idx, w = trilinear_corners(unit, shape)  # [P, 8], [P, 8]
-            v = gather_rows(table, idx, w)  # [P, C]
+            v = gather_rows(table[:, channels] if sliced else table, idx, w)  # [P, C]
             total = v if total is None else total + v
-        if channels is not None:
+        if channels is not None and not sliced:
             total = total[:, channels]
         off = self.offset if channels is None else self.offset[channels]
         return total + off.to(total)
