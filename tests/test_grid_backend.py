@@ -168,3 +168,20 @@ def test_density_params_with_and_without_gradients_agree():
     torch.testing.assert_close(scale0, scale1)
     full = field(pts, torch.nn.functional.normalize(torch.randn(50, 3), dim=-1))
     torch.testing.assert_close(loc1, full.density_loc)
+
+
+def test_row_sparse_adam_accepts_ordinary_sparse_and_dense_gradients():
+    torch.manual_seed(1)
+    N, C = 12, 2
+    for sparse in (True, False):
+        ours = torch.nn.Parameter(torch.randn(N, C, dtype=torch.float64))
+        ref = torch.nn.Parameter(ours.detach().clone())
+        opt = RowSparseAdam([ours], lr=0.1)
+        ref_opt = torch.optim.SparseAdam([ref], lr=0.1, eps=1e-15) if sparse else torch.optim.Adam([ref], lr=0.1, eps=1e-15)
+        idx = torch.tensor([0, 3, 3, 7])
+        coeff = torch.randn(4, C, dtype=torch.float64)
+        for p, o in ((ours, opt), (ref, ref_opt)):
+            o.zero_grad()
+            (F.embedding(idx, p, sparse=sparse) * coeff).sum().backward()
+            o.step()
+        torch.testing.assert_close(ours.detach(), ref.detach(), rtol=1e-12, atol=1e-12)
