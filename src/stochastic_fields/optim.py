@@ -86,26 +86,24 @@ class RowSparseAdam(torch.optim.Optimizer):
 
     @staticmethod
     def _gradient_rows(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """(rows [U], summed gradient [U, C]) of p [N, C], or None without gradient."""
+        """(rows [U] unique, summed gradient [U, C]) of p [N, C], or None without gradient."""
+        parts = []
         acc = getattr(p, "row_gradient", None)
-        rows = grad = None
         if acc is not None:
-            rows, grad = acc.take(p)
+            parts.append(acc.take(p))  # rows already unique and summed: the grid's fast path
         if p.grad is not None:
             g = p.grad.coalesce() if p.grad.is_sparse else p.grad
-            extra = torch.zeros_like(p)
-            if g.is_sparse:
-                extra.index_add_(0, g.indices()[0], g.values())
-            else:
-                extra += g
-            if rows is not None:
-                extra[rows] += grad
-            rows = torch.arange(p.shape[0], device=p.device) if not g.is_sparse else \
-                torch.unique(torch.cat([g.indices()[0]] + ([rows] if rows is not None else [])))
-            grad = extra[rows]
-        if rows is None or rows.numel() == 0:
+            parts.append((g.indices()[0], g.values()) if g.is_sparse else
+                         (torch.arange(p.shape[0], device=p.device), g))
+        parts = [(r, v) for r, v in parts if r.numel() > 0]
+        if not parts:
             return None
-        return rows, grad
+        if len(parts) == 1:
+            return parts[0]
+        rows, inverse = torch.unique(torch.cat([r for r, _ in parts]), return_inverse=True)
+        values = torch.cat([v.reshape(len(r), -1) for r, v in parts])
+        summed = torch.zeros(len(rows), values.shape[1], dtype=p.dtype, device=p.device)
+        return rows, summed.index_add_(0, inverse, values)
 
     def zero_grad(self, set_to_none: bool = True) -> None:
         super().zero_grad(set_to_none=set_to_none)

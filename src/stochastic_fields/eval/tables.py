@@ -110,8 +110,9 @@ PAPER_TABLE3: dict[str, dict[str, tuple[float, float]]] = {
 
 #: The documented budget on a CPU (``budget="cpu"``, the default): every method trains 1000 steps
 #: of 1024 rays on a grid capped at 250k cells and is scored on 4 test views spread over each
-#: scene's test set (0.76M pixels per scene; MC-Dropout and the ensemble render each view 5 times). Fern and flower, all 8 methods: about 1.5 hours on 2 CPU cores. The grid's
-#: three levels then hold 2.9M values (250k cells x 10 channels x 1.14), about as many as the
+#: scene's test set (0.76M pixels per scene; MC-Dropout and the ensemble render each view 5
+#: times). Fern and flower, all 8 methods: about 1.5 hours on 2 CPU cores. The grid's three
+#: levels then hold 2.9M values (250k cells x 10 channels x 1.14), about as many as the
 #: training pixels' colour values (fern: 4 views of 504x378 = 2.3M; flower: 7 views = 4.0M).
 #: ``budget="full"`` is the llff preset (3000 steps, 2M cells, every test view): about 8x the
 #: cost, for a GPU.

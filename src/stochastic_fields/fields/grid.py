@@ -161,6 +161,10 @@ class GridField(StochasticField):
         return torch.stack(losses).sum()
 
 
+#: [8, 3] (x, y, z) offsets of the 8 corners of a cell, corner j = x + 2 y + 4 z.
+_CORNER_BITS = torch.tensor([[j & 1, (j >> 1) & 1, (j >> 2) & 1] for j in range(8)])
+
+
 def trilinear_corners(unit: Tensor, shape: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
     """Corner rows and weights of trilinear interpolation in a cell table of ``shape`` (X, Y, Z).
 
@@ -175,7 +179,7 @@ def trilinear_corners(unit: Tensor, shape: tuple[int, int, int]) -> tuple[Tensor
     frac = pos - base
     b = base.long()
     X, Y = shape[0], shape[1]
-    bits = torch.tensor([[i & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], device=unit.device)  # [8, 3]
+    bits = _CORNER_BITS.to(unit.device)  # [8, 3]
     corner = b[:, None, :] + bits[None]  # [P, 8, 3]
     idx = (corner[..., 2] * Y + corner[..., 1]) * X + corner[..., 0]
     fb = bits[None].to(unit.dtype)

@@ -27,7 +27,7 @@ from torch import Tensor, nn
 from ..fields.base import StochasticField
 from ..fields.grid import GridField
 from ..losses import LossConfig, Priors, field_kl, gaussian_likelihood_nll
-from ..occupancy import OccupancyGrid, density_threshold
+from ..occupancy import OccupancyGrid, density_threshold, density_upper_estimate
 from ..rays import RayBundle
 from ..renderer import RenderSettings, pack_samples, render_image, render_samples, render_samples_packed
 from ..samplers import sample_along_rays
@@ -110,8 +110,8 @@ class SNeRF(RadianceModel):
     def optical_depth_upper(self, unit: Tensor) -> Tensor:
         """[P] upper estimate relu(mu_a + n s_a) * delta of one interval's optical depth at unit points [P, 3]
         (n = ``render_settings.occupancy_num_std``)."""
-        loc, scale = self.field.density_params(self.region.from_unit(unit))
-        return torch.relu(loc + self.render_settings.occupancy_num_std * scale) * self.interval_length(unit)
+        upper = density_upper_estimate(self.field, self.render_settings.occupancy_num_std)
+        return upper(self.region.from_unit(unit)) * self.interval_length(unit)
 
     def _occupancy_threshold(self) -> float:
         # optical depth of one interval (step 1: optical_depth_upper already multiplies by delta)
