@@ -12,7 +12,7 @@ from stochastic_fields.fields.base import FieldParams, StochasticField
 from stochastic_fields.losses import LossConfig
 from stochastic_fields.models.snerf import SNeRF
 from stochastic_fields.rays import RayBundle
-from stochastic_fields.renderer import (MAP_NAMES, RenderSettings, pack_samples, render_samples,
+from stochastic_fields.renderer import (MAP_NAMES, RenderSettings, pack_samples, render_rays, render_samples,
                                         render_samples_packed)
 from stochastic_fields.samplers import sample_along_rays
 from stochastic_fields.scene_region import SceneRegion
@@ -105,6 +105,25 @@ def test_packed_equals_dense_with_every_sample_kept(shared):
     assert float(dense.opacity.detach().max()) > 0.5  # the box is hit: the comparison is not of empty rays
 
 
+def test_all_occupied_batch_stays_dense_and_one_skipped_sample_packs():
+    field, rays, st = BoxField(), box_rays(), settings(shared_noise=False)
+    every = render_rays(field, rays, st, generator=torch.Generator().manual_seed(4),
+                        occupied=lambda x: torch.ones(x.shape[:-1], dtype=torch.bool))
+    plain = render_rays(field, rays, st, generator=torch.Generator().manual_seed(4))
+    assert every.extras["weights"].shape == plain.extras["weights"].shape == (len(rays), st.num_draws, st.num_samples)
+    for name in STAT_NAMES:  # same layout, same draws: identical
+        assert torch.equal(getattr(every.stats, name), getattr(plain.stats, name)), name
+
+    def all_but_first(x):
+        keep = torch.ones(x.shape[:-1], dtype=torch.bool)
+        keep[0, 0] = False
+        return keep
+
+    one_skipped = render_rays(field, rays, st, generator=torch.Generator().manual_seed(4), occupied=all_but_first)
+    assert one_skipped.extras["weights"].shape == (st.num_draws, len(rays) * st.num_samples - 1)
+    assert int(one_skipped.extras["field_evals"][0]) == st.num_samples - 1
+
+
 def test_packed_trapezoid_is_refused():
     rays = box_rays(2)
     samples = sample_along_rays(rays, 8)
@@ -135,7 +154,8 @@ def loss_and_grads(model: SNeRF, field: BoxField, rays, target):
     return loss.detach(), grads(field), logs
 
 
-def test_model_packed_equals_dense_all_cells_occupied():
+def test_model_all_cells_occupied_equals_dense_model():
+    # every sample occupied: the skipping model keeps the dense layout (no packing) and must agree
     dense, skip, field = make_models(LossConfig(kl="full", random_points_per_axis=3, observed_kl_samples=50))
     rays = box_rays()
     target = torch.rand(len(rays), 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)

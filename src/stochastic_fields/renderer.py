@@ -13,7 +13,8 @@ Noise: independent eps per point and draw (the paper), or shared along the ray p
 
 Empty-space skipping: ``render_rays(..., occupied=fn)`` keeps only the dense samples whose
 midpoint ``fn(positions [R, S, 3]) -> [R, S] bool`` marks as occupied and renders the packed
-(ragged) samples with ``volume_rendering``'s ``*_packed`` functions (alpha compositing only: the
+(ragged) samples with ``volume_rendering``'s ``*_packed`` functions (a batch in which every
+sample is occupied stays dense: packing would only add gathers and scatters) (alpha compositing only: the
 packed trapezoid treats samples on both sides of a skipped gap as neighbours and is wrong
 there, so that combination raises). Every render records the field evaluations per ray
 (``RayRender.extras["field_evals"]`` [R], ``render_image`` map ``field_evals_per_ray``).
@@ -216,7 +217,11 @@ def render_rays(field: StochasticField, rays: RayBundle, settings: RenderSetting
     if occupied is None:
         params = field(samples.positions, samples.directions)
         return render_samples(params, samples, settings, num_draws=K, deterministic=deterministic, generator=generator)
-    packed = pack_samples(samples, occupied(samples.positions))
+    keep = occupied(samples.positions)
+    if bool(keep.all()):  # nothing to skip: the dense layout composites without the packing overhead
+        params = field(samples.positions, samples.directions)
+        return render_samples(params, samples, settings, num_draws=K, deterministic=deterministic, generator=generator)
+    packed = pack_samples(samples, keep)
     params = field(packed.positions, packed.directions)
     return render_samples_packed(params, packed, settings, num_draws=K, deterministic=deterministic,
                                  generator=generator)

@@ -147,10 +147,14 @@ class SNeRF(RadianceModel):
         settings = self.render_settings
         samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing, stratified=True,
                                     generator=generator)
+        packed = False
         if self.occupancy is not None:
             with torch.no_grad():
                 self._record_interval_scale(rays)
-                samples = pack_samples(samples, self.occupied(samples.positions))
+                keep = self.occupied(samples.positions)
+                packed = not bool(keep.all())  # all occupied: the dense layout is cheaper
+                if packed:
+                    samples = pack_samples(samples, keep)
         positions, directions = samples.positions.reshape(-1, 3), samples.directions.reshape(-1, 3)
         use_random_kl = cfg.kl in ("fixed_prior", "full")
         if use_random_kl:
@@ -161,7 +165,7 @@ class SNeRF(RadianceModel):
         params_all = self.field(positions, directions)
         n_ray = samples.t_starts.numel()
         params = params_all.map(lambda t: t[:n_ray]).reshape(*samples.t_starts.shape)
-        if self.occupancy is not None:
+        if packed:
             out = render_samples_packed(params, samples, settings, num_draws=self.train_draws, generator=generator)
         else:
             out = render_samples(params, samples, settings, num_draws=self.train_draws, generator=generator)
