@@ -3,6 +3,7 @@
     L = -1/(R K) sum_{r,k} log N(c_r | C_rk, sigma_n^2 I)                  (MC likelihood)
         + lambda_rand * mean_{x ~ region, d ~ sphere} KL(q(.|x,d) || p_rand)
         + lambda_obs  * mean_{x on training rays}     KL(q(.|x,d) || p_obs)
+        [+ lambda_dist * mean_{r,k} distortion(w_rk)]                      (optional, off by default)
 
 with KL = KL_density (rectified normal) + sum_c KL_colour_c (logistic normal).
 p_rand: learned means, std fixed at RANDOM_POINT_PRIOR_STD (10). p_obs: learned means and stds.
@@ -48,6 +49,8 @@ class LossConfig:
     """Stratified random KL points: n per axis, n^3 points per step."""
     observed_kl_samples: int = 4096
     """Training-ray samples per step on which the observed-prior KL is evaluated (a uniform random subset: an unbiased estimate of the mean over all samples at a fraction of the cost; 0 = all)."""
+    lambda_distortion: float = 0.0
+    """Weight of the Mip-NeRF 360 distortion regulariser on every training trajectory (stochastic_fields.distortion): compacts the weight along rays and removes floaters, so more space is empty and skipped. 0 = off (the paper's objective)."""
 
 
 class Priors(nn.Module):

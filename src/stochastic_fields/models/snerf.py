@@ -24,12 +24,14 @@ import math
 import torch
 from torch import Tensor, nn
 
+from ..distortion import distortion_loss, distortion_loss_packed, normalised_coordinate
 from ..fields.base import StochasticField
 from ..fields.grid import GridField
 from ..losses import LossConfig, Priors, field_kl, gaussian_likelihood_nll
 from ..occupancy import OccupancyGrid, density_threshold, density_upper_estimate
 from ..rays import RayBundle
-from ..renderer import RenderSettings, pack_samples, render_image, render_samples, render_samples_packed
+from ..renderer import (RayRender, RenderSettings, pack_samples, render_image, render_samples,
+                        render_samples_packed)
 from ..samplers import sample_along_rays
 from ..scene_region import SceneRegion, random_unit_directions
 from .base import RadianceModel
@@ -193,11 +195,29 @@ class SNeRF(RadianceModel):
             logs["kl_observed"] = kl_obs.item()
         elif cfg.kl not in ("none", "fixed_prior"):
             raise ValueError(f"loss.kl must be 'none', 'fixed_prior' or 'full', got {cfg.kl!r}")
+        if cfg.lambda_distortion > 0:
+            dist = self._distortion(out, samples, packed)
+            loss = loss + cfg.lambda_distortion * dist
+            logs["distortion"] = dist.item()
         if self.tv_weight > 0 and isinstance(self.field, GridField):
             tv = self.field.total_variation(generator=generator)
             loss = loss + self.tv_weight * tv
             logs["tv"] = tv.item()
         return loss, logs
+
+    def _distortion(self, out: RayRender, samples, packed: bool) -> Tensor:
+        """Mean distortion over training rays and trajectories (stochastic_fields.distortion)."""
+        spacing = self.render_settings.spacing
+        rays = samples.rays
+        if packed:
+            near, far = rays.near[samples.ray_indices], rays.far[samples.ray_indices]
+            s0 = normalised_coordinate(samples.t_starts, near, far, spacing)
+            s1 = normalised_coordinate(samples.t_ends, near, far, spacing)
+            return distortion_loss_packed(out.extras["weights"], s0, s1, samples.ray_indices, samples.num_rays).mean()
+        near, far = rays.near[:, None], rays.far[:, None]
+        s0 = normalised_coordinate(samples.t_starts, near, far, spacing)[:, None, :]
+        s1 = normalised_coordinate(samples.t_ends, near, far, spacing)[:, None, :]
+        return distortion_loss(out.extras["weights"], s0, s1).mean()
 
     def render_view(self, rays: RayBundle, *, num_draws: int | None = None,
                     generator: torch.Generator | None = None, keep_draws: bool = False,
