@@ -8,10 +8,12 @@ import pytest
 import torch
 from torch import nn
 
+from stochastic_fields.constants import PACK_MIN_SKIPPED_FRACTION
 from stochastic_fields.fields.base import FieldParams, StochasticField
 from stochastic_fields.losses import LossConfig
 from stochastic_fields.models.snerf import SNeRF
 from stochastic_fields.rays import RayBundle
+from stochastic_fields import renderer
 from stochastic_fields.renderer import (MAP_NAMES, RenderSettings, pack_samples, render_rays, render_samples,
                                         render_samples_packed)
 from stochastic_fields.samplers import sample_along_rays
@@ -105,23 +107,29 @@ def test_packed_equals_dense_with_every_sample_kept(shared):
     assert float(dense.opacity.detach().max()) > 0.5  # the box is hit: the comparison is not of empty rays
 
 
-def test_all_occupied_batch_stays_dense_and_one_skipped_sample_packs():
+def test_batch_packs_only_when_enough_samples_are_skipped():
     field, rays, st = BoxField(), box_rays(), settings(shared_noise=False)
-    every = render_rays(field, rays, st, generator=torch.Generator().manual_seed(4),
-                        occupied=lambda x: torch.ones(x.shape[:-1], dtype=torch.bool))
+    R, S, K = len(rays), st.num_samples, st.num_draws
     plain = render_rays(field, rays, st, generator=torch.Generator().manual_seed(4))
-    assert every.extras["weights"].shape == plain.extras["weights"].shape == (len(rays), st.num_draws, st.num_samples)
-    for name in STAT_NAMES:  # same layout, same draws: identical
-        assert torch.equal(getattr(every.stats, name), getattr(plain.stats, name)), name
 
-    def all_but_first(x):
-        keep = torch.ones(x.shape[:-1], dtype=torch.bool)
-        keep[0, 0] = False
-        return keep
+    def keep_all_but(count):
+        def occupied(x):
+            keep = torch.ones(x.shape[:-1], dtype=torch.bool)
+            keep.view(-1)[:count] = False
+            return keep
+        return occupied
 
-    one_skipped = render_rays(field, rays, st, generator=torch.Generator().manual_seed(4), occupied=all_but_first)
-    assert one_skipped.extras["weights"].shape == (st.num_draws, len(rays) * st.num_samples - 1)
-    assert int(one_skipped.extras["field_evals"][0]) == st.num_samples - 1
+    few = int(PACK_MIN_SKIPPED_FRACTION * R * S) - 1  # just under the fraction: stays dense
+    dense = render_rays(field, rays, st, generator=torch.Generator().manual_seed(4), occupied=keep_all_but(few))
+    assert dense.extras["weights"].shape == plain.extras["weights"].shape == (R, K, S)
+    for name in STAT_NAMES:  # same layout, same draws: identical to rendering without an occupancy grid
+        assert torch.equal(getattr(dense.stats, name), getattr(plain.stats, name)), name
+    assert torch.all(dense.extras["field_evals"] == S)  # every sample was evaluated
+
+    enough = int(PACK_MIN_SKIPPED_FRACTION * R * S) + 1
+    packed = render_rays(field, rays, st, generator=torch.Generator().manual_seed(4), occupied=keep_all_but(enough))
+    assert packed.extras["weights"].shape == (K, R * S - enough)
+    assert int(packed.extras["field_evals"].sum()) == R * S - enough
 
 
 def test_packed_trapezoid_is_refused():
@@ -155,7 +163,7 @@ def loss_and_grads(model: SNeRF, field: BoxField, rays, target):
 
 
 def test_model_all_cells_occupied_equals_dense_model():
-    # every sample occupied: the skipping model keeps the dense layout (no packing) and must agree
+    # nothing skipped: the skipping model keeps the dense layout (no packing) and must agree
     dense, skip, field = make_models(LossConfig(kl="full", random_points_per_axis=3, observed_kl_samples=50))
     rays = box_rays()
     target = torch.rand(len(rays), 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
@@ -168,7 +176,9 @@ def test_model_all_cells_occupied_equals_dense_model():
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
 
 
-def test_model_packed_equals_dense_after_occupancy_update():
+def test_model_packed_equals_dense_after_occupancy_update(monkeypatch):
+    # pack whatever the grid skips (the default packs only batches worth it: see worth_packing)
+    monkeypatch.setattr(renderer, "PACK_MIN_SKIPPED_FRACTION", 0.0)
     # observed-ray KL runs over the kept samples only, so compare the likelihood and random-point KL
     dense, skip, field = make_models(LossConfig(kl="fixed_prior", random_points_per_axis=3))
     rays = box_rays()

@@ -28,7 +28,7 @@ from .constants import DEPTH_NLL_VARIANCE_FLOOR, NLL_VARIANCE_FLOOR
 from .fields.base import StochasticField
 from .rays import RayBundle
 from .renderer import (MAP_NAMES, OccupiedFn, RenderSettings, pack_samples, render_samples,
-                       render_samples_packed)
+                       render_samples_packed, worth_packing)
 from .samplers import sample_along_rays
 from .volume_rendering import TrajectoryStatistics, statistics_from_draws
 
@@ -58,8 +58,10 @@ def render_rays_adaptive(field: StochasticField, rays: RayBundle, settings: Rend
     if tol <= 0:
         raise ValueError(f"adaptive_rtol must be positive, got {tol}")
     samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing)
-    if occupied is not None:
-        samples = pack_samples(samples, occupied(samples.positions))
+    keep = occupied(samples.positions) if occupied is not None else None
+    packed = keep is not None and worth_packing(keep)
+    if packed:
+        samples = pack_samples(samples, keep)
         params = field(samples.positions, samples.directions)
 
         def draw(k: int) -> TrajectoryStatistics:
@@ -89,7 +91,7 @@ def render_rays_adaptive(field: StochasticField, rays: RayBundle, settings: Rend
         if (relative_change(cv, _colour_var(previous), NLL_VARIANCE_FLOOR) < tol
                 and relative_change(stats.depth_var_total, previous.depth_var_total, DEPTH_NLL_VARIANCE_FLOOR) < tol):
             break
-    if occupied is not None:
+    if packed:
         evals = torch.bincount(samples.ray_indices, minlength=len(rays))
     else:
         evals = torch.full((len(rays),), settings.num_samples, dtype=torch.long, device=rays.origins.device)

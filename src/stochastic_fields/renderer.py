@@ -13,8 +13,9 @@ Noise: independent eps per point and draw (the paper), or shared along the ray p
 
 Empty-space skipping: ``render_rays(..., occupied=fn)`` keeps only the dense samples whose
 midpoint ``fn(positions [R, S, 3]) -> [R, S] bool`` marks as occupied and renders the packed
-(ragged) samples with ``volume_rendering``'s ``*_packed`` functions (a batch in which every
-sample is occupied stays dense: packing would only add gathers and scatters) (alpha compositing only: the
+(ragged) samples with ``volume_rendering``'s ``*_packed`` functions (a batch in which the grid
+skips less than ``PACK_MIN_SKIPPED_FRACTION`` of the samples stays dense: packing would cost more
+than it saves) (alpha compositing only: the
 packed trapezoid treats samples on both sides of a skipped gap as neighbours and is wrong
 there, so that combination raises). Every render records the field evaluations per ray
 (``RayRender.extras["field_evals"]`` [R], ``render_image`` map ``field_evals_per_ray``).
@@ -32,7 +33,7 @@ from typing import Callable, Literal
 import torch
 from torch import Tensor
 
-from .constants import OCCUPANCY_ALPHA_THRESHOLD, OCCUPANCY_UPPER_NUM_STD
+from .constants import OCCUPANCY_ALPHA_THRESHOLD, OCCUPANCY_UPPER_NUM_STD, PACK_MIN_SKIPPED_FRACTION
 from .fields.base import FieldParams, StochasticField
 from .rays import PackedRaySamples, RayBundle, RaySamples
 from .samplers import Spacing, sample_along_rays
@@ -199,6 +200,11 @@ def render_samples_packed(params: FieldParams, samples: PackedRaySamples, settin
     return RayRender(stats=stats, params=params, samples=samples, extras={"weights": weights, "field_evals": evals})
 
 
+def worth_packing(keep: Tensor) -> bool:
+    """Whether the occupancy mask [R, S] skips enough samples (``PACK_MIN_SKIPPED_FRACTION``) to pack them."""
+    return float(keep.float().mean()) <= 1.0 - PACK_MIN_SKIPPED_FRACTION
+
+
 def pack_samples(samples: RaySamples, keep: Tensor) -> PackedRaySamples:
     """Dense samples [R, S] and a mask [R, S] -> the kept samples, packed (ray-major, sorted by t)."""
     ray_indices, sample_indices = torch.nonzero(keep, as_tuple=True)
@@ -218,7 +224,7 @@ def render_rays(field: StochasticField, rays: RayBundle, settings: RenderSetting
         params = field(samples.positions, samples.directions)
         return render_samples(params, samples, settings, num_draws=K, deterministic=deterministic, generator=generator)
     keep = occupied(samples.positions)
-    if bool(keep.all()):  # nothing to skip: the dense layout composites without the packing overhead
+    if not worth_packing(keep):  # little to skip: the dense layout composites without the packing overhead
         params = field(samples.positions, samples.directions)
         return render_samples(params, samples, settings, num_draws=K, deterministic=deterministic, generator=generator)
     packed = pack_samples(samples, keep)

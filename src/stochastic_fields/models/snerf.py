@@ -31,7 +31,7 @@ from ..losses import LossConfig, Priors, field_kl, gaussian_likelihood_nll
 from ..occupancy import OccupancyGrid, density_threshold, density_upper_estimate
 from ..rays import RayBundle
 from ..renderer import (RayRender, RenderSettings, pack_samples, render_image, render_samples,
-                        render_samples_packed)
+                        render_samples_packed, worth_packing)
 from ..samplers import sample_along_rays
 from ..scene_region import SceneRegion, random_unit_directions
 from .base import RadianceModel
@@ -154,7 +154,7 @@ class SNeRF(RadianceModel):
             with torch.no_grad():
                 self._record_interval_scale(rays)
                 keep = self.occupied(samples.positions)
-                packed = not bool(keep.all())  # all occupied: the dense layout is cheaper
+                packed = worth_packing(keep)  # little to skip: the dense layout is cheaper
                 if packed:
                     samples = pack_samples(samples, keep)
         positions, directions = samples.positions.reshape(-1, 3), samples.directions.reshape(-1, 3)
