@@ -8,7 +8,6 @@ import torch
 
 from stochastic_fields.distortion import distortion_loss, distortion_loss_packed, normalised_coordinate
 from stochastic_fields.losses import LossConfig
-from stochastic_fields.renderer import pack_samples
 from stochastic_fields.samplers import bin_edges
 
 

@@ -177,7 +177,7 @@ def test_model_all_cells_occupied_equals_dense_model():
 
 
 def test_model_packed_equals_dense_after_occupancy_update(monkeypatch):
-    # pack whatever the grid skips (the default packs only batches worth it: see worth_packing)
+    # pack whatever the grid skips (the default packs only batches worth it: see renderer.skip_empty)
     monkeypatch.setattr(renderer, "PACK_MIN_SKIPPED_FRACTION", 0.0)
     # observed-ray KL runs over the kept samples only, so compare the likelihood and random-point KL
     dense, skip, field = make_models(LossConfig(kl="fixed_prior", random_points_per_axis=3))

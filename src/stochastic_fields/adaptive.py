@@ -27,8 +27,7 @@ from torch import Tensor
 from .constants import DEPTH_NLL_VARIANCE_FLOOR, NLL_VARIANCE_FLOOR
 from .fields.base import StochasticField
 from .rays import RayBundle
-from .renderer import (MAP_NAMES, OccupiedFn, RenderSettings, pack_samples, render_samples,
-                       render_samples_packed, worth_packing)
+from .renderer import MAP_NAMES, OccupiedFn, RenderSettings, render_any_samples, skip_empty
 from .samplers import sample_along_rays
 from .volume_rendering import TrajectoryStatistics, statistics_from_draws
 
@@ -58,24 +57,17 @@ def render_rays_adaptive(field: StochasticField, rays: RayBundle, settings: Rend
     if tol <= 0:
         raise ValueError(f"adaptive_rtol must be positive, got {tol}")
     samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing)
-    keep = occupied(samples.positions) if occupied is not None else None
-    packed = keep is not None and worth_packing(keep)
-    if packed:
-        samples = pack_samples(samples, keep)
-        params = field(samples.positions, samples.directions)
+    samples = skip_empty(samples, occupied)
+    params = field(samples.positions, samples.directions)
+    first = render_any_samples(params, samples, settings, num_draws=b, generator=generator)
 
-        def draw(k: int) -> TrajectoryStatistics:
-            return render_samples_packed(params, samples, settings, num_draws=k, generator=generator).stats
-    else:
-        params = field(samples.positions, samples.directions)
-
-        def draw(k: int) -> TrajectoryStatistics:
-            return render_samples(params, samples, settings, num_draws=k, generator=generator).stats
+    def draw(k: int) -> TrajectoryStatistics:
+        return render_any_samples(params, samples, settings, num_draws=k, generator=generator).stats
 
     parts: list[TrajectoryStatistics] = []
     stats: TrajectoryStatistics | None = None
     while True:
-        parts.append(draw(b))
+        parts.append(first.stats if not parts else draw(b))
         previous = stats
         stats = statistics_from_draws(*(torch.cat([getattr(p, name) for p in parts], dim=1) for name in
                                         ("colour_draws", "depth_draws", "spread_draws", "opacity_draws")))
@@ -91,11 +83,7 @@ def render_rays_adaptive(field: StochasticField, rays: RayBundle, settings: Rend
         if (relative_change(cv, _colour_var(previous), NLL_VARIANCE_FLOOR) < tol
                 and relative_change(stats.depth_var_total, previous.depth_var_total, DEPTH_NLL_VARIANCE_FLOOR) < tol):
             break
-    if packed:
-        evals = torch.bincount(samples.ray_indices, minlength=len(rays))
-    else:
-        evals = torch.full((len(rays),), settings.num_samples, dtype=torch.long, device=rays.origins.device)
-    return stats, K, evals
+    return stats, K, first.extras["field_evals"]
 
 
 @torch.no_grad()

@@ -13,11 +13,11 @@ Noise: independent eps per point and draw (the paper), or shared along the ray p
 
 Empty-space skipping: ``render_rays(..., occupied=fn)`` keeps only the dense samples whose
 midpoint ``fn(positions [R, S, 3]) -> [R, S] bool`` marks as occupied and renders the packed
-(ragged) samples with ``volume_rendering``'s ``*_packed`` functions (a batch in which the grid
-skips less than ``PACK_MIN_SKIPPED_FRACTION`` of the samples stays dense: packing would cost more
-than it saves) (alpha compositing only: the
+(ragged) samples with ``volume_rendering``'s ``*_packed`` functions, alpha compositing only (the
 packed trapezoid treats samples on both sides of a skipped gap as neighbours and is wrong
-there, so that combination raises). Every render records the field evaluations per ray
+there, so that combination raises). A batch in which the grid skips less than
+``PACK_MIN_SKIPPED_FRACTION`` of the samples stays dense (``skip_empty``): packing would cost
+more than it saves. Every render records the field evaluations per ray
 (``RayRender.extras["field_evals"]`` [R], ``render_image`` map ``field_evals_per_ray``).
 
 Packed and dense draws agree exactly for ``shared_noise=True``: the packed path draws the same
@@ -200,17 +200,32 @@ def render_samples_packed(params: FieldParams, samples: PackedRaySamples, settin
     return RayRender(stats=stats, params=params, samples=samples, extras={"weights": weights, "field_evals": evals})
 
 
-def worth_packing(keep: Tensor) -> bool:
-    """Whether the occupancy mask [R, S] skips enough samples (``PACK_MIN_SKIPPED_FRACTION``) to pack them."""
-    return float(keep.float().mean()) <= 1.0 - PACK_MIN_SKIPPED_FRACTION
-
-
 def pack_samples(samples: RaySamples, keep: Tensor) -> PackedRaySamples:
     """Dense samples [R, S] and a mask [R, S] -> the kept samples, packed (ray-major, sorted by t)."""
     ray_indices, sample_indices = torch.nonzero(keep, as_tuple=True)
     return PackedRaySamples(rays=samples.rays, ray_indices=ray_indices,
                             t_starts=samples.t_starts[ray_indices, sample_indices],
                             t_ends=samples.t_ends[ray_indices, sample_indices])
+
+
+@torch.no_grad()
+def skip_empty(samples: RaySamples, occupied: OccupiedFn | None) -> RaySamples | PackedRaySamples:
+    """The samples to evaluate: packed to the occupied ones when ``occupied`` skips at least
+    ``PACK_MIN_SKIPPED_FRACTION`` of them, else the dense samples unchanged (packing would cost more
+    than it saves)."""
+    if occupied is None:
+        return samples
+    keep = occupied(samples.positions)
+    if float(keep.float().mean()) > 1.0 - PACK_MIN_SKIPPED_FRACTION:
+        return samples
+    return pack_samples(samples, keep)
+
+
+def render_any_samples(params: FieldParams, samples: RaySamples | PackedRaySamples, settings: RenderSettings,
+                       **kwargs) -> RayRender:
+    """``render_samples`` or ``render_samples_packed``, whichever layout ``samples`` has."""
+    render = render_samples_packed if isinstance(samples, PackedRaySamples) else render_samples
+    return render(params, samples, settings, **kwargs)
 
 
 def render_rays(field: StochasticField, rays: RayBundle, settings: RenderSettings, *, num_draws: int | None = None,
@@ -220,17 +235,9 @@ def render_rays(field: StochasticField, rays: RayBundle, settings: RenderSetting
     K = settings.num_draws if num_draws is None else num_draws
     samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing,
                                 stratified=stratified, generator=generator)
-    if occupied is None:
-        params = field(samples.positions, samples.directions)
-        return render_samples(params, samples, settings, num_draws=K, deterministic=deterministic, generator=generator)
-    keep = occupied(samples.positions)
-    if not worth_packing(keep):  # little to skip: the dense layout composites without the packing overhead
-        params = field(samples.positions, samples.directions)
-        return render_samples(params, samples, settings, num_draws=K, deterministic=deterministic, generator=generator)
-    packed = pack_samples(samples, keep)
-    params = field(packed.positions, packed.directions)
-    return render_samples_packed(params, packed, settings, num_draws=K, deterministic=deterministic,
-                                 generator=generator)
+    samples = skip_empty(samples, occupied)
+    params = field(samples.positions, samples.directions)
+    return render_any_samples(params, samples, settings, num_draws=K, deterministic=deterministic, generator=generator)
 
 
 MAP_NAMES = ("colour_mean", "colour_var", "depth_mean", "depth_var_epistemic", "depth_var_spread",

@@ -29,9 +29,8 @@ from ..fields.base import StochasticField
 from ..fields.grid import GridField
 from ..losses import LossConfig, Priors, field_kl, gaussian_likelihood_nll
 from ..occupancy import OccupancyGrid, density_threshold, density_upper_estimate
-from ..rays import RayBundle
-from ..renderer import (RayRender, RenderSettings, pack_samples, render_image, render_samples,
-                        render_samples_packed, worth_packing)
+from ..rays import PackedRaySamples, RayBundle, RaySamples
+from ..renderer import RayRender, RenderSettings, render_any_samples, render_image, skip_empty
 from ..samplers import sample_along_rays
 from ..scene_region import SceneRegion, random_unit_directions
 from .base import RadianceModel
@@ -149,14 +148,10 @@ class SNeRF(RadianceModel):
         settings = self.render_settings
         samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing, stratified=True,
                                     generator=generator)
-        packed = False
         if self.occupancy is not None:
             with torch.no_grad():
                 self._record_interval_scale(rays)
-                keep = self.occupied(samples.positions)
-                packed = worth_packing(keep)  # little to skip: the dense layout is cheaper
-                if packed:
-                    samples = pack_samples(samples, keep)
+            samples = skip_empty(samples, self.occupied)
         positions, directions = samples.positions.reshape(-1, 3), samples.directions.reshape(-1, 3)
         use_random_kl = cfg.kl in ("fixed_prior", "full")
         if use_random_kl:
@@ -167,10 +162,7 @@ class SNeRF(RadianceModel):
         params_all = self.field(positions, directions)
         n_ray = samples.t_starts.numel()
         params = params_all.map(lambda t: t[:n_ray]).reshape(*samples.t_starts.shape)
-        if packed:
-            out = render_samples_packed(params, samples, settings, num_draws=self.train_draws, generator=generator)
-        else:
-            out = render_samples(params, samples, settings, num_draws=self.train_draws, generator=generator)
+        out = render_any_samples(params, samples, settings, num_draws=self.train_draws, generator=generator)
         sigma_n = self.likelihood_std()
         nll = gaussian_likelihood_nll(out.stats.colour_draws, target, sigma_n)
         loss = nll
@@ -196,7 +188,7 @@ class SNeRF(RadianceModel):
         elif cfg.kl not in ("none", "fixed_prior"):
             raise ValueError(f"loss.kl must be 'none', 'fixed_prior' or 'full', got {cfg.kl!r}")
         if cfg.lambda_distortion > 0:
-            dist = self._distortion(out, samples, packed)
+            dist = self._distortion(out, samples)
             loss = loss + cfg.lambda_distortion * dist
             logs["distortion"] = dist.item()
         if self.tv_weight > 0 and isinstance(self.field, GridField):
@@ -205,11 +197,11 @@ class SNeRF(RadianceModel):
             logs["tv"] = tv.item()
         return loss, logs
 
-    def _distortion(self, out: RayRender, samples, packed: bool) -> Tensor:
+    def _distortion(self, out: RayRender, samples: RaySamples | PackedRaySamples) -> Tensor:
         """Mean distortion over training rays and trajectories (stochastic_fields.distortion)."""
         spacing = self.render_settings.spacing
         rays = samples.rays
-        if packed:
+        if isinstance(samples, PackedRaySamples):
             near, far = rays.near[samples.ray_indices], rays.far[samples.ray_indices]
             s0 = normalised_coordinate(samples.t_starts, near, far, spacing)
             s1 = normalised_coordinate(samples.t_ends, near, far, spacing)
