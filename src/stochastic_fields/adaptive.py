@@ -29,7 +29,7 @@ from .fields.base import StochasticField
 from .rays import RayBundle
 from .renderer import MAP_NAMES, OccupiedFn, RenderSettings, render_any_samples, skip_empty
 from .samplers import sample_along_rays
-from .volume_rendering import TrajectoryStatistics, statistics_from_draws
+from .volume_rendering import TrajectoryStatistics, concatenate_draws
 
 
 def relative_change(new: Tensor, old: Tensor, floor: float) -> float:
@@ -69,8 +69,7 @@ def render_rays_adaptive(field: StochasticField, rays: RayBundle, settings: Rend
     while True:
         parts.append(first.stats if not parts else draw(b))
         previous = stats
-        stats = statistics_from_draws(*(torch.cat([getattr(p, name) for p in parts], dim=1) for name in
-                                        ("colour_draws", "depth_draws", "spread_draws", "opacity_draws")))
+        stats = concatenate_draws(parts)
         K = b * len(parts)
         if K + b > cap:
             break

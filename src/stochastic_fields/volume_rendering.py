@@ -358,6 +358,14 @@ def statistics_from_draws(
     )
 
 
+def concatenate_draws(parts: list[TrajectoryStatistics]) -> TrajectoryStatistics:
+    """Statistics over the draws of several renders of the same rays (draws axis concatenated)."""
+    if len(parts) == 1:
+        return parts[0]
+    return statistics_from_draws(*(torch.cat([getattr(p, name) for p in parts], dim=1)
+                                   for name in ("colour_draws", "depth_draws", "spread_draws", "opacity_draws")))
+
+
 def _background_per_draw(background: Tensor | float, colour_draws: Tensor) -> Tensor | float:
     """Background [3] or [R, 3] -> broadcastable to [R, K, 3]."""
     if isinstance(background, Tensor) and background.dim() == 2:

@@ -15,6 +15,7 @@ their summed gradients from it, and zeroing costs O(touched rows).
 from __future__ import annotations
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 
@@ -67,11 +68,18 @@ def row_gradient(table: Tensor) -> RowGradient:
     return acc
 
 
+def _weighted_sum_of_rows(table: Tensor, idx: Tensor, weights: Tensor) -> Tensor:
+    """``sum_j weights[m, j] table[idx[m, j]]`` [M, C] as one fused gather-and-sum
+    (``embedding_bag``, bags of J rows): it never forms the [M, J, C] corner tensor, which made
+    the gather 10-14x slower on CPU at 32k-131k points (measured, float32, 2M-row table)."""
+    return F.embedding_bag(idx, table, per_sample_weights=weights.to(table.dtype), mode="sum")
+
+
 class _WeightedRowGather(torch.autograd.Function):
     @staticmethod
     def forward(ctx, table: Tensor, idx: Tensor, weights: Tensor) -> Tensor:
         ctx.save_for_backward(table, idx, weights)
-        return (table[idx] * weights[..., None]).sum(dim=-2)
+        return _weighted_sum_of_rows(table, idx, weights)
 
     @staticmethod
     def backward(ctx, grad_out: Tensor):
@@ -81,7 +89,9 @@ class _WeightedRowGather(torch.autograd.Function):
             rows = (weights[..., None] * grad_out[..., None, :]).reshape(-1, table.shape[1])
             row_gradient(table).add(table, idx.reshape(-1), rows)
         if ctx.needs_input_grad[2]:
-            grad_w = (table[idx] * grad_out[..., None, :]).sum(dim=-1)
+            M, J = idx.shape
+            corners = table.index_select(0, idx.reshape(-1)).view(M, J, table.shape[1])
+            grad_w = torch.bmm(corners, grad_out[:, :, None].to(corners.dtype))[..., 0]
         return None, None, grad_w
 
 
@@ -95,5 +105,5 @@ def gather_rows(table: Tensor, idx: Tensor, weights: Tensor | None = None) -> Te
         idx = idx[:, None]
         weights = torch.ones(idx.shape, dtype=table.dtype, device=table.device)
     if not (torch.is_grad_enabled() and table.requires_grad):
-        return (table[idx] * weights[..., None]).sum(dim=-2)
+        return _weighted_sum_of_rows(table, idx, weights)
     return _WeightedRowGather.apply(table, idx, weights)
