@@ -213,3 +213,49 @@ def test_checkpoint_without_occupancy_loads_into_skipping_model():
     assert skip.occupancy.occupied_fraction == 1.0
     with pytest.raises(RuntimeError, match="Missing key"):
         skip.load_state_dict({k: v for k, v in state.items() if not k.startswith("field.colour")})
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_draw_blocks_give_the_same_render_and_gradients_as_one_block(monkeypatch, shared):
+    """K = 7 draws in blocks of 2 (2, 2, 2, 1) equal one block of 7: statistics, weights and
+    gradients, dense and packed; with shared noise also from the generator (drawn for all K at once)."""
+    field = BoxField()
+    rays = box_rays()
+    st = settings(shared_noise=shared)
+    samples = sample_along_rays(rays, st.num_samples, stratified=True, generator=torch.Generator().manual_seed(1))
+    R, S, K = *samples.t_starts.shape, 7
+    packed = pack_samples(samples, torch.ones(R, S, dtype=torch.bool))
+    gen = torch.Generator().manual_seed(2)
+    noise = (torch.randn(R, K, 1 if shared else S, generator=gen, dtype=torch.float64),
+             torch.randn(R, K, 1 if shared else S, 3, generator=gen, dtype=torch.float64))
+    packed_noise = (torch.randn(K, len(packed.ray_indices), generator=gen, dtype=torch.float64),
+                    torch.randn(K, len(packed.ray_indices), 3, generator=gen, dtype=torch.float64))
+
+    def run(render, smp, **kw):
+        field.zero_grad()
+        out = render(field(smp.positions, smp.directions), smp, st, num_draws=K, **kw)
+        (out.stats.colour_var.sum() + out.stats.depth_var_total.sum() + out.stats.colour_mean.sum()).backward()
+        return out, grads(field)
+
+    cases = [(render_samples, samples, {"noise": noise}), (render_samples_packed, packed, {"noise": packed_noise})]
+    if shared:
+        cases += [(render_samples, samples, {"generator": "seed"}), (render_samples_packed, packed, {"generator": "seed"})]
+    for render, smp, kw in cases:
+        results = []
+        for block in (10 ** 9, 2 * (S * R)):
+            monkeypatch.setattr(renderer, "DRAW_BLOCK_ELEMENTS", block)
+            call = {"generator": torch.Generator().manual_seed(3)} if kw.get("generator") == "seed" else kw
+            results.append(run(render, smp, **call))
+        assert len(renderer.draw_blocks(K, S * R)) == 4  # the second render really was blocked
+        (one, g_one), (blocked, g_blocked) = results
+        for name in STAT_NAMES:
+            torch.testing.assert_close(getattr(blocked.stats, name), getattr(one.stats, name), rtol=1e-12, atol=1e-14)
+        torch.testing.assert_close(blocked.extras["weights"], one.extras["weights"], rtol=0, atol=0)
+        for a, b in zip(g_blocked, g_one):
+            torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-13)
+
+
+def test_draw_blocks_cover_every_draw_once():
+    assert renderer.draw_blocks(7, renderer.DRAW_BLOCK_ELEMENTS // 2) == [(0, 2), (2, 2), (4, 2), (6, 1)]
+    assert renderer.draw_blocks(3, renderer.DRAW_BLOCK_ELEMENTS * 5) == [(0, 1), (1, 1), (2, 1)]
+    assert renderer.draw_blocks(16, 1) == [(0, 16)]

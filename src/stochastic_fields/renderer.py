@@ -33,12 +33,13 @@ from typing import Callable, Literal
 import torch
 from torch import Tensor
 
-from .constants import OCCUPANCY_ALPHA_THRESHOLD, OCCUPANCY_UPPER_NUM_STD, PACK_MIN_SKIPPED_FRACTION
+from .constants import (DRAW_BLOCK_ELEMENTS, OCCUPANCY_ALPHA_THRESHOLD, OCCUPANCY_UPPER_NUM_STD,
+                        PACK_MIN_SKIPPED_FRACTION)
 from .fields.base import FieldParams, StochasticField
 from .rays import PackedRaySamples, RayBundle, RaySamples
 from .samplers import Spacing, sample_along_rays
-from .volume_rendering import (TrajectoryStatistics, render_weights, render_weights_packed, trajectory_statistics,
-                               trajectory_statistics_packed)
+from .volume_rendering import (TrajectoryStatistics, concatenate_draws, render_weights, render_weights_packed,
+                               trajectory_statistics, trajectory_statistics_packed)
 
 #: ``occupied(positions [R, S, 3]) -> [R, S] bool``: which dense samples to keep (empty-space skipping).
 OccupiedFn = Callable[[Tensor], Tensor]
@@ -96,6 +97,20 @@ def dense_noise(num_rays: int, num_draws: int, num_samples: int, *, shared_noise
     return eps_a, eps_c
 
 
+def gather_shared_noise(noise: tuple[Tensor, Tensor], ray_indices: Tensor) -> tuple[Tensor, Tensor]:
+    """Dense shared eps ([R, K, 1], [R, K, 1, 3]) -> packed eps ([K, N], [K, N, 3]) of the samples' rays."""
+    eps_a, eps_c = noise
+    return eps_a[ray_indices, :, 0].T, eps_c[ray_indices, :, 0].transpose(0, 1)
+
+
+def draw_blocks(num_draws: int, pairs_per_draw: int) -> list[tuple[int, int]]:
+    """(first draw, draws) of each block: at most ``DRAW_BLOCK_ELEMENTS`` (sample, draw) pairs per
+    block and at least one draw. The renderers draw and composite block by block, so memory for
+    temporaries does not grow with K (see constants)."""
+    per_block = max(1, DRAW_BLOCK_ELEMENTS // max(pairs_per_draw, 1))
+    return [(k0, min(per_block, num_draws - k0)) for k0 in range(0, num_draws, per_block)]
+
+
 def draw_trajectories(params: FieldParams, num_draws: int, *, shared_noise: bool = False,
                       deterministic: bool = False, generator: torch.Generator | None = None,
                       noise: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
@@ -137,8 +152,8 @@ def draw_trajectories_packed(params: FieldParams, num_draws: int, ray_indices: T
                 torch.sigmoid(params.rgb_loc)[None].expand(K, N, 3))
     if noise is None:
         if shared_noise:
-            eps_a, eps_c = dense_noise(num_rays, K, 1, shared_noise=True, generator=generator, device=dev, dtype=dt)
-            noise = (eps_a[ray_indices, :, 0].T, eps_c[ray_indices, :, 0].transpose(0, 1))
+            noise = gather_shared_noise(dense_noise(num_rays, K, 1, shared_noise=True, generator=generator,
+                                                    device=dev, dtype=dt), ray_indices)
         else:
             noise = (torch.randn(K, N, generator=generator, device=dev, dtype=dt),
                      torch.randn(K, N, 3, generator=generator, device=dev, dtype=dt))
@@ -168,15 +183,30 @@ def _background(settings: RenderSettings, like: Tensor) -> Tensor | None:
 def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSettings, *, num_draws: int,
                    deterministic: bool = False, generator: torch.Generator | None = None,
                    noise: tuple[Tensor, Tensor] | None = None) -> RayRender:
-    """K trajectories from field parameters already evaluated at ``samples`` ([R, S])."""
-    density, rgb = draw_trajectories(params, num_draws, shared_noise=settings.shared_noise,
-                                     deterministic=deterministic, generator=generator, noise=noise)
-    weights = render_weights(density, samples.t_starts[:, None, :], samples.t_ends[:, None, :], settings.quadrature)
-    stats = trajectory_statistics(weights, rgb, samples.t_mids[:, None, :], samples.rays.far,
-                                  background=_background(settings, rgb))
+    """K trajectories from field parameters already evaluated at ``samples`` ([R, S]).
+
+    Draws are made and composited in blocks of ``draw_blocks(K, R * S)``; independent noise is
+    drawn block by block (a seed gives the same draws as before blocking while K R S fits in one
+    block), shared noise for all K at once (as the packed layout, which then agrees exactly).
+    """
     R, S = samples.t_starts.shape
-    evals = torch.full((R,), S, device=samples.t_starts.device, dtype=torch.long)
-    return RayRender(stats=stats, params=params, samples=samples, extras={"weights": weights, "field_evals": evals})
+    dev, dt = params.density_loc.device, params.density_loc.dtype
+    if noise is None and settings.shared_noise and not deterministic:
+        noise = dense_noise(R, num_draws, S, shared_noise=True, generator=generator, device=dev, dtype=dt)
+    blocks = [(0, num_draws)] if deterministic else draw_blocks(num_draws, R * S)
+    parts, weights = [], []
+    for k0, k in blocks:
+        block_noise = None if noise is None else (noise[0][:, k0:k0 + k], noise[1][:, k0:k0 + k])
+        density, rgb = draw_trajectories(params, k, shared_noise=settings.shared_noise,
+                                         deterministic=deterministic, generator=generator, noise=block_noise)
+        w = render_weights(density, samples.t_starts[:, None, :], samples.t_ends[:, None, :], settings.quadrature)
+        parts.append(trajectory_statistics(w, rgb, samples.t_mids[:, None, :], samples.rays.far,
+                                           background=_background(settings, rgb)))
+        weights.append(w)
+    evals = torch.full((R,), S, device=dev, dtype=torch.long)
+    return RayRender(stats=concatenate_draws(parts), params=params, samples=samples,
+                     extras={"weights": torch.cat(weights, dim=1) if len(weights) > 1 else weights[0],
+                             "field_evals": evals})
 
 
 def render_samples_packed(params: FieldParams, samples: PackedRaySamples, settings: RenderSettings, *,
@@ -184,20 +214,35 @@ def render_samples_packed(params: FieldParams, samples: PackedRaySamples, settin
                           noise: tuple[Tensor, Tensor] | None = None) -> RayRender:
     """K trajectories from field parameters evaluated at packed samples ([N]); alpha compositing only.
 
-    Shapes: params [N]; returns statistics per ray [R, ...] like ``render_samples``.
+    Shapes: params [N]; returns statistics per ray [R, ...] like ``render_samples``. Blocks of
+    draws as ``render_samples`` (``draw_blocks(K, N)``).
     """
     if settings.quadrature != "alpha":
         raise ValueError(f"packed samples (empty-space skipping) need quadrature='alpha', got "
                          f"{settings.quadrature!r}: the packed trapezoid interpolates across skipped gaps")
-    R = samples.num_rays
-    density, rgb = draw_trajectories_packed(params, num_draws, samples.ray_indices, R,
-                                            shared_noise=settings.shared_noise, deterministic=deterministic,
-                                            generator=generator, noise=noise)
-    weights = render_weights_packed(density, samples.t_starts, samples.t_ends, samples.ray_indices, R, "alpha")
-    stats = trajectory_statistics_packed(weights, rgb, samples.t_mids, samples.ray_indices, R, samples.rays.far,
-                                         background=_background(settings, rgb))
+    R, N = samples.num_rays, samples.ray_indices.shape[0]
+    dev, dt = params.density_loc.device, params.density_loc.dtype
+    shared = None
+    if noise is None and settings.shared_noise and not deterministic:
+        shared = dense_noise(R, num_draws, 1, shared_noise=True, generator=generator, device=dev, dtype=dt)
+    blocks = [(0, num_draws)] if deterministic else draw_blocks(num_draws, N)
+    parts, weights = [], []
+    for k0, k in blocks:
+        if shared is not None:
+            block_noise = gather_shared_noise((shared[0][:, k0:k0 + k], shared[1][:, k0:k0 + k]), samples.ray_indices)
+        else:
+            block_noise = None if noise is None else (noise[0][k0:k0 + k], noise[1][k0:k0 + k])
+        density, rgb = draw_trajectories_packed(params, k, samples.ray_indices, R,
+                                                shared_noise=settings.shared_noise, deterministic=deterministic,
+                                                generator=generator, noise=block_noise)
+        w = render_weights_packed(density, samples.t_starts, samples.t_ends, samples.ray_indices, R, "alpha")
+        parts.append(trajectory_statistics_packed(w, rgb, samples.t_mids, samples.ray_indices, R, samples.rays.far,
+                                                  background=_background(settings, rgb)))
+        weights.append(w)
     evals = torch.bincount(samples.ray_indices, minlength=R)
-    return RayRender(stats=stats, params=params, samples=samples, extras={"weights": weights, "field_evals": evals})
+    return RayRender(stats=concatenate_draws(parts), params=params, samples=samples,
+                     extras={"weights": torch.cat(weights, dim=0) if len(weights) > 1 else weights[0],
+                             "field_evals": evals})
 
 
 def pack_samples(samples: RaySamples, keep: Tensor) -> PackedRaySamples:
