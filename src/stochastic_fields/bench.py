@@ -267,20 +267,21 @@ def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> 
             print(f"  K={k:4d}  {secs:7.2f} s  NLL {sweep[-1]['nll']:.3f}  PSNR {sweep[-1]['psnr']:.2f}")
         out["k_sweep"] = sweep
         settings.adaptive_draws = True
-        default_rtol = settings.adaptive_rtol
+        default_rule, default_rtol = settings.adaptive_rule, settings.adaptive_rtol
         out["adaptive_by_rtol"] = []
-        for rtol in sorted({default_rtol, 0.05, 0.02, 0.01}, reverse=True):
-            settings.adaptive_rtol = rtol
+        for rule, rtol in ADAPTIVE_RULES:
+            settings.adaptive_rule, settings.adaptive_rtol = rule, rtol
             maps, secs = render(None)
             k_map = maps["num_draws"]
             entry = {"time_s": secs, "K_mean": float(k_map.mean()), "K_max": float(k_map.max()),
-                     "K_min": float(k_map.min()), "rtol": rtol, "batch_draws": settings.adaptive_batch_draws,
+                     "K_min": float(k_map.min()), "rule": rule, "rtol": rtol,
+                     "batch_draws": settings.adaptive_batch_draws,
                      "max_draws": settings.adaptive_max_draws, **_view_scores(maps, gt, gt_depth, sparse, stride)}
             out["adaptive_by_rtol"].append(entry)
-            if rtol == default_rtol:
+            if (rule, rtol) == (default_rule, default_rtol):
                 out["adaptive"] = entry
-            print(f"  adaptive K rtol {rtol} (mean K {entry['K_mean']:.1f}): {secs:.2f} s  NLL {entry['nll']:.3f}")
-        settings.adaptive_rtol = default_rtol
+            print(f"  adaptive K {rule} rtol {rtol} (mean K {entry['K_mean']:.1f}): {secs:.2f} s  NLL {entry['nll']:.3f}")
+        settings.adaptive_rule, settings.adaptive_rtol = default_rule, default_rtol
         settings.adaptive_draws = False
 
         k_def = settings.num_draws
@@ -310,6 +311,9 @@ def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> 
                                                    lambda m: _view_scores(m, gt, gt_depth, sparse, stride))
     return out
 
+
+#: (adaptive_rule, adaptive_rtol) of the adaptive-K renders: the default first.
+ADAPTIVE_RULES = (("precision", 0.05), ("precision", 0.02), ("change", 0.05), ("change", 0.02))
 
 #: (occupancy_num_std, occupancy_alpha_threshold) of the skipping sweep: the default first, then
 #: criteria that skip more of the space S-NeRF is unsure about.
@@ -424,7 +428,7 @@ def make_plots(results: dict, out: Path) -> list[str]:
         for s in sweep:
             a0.annotate(f"K={s['K']}", (s["time_s"], s["nll"]), textcoords="offset points", xytext=(4, 4), fontsize=8)
         for a in r.get("adaptive_by_rtol", [ad]):
-            a0.plot([a["time_s"]], [a["nll"]], "*", ms=13, label=f"adaptive rtol {a['rtol']} (mean K {a['K_mean']:.0f})")
+            a0.plot([a["time_s"]], [a["nll"]], "*", ms=13, label=f"adaptive {a.get('rule', 'change')} rtol {a['rtol']} (mean K {a['K_mean']:.0f})")
         a0.set(xscale="log", yscale="symlog", xlabel="render time of the view [s]", ylabel="NLL [nats/channel] (symlog)",
                title=f"{scene}: speed against error")
         a0.grid(alpha=0.3)
@@ -513,7 +517,7 @@ def evaluate_targets(results: dict) -> dict:
         ad[s] = []
         for a in r["render"]["adaptive_by_rtol"]:
             rel = abs(a["nll"] - k128["nll"]) / abs(k128["nll"])
-            ad[s].append({"rtol": a["rtol"], "nll_adaptive": a["nll"], "nll_k128": k128["nll"],
+            ad[s].append({"rule": a.get("rule", "change"), "rtol": a["rtol"], "nll_adaptive": a["nll"], "nll_k128": k128["nll"],
                           "relative_nll_difference": rel, "time_fraction_of_k128": a["time_s"] / k128["time_s"],
                           "K_mean": a["K_mean"], "target": "NLL within 2% of K=128 at a fraction of its time",
                           "met": rel <= 0.02 and a["time_s"] < k128["time_s"]})
