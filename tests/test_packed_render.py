@@ -75,15 +75,18 @@ def grads(module: nn.Module) -> list[torch.Tensor]:
 # ------------------------------------------------------------------------- renderer level
 
 
+def box_scene(shared: bool):
+    """(field, settings, dense samples [R, S], the same samples packed with every one kept, noise generator)."""
+    st = settings(shared_noise=shared)
+    samples = sample_along_rays(box_rays(), st.num_samples, stratified=True, generator=torch.Generator().manual_seed(1))
+    packed = pack_samples(samples, torch.ones(samples.t_starts.shape, dtype=torch.bool))
+    return BoxField(), st, samples, packed, torch.Generator().manual_seed(2)
+
+
 @pytest.mark.parametrize("shared", [True, False])
 def test_packed_equals_dense_with_every_sample_kept(shared):
-    field = BoxField()
-    rays = box_rays()
-    st = settings(shared_noise=shared)
-    samples = sample_along_rays(rays, st.num_samples, stratified=True, generator=torch.Generator().manual_seed(1))
+    field, st, samples, packed, gen = box_scene(shared)
     R, S, K = *samples.t_starts.shape, 5
-    packed = pack_samples(samples, torch.ones(R, S, dtype=torch.bool))
-    gen = torch.Generator().manual_seed(2)
     eps_a = torch.randn(R, K, 1 if shared else S, generator=gen, dtype=torch.float64)
     eps_c = torch.randn(R, K, 1 if shared else S, 3, generator=gen, dtype=torch.float64)
     si = torch.arange(len(packed.ray_indices)) % S
@@ -219,13 +222,8 @@ def test_checkpoint_without_occupancy_loads_into_skipping_model():
 def test_draw_blocks_give_the_same_render_and_gradients_as_one_block(monkeypatch, shared):
     """K = 7 draws in blocks of 2 (2, 2, 2, 1) equal one block of 7: statistics, weights and
     gradients, dense and packed; with shared noise also from the generator (drawn for all K at once)."""
-    field = BoxField()
-    rays = box_rays()
-    st = settings(shared_noise=shared)
-    samples = sample_along_rays(rays, st.num_samples, stratified=True, generator=torch.Generator().manual_seed(1))
+    field, st, samples, packed, gen = box_scene(shared)
     R, S, K = *samples.t_starts.shape, 7
-    packed = pack_samples(samples, torch.ones(R, S, dtype=torch.bool))
-    gen = torch.Generator().manual_seed(2)
     noise = (torch.randn(R, K, 1 if shared else S, generator=gen, dtype=torch.float64),
              torch.randn(R, K, 1 if shared else S, 3, generator=gen, dtype=torch.float64))
     packed_noise = (torch.randn(K, len(packed.ray_indices), generator=gen, dtype=torch.float64),

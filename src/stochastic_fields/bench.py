@@ -269,7 +269,7 @@ def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> 
         settings.adaptive_draws = True
         default_rule, default_rtol = settings.adaptive_rule, settings.adaptive_rtol
         out["adaptive_by_rtol"] = []
-        for rule, rtol in ADAPTIVE_RULES:
+        for rule, rtol in dict.fromkeys(((default_rule, default_rtol), *ADAPTIVE_RULES)):
             settings.adaptive_rule, settings.adaptive_rtol = rule, rtol
             maps, secs = render(None)
             k_map = maps["num_draws"]
@@ -312,7 +312,7 @@ def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> 
     return out
 
 
-#: (adaptive_rule, adaptive_rtol) of the adaptive-K renders: the default first.
+#: (adaptive_rule, adaptive_rtol) of the adaptive-K renders, after the model's own setting.
 ADAPTIVE_RULES = (("precision", 0.05), ("precision", 0.02), ("change", 0.05), ("change", 0.02))
 
 #: (occupancy_num_std, occupancy_alpha_threshold) of the skipping sweep: the default first, then
