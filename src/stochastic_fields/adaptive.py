@@ -14,7 +14,8 @@ The rule estimates what is left of that drift up to the cap,
     remaining(v) = mean_p  kappa_p f_p^2 (1/(K-3) - 1/(cap-3))      over entries p with v_p > floor
 
 (``kappa_p`` the adjusted sample kurtosis of the draws so far; ``f_p`` the share of the variance that comes
-from the draws: 1 for colour, ``var_k D_k / (var_k D_k + E_k V_k)`` for total depth variance),
+from the draws: 1 for drawn colours, ``Var_k E[C_k|w_k] / colour_var`` for Rao-Blackwellised ones,
+``var_k D_k / (var_k D_k + E_k V_k)`` for total depth variance),
 and stops when both colour and depth are below ``rtol``. It cannot stop before
 ``1/(K-3) - 1/(cap-3) < rtol`` (``kappa >= 1``).
 
@@ -28,8 +29,9 @@ above K = 128's; it does not see the bias above).
 
 Either way drawing stops at ``max_draws``. Variances below the floors are what the metrics
 cannot tell apart (``NLL_VARIANCE_FLOOR`` for colour, ``DEPTH_NLL_VARIANCE_FLOOR`` for depth):
-if after the first batch the colour variance and the epistemic depth variance (variance of
-D_k over draws) of every pixel of the chunk are below them, the draws are (nearly) identical
+if after the first batch the colour variance over draws (for Rao-Blackwellised colours: the variance
+of the conditional means) and the epistemic depth variance (variance of D_k over draws) of every pixel
+of the chunk are below them, the draws are (nearly) identical
 (a near-deterministic field, sigma -> 0), every estimate including the termination spread is
 already exact, and drawing stops at K = b.
 
@@ -47,7 +49,7 @@ from torch import Tensor
 from .constants import DEPTH_NLL_VARIANCE_FLOOR, NLL_VARIANCE_FLOOR
 from .fields.base import StochasticField
 from .rays import RayBundle
-from .renderer import MAP_NAMES, OccupiedFn, RenderSettings, render_any_samples, skip_empty
+from .renderer import MAP_NAMES, OccupiedFn, RenderSettings, colour_moments, render_any_samples, skip_empty
 from .samplers import sample_along_rays
 from .volume_rendering import TrajectoryStatistics, concatenate_draws
 
@@ -89,6 +91,15 @@ def _colour_var(stats: TrajectoryStatistics) -> Tensor:
     return stats.colour_var.mean(dim=-1)  # [R]
 
 
+def _colour_var_between_draws(stats: TrajectoryStatistics) -> Tensor:
+    """[R, 3] the part of the colour variance that varies over draws: all of it for drawn colours,
+    ``Var_k E[C_k | w_k]`` for Rao-Blackwellised ones (their ``mean_k Var[C_k | w_k]`` is exact
+    per draw and carries no small-K bias)."""
+    if stats.colour_noise_var_draws is None:
+        return stats.colour_var
+    return stats.colour_var - stats.colour_noise_var_draws.mean(dim=1)
+
+
 def render_rays_adaptive(field: StochasticField, rays: RayBundle, settings: RenderSettings, *,
                          batch_draws: int | None = None, max_draws: int | None = None, rtol: float | None = None,
                          generator: torch.Generator | None = None,
@@ -109,10 +120,12 @@ def render_rays_adaptive(field: StochasticField, rays: RayBundle, settings: Rend
     samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing)
     samples = skip_empty(samples, occupied)
     params = field(samples.positions, samples.directions)
-    first = render_any_samples(params, samples, settings, num_draws=b, generator=generator)
+    moments = colour_moments(params, settings)  # once per chunk, shared by every batch
+    first = render_any_samples(params, samples, settings, num_draws=b, generator=generator, colour_moments=moments)
 
     def draw(k: int) -> TrajectoryStatistics:
-        return render_any_samples(params, samples, settings, num_draws=k, generator=generator).stats
+        return render_any_samples(params, samples, settings, num_draws=k, generator=generator,
+                                  colour_moments=moments).stats
 
     parts: list[TrajectoryStatistics] = []
     stats: TrajectoryStatistics | None = None
@@ -124,15 +137,20 @@ def render_rays_adaptive(field: StochasticField, rays: RayBundle, settings: Rend
         if K + b > cap:
             break
         cv = _colour_var(stats)
+        between = _colour_var_between_draws(stats)
         if previous is None:
             # draws (nearly) identical: every estimate is already exact
-            if bool((cv <= NLL_VARIANCE_FLOOR).all() and (stats.depth_var_epistemic <= DEPTH_NLL_VARIANCE_FLOOR).all()):
+            if bool((between.mean(dim=-1) <= NLL_VARIANCE_FLOOR).all()
+                    and (stats.depth_var_epistemic <= DEPTH_NLL_VARIANCE_FLOOR).all()):
                 break
             continue
         if settings.adaptive_rule == "precision":
-            share = stats.depth_var_epistemic / stats.depth_var_total.clamp_min(DEPTH_NLL_VARIANCE_FLOOR)
-            if (remaining_precision_bias(stats.colour_draws, K, cap, NLL_VARIANCE_FLOOR) < tol
-                    and remaining_precision_bias(stats.depth_draws, K, cap, DEPTH_NLL_VARIANCE_FLOOR, share) < tol):
+            colour_share = (None if stats.colour_noise_var_draws is None
+                            else between / stats.colour_var.clamp_min(NLL_VARIANCE_FLOOR))
+            depth_share = stats.depth_var_epistemic / stats.depth_var_total.clamp_min(DEPTH_NLL_VARIANCE_FLOOR)
+            if (remaining_precision_bias(stats.colour_draws, K, cap, NLL_VARIANCE_FLOOR, colour_share) < tol
+                    and remaining_precision_bias(stats.depth_draws, K, cap, DEPTH_NLL_VARIANCE_FLOOR,
+                                                 depth_share) < tol):
                 break
         elif (relative_change(cv, _colour_var(previous), NLL_VARIANCE_FLOOR) < tol
               and relative_change(stats.depth_var_total, previous.depth_var_total, DEPTH_NLL_VARIANCE_FLOOR) < tol):

@@ -20,6 +20,11 @@ there, so that combination raises). A batch in which the grid skips less than
 more than it saves. Every render records the field evaluations per ray
 (``RayRender.extras["field_evals"]`` [R], ``render_image`` map ``field_evals_per_ray``).
 
+Rao-Blackwellised colours (``colour_estimator="rao_blackwell"``): only the densities are drawn;
+the colours enter through each sample's tabulated logistic-normal mean and variance
+(``volume_rendering.trajectory_statistics`` with ``rgb_var``). Given noise ``(eps_a, eps_c)``
+uses ``eps_a`` only (``eps_c`` may be None).
+
 Packed and dense draws agree exactly for ``shared_noise=True``: the packed path draws the same
 ``[R, K, 1]`` noise as the dense one and gathers it per sample. With independent noise the
 packed path draws ``[K, N]`` (one eps per kept sample); pass ``noise=`` to fix the draws.
@@ -36,6 +41,7 @@ from torch import Tensor
 from .constants import (DRAW_BLOCK_ELEMENTS, OCCUPANCY_ALPHA_THRESHOLD, OCCUPANCY_UPPER_NUM_STD,
                         PACK_MIN_SKIPPED_FRACTION)
 from .fields.base import FieldParams, StochasticField
+from .logistic_normal_table import logistic_normal_moments_tabulated
 from .rays import PackedRaySamples, RayBundle, RaySamples
 from .samplers import Spacing, sample_along_rays
 from .volume_rendering import (TrajectoryStatistics, concatenate_draws, render_weights, render_weights_packed,
@@ -85,6 +91,8 @@ class RenderSettings:
     """Adaptive K: cap on the trajectories per ray."""
     adaptive_rtol: float = 0.05
     """Adaptive K: tolerance of adaptive_rule ('precision': predicted relative change of the mean precision 1/var between the current K and the cap; 'change': relative L1 change of the per-pixel colour and depth variances from one batch to the next)."""
+    colour_estimator: Literal["draws", "rao_blackwell"] = "draws"
+    """Rendering colour statistics: 'draws' samples every colour (SPEC 3: C_k = sum_i w_ik r_ik, variance over k); 'rao_blackwell' draws only densities and integrates each trajectory's colour noise exactly given its weights (E[C_k|w_k] = sum_i w_ik E[r_i], Var[C_k|w_k] = sum_i w_ik^2 Var[r_i], tabulated logistic-normal moments), estimating the same mean and variance with less Monte-Carlo noise and no colour draws (benchmarks/results). Training always draws colours."""
     adaptive_rule: Literal["precision", "change"] = "precision"
     """Adaptive K stopping rule: 'precision' stops when the small-K bias of 1/var left before the cap, predicted from the draws' kurtosis, is below adaptive_rtol (aims at the NLL of K = adaptive_max_draws); 'change' when the variances change by less than adaptive_rtol between batches (stops earlier, NLL measured 4% above K = 128's at rtol 0.05). See stochastic_fields.adaptive."""
 
@@ -182,28 +190,64 @@ def _background(settings: RenderSettings, like: Tensor) -> Tensor | None:
     return torch.tensor(settings.background, device=like.device, dtype=like.dtype)
 
 
+def _noise_block(noise: tuple[Tensor, Tensor | None], *index: slice) -> tuple[Tensor, Tensor | None]:
+    """Both eps tensors indexed alike; the colour eps may be None (Rao-Blackwellised colours draw none)."""
+    return noise[0][index], None if noise[1] is None else noise[1][index]
+
+
+def _use_rao_blackwell(settings: RenderSettings, colour_estimator: str | None, deterministic: bool) -> bool:
+    estimator = settings.colour_estimator if colour_estimator is None else colour_estimator
+    if estimator not in ("draws", "rao_blackwell"):
+        raise ValueError(f"colour_estimator must be 'draws' or 'rao_blackwell', got {estimator!r}")
+    return estimator == "rao_blackwell" and not deterministic
+
+
+def colour_moments(params: FieldParams, settings: RenderSettings) -> tuple[Tensor, Tensor] | None:
+    """Per-sample colour means and variances ``(E[r_i], Var[r_i])`` (shaped like ``params.rgb_loc``)
+    when ``settings`` renders Rao-Blackwellised colours, else None. Pass them as ``colour_moments=``
+    to render the same parameters several times (adaptive K) without recomputing them."""
+    if not _use_rao_blackwell(settings, None, False):
+        return None
+    return logistic_normal_moments_tabulated(params.rgb_loc, params.rgb_scale)
+
+
 def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSettings, *, num_draws: int,
                    deterministic: bool = False, generator: torch.Generator | None = None,
-                   noise: tuple[Tensor, Tensor] | None = None) -> RayRender:
+                   noise: tuple[Tensor, Tensor] | None = None, colour_estimator: str | None = None,
+                   colour_moments: tuple[Tensor, Tensor] | None = None) -> RayRender:
     """K trajectories from field parameters already evaluated at ``samples`` ([R, S]).
 
     Draws are made and composited in blocks of ``draw_blocks(K, R * S)``; independent noise is
     drawn block by block (a seed gives the same draws as before blocking while K R S fits in one
     block), shared noise for all K at once (as the packed layout, which then agrees exactly).
+    ``colour_estimator`` overrides ``settings.colour_estimator``; ``colour_moments`` gives the
+    Rao-Blackwellised estimator's per-sample moments if already computed (``colour_moments()``).
     """
     R, S = samples.t_starts.shape
     dev, dt = params.density_loc.device, params.density_loc.dtype
+    rao_blackwell = _use_rao_blackwell(settings, colour_estimator, deterministic)
     if noise is None and settings.shared_noise and not deterministic:
         noise = dense_noise(R, num_draws, S, shared_noise=True, generator=generator, device=dev, dtype=dt)
+    if rao_blackwell:  # [R, S, 3] each
+        rgb_mean, rgb_var = colour_moments or logistic_normal_moments_tabulated(params.rgb_loc, params.rgb_scale)
     blocks = [(0, num_draws)] if deterministic else draw_blocks(num_draws, R * S)
     parts, weights = [], []
     for k0, k in blocks:
-        block_noise = None if noise is None else (noise[0][:, k0:k0 + k], noise[1][:, k0:k0 + k])
-        density, rgb = draw_trajectories(params, k, shared_noise=settings.shared_noise,
-                                         deterministic=deterministic, generator=generator, noise=block_noise)
+        block_noise = None if noise is None else _noise_block(noise, slice(None), slice(k0, k0 + k))
+        if rao_blackwell:
+            eps_a = (torch.randn(R, k, S, generator=generator, device=dev, dtype=dt) if block_noise is None
+                     else block_noise[0])
+            density = torch.relu(params.density_loc[:, None, :] + params.density_scale[:, None, :] * eps_a)
+        else:
+            density, rgb = draw_trajectories(params, k, shared_noise=settings.shared_noise,
+                                             deterministic=deterministic, generator=generator, noise=block_noise)
         w = render_weights(density, samples.t_starts[:, None, :], samples.t_ends[:, None, :], settings.quadrature)
-        parts.append(trajectory_statistics(w, rgb, samples.t_mids[:, None, :], samples.rays.far,
-                                           background=_background(settings, rgb)))
+        if rao_blackwell:
+            parts.append(trajectory_statistics(w, rgb_mean, samples.t_mids[:, None, :], samples.rays.far,
+                                               background=_background(settings, w), rgb_var=rgb_var))
+        else:
+            parts.append(trajectory_statistics(w, rgb, samples.t_mids[:, None, :], samples.rays.far,
+                                               background=_background(settings, rgb)))
         weights.append(w)
     evals = torch.full((R,), S, device=dev, dtype=torch.long)
     return RayRender(stats=concatenate_draws(parts), params=params, samples=samples,
@@ -213,33 +257,47 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
 
 def render_samples_packed(params: FieldParams, samples: PackedRaySamples, settings: RenderSettings, *,
                           num_draws: int, deterministic: bool = False, generator: torch.Generator | None = None,
-                          noise: tuple[Tensor, Tensor] | None = None) -> RayRender:
+                          noise: tuple[Tensor, Tensor] | None = None, colour_estimator: str | None = None,
+                          colour_moments: tuple[Tensor, Tensor] | None = None) -> RayRender:
     """K trajectories from field parameters evaluated at packed samples ([N]); alpha compositing only.
 
     Shapes: params [N]; returns statistics per ray [R, ...] like ``render_samples``. Blocks of
-    draws as ``render_samples`` (``draw_blocks(K, N)``).
+    draws, ``colour_estimator`` and ``colour_moments`` as ``render_samples`` (``draw_blocks(K, N)``).
     """
     if settings.quadrature != "alpha":
         raise ValueError(f"packed samples (empty-space skipping) need quadrature='alpha', got "
                          f"{settings.quadrature!r}: the packed trapezoid interpolates across skipped gaps")
     R, N = samples.num_rays, samples.ray_indices.shape[0]
     dev, dt = params.density_loc.device, params.density_loc.dtype
+    rao_blackwell = _use_rao_blackwell(settings, colour_estimator, deterministic)
     shared = None
     if noise is None and settings.shared_noise and not deterministic:
         shared = dense_noise(R, num_draws, 1, shared_noise=True, generator=generator, device=dev, dtype=dt)
+    if rao_blackwell:  # [N, 3] each
+        rgb_mean, rgb_var = colour_moments or logistic_normal_moments_tabulated(params.rgb_loc, params.rgb_scale)
     blocks = [(0, num_draws)] if deterministic else draw_blocks(num_draws, N)
     parts, weights = [], []
     for k0, k in blocks:
         if shared is not None:
             block_noise = gather_shared_noise((shared[0][:, k0:k0 + k], shared[1][:, k0:k0 + k]), samples.ray_indices)
         else:
-            block_noise = None if noise is None else (noise[0][k0:k0 + k], noise[1][k0:k0 + k])
-        density, rgb = draw_trajectories_packed(params, k, samples.ray_indices, R,
-                                                shared_noise=settings.shared_noise, deterministic=deterministic,
-                                                generator=generator, noise=block_noise)
+            block_noise = None if noise is None else _noise_block(noise, slice(k0, k0 + k))
+        if rao_blackwell:
+            eps_a = (torch.randn(k, N, generator=generator, device=dev, dtype=dt) if block_noise is None
+                     else block_noise[0])
+            density = torch.relu(params.density_loc[None] + params.density_scale[None] * eps_a)
+        else:
+            density, rgb = draw_trajectories_packed(params, k, samples.ray_indices, R,
+                                                    shared_noise=settings.shared_noise, deterministic=deterministic,
+                                                    generator=generator, noise=block_noise)
         w = render_weights_packed(density, samples.t_starts, samples.t_ends, samples.ray_indices, R, "alpha")
-        parts.append(trajectory_statistics_packed(w, rgb, samples.t_mids, samples.ray_indices, R, samples.rays.far,
-                                                  background=_background(settings, rgb)))
+        if rao_blackwell:
+            parts.append(trajectory_statistics_packed(w, rgb_mean, samples.t_mids, samples.ray_indices, R,
+                                                      samples.rays.far, background=_background(settings, w),
+                                                      rgb_var=rgb_var))
+        else:
+            parts.append(trajectory_statistics_packed(w, rgb, samples.t_mids, samples.ray_indices, R,
+                                                      samples.rays.far, background=_background(settings, rgb)))
         weights.append(w)
     evals = torch.bincount(samples.ray_indices, minlength=R)
     return RayRender(stats=concatenate_draws(parts), params=params, samples=samples,

@@ -308,6 +308,11 @@ class TrajectoryStatistics:
         depth_var_spread: [R] mean over k of the termination spread.
         depth_var_total: [R] epistemic + spread (law of total variance).
         opacity: [R] mean over k of the opacity.
+        colour_noise_var_draws: None, or with the Rao-Blackwellised colour estimator [R, K, 3]
+            the colour variance of each trajectory given its weights, ``Var[C_k | w_k] =
+            sum_i w_ik^2 Var[r_i]``; ``colour_draws`` are then the conditional means
+            ``E[C_k | w_k] = sum_i w_ik E[r_i]`` and ``colour_var`` is the law of total variance
+            ``Var_k E[C_k | w_k] + mean_k Var[C_k | w_k]``.
     """
 
     colour_draws: Tensor
@@ -321,6 +326,7 @@ class TrajectoryStatistics:
     depth_var_spread: Tensor
     depth_var_total: Tensor
     opacity: Tensor
+    colour_noise_var_draws: Tensor | None = None
 
 
 def _mean_and_variance(x: Tensor, dim: int) -> tuple[Tensor, Tensor]:
@@ -331,16 +337,21 @@ def _mean_and_variance(x: Tensor, dim: int) -> tuple[Tensor, Tensor]:
 
 
 def statistics_from_draws(
-    colour_draws: Tensor, depth_draws: Tensor, spread_draws: Tensor, opacity_draws: Tensor
+    colour_draws: Tensor, depth_draws: Tensor, spread_draws: Tensor, opacity_draws: Tensor,
+    colour_noise_var_draws: Tensor | None = None,
 ) -> TrajectoryStatistics:
     """Moments over the draws axis of per-draw renderings.
 
     Shapes:
-        colour_draws: [R, K, 3]; depth_draws, spread_draws, opacity_draws: [R, K].
+        colour_draws: [R, K, 3]; depth_draws, spread_draws, opacity_draws: [R, K];
+        colour_noise_var_draws: None or [R, K, 3] (Rao-Blackwellised colours, see
+        ``TrajectoryStatistics``: added to the colour variance as ``mean_k``).
     """
     if depth_draws.shape[-1] == 0:
         raise ValueError("need at least one draw (K >= 1), got K = 0")
     colour_mean, colour_var = _mean_and_variance(colour_draws, dim=-2)
+    if colour_noise_var_draws is not None:
+        colour_var = colour_var + colour_noise_var_draws.mean(dim=-2)
     depth_mean, depth_var_epistemic = _mean_and_variance(depth_draws, dim=-1)
     depth_var_spread = spread_draws.mean(dim=-1)
     return TrajectoryStatistics(
@@ -355,6 +366,7 @@ def statistics_from_draws(
         depth_var_spread=depth_var_spread,
         depth_var_total=depth_var_epistemic + depth_var_spread,
         opacity=opacity_draws.mean(dim=-1),
+        colour_noise_var_draws=colour_noise_var_draws,
     )
 
 
@@ -362,8 +374,12 @@ def concatenate_draws(parts: list[TrajectoryStatistics]) -> TrajectoryStatistics
     """Statistics over the draws of several renders of the same rays (draws axis concatenated)."""
     if len(parts) == 1:
         return parts[0]
+    noise = [p.colour_noise_var_draws for p in parts]
+    if any(n is None for n in noise) and not all(n is None for n in noise):
+        raise ValueError("cannot concatenate Rao-Blackwellised and plain colour draws")
     return statistics_from_draws(*(torch.cat([getattr(p, name) for p in parts], dim=1)
-                                   for name in ("colour_draws", "depth_draws", "spread_draws", "opacity_draws")))
+                                   for name in ("colour_draws", "depth_draws", "spread_draws", "opacity_draws")),
+                                 colour_noise_var_draws=None if noise[0] is None else torch.cat(noise, dim=1))
 
 
 def _background_per_draw(background: Tensor | float, colour_draws: Tensor) -> Tensor | float:
@@ -379,6 +395,7 @@ def trajectory_statistics(
     t_mids: Tensor,
     far: Tensor | float,
     background: Tensor | float | None = None,
+    rgb_var: Tensor | None = None,
 ) -> TrajectoryStatistics:
     """Render K trajectories per ray and summarise them (SPEC 3), dense layout.
 
@@ -387,9 +404,13 @@ def trajectory_statistics(
     colour mean/variance over k, depth mean, epistemic variance ``Var_k D_k``, spread
     ``E_k V_k`` and total ``Var_k D_k + E_k V_k``.
 
+    Rao-Blackwellised colours (``rgb_var`` given): ``rgb`` [R, S, 3] holds each sample's colour
+    mean ``E[r_i]`` and ``rgb_var`` [R, S, 3] its variance; ``C_k = sum_i w_ik E[r_i]`` and
+    ``Var[C_k | w_k] = sum_i w_ik^2 Var[r_i]`` (see ``TrajectoryStatistics``).
+
     Shapes:
-        weights: [R, K, S]; rgb: [R, K, S, 3]; t_mids: [R, 1, S] or [R, S]; far: [R] or scalar;
-        background: None, scalar, [3] or [R, 3].
+        weights: [R, K, S]; rgb: [R, K, S, 3] (or [R, S, 3] with rgb_var); t_mids: [R, 1, S] or
+        [R, S]; far: [R] or scalar; background: None, scalar, [3] or [R, 3].
     """
     if weights.dim() != 3:
         raise ValueError(f"weights must be [R, K, S], got shape {tuple(weights.shape)}")
@@ -398,13 +419,18 @@ def trajectory_statistics(
     far_t = _as_tensor_like(far, weights)
     if far_t.dim() == 1:
         far_t = far_t[:, None]
-    colour_draws = accumulate(weights, rgb)  # [R, K, 3]
+    noise_var = None
+    if rgb_var is None:
+        colour_draws = accumulate(weights, rgb)  # [R, K, 3]
+    else:  # [R, K, S] @ [R, S, 3]: batched matrix products, no [R, K, S, 3] temporary
+        colour_draws = torch.matmul(weights, rgb)
+        noise_var = torch.matmul(weights * weights, rgb_var)
     opacity_draws = opacity(weights)  # [R, K]
     if background is not None:
         colour_draws = composite_background(colour_draws, opacity_draws, _background_per_draw(background, colour_draws))
     depth_draws = expected_depth(weights, t_mids, far_t)  # [R, K]
     spread_draws = termination_spread(weights, t_mids, depth_draws)  # [R, K]
-    return statistics_from_draws(colour_draws, depth_draws, spread_draws, opacity_draws)
+    return statistics_from_draws(colour_draws, depth_draws, spread_draws, opacity_draws, noise_var)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -626,17 +652,24 @@ def trajectory_statistics_packed(
     num_rays: int,
     far: Tensor | float,
     background: Tensor | float | None = None,
+    rgb_var: Tensor | None = None,
 ) -> TrajectoryStatistics:
     """``trajectory_statistics`` for packed samples (draws axis first).
 
     Shapes:
-        weights: [K, N]; rgb: [K, N, 3]; t_mids: [N] or [K, N]; ray_indices: [N];
-        far: [R] or scalar; background: None, scalar, [3] or [R, 3].
+        weights: [K, N]; rgb: [K, N, 3] (or the colour means [N, 3] with rgb_var [N, 3]: the
+        Rao-Blackwellised estimator of ``trajectory_statistics``); t_mids: [N] or [K, N];
+        ray_indices: [N]; far: [R] or scalar; background: None, scalar, [3] or [R, 3].
         Returns per-draw fields as [R, K, ...] like the dense version.
     """
     if weights.dim() != 2:
         raise ValueError(f"weights must be [K, N], got shape {tuple(weights.shape)}")
     far_t = _as_tensor_like(far, weights)
+    noise_var = None
+    if rgb_var is not None:
+        rgb = rgb.expand(weights.shape[0], *rgb.shape[-2:])
+        noise_var = accumulate_packed(weights * weights, rgb_var.expand_as(rgb), ray_indices,
+                                      num_rays).transpose(0, 1)  # [R, K, 3]
     colour = accumulate_packed(weights, rgb, ray_indices, num_rays).transpose(0, 1)  # [R, K, 3]
     acc = opacity_packed(weights, ray_indices, num_rays)  # [K, R]
     depth = expected_depth_packed(weights, t_mids, ray_indices, num_rays, far_t)  # [K, R]
@@ -644,4 +677,4 @@ def trajectory_statistics_packed(
     acc, depth, spread = acc.transpose(0, 1), depth.transpose(0, 1), spread.transpose(0, 1)
     if background is not None:
         colour = composite_background(colour, acc, _background_per_draw(background, colour))
-    return statistics_from_draws(colour, depth, spread, acc)
+    return statistics_from_draws(colour, depth, spread, acc, noise_var)

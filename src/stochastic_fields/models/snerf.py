@@ -162,7 +162,8 @@ class SNeRF(RadianceModel):
         params_all = self.field(positions, directions)
         n_ray = samples.t_starts.numel()
         params = params_all.map(lambda t: t[:n_ray]).reshape(*samples.t_starts.shape)
-        out = render_any_samples(params, samples, settings, num_draws=self.train_draws, generator=generator)
+        out = render_any_samples(params, samples, settings, num_draws=self.train_draws, generator=generator,
+                                 colour_estimator="draws")  # the likelihood needs drawn colours
         sigma_n = self.likelihood_std()
         nll = gaussian_likelihood_nll(out.stats.colour_draws, target, sigma_n)
         loss = nll
