@@ -254,48 +254,65 @@ def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> 
     settings = model.render_settings
     out: dict = {"view": view, "stride": stride, "pixels": int(rays.shape[0] * rays.shape[1])}
 
-    def render(k=None, **kw):
+    def render(k=None, estimator="draws", **kw):
         gen = torch.Generator().manual_seed(0)
-        return _timed(lambda: model.render_view(rays, num_draws=k, generator=gen, **kw))
+        saved, settings.colour_estimator = settings.colour_estimator, estimator
+        try:
+            return _timed(lambda: model.render_view(rays, num_draws=k, generator=gen, **kw))
+        finally:
+            settings.colour_estimator = saved
 
     with torch.no_grad():
         render(4)  # warm-up
-        sweep = []
-        for k in K_VALUES:
-            maps, secs = render(k)
-            sweep.append({"K": k, "time_s": secs, **_view_scores(maps, gt, gt_depth, sparse, stride)})
-            print(f"  K={k:4d}  {secs:7.2f} s  NLL {sweep[-1]['nll']:.3f}  PSNR {sweep[-1]['psnr']:.2f}")
-        out["k_sweep"] = sweep
+        render(4, "rao_blackwell")  # builds the moment table once
+        for estimator, key in ESTIMATOR_SWEEPS:
+            sweep = []
+            for k in K_VALUES:
+                maps, secs = render(k, estimator)
+                sweep.append({"K": k, "time_s": secs, "colour_estimator": estimator,
+                              **_view_scores(maps, gt, gt_depth, sparse, stride)})
+                print(f"  {estimator:13s} K={k:4d}  {secs:7.2f} s  NLL {sweep[-1]['nll']:.3f}  PSNR {sweep[-1]['psnr']:.2f}")
+            out[key] = sweep
         settings.adaptive_draws = True
         default_rule, default_rtol = settings.adaptive_rule, settings.adaptive_rtol
         out["adaptive_by_rtol"] = []
-        for rule, rtol in dict.fromkeys(((default_rule, default_rtol), *ADAPTIVE_RULES)):
+        runs = [("draws", rule, rtol) for rule, rtol in dict.fromkeys(((default_rule, default_rtol), *ADAPTIVE_RULES))]
+        runs += [("rao_blackwell", rule, rtol) for rule, rtol in ADAPTIVE_RULES_RAO_BLACKWELL]
+        for estimator, rule, rtol in runs:
             settings.adaptive_rule, settings.adaptive_rtol = rule, rtol
-            maps, secs = render(None)
+            maps, secs = render(None, estimator)
             k_map = maps["num_draws"]
             entry = {"time_s": secs, "K_mean": float(k_map.mean()), "K_max": float(k_map.max()),
-                     "K_min": float(k_map.min()), "rule": rule, "rtol": rtol,
+                     "K_min": float(k_map.min()), "rule": rule, "rtol": rtol, "colour_estimator": estimator,
                      "batch_draws": settings.adaptive_batch_draws,
                      "max_draws": settings.adaptive_max_draws, **_view_scores(maps, gt, gt_depth, sparse, stride)}
             out["adaptive_by_rtol"].append(entry)
-            if (rule, rtol) == (default_rule, default_rtol):
+            if (estimator, rule, rtol) == ("draws", default_rule, default_rtol):
                 out["adaptive"] = entry
-            print(f"  adaptive K {rule} rtol {rtol} (mean K {entry['K_mean']:.1f}): {secs:.2f} s  NLL {entry['nll']:.3f}")
+            print(f"  adaptive K {estimator} {rule} rtol {rtol} (mean K {entry['K_mean']:.1f}): {secs:.2f} s  "
+                  f"NLL {entry['nll']:.3f}")
         settings.adaptive_rule, settings.adaptive_rtol = default_rule, default_rtol
         settings.adaptive_draws = False
 
         k_def = settings.num_draws
         occupied = model.occupied if model.occupancy is not None else None
         gen = torch.Generator().manual_seed(0)
-        (_, t_det), (maps_s, t_sto) = _timed_pair(
-            lambda: render_image(model.field, rays, settings, num_draws=1, deterministic=True, occupied=occupied,
-                                 generator=torch.Generator().manual_seed(0)),
-            lambda: render_image(model.field, rays, settings, num_draws=k_def, occupied=occupied,
-                                 generator=torch.Generator().manual_seed(0)))
-        evals = float(maps_s["field_evals_per_ray"].sum())
-        out["deterministic_ratio"] = {"K": k_def, "snerf_time_s": t_sto, "deterministic_time_s": t_det,
-                                      "ratio": t_sto / t_det, "field_evals": evals,
-                                      "sample_points_per_s": evals / t_sto}
+        saved_estimator = settings.colour_estimator
+        for estimator, key in (("draws", "deterministic_ratio"), ("rao_blackwell", "deterministic_ratio_rao_blackwell")):
+            settings.colour_estimator = estimator
+            (_, t_det), (maps_e, t_sto) = _timed_pair(
+                lambda: render_image(model.field, rays, settings, num_draws=1, deterministic=True, occupied=occupied,
+                                     generator=torch.Generator().manual_seed(0)),
+                lambda: render_image(model.field, rays, settings, num_draws=k_def, occupied=occupied,
+                                     generator=torch.Generator().manual_seed(0)))
+            evals = float(maps_e["field_evals_per_ray"].sum())
+            out[key] = {"K": k_def, "colour_estimator": estimator, "snerf_time_s": t_sto,
+                        "deterministic_time_s": t_det, "ratio": t_sto / t_det, "field_evals": evals,
+                        "sample_points_per_s": evals / t_sto}
+            if estimator == "draws":
+                maps_s = maps_e
+        settings.colour_estimator = saved_estimator
+        t_sto = out["deterministic_ratio"]["snerf_time_s"]
         skip = {"with": {"time_s": t_sto, **_view_scores(maps_s, gt, gt_depth, sparse, stride),
                          "field_evals_per_ray": float(maps_s["field_evals_per_ray"].mean())}}
         maps_d, t_dense = _timed(lambda: render_image(model.field, rays, settings, num_draws=k_def, generator=gen))
@@ -312,8 +329,14 @@ def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> 
     return out
 
 
-#: (adaptive_rule, adaptive_rtol) of the adaptive-K renders, after the model's own setting.
+#: (adaptive_rule, adaptive_rtol) of the adaptive-K renders with drawn colours, after the model's own setting.
 ADAPTIVE_RULES = (("precision", 0.05), ("precision", 0.02), ("change", 0.05), ("change", 0.02))
+
+#: ... and with Rao-Blackwellised colours (render.colour_estimator = rao_blackwell).
+ADAPTIVE_RULES_RAO_BLACKWELL = (("precision", 0.05), ("precision", 0.02))
+
+#: (colour_estimator, results key) of the fixed-K sweeps.
+ESTIMATOR_SWEEPS = (("draws", "k_sweep"), ("rao_blackwell", "k_sweep_rao_blackwell"))
 
 #: (occupancy_num_std, occupancy_alpha_threshold) of the skipping sweep: the default first, then
 #: criteria that skip more of the space S-NeRF is unsure about.
@@ -424,16 +447,28 @@ def make_plots(results: dict, out: Path) -> list[str]:
         sweep, ad = r["k_sweep"], r["adaptive"]
         ks = [s["K"] for s in sweep]
         fig, (a0, a1) = plt.subplots(1, 2, figsize=(11, 4))
-        a0.plot([s["time_s"] for s in sweep], [s["nll"] for s in sweep], "o-", label="fixed K")
-        for s in sweep:
-            a0.annotate(f"K={s['K']}", (s["time_s"], s["nll"]), textcoords="offset points", xytext=(4, 4), fontsize=8)
+        for key, label in (("k_sweep", "fixed K, drawn colours"), ("k_sweep_rao_blackwell", "fixed K, Rao-Blackwell")):
+            if key not in r:
+                continue
+            a0.plot([s["time_s"] for s in r[key]], [s["nll"] for s in r[key]], "o-", label=label)
+            for s in r[key]:
+                a0.annotate(f"K={s['K']}", (s["time_s"], s["nll"]), textcoords="offset points", xytext=(4, 4),
+                            fontsize=7)
         for a in r.get("adaptive_by_rtol", [ad]):
-            a0.plot([a["time_s"]], [a["nll"]], "*", ms=13, label=f"adaptive {a.get('rule', 'change')} rtol {a['rtol']} (mean K {a['K_mean']:.0f})")
+            est = "RB " if a.get("colour_estimator") == "rao_blackwell" else ""
+            a0.plot([a["time_s"]], [a["nll"]], "*", ms=11,
+                    label=f"adaptive {est}{a.get('rule', 'change')} rtol {a['rtol']} (mean K {a['K_mean']:.0f})")
         a0.set(xscale="log", yscale="symlog", xlabel="render time of the view [s]", ylabel="NLL [nats/channel] (symlog)",
                title=f"{scene}: speed against error")
+        lowest = min(x["nll"] for key in ("k_sweep", "k_sweep_rao_blackwell") for x in r.get(key, []))
+        a0.set_ylim(bottom=lowest - 0.2 * abs(lowest) - 0.1)
         a0.grid(alpha=0.3)
-        a0.legend()
+        a0.legend(fontsize=7)
         a1.plot(ks, [s.get("pearson_mse_var", math.nan) for s in sweep], "o-", label="Pearson(MSE, var)")
+        if "k_sweep_rao_blackwell" in r:
+            a1.plot([s["K"] for s in r["k_sweep_rao_blackwell"]],
+                    [s.get("pearson_mse_var", math.nan) for s in r["k_sweep_rao_blackwell"]], "o--",
+                    label="Pearson, Rao-Blackwell")
         if "depth_abs_rel" in sweep[0]:
             a1.plot(ks, [s.get("depth_abs_rel", math.nan) for s in sweep], "s-", label="depth abs-rel")
         a1.axhline(ad.get("pearson_mse_var", math.nan), color="r", ls="--", lw=1, label="adaptive Pearson")
@@ -507,17 +542,24 @@ def evaluate_targets(results: dict) -> dict:
     targets["skipping_evals_ratio"] = {
         s: {"ratio": v["evals_ratio"], "psnr_difference_db": v["psnr_difference_db"], "target": ">= 3 within 0.1 dB",
             "met": v["evals_ratio"] >= 3 and abs(v["psnr_difference_db"]) <= 0.1} for s, v in skip.items()}
-    targets["snerf_over_deterministic_render"] = {
-        s: {"ratio": r["render"]["deterministic_ratio"]["ratio"], "K": r["render"]["deterministic_ratio"]["K"],
-            "target": "<= 1.5", "met": r["render"]["deterministic_ratio"]["ratio"] <= 1.5}
-        for s, r in results["scenes"].items()}
+    targets["snerf_over_deterministic_render"] = {}
+    for s, r in results["scenes"].items():
+        entry = {"ratio": r["render"]["deterministic_ratio"]["ratio"], "K": r["render"]["deterministic_ratio"]["K"],
+                 "colour_estimator": "draws", "target": "<= 1.5", "met": r["render"]["deterministic_ratio"]["ratio"] <= 1.5}
+        rb = r["render"].get("deterministic_ratio_rao_blackwell")
+        if rb is not None:
+            entry["rao_blackwell"] = {"ratio": rb["ratio"], "met": rb["ratio"] <= 1.5}
+        targets["snerf_over_deterministic_render"][s] = entry
     ad = {}
     for s, r in results["scenes"].items():
-        k128 = next(x for x in r["render"]["k_sweep"] if x["K"] == 128)
+        k128_of = {est: next(x for x in r["render"][key] if x["K"] == 128)
+                   for est, key in ESTIMATOR_SWEEPS if key in r["render"]}
         ad[s] = []
         for a in r["render"]["adaptive_by_rtol"]:
+            k128 = k128_of[a.get("colour_estimator", "draws")]
             rel = abs(a["nll"] - k128["nll"]) / abs(k128["nll"])
-            ad[s].append({"rule": a.get("rule", "change"), "rtol": a["rtol"], "nll_adaptive": a["nll"], "nll_k128": k128["nll"],
+            ad[s].append({"colour_estimator": a.get("colour_estimator", "draws"),
+                          "rule": a.get("rule", "change"), "rtol": a["rtol"], "nll_adaptive": a["nll"], "nll_k128": k128["nll"],
                           "relative_nll_difference": rel, "time_fraction_of_k128": a["time_s"] / k128["time_s"],
                           "K_mean": a["K_mean"], "target": "NLL within 2% of K=128 at a fraction of its time",
                           "met": rel <= 0.02 and a["time_s"] < k128["time_s"]})
@@ -639,5 +681,6 @@ def print_summary(results: dict) -> None:
               f"skipping {r['render']['skipping']['evals_ratio']:.1f}x fewer field evaluations "
               f"(dPSNR {r['render']['skipping']['psnr_difference_db']:+.3f} dB), train step {r['train_step_skipping']['speedup']:.2f}x faster; "
               f"S-NeRF/deterministic render {r['render']['deterministic_ratio']['ratio']:.2f} (grid), "
+              f"{r['render']['deterministic_ratio_rao_blackwell']['ratio']:.2f} (grid, Rao-Blackwell), "
               f"{r['mlp_deterministic_ratio']['ratio']:.2f} (MLP); adaptive K mean {r['render']['adaptive']['K_mean']:.0f}")
     print(json.dumps(results["targets"], indent=1, default=float))

@@ -59,11 +59,19 @@ def cmd_train(args: argparse.Namespace) -> None:
     print(f"trained: {run_dir / 'checkpoint.pt'}")
 
 
+def _apply_render_overrides(model, args: argparse.Namespace) -> None:
+    """Render options a trained run can change without retraining (``--colour-estimator``)."""
+    settings = getattr(model, "render_settings", None)
+    if args.colour_estimator is not None and settings is not None:
+        settings.colour_estimator = args.colour_estimator
+
+
 def cmd_render(args: argparse.Namespace) -> None:
     from .evaluate import evaluate
     from .trainer import load_trained_model
 
     cfg, model, dataset = load_trained_model(Path(args.run), device=args.device)
+    _apply_render_overrides(model, args)
     views = _parse_views(args.views, dataset)
     out = Path(args.out) if args.out else Path(args.run) / "renders"
     evaluate(model, dataset, out, views=views, num_draws=args.num_draws, progress=not args.quiet)
@@ -76,6 +84,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
     from .trainer import load_trained_model
 
     cfg, model, dataset = load_trained_model(Path(args.run), device=args.device)
+    _apply_render_overrides(model, args)
     views = _parse_views(args.views, dataset)
     out = Path(args.out) if args.out else Path(args.run)
     result = evaluate(model, dataset, out, views=views, num_draws=args.num_draws, progress=not args.quiet,
@@ -142,6 +151,9 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--num-draws", type=int, default=None, help="K trajectories per ray (default: the run's render.num_draws).")
         p.add_argument("--out", default=None, help="Output folder (default: inside the run folder).")
         p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
+        p.add_argument("--colour-estimator", choices=("draws", "rao_blackwell"), default=None,
+                       help="S-NeRF colour statistics: 'draws' (SPEC 3) or 'rao_blackwell' (density draws "
+                            "only, colour noise integrated exactly; default: the run's render.colour_estimator).")
         p.add_argument("--quiet", action="store_true", help="No progress bars.")
         if name == "eval":
             p.add_argument("--no-products", action="store_true", help="Only metrics, no per-view files.")

@@ -45,7 +45,7 @@ from .logistic_normal_table import logistic_normal_moments_tabulated
 from .rays import PackedRaySamples, RayBundle, RaySamples
 from .samplers import Spacing, sample_along_rays
 from .volume_rendering import (TrajectoryStatistics, concatenate_draws, render_weights, render_weights_packed,
-                               trajectory_statistics, trajectory_statistics_packed)
+                               trajectory_statistics, trajectory_statistics_packed, weights_alpha_from_optical_depth)
 
 #: ``occupied(positions [R, S, 3]) -> [R, S] bool``: which dense samples to keep (empty-space skipping).
 OccupiedFn = Callable[[Tensor], Tensor]
@@ -228,8 +228,12 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
     rao_blackwell = _use_rao_blackwell(settings, colour_estimator, deterministic)
     if noise is None and settings.shared_noise and not deterministic:
         noise = dense_noise(R, num_draws, S, shared_noise=True, generator=generator, device=dev, dtype=dt)
+    optical_depth_params = None
     if rao_blackwell:  # [R, S, 3] each
         rgb_mean, rgb_var = colour_moments or logistic_normal_moments_tabulated(params.rgb_loc, params.rgb_scale)
+        if settings.quadrature == "alpha":  # relu(x) delta = relu(x delta): fold the interval lengths in once
+            deltas = samples.t_ends - samples.t_starts
+            optical_depth_params = ((params.density_loc * deltas)[:, None, :], (params.density_scale * deltas)[:, None, :])
     blocks = [(0, num_draws)] if deterministic else draw_blocks(num_draws, R * S)
     parts, weights = [], []
     for k0, k in blocks:
@@ -237,11 +241,15 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
         if rao_blackwell:
             eps_a = (torch.randn(R, k, S, generator=generator, device=dev, dtype=dt) if block_noise is None
                      else block_noise[0])
-            density = torch.relu(params.density_loc[:, None, :] + params.density_scale[:, None, :] * eps_a)
+            if optical_depth_params is not None:  # tau = relu(mu_a delta + s_a delta eps): two passes
+                w = weights_alpha_from_optical_depth(torch.relu(torch.addcmul(*optical_depth_params, eps_a)))
+            else:
+                density = torch.relu(params.density_loc[:, None, :] + params.density_scale[:, None, :] * eps_a)
         else:
             density, rgb = draw_trajectories(params, k, shared_noise=settings.shared_noise,
                                              deterministic=deterministic, generator=generator, noise=block_noise)
-        w = render_weights(density, samples.t_starts[:, None, :], samples.t_ends[:, None, :], settings.quadrature)
+        if not (rao_blackwell and optical_depth_params is not None):
+            w = render_weights(density, samples.t_starts[:, None, :], samples.t_ends[:, None, :], settings.quadrature)
         if rao_blackwell:
             parts.append(trajectory_statistics(w, rgb_mean, samples.t_mids[:, None, :], samples.rays.far,
                                                background=_background(settings, w), rgb_var=rgb_var))

@@ -127,8 +127,19 @@ def weights_alpha(density: Tensor, t_starts: Tensor, t_ends: Tensor) -> Tensor:
         >>> [round(v, 4) for v in w.tolist()]
         [0.3, 0.56, 0.112, 0.014]
     """
-    tau = optical_depth_alpha(density, t_ends - t_starts)
-    return torch.exp(-_exclusive_cumsum(tau)) * -torch.expm1(-tau)
+    return weights_alpha_from_optical_depth(optical_depth_alpha(density, t_ends - t_starts))
+
+
+def weights_alpha_from_optical_depth(tau: Tensor) -> Tensor:
+    """``w_i = exp(-sum_{j<i} tau_j) * -expm1(-tau_i)`` from the optical depths ``tau`` [..., S].
+
+    Without autograd (rendering) the temporaries are overwritten in place: three fewer passes over
+    [R, K, S] per draw block. ``tau`` itself is never modified.
+    """
+    if torch.is_grad_enabled() and tau.requires_grad:
+        return torch.exp(-_exclusive_cumsum(tau)) * -torch.expm1(-tau)
+    transmittance = _exclusive_cumsum(tau).neg_().exp_()
+    return torch.neg(tau).expm1_().mul_(transmittance).neg_()
 
 
 def _node_spacing(t_mids: Tensor) -> tuple[Tensor, Tensor]:
@@ -237,7 +248,7 @@ def _as_tensor_like(value: Tensor | float, like: Tensor) -> Tensor:
     return torch.as_tensor(value, dtype=like.dtype, device=like.device)
 
 
-def expected_depth(weights: Tensor, t_mids: Tensor, far: Tensor | float) -> Tensor:
+def expected_depth(weights: Tensor, t_mids: Tensor, far: Tensor | float, acc: Tensor | None = None) -> Tensor:
     """Expected termination distance given that the ray terminates.
 
     ``D = sum_i w_i t_i / sum_i w_i``; where the opacity ``sum_i w_i < OPACITY_EPS`` (the ray hit
@@ -245,23 +256,25 @@ def expected_depth(weights: Tensor, t_mids: Tensor, far: Tensor | float) -> Tens
 
     Shapes:
         weights: [..., S]; t_mids: broadcastable to [..., S]; far: scalar or broadcastable to
-        [...]; returns [...].
+        [...]; acc: the opacity [...] if already computed; returns [...].
 
     Example:
         >>> expected_depth(torch.tensor([[0.25, 0.25], [0.0, 0.0]]), torch.tensor([1.0, 3.0]), 9.0).tolist()
         [2.0, 9.0]
     """
     numerator = (weights * t_mids).sum(dim=-1)
-    return _normalise_by_opacity(numerator, opacity(weights), _as_tensor_like(far, numerator))
+    acc = opacity(weights) if acc is None else acc
+    return _normalise_by_opacity(numerator, acc, _as_tensor_like(far, numerator))
 
 
-def termination_spread(weights: Tensor, t_mids: Tensor, depth: Tensor) -> Tensor:
+def termination_spread(weights: Tensor, t_mids: Tensor, depth: Tensor, acc: Tensor | None = None) -> Tensor:
     """Variance of the termination distance given termination (aleatoric depth spread).
 
     ``V = sum_i w_i (t_i - D)^2 / sum_i w_i``; 0 where the opacity is below ``OPACITY_EPS``.
 
     Shapes:
-        weights: [..., S]; t_mids: broadcastable to [..., S]; depth: [...]; returns [...].
+        weights: [..., S]; t_mids: broadcastable to [..., S]; depth: [...]; acc: the opacity [...]
+        if already computed; returns [...].
 
     Example:
         >>> w = torch.tensor([0.25, 0.25])
@@ -270,7 +283,8 @@ def termination_spread(weights: Tensor, t_mids: Tensor, depth: Tensor) -> Tensor
         1.0
     """
     numerator = (weights * (t_mids - depth[..., None]) ** 2).sum(dim=-1)
-    return _normalise_by_opacity(numerator, opacity(weights), 0.0)
+    acc = opacity(weights) if acc is None else acc
+    return _normalise_by_opacity(numerator, acc, 0.0)
 
 
 def composite_background(colour: Tensor, acc: Tensor, background: Tensor | float) -> Tensor:
@@ -428,8 +442,8 @@ def trajectory_statistics(
     opacity_draws = opacity(weights)  # [R, K]
     if background is not None:
         colour_draws = composite_background(colour_draws, opacity_draws, _background_per_draw(background, colour_draws))
-    depth_draws = expected_depth(weights, t_mids, far_t)  # [R, K]
-    spread_draws = termination_spread(weights, t_mids, depth_draws)  # [R, K]
+    depth_draws = expected_depth(weights, t_mids, far_t, opacity_draws)  # [R, K]
+    spread_draws = termination_spread(weights, t_mids, depth_draws, opacity_draws)  # [R, K]
     return statistics_from_draws(colour_draws, depth_draws, spread_draws, opacity_draws, noise_var)
 
 
