@@ -32,3 +32,21 @@ def test_targets_from_hand_made_results():
     assert t["snerf_over_deterministic_render"]["fern"]["met"]
     assert not t["snerf_over_deterministic_render"]["synthetic"]["met"]
     assert t["adaptive_k"]["fern"][0]["met"] and not t["adaptive_k"]["synthetic"][0]["met"]
+
+
+def test_rao_blackwell_entries_are_compared_with_their_own_k128():
+    """An adaptive render with Rao-Blackwellised colours is judged against the Rao-Blackwell K = 128
+    render (not the drawn-colour one), and its deterministic ratio is reported beside the default's."""
+    scene = _scene(2.0, 1.0, 0.0, 30.0, 31.0)
+    scene["render"]["k_sweep_rao_blackwell"] = [{"K": 128, "nll": 24.0, "time_s": 4.0}]
+    scene["render"]["k_sweep_rao_blackwell_k128_seed_nll"] = {"nll": [24.0, 24.2, 23.9], "relative_sd": 0.006}
+    scene["render"]["adaptive_by_rtol"].append({"rtol": 0.01, "nll": 24.3, "time_s": 3.0, "K_mean": 80,
+                                                "rule": "precision", "colour_estimator": "rao_blackwell"})
+    scene["render"]["deterministic_ratio_rao_blackwell"] = {"ratio": 1.4, "K": 16}
+    t = evaluate_targets({"scenes": {"synthetic": scene}})
+    draws, rb = t["adaptive_k"]["synthetic"]
+    assert draws["colour_estimator"] == "draws" and draws["nll_k128"] == 30.0 and not draws["met"]  # 3.3% off
+    assert rb["nll_k128"] == 24.0 and abs(rb["relative_nll_difference"] - 0.0125) < 1e-12 and rb["met"]
+    assert rb["k128_nll_seed_relative_sd"] == 0.006 and draws["k128_nll_seed_relative_sd"] is None
+    det = t["snerf_over_deterministic_render"]["synthetic"]
+    assert not det["met"] and det["rao_blackwell"] == {"ratio": 1.4, "met": True}
