@@ -50,3 +50,10 @@ def test_rao_blackwell_entries_are_compared_with_their_own_k128():
     assert rb["k128_nll_seed_relative_sd"] == 0.006 and draws["k128_nll_seed_relative_sd"] is None
     det = t["snerf_over_deterministic_render"]["synthetic"]
     assert not det["met"] and det["rao_blackwell"] == {"ratio": 1.4, "met": True}
+
+
+def test_adaptive_k_at_the_cap_does_not_count():
+    """An adaptive render that drew K = 128 everywhere is K = 128, however its timing came out."""
+    scene = _scene(1.0, 3.0, 0.0, 20.0, 20.0)
+    scene["render"]["adaptive_by_rtol"][0].update(K_mean=128.0, max_draws=128, time_s=9.0)
+    assert not evaluate_targets({"scenes": {"synthetic": scene}})["adaptive_k"]["synthetic"][0]["met"]

@@ -90,7 +90,7 @@ class RenderSettings:
     adaptive_max_draws: int = 128
     """Adaptive K: cap on the trajectories per ray."""
     adaptive_rtol: float = 0.05
-    """Adaptive K: tolerance of adaptive_rule ('precision': predicted relative change of the mean precision 1/var between the current K and the cap; 'change': relative L1 change of the per-pixel colour and depth variances from one batch to the next)."""
+    """Adaptive K: tolerance of adaptive_rule ('precision': predicted relative change of the mean precision 1/var between the current K and the cap; 'change': relative L1 change of the per-pixel colour and depth variances from one batch to the next). Measured (benchmarks/results): with colour_estimator='rao_blackwell', precision at 0.01 ends within 2% of the cap's NLL in about 0.7x its time."""
     colour_estimator: Literal["draws", "rao_blackwell"] = "draws"
     """Rendering colour statistics: 'draws' samples every colour (SPEC 3: C_k = sum_i w_ik r_ik, variance over k); 'rao_blackwell' draws only densities and integrates each trajectory's colour noise exactly given its weights (E[C_k|w_k] = sum_i w_ik E[r_i], Var[C_k|w_k] = sum_i w_ik^2 Var[r_i], tabulated logistic-normal moments), estimating the same mean and variance with less Monte-Carlo noise and no colour draws (benchmarks/results). Training always draws colours."""
     adaptive_rule: Literal["precision", "change"] = "precision"
