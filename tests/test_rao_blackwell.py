@@ -129,12 +129,14 @@ def test_matches_drawn_colours_in_the_large_k_limit():
     torch.testing.assert_close(rb.depth_mean, mc.depth_mean, rtol=0, atol=2e-2)
 
 
-def test_deterministic_density_gives_the_exact_colour_variance_at_any_k():
+@pytest.mark.parametrize("quadrature", ["alpha", "trapezoid"])
+def test_deterministic_density_gives_the_exact_colour_variance_at_any_k(quadrature):
     """With (nearly) fixed densities every draw has the same weights: the estimator is exact,
-    colour_var = sum_i w_i^2 Var[r_i], while drawn colours only approach it."""
+    colour_var = sum_i w_i^2 Var[r_i], while drawn colours only approach it (either quadrature:
+    alpha compositing folds the interval lengths into the density draws, the trapezoid does not)."""
     params, samples = _box_params()
     params.density_scale = torch.full_like(params.density_scale, 1e-12)
-    st = RenderSettings(num_samples=24, skip_empty_space=False)
+    st = RenderSettings(num_samples=24, skip_empty_space=False, quadrature=quadrature)
     stats = render_samples(params, samples, st, num_draws=2, colour_estimator="rao_blackwell").stats
     w = render_samples(params, samples, st, num_draws=1, deterministic=True).extras["weights"][:, 0]
     m, v = _logistic_normal_moments(params.rgb_loc, params.rgb_scale)

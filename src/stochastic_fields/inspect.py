@@ -139,6 +139,20 @@ class RunInspector:
     def default_quadrature(self) -> str:
         return str(self.model.render_settings.quadrature)
 
+    @property
+    def colour_estimator(self) -> str:
+        """Colour statistics of the renders: 'draws' (SPEC 3) or 'rao_blackwell' (density draws only,
+        colour noise integrated exactly; see ``RenderSettings.colour_estimator``)."""
+        return str(self.model.render_settings.colour_estimator)
+
+    @colour_estimator.setter
+    def colour_estimator(self, value: str) -> None:
+        if value not in ("draws", "rao_blackwell"):
+            raise ValueError(f"colour_estimator must be 'draws' or 'rao_blackwell', got {value!r}")
+        if value != self.colour_estimator:  # the cached renders were made with the other one
+            self.model.render_settings.colour_estimator = value
+            self.clear_cache()
+
     def views(self) -> list[ViewInfo]:
         """Every view with its split, test views first (the held-out ones are the interesting ones)."""
         names = [Path(p).name for p in self.dataset.image_paths]
@@ -159,7 +173,7 @@ class RunInspector:
             f"views:      {len(ds.train_indices)} train, {len(ds.test_indices)} test, {self.width}x{self.height} px, "
             f"ground-truth depth: {depth}",
             f"rendering:  K={rs.num_draws} draws, S={rs.num_samples} samples/ray, quadrature={rs.quadrature}, "
-            f"spacing={rs.spacing}",
+            f"spacing={rs.spacing}, colour estimator={rs.colour_estimator}",
             f"device:     {self.device}",
         ])
 
