@@ -211,6 +211,13 @@ def colour_moments(params: FieldParams, settings: RenderSettings) -> tuple[Tenso
     return logistic_normal_moments_tabulated(params.rgb_loc, params.rgb_scale)
 
 
+def _folded_optical_depth_params(params: FieldParams, samples: RaySamples) -> tuple[Tensor, Tensor]:
+    """``(mu_a delta, s_a delta)`` [R, 1, S]: since ``relu(x) delta = relu(x delta)`` for delta > 0, a
+    draw's optical depths are ``relu(mu_a delta + s_a delta eps)`` without a separate density tensor."""
+    deltas = samples.t_ends - samples.t_starts
+    return (params.density_loc * deltas)[:, None, :], (params.density_scale * deltas)[:, None, :]
+
+
 def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSettings, *, num_draws: int,
                    deterministic: bool = False, generator: torch.Generator | None = None,
                    noise: tuple[Tensor, Tensor] | None = None, colour_estimator: str | None = None,
@@ -228,12 +235,9 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
     rao_blackwell = _use_rao_blackwell(settings, colour_estimator, deterministic)
     if noise is None and settings.shared_noise and not deterministic:
         noise = dense_noise(R, num_draws, S, shared_noise=True, generator=generator, device=dev, dtype=dt)
-    optical_depth_params = None
     if rao_blackwell:  # [R, S, 3] each
         rgb_mean, rgb_var = colour_moments or logistic_normal_moments_tabulated(params.rgb_loc, params.rgb_scale)
-        if settings.quadrature == "alpha":  # relu(x) delta = relu(x delta): fold the interval lengths in once
-            deltas = samples.t_ends - samples.t_starts
-            optical_depth_params = ((params.density_loc * deltas)[:, None, :], (params.density_scale * deltas)[:, None, :])
+        folded = _folded_optical_depth_params(params, samples) if settings.quadrature == "alpha" else None
     blocks = [(0, num_draws)] if deterministic else draw_blocks(num_draws, R * S)
     parts, weights = [], []
     for k0, k in blocks:
@@ -241,21 +245,20 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
         if rao_blackwell:
             eps_a = (torch.randn(R, k, S, generator=generator, device=dev, dtype=dt) if block_noise is None
                      else block_noise[0])
-            if optical_depth_params is not None:  # tau = relu(mu_a delta + s_a delta eps): two passes
-                w = weights_alpha_from_optical_depth(torch.relu(torch.addcmul(*optical_depth_params, eps_a)))
+            if folded is not None:  # tau = relu(mu_a delta + s_a delta eps): two passes over [R, k, S]
+                w = weights_alpha_from_optical_depth(torch.relu(torch.addcmul(*folded, eps_a)))
             else:
                 density = torch.relu(params.density_loc[:, None, :] + params.density_scale[:, None, :] * eps_a)
+                w = render_weights(density, samples.t_starts[:, None, :], samples.t_ends[:, None, :],
+                                   settings.quadrature)
+            rgb, block_rgb_var = rgb_mean, rgb_var
         else:
             density, rgb = draw_trajectories(params, k, shared_noise=settings.shared_noise,
                                              deterministic=deterministic, generator=generator, noise=block_noise)
-        if not (rao_blackwell and optical_depth_params is not None):
             w = render_weights(density, samples.t_starts[:, None, :], samples.t_ends[:, None, :], settings.quadrature)
-        if rao_blackwell:
-            parts.append(trajectory_statistics(w, rgb_mean, samples.t_mids[:, None, :], samples.rays.far,
-                                               background=_background(settings, w), rgb_var=rgb_var))
-        else:
-            parts.append(trajectory_statistics(w, rgb, samples.t_mids[:, None, :], samples.rays.far,
-                                               background=_background(settings, rgb)))
+            block_rgb_var = None
+        parts.append(trajectory_statistics(w, rgb, samples.t_mids[:, None, :], samples.rays.far,
+                                           background=_background(settings, w), rgb_var=block_rgb_var))
         weights.append(w)
     evals = torch.full((R,), S, device=dev, dtype=torch.long)
     return RayRender(stats=concatenate_draws(parts), params=params, samples=samples,
@@ -294,18 +297,15 @@ def render_samples_packed(params: FieldParams, samples: PackedRaySamples, settin
             eps_a = (torch.randn(k, N, generator=generator, device=dev, dtype=dt) if block_noise is None
                      else block_noise[0])
             density = torch.relu(params.density_loc[None] + params.density_scale[None] * eps_a)
+            rgb, block_rgb_var = rgb_mean, rgb_var
         else:
             density, rgb = draw_trajectories_packed(params, k, samples.ray_indices, R,
                                                     shared_noise=settings.shared_noise, deterministic=deterministic,
                                                     generator=generator, noise=block_noise)
+            block_rgb_var = None
         w = render_weights_packed(density, samples.t_starts, samples.t_ends, samples.ray_indices, R, "alpha")
-        if rao_blackwell:
-            parts.append(trajectory_statistics_packed(w, rgb_mean, samples.t_mids, samples.ray_indices, R,
-                                                      samples.rays.far, background=_background(settings, w),
-                                                      rgb_var=rgb_var))
-        else:
-            parts.append(trajectory_statistics_packed(w, rgb, samples.t_mids, samples.ray_indices, R,
-                                                      samples.rays.far, background=_background(settings, rgb)))
+        parts.append(trajectory_statistics_packed(w, rgb, samples.t_mids, samples.ray_indices, R, samples.rays.far,
+                                                  background=_background(settings, w), rgb_var=block_rgb_var))
         weights.append(w)
     evals = torch.bincount(samples.ray_indices, minlength=R)
     return RayRender(stats=concatenate_draws(parts), params=params, samples=samples,
