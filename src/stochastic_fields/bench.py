@@ -30,6 +30,7 @@ import multiprocessing as mp
 import platform
 import resource
 import time
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -233,6 +234,16 @@ def _view_scores(maps, gt, gt_depth, sparse, stride: int) -> dict:
     return out
 
 
+@contextmanager
+def _colour_estimator(settings, estimator: str):
+    """Render with ``settings.colour_estimator = estimator`` inside the block, restored after."""
+    saved, settings.colour_estimator = settings.colour_estimator, estimator
+    try:
+        yield
+    finally:
+        settings.colour_estimator = saved
+
+
 def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> dict:
     """K sweep, adaptive K, skipping on/off, deterministic ratio on one test view of a trained model."""
     from .cameras import generate_rays_for_view
@@ -256,11 +267,8 @@ def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> 
 
     def render(k=None, estimator="draws", seed=0, **kw):
         gen = torch.Generator().manual_seed(seed)
-        saved, settings.colour_estimator = settings.colour_estimator, estimator
-        try:
+        with _colour_estimator(settings, estimator):
             return _timed(lambda: model.render_view(rays, num_draws=k, generator=gen, **kw))
-        finally:
-            settings.colour_estimator = saved
 
     with torch.no_grad():
         render(4)  # warm-up
@@ -301,21 +309,19 @@ def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> 
         k_def = settings.num_draws
         occupied = model.occupied if model.occupancy is not None else None
         gen = torch.Generator().manual_seed(0)
-        saved_estimator = settings.colour_estimator
+        stochastic_maps = {}
         for estimator, key in (("draws", "deterministic_ratio"), ("rao_blackwell", "deterministic_ratio_rao_blackwell")):
-            settings.colour_estimator = estimator
-            (_, t_det), (maps_e, t_sto) = _timed_pair(
-                lambda: render_image(model.field, rays, settings, num_draws=1, deterministic=True, occupied=occupied,
-                                     generator=torch.Generator().manual_seed(0)),
-                lambda: render_image(model.field, rays, settings, num_draws=k_def, occupied=occupied,
-                                     generator=torch.Generator().manual_seed(0)))
-            evals = float(maps_e["field_evals_per_ray"].sum())
+            with _colour_estimator(settings, estimator):
+                (_, t_det), (stochastic_maps[estimator], t_sto) = _timed_pair(
+                    lambda: render_image(model.field, rays, settings, num_draws=1, deterministic=True,
+                                         occupied=occupied, generator=torch.Generator().manual_seed(0)),
+                    lambda: render_image(model.field, rays, settings, num_draws=k_def, occupied=occupied,
+                                         generator=torch.Generator().manual_seed(0)))
+            evals = float(stochastic_maps[estimator]["field_evals_per_ray"].sum())
             out[key] = {"K": k_def, "colour_estimator": estimator, "snerf_time_s": t_sto,
                         "deterministic_time_s": t_det, "ratio": t_sto / t_det, "field_evals": evals,
                         "sample_points_per_s": evals / t_sto}
-            if estimator == "draws":
-                maps_s = maps_e
-        settings.colour_estimator = saved_estimator
+        maps_s = stochastic_maps["draws"]  # skipping is measured on the default estimator
         t_sto = out["deterministic_ratio"]["snerf_time_s"]
         skip = {"with": {"time_s": t_sto, **_view_scores(maps_s, gt, gt_depth, sparse, stride),
                          "field_evals_per_ray": float(maps_s["field_evals_per_ray"].mean())}}

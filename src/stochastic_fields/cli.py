@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from . import config as C
+from .renderer import COLOUR_ESTIMATORS
 
 
 def _add_experiment_options(p: argparse.ArgumentParser) -> None:
@@ -151,7 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--num-draws", type=int, default=None, help="K trajectories per ray (default: the run's render.num_draws).")
         p.add_argument("--out", default=None, help="Output folder (default: inside the run folder).")
         p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
-        p.add_argument("--colour-estimator", choices=("draws", "rao_blackwell"), default=None,
+        p.add_argument("--colour-estimator", choices=COLOUR_ESTIMATORS, default=None,
                        help="S-NeRF colour statistics: 'draws' (SPEC 3) or 'rao_blackwell' (density draws "
                             "only, colour noise integrated exactly; default: the run's render.colour_estimator).")
         p.add_argument("--quiet", action="store_true", help="No progress bars.")

@@ -48,7 +48,7 @@ from .models.snerf import SNeRF
 from .products.depth_maps import DepthProducts, compute_depth_products
 from .products.pointcloud import UNCERTAINTY_CMAP, CloudArrays, cloud_from_products, uncertainty_range
 from .rays import RayBundle
-from .renderer import MAP_NAMES, RenderSettings, render_rays
+from .renderer import MAP_NAMES, RenderSettings, check_colour_estimator, render_rays
 from .trainer import load_trained_model
 
 Quadrature = Literal["alpha", "trapezoid"]
@@ -147,9 +147,7 @@ class RunInspector:
 
     @colour_estimator.setter
     def colour_estimator(self, value: str) -> None:
-        if value not in ("draws", "rao_blackwell"):
-            raise ValueError(f"colour_estimator must be 'draws' or 'rao_blackwell', got {value!r}")
-        if value != self.colour_estimator:  # the cached renders were made with the other one
+        if check_colour_estimator(value) != self.colour_estimator:  # the cached renders were made with the other one
             self.model.render_settings.colour_estimator = value
             self.clear_cache()
 

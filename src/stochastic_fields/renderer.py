@@ -47,6 +47,9 @@ from .samplers import Spacing, sample_along_rays
 from .volume_rendering import (TrajectoryStatistics, concatenate_draws, render_weights, render_weights_packed,
                                trajectory_statistics, trajectory_statistics_packed, weights_alpha_from_optical_depth)
 
+#: RenderSettings.colour_estimator values: drawn colours (SPEC 3) or Rao-Blackwellised colours.
+COLOUR_ESTIMATORS: tuple[str, ...] = ("draws", "rao_blackwell")
+
 #: ``occupied(positions [R, S, 3]) -> [R, S] bool``: which dense samples to keep (empty-space skipping).
 OccupiedFn = Callable[[Tensor], Tensor]
 
@@ -195,10 +198,15 @@ def _noise_block(noise: tuple[Tensor, Tensor | None], *index: slice) -> tuple[Te
     return noise[0][index], None if noise[1] is None else noise[1][index]
 
 
+def check_colour_estimator(estimator: str) -> str:
+    """``estimator`` if it is one of COLOUR_ESTIMATORS, else ValueError naming the value."""
+    if estimator not in COLOUR_ESTIMATORS:
+        raise ValueError(f"colour_estimator must be one of {COLOUR_ESTIMATORS}, got {estimator!r}")
+    return estimator
+
+
 def _use_rao_blackwell(settings: RenderSettings, colour_estimator: str | None, deterministic: bool) -> bool:
-    estimator = settings.colour_estimator if colour_estimator is None else colour_estimator
-    if estimator not in ("draws", "rao_blackwell"):
-        raise ValueError(f"colour_estimator must be 'draws' or 'rao_blackwell', got {estimator!r}")
+    estimator = check_colour_estimator(settings.colour_estimator if colour_estimator is None else colour_estimator)
     return estimator == "rao_blackwell" and not deterministic
 
 

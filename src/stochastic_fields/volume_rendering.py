@@ -627,7 +627,8 @@ def opacity_packed(weights: Tensor, ray_indices: Tensor, num_rays: int) -> Tenso
 
 
 def expected_depth_packed(
-    weights: Tensor, t_mids: Tensor, ray_indices: Tensor, num_rays: int, far: Tensor | float
+    weights: Tensor, t_mids: Tensor, ray_indices: Tensor, num_rays: int, far: Tensor | float,
+    acc: Tensor | None = None,
 ) -> Tensor:
     """``expected_depth`` in the packed layout: ``D_r = sum_{i in r} w_i t_i / sum_{i in r} w_i``.
 
@@ -635,26 +636,27 @@ def expected_depth_packed(
 
     Shapes:
         weights: [..., N]; t_mids: broadcastable to [..., N]; far: scalar or broadcastable to
-        [..., R]; returns [..., R].
+        [..., R]; acc: the per-ray opacity [..., R] if already computed; returns [..., R].
     """
     numerator = accumulate_packed(weights, t_mids.expand_as(weights), ray_indices, num_rays)
-    acc = _sum_per_ray(weights, ray_indices, num_rays, dim=-1)
+    acc = _sum_per_ray(weights, ray_indices, num_rays, dim=-1) if acc is None else acc
     return _normalise_by_opacity(numerator, acc, _as_tensor_like(far, numerator))
 
 
 def termination_spread_packed(
-    weights: Tensor, t_mids: Tensor, depth: Tensor, ray_indices: Tensor, num_rays: int
+    weights: Tensor, t_mids: Tensor, depth: Tensor, ray_indices: Tensor, num_rays: int,
+    acc: Tensor | None = None,
 ) -> Tensor:
     """``termination_spread`` in the packed layout: ``sum_{i in r} w_i (t_i - D_r)^2 / sum_{i in r} w_i``.
 
     Shapes:
-        weights: [..., N]; t_mids: broadcastable to [..., N]; depth: [..., R]; returns [..., R]
-        (0 for rays that hit nothing).
+        weights: [..., N]; t_mids: broadcastable to [..., N]; depth: [..., R]; acc: the per-ray
+        opacity [..., R] if already computed; returns [..., R] (0 for rays that hit nothing).
     """
     _check_ray_indices(ray_indices, weights.shape[-1], num_rays)
     squared = (t_mids - depth[..., ray_indices]) ** 2
     numerator = _sum_per_ray(weights * squared, ray_indices, num_rays, dim=-1)
-    acc = _sum_per_ray(weights, ray_indices, num_rays, dim=-1)
+    acc = _sum_per_ray(weights, ray_indices, num_rays, dim=-1) if acc is None else acc
     return _normalise_by_opacity(numerator, acc, 0.0)
 
 
@@ -686,8 +688,8 @@ def trajectory_statistics_packed(
                                       num_rays).transpose(0, 1)  # [R, K, 3]
     colour = accumulate_packed(weights, rgb, ray_indices, num_rays).transpose(0, 1)  # [R, K, 3]
     acc = opacity_packed(weights, ray_indices, num_rays)  # [K, R]
-    depth = expected_depth_packed(weights, t_mids, ray_indices, num_rays, far_t)  # [K, R]
-    spread = termination_spread_packed(weights, t_mids, depth, ray_indices, num_rays)  # [K, R]
+    depth = expected_depth_packed(weights, t_mids, ray_indices, num_rays, far_t, acc)  # [K, R]
+    spread = termination_spread_packed(weights, t_mids, depth, ray_indices, num_rays, acc)  # [K, R]
     acc, depth, spread = acc.transpose(0, 1), depth.transpose(0, 1), spread.transpose(0, 1)
     if background is not None:
         colour = composite_background(colour, acc, _background_per_draw(background, colour))
