@@ -16,6 +16,11 @@ FIELD_STD_FLOOR: float = 1e-4
 #: Prior standard deviation on random scene points (paper Sec. 3.2.3: "fixed to 10").
 RANDOM_POINT_PRIOR_STD: float = 10.0
 
+#: Floor of a sample's termination weight inside the log of the sparse-depth likelihood
+#: (losses.termination_depth_nll): a ray whose every weight is zero still has a finite loss
+#: (about -log(1e-10) = 23 nats plus the normal's log density); weights above it get the gradient.
+DEPTH_MIXTURE_WEIGHT_FLOOR: float = 1e-10
+
 #: Optical depth beyond which transmittance is treated as exactly zero when skipping work.
 #: exp(-30) ~ 1e-13, below float32 resolution of any colour.
 MAX_OPTICAL_DEPTH_FOR_SKIP: float = 30.0

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
+from .calibration import ONE_SIGMA_LEVEL, apply_depth_calibration
 from .cameras import generate_rays_for_view
 from .eval import metrics as M
 from .io_utils import atomic_path, atomic_write_text
@@ -73,7 +74,16 @@ def write_view_products(out_dir: Path, name: str, products: dict[str, np.ndarray
         _save_png(out_dir / f"{name}_gt_depth.png", colourise(gt_depth, cmap="turbo", mask=gt_depth > 0, vmin=lo, vmax=hi)[0])
 
 
-def score_view(products: dict[str, np.ndarray], gt_colour: np.ndarray, gt_depth: np.ndarray | None) -> dict:
+def depth_interval_scale(calibration, level: float) -> float:
+    """Multiplier of ``z_p * depth_std`` for the central interval at ``level``: 1 for Gaussian
+    intervals, ``relative_scale(level)`` for a recalibrated std (stochastic_fields.calibration)."""
+    if calibration is None or calibration.depth is None:
+        return 1.0
+    return float(calibration.depth.relative_scale(level))
+
+
+def score_view(products: dict[str, np.ndarray], gt_colour: np.ndarray, gt_depth: np.ndarray | None,
+               calibration=None) -> dict:
     mean, var = products["colour_mean"], products["colour_std"].astype(np.float64) ** 2
     corr = M.mse_uncertainty_correlation(gt_colour, mean, var)
     scores = {
@@ -93,14 +103,19 @@ def score_view(products: dict[str, np.ndarray], gt_colour: np.ndarray, gt_depth:
                            "depth_nll": M.depth_nll(gt_depth, d, s ** 2, mask),
                            "depth_err_std_pearson": M.pearson(np.abs(d - gt_depth)[mask], s[mask]),
                            "depth_err_std_spearman": M.spearman(np.abs(d - gt_depth)[mask], s[mask]),
-                           "depth_coverage_68": float(np.mean(np.abs(d - gt_depth)[mask] <= s[mask])),
-                           "depth_coverage_95": float(np.mean(np.abs(d - gt_depth)[mask] <= 1.959964 * s[mask]))})
+                           "depth_coverage_68": float(np.mean(np.abs(d - gt_depth)[mask]
+                                                              <= s[mask] * depth_interval_scale(calibration, ONE_SIGMA_LEVEL))),
+                           "depth_coverage_95": float(np.mean(np.abs(d - gt_depth)[mask]
+                                                              <= 1.959964 * s[mask] * depth_interval_scale(calibration, 0.95)))})
     return scores
 
 
 def evaluate(model, dataset, out_dir: Path, *, views: list[int] | None = None, num_draws: int | None = None,
-             seed: int = 0, progress: bool = True, write_products: bool = True) -> dict:
-    """Render and score ``views`` (default: the test split). Returns the metrics dict it saves."""
+             seed: int = 0, progress: bool = True, write_products: bool = True, calibration=None) -> dict:
+    """Render and score ``views`` (default: the test split). Returns the metrics dict it saves.
+
+    ``calibration``: a ``calibration.RunCalibration`` applied to the depth std (raw kept as
+    ``depth_std_raw``) and to the depth intervals' coverage."""
     views = list(dataset.test_indices) if views is None else list(views)
     device = next(model.parameters()).device
     generator = torch.Generator(device=device).manual_seed(seed)
@@ -109,12 +124,12 @@ def evaluate(model, dataset, out_dir: Path, *, views: list[int] | None = None, n
     for v in tqdm(views, desc="evaluate", disable=not progress):
         rays = generate_rays_for_view(dataset.cameras, v, dataset.near, dataset.far).to(device)
         maps = model.render_view(rays, num_draws=num_draws, generator=generator)
-        products = camera_z_maps(maps)
+        products = apply_depth_calibration(camera_z_maps(maps), calibration)
         gt = dataset.images[v].numpy()
         gt_depth = dataset.depths[v].numpy() if getattr(dataset, "depths", None) is not None else None
         if write_products:
             write_view_products(Path(out_dir) / "views", f"view_{v:03d}", products, gt, gt_depth)
-        report.add(f"view_{v:03d}", **score_view(products, gt, gt_depth))
+        report.add(f"view_{v:03d}", **score_view(products, gt, gt_depth, calibration))
         if gt_depth is not None:
             mask = (gt_depth > 0) & (products["opacity"] > OPACITY_MASK)
             pooled_err.append(np.abs(products["depth_mean"] - gt_depth)[mask])
@@ -122,6 +137,7 @@ def evaluate(model, dataset, out_dir: Path, *, views: list[int] | None = None, n
     result = report.to_dict()
     result["num_draws"] = int(num_draws or model.render_settings.num_draws)
     result["opacity_mask"] = OPACITY_MASK
+    result["depth_calibration"] = None if calibration is None else calibration.to_dict()
     if pooled_err:
         e, s = np.concatenate(pooled_err), np.concatenate(pooled_std)
         result["pooled_depth"] = {

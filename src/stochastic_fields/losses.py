@@ -4,6 +4,7 @@
         + lambda_rand * mean_{x ~ region, d ~ sphere} KL(q(.|x,d) || p_rand)
         + lambda_obs  * mean_{x on training rays}     KL(q(.|x,d) || p_obs)
         [+ lambda_dist * mean_{r,k} distortion(w_rk)]                      (optional, off by default)
+        [+ lambda_depth * termination_depth_nll(w, t*)]                    (capture points, FIT role)
 
 with KL = KL_density (rectified normal) + sum_c KL_colour_c (logistic normal).
 p_rand: learned means, std fixed at RANDOM_POINT_PRIOR_STD (10). p_obs: learned means and stds.
@@ -21,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .constants import RANDOM_POINT_PRIOR_STD
+from .constants import DEPTH_MIXTURE_WEIGHT_FLOOR, RANDOM_POINT_PRIOR_STD
 from .distributions import (kl_logistic_normal, kl_logistic_normal_mc, kl_rectified_normal,
                             kl_rectified_normal_mc)
 from .fields.base import FieldParams, inverse_positive_scale, positive_scale
@@ -49,6 +50,12 @@ class LossConfig:
     """Stratified random KL points: n per axis, n^3 points per step."""
     observed_kl_samples: int = 4096
     """Training-ray samples per step on which the observed-prior KL is evaluated (a uniform random subset: an unbiased estimate of the mean over all samples at a fraction of the cost; 0 = all)."""
+    lambda_depth: float = 0.0
+    """Weight of the sparse-depth likelihood of the capture's own structure-from-motion points (FIT role of the spatial split, stochastic_fields.capture_points): -mean_k log sum_i w_ik N(t* | t_i, s_i^2) per point ray (termination_depth_nll). 0 = off."""
+    depth_rays_per_batch: int = 256
+    """Capture-point rays per training step for the depth likelihood (drawn from the training views' FIT points)."""
+    depth_relative_std: float = 0.01
+    """Depth noise of a capture point relative to its depth (added to each sample's bin width in the depth likelihood)."""
     lambda_distortion: float = 0.0
     """Weight of the Mip-NeRF 360 distortion regulariser on every training trajectory (stochastic_fields.distortion): penalises weight spread along rays (floaters). 0 = off (the paper's objective); on fern at 1000 steps it did not empty space for skipping and cost PSNR at weight 20 (docs/design.md)."""
 
@@ -83,6 +90,25 @@ def gaussian_likelihood_nll(colours: Tensor, target: Tensor, std: float | Tensor
     sq = (colours - target[:, None, :]) ** 2  # [R, K, 3]
     per_channel = 0.5 * sq / std ** 2 + torch.log(std) + 0.5 * math.log(2 * math.pi)
     return per_channel.sum(-1).mean()
+
+
+def termination_depth_nll(weights: Tensor, t_mids: Tensor, deltas: Tensor, target_t: Tensor,
+                          relative_std: float) -> Tensor:
+    """Mean over point rays and trajectories of the negative log-likelihood of an observed surface
+    at ray distance t* under the trajectory's termination distribution:
+
+        -1/(R K) sum_{r,k} log sum_i w_rki N(t*_r | t_ri, s_ri^2),   s_ri^2 = delta_ri^2 / 12 + (rho t*_r)^2
+
+    (each sample's weight spread over its bin, widened by the point's own depth noise rho t*).
+    The mixture's mass is the ray's opacity, so a ray that misses the surface is penalised too.
+    Weights below ``DEPTH_MIXTURE_WEIGHT_FLOOR`` count as that floor inside the log.
+
+    Shapes: weights [R, K, S], t_mids [R, S], deltas [R, S], target_t [R] -> scalar.
+    """
+    var = deltas ** 2 / 12.0 + (relative_std * target_t[:, None]) ** 2  # [R, S]
+    log_normal = -0.5 * (target_t[:, None] - t_mids) ** 2 / var - 0.5 * torch.log(2 * math.pi * var)
+    log_w = weights.clamp_min(DEPTH_MIXTURE_WEIGHT_FLOOR).log()  # [R, K, S]
+    return -torch.logsumexp(log_w + log_normal[:, None, :], dim=-1).mean()
 
 
 def field_kl(params: FieldParams, prior: tuple[Tensor, Tensor, Tensor, Tensor], *,

@@ -48,6 +48,41 @@ class TrainingRays:
         return self.rays[idx], self.colours[idx]
 
 
+@dataclass
+class TrainingDepth:
+    """The training views' capture points of the FIT role (stochastic_fields.capture_points) as rays
+    through their pixels, with the surface's ray distance: rays [P], target_t [P]."""
+
+    rays: RayBundle
+    target_t: torch.Tensor
+
+    @staticmethod
+    def from_dataset(dataset, device: torch.device) -> "TrainingDepth | None":
+        """None when the scene has no capture points or none of the FIT role lies inside a training view's bounds."""
+        from .cameras import generate_rays_at
+        from .capture_points import FIT, load_capture_points, sparse_depth_for_role
+
+        points = load_capture_points(dataset)
+        if points is None:
+            return None
+        per_view = sparse_depth_for_role(dataset, points, dataset.train_indices, FIT)
+        views = torch.cat([torch.full((len(sd),), v, dtype=torch.long) for v, sd in per_view.items()])
+        uv = torch.cat([torch.from_numpy(sd.uv) for sd in per_view.values()]).float()
+        z = torch.cat([torch.from_numpy(sd.depth) for sd in per_view.values()]).float()
+        if len(z) == 0:
+            return None
+        rays = generate_rays_at(dataset.cameras, views, uv, dataset.near, dataset.far)
+        t = z / rays.z_scale
+        inside = (t > rays.near) & (t < rays.far)
+        if not bool(inside.any()):
+            return None
+        return TrainingDepth(rays[inside].to(device), t[inside].to(device))
+
+    def batch(self, n: int, generator: torch.Generator) -> tuple[RayBundle, torch.Tensor]:
+        idx = torch.randint(0, len(self.target_t), (n,), generator=generator).to(self.target_t.device)
+        return self.rays[idx], self.target_t[idx]
+
+
 def make_optimizer(model: RadianceModel, cfg: ExperimentConfig) -> FieldOptimizer:
     return FieldOptimizer(model.param_groups(cfg.train.lr), total_steps=cfg.train.iterations,
                           final_factor=cfg.train.lr_final_factor)
@@ -121,6 +156,12 @@ class Trainer:
         save_config(self.cfg, self.run_dir / "config.json")
         resumed = self.try_resume()
         data = TrainingRays.from_dataset(self.dataset, self.device)
+        depth_data = None
+        if self.cfg.loss.lambda_depth > 0 and getattr(self.model, "accepts_depth", False):
+            depth_data = TrainingDepth.from_dataset(self.dataset, self.device)
+            if depth_data is None:
+                warnings.warn(f"loss.lambda_depth = {self.cfg.loss.lambda_depth} but {self.dataset.root} has no "
+                              "capture points in its training views: training without the depth term", stacklevel=2)
         total = self.cfg.train.iterations
         stop_at = total if max_steps is None else min(total, self.step + max_steps)
         log_path = self.run_dir / "train_log.jsonl"
@@ -132,7 +173,11 @@ class Trainer:
         with log_path.open("a") as log:
             while self.step < stop_at:
                 rays, target = data.batch(self.cfg.train.rays_per_batch, self.generator)
-                loss, logs = self.model.training_loss(rays, target, step=self.step, generator=self.draw_generator)
+                extra = {}
+                if depth_data is not None:
+                    extra["depth"] = depth_data.batch(self.cfg.loss.depth_rays_per_batch, self.generator)
+                loss, logs = self.model.training_loss(rays, target, step=self.step, generator=self.draw_generator,
+                                                      **extra)
                 if not torch.isfinite(loss):
                     raise FloatingPointError(f"loss is {float(loss)} at step {self.step}: {logs}")
                 self.optimizer.zero_grad(set_to_none=True)

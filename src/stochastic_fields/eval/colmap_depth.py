@@ -183,8 +183,11 @@ def tracks_match_views(cameras, xyz: np.ndarray, visible: list[np.ndarray], view
 
 
 def paired_depth_scores(gt: np.ndarray, pred: np.ndarray, std: np.ndarray, *,
-                        var_floor: float = DEPTH_NLL_VARIANCE_FLOOR) -> dict:
+                        var_floor: float = DEPTH_NLL_VARIANCE_FLOOR, interval_scale=None) -> dict:
     """Depth scores of predictions at ground-truth samples (sparse points or masked dense pixels).
+
+    ``interval_scale``: level-dependent multiplier of the central intervals (coverage, AUCE) of
+    a recalibrated std (``calibration.QuantileCalibration.relative_scale``); None: Gaussian intervals.
 
     Shapes: gt, pred, std [M] (camera-z, scene units).
     Returns {"num_used", "abs_rel", "rmse", "mae", "nll", "ause_rmse", "ause_rmse_normalised",
@@ -205,8 +208,8 @@ def paired_depth_scores(gt: np.ndarray, pred: np.ndarray, std: np.ndarray, *,
         return out
     err = M.depth_errors(pred, gt)
     abs_err = np.abs(pred - gt)
-    cal = M.calibration_curve(gt, pred, std)
-    cov = M.calibration_curve(gt, pred, std, levels=list(COVERAGE_LEVELS)).coverage
+    cal = M.calibration_curve(gt, pred, std, interval_scale=interval_scale)
+    cov = M.calibration_curve(gt, pred, std, levels=list(COVERAGE_LEVELS), interval_scale=interval_scale).coverage
     out.update({
         "abs_rel": err["abs_rel"], "rmse": err["rmse"], "mae": err["mae"],
         "nll": M.depth_nll(gt, pred, std ** 2, var_floor=var_floor),
@@ -224,7 +227,7 @@ def paired_depth_scores(gt: np.ndarray, pred: np.ndarray, std: np.ndarray, *,
 
 def sparse_depth_scores(depth_mean: np.ndarray | Tensor, depth_std: np.ndarray | Tensor, sparse: SparseDepth, *,
                         opacity: np.ndarray | Tensor | None = None, opacity_mask: float = 0.5,
-                        var_floor: float = DEPTH_NLL_VARIANCE_FLOOR) -> dict:
+                        var_floor: float = DEPTH_NLL_VARIANCE_FLOOR, interval_scale=None) -> dict:
     """``paired_depth_scores`` of rendered camera-z maps at the sparse points of one view.
 
     Points where the rendered ``opacity`` is not above ``opacity_mask`` are left out.
@@ -235,7 +238,7 @@ def sparse_depth_scores(depth_mean: np.ndarray | Tensor, depth_std: np.ndarray |
     keep = np.isfinite(d) & np.isfinite(s)
     if opacity is not None:
         keep &= sparse.sample(opacity) > opacity_mask
-    out = paired_depth_scores(sparse.depth[keep], d[keep], s[keep], var_floor=var_floor)
+    out = paired_depth_scores(sparse.depth[keep], d[keep], s[keep], var_floor=var_floor, interval_scale=interval_scale)
     out["num_points"] = len(sparse)
     return out
 

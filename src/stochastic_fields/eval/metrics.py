@@ -469,22 +469,28 @@ def _levels_tensor(levels: Any, device: torch.device) -> Tensor:
     return lv
 
 
-def _coverage(abs_res: Tensor, std: Tensor, levels: Tensor) -> Tensor:
-    """[L] fraction of values with |res| <= z_p std, z_p = Phi^-1((1 + p) / 2) = sqrt(2) erfinv(p)."""
+def _coverage(abs_res: Tensor, std: Tensor, levels: Tensor, interval_scale: Any = None) -> Tensor:
+    """[L] fraction of values with |res| <= z_p std m(p), z_p = Phi^-1((1 + p) / 2) = sqrt(2) erfinv(p),
+    m(p) = ``interval_scale(levels)`` (a recalibrated interval, ``calibration.QuantileCalibration``) or 1."""
     # Normalised residual: 0 where res == 0 (inside every interval, even with std == 0),
     # +inf where std == 0 < |res| (inside none).
     u = torch.where(abs_res == 0, torch.zeros_like(abs_res), abs_res / std)
     u_sorted = torch.sort(u).values
     z = math.sqrt(2.0) * torch.erfinv(levels)
+    if interval_scale is not None:
+        z = z * torch.as_tensor(np.asarray(interval_scale(levels.cpu().numpy()), dtype=np.float64), device=z.device)
     inside = torch.searchsorted(u_sorted, z, right=True)
     return inside.to(torch.float64) / u.numel()
 
 
-def calibration_curve(gt: Any, mean: Any, std: Any, levels: Any = None, mask: Any = None) -> CalibrationResult:
+def calibration_curve(gt: Any, mean: Any, std: Any, levels: Any = None, mask: Any = None,
+                      interval_scale: Any = None) -> CalibrationResult:
     """Calibration of Gaussian predictions: empirical coverage of central intervals (SPEC 6).
 
     Convention: for each nominal level p the central interval is mean +- z_p std with
-    z_p = Phi^-1((1 + p) / 2); coverage(p) = fraction of gt with |gt - mean| <= z_p std, pooled
+    z_p = Phi^-1((1 + p) / 2), times ``interval_scale(p)`` when given (a recalibrated
+    uncertainty's level-dependent multiplier, levels [L] numpy -> [L]);
+    coverage(p) = fraction of gt with |gt - mean| <= z_p std, pooled
     over every value (all pixels and all channels for colour; masked pixels for depth).
     AUCE = mean_p |coverage(p) - p|. No variance floor is applied (pass a floored std if wanted).
     Default levels: 0.01, 0.02, ..., 0.99.
@@ -503,7 +509,7 @@ def calibration_curve(gt: Any, mean: Any, std: Any, levels: Any = None, mask: An
     if (s < 0).any():
         raise ValueError(f"std has negative values (min {s.min().item():.3g})")
     lv = _levels_tensor(levels, g.device)
-    cov = _coverage((g - m).abs(), s, lv)
+    cov = _coverage((g - m).abs(), s, lv, interval_scale)
     gap = cov - lv
     return CalibrationResult(
         levels=lv.cpu().numpy(),

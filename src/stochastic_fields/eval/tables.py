@@ -50,8 +50,7 @@ import torch
 from ..config import ExperimentConfig, preset, to_dict
 from ..io_utils import atomic_path, atomic_write_text
 from . import metrics as M
-from .colmap_depth import (COVERAGE_LEVELS, paired_depth_scores, sparse_depth_conventions, sparse_depth_for_dataset,
-                           sparse_depth_scores)
+from .colmap_depth import COVERAGE_LEVELS, paired_depth_scores, sparse_depth_conventions
 
 # --------------------------------------------------------------------------------------------
 # methods and the paper's figures
@@ -66,6 +65,9 @@ class MethodSpec:
     method: str
     label: str
     overrides: tuple[tuple[str, Any], ...] = ()
+    calibrate: bool = False
+    """Fit the depth recalibration from the capture points (``stochastic_fields.calibration``) after
+    training and score with it (raw scores kept as ``depth_raw/``)."""
 
 
 METHOD_SPECS: dict[str, MethodSpec] = {
@@ -73,10 +75,10 @@ METHOD_SPECS: dict[str, MethodSpec] = {
     "mc_dropout": MethodSpec("mc_dropout", "mc_dropout", "MC-DO", (("field.dropout", 0.2),)),
     "ensemble": MethodSpec("ensemble", "ensemble", "D. Ens."),
     "nerfw": MethodSpec("nerfw", "nerfw", "NeRF-W"),
-    "snerf": MethodSpec("snerf", "snerf", "S-NeRF", (("loss.kl", "full"),)),
+    "snerf": MethodSpec("snerf", "snerf", "S-NeRF", (("loss.kl", "full"),), calibrate=True),
     "snerf_predictive": MethodSpec("snerf_predictive", "snerf", "S-NeRF + learned noise",
                                    (("loss.kl", "full"), ("loss.learn_likelihood_std", True),
-                                    ("render.colour_variance", "predictive"))),
+                                    ("render.colour_variance", "predictive")), calibrate=True),
     "snerf_kl_none": MethodSpec("snerf_kl_none", "snerf", "S-NeRF w/o KL", (("loss.kl", "none"),)),
     "snerf_kl_fixed_prior": MethodSpec("snerf_kl_fixed_prior", "snerf", "S-NeRF w/ KL (fixed prior)",
                                        (("loss.kl", "fixed_prior"),)),
@@ -223,6 +225,10 @@ def method_config(spec: MethodSpec, base: ExperimentConfig, scene_path: Path) ->
     return cfg
 
 
+#: Which capture points score depth (capture_points: the SCORE role of the spatial split); part of
+#: the eval fingerprint so that runs scored on every point are re-scored.
+SCORED_POINTS = "score-role blocks"
+
 #: Config entries that do not change what a run computes (left out of fingerprints).
 _NON_SEMANTIC = ("train.device", "train.eval_every", "train.checkpoint_every", "render.chunk_rays", "data.path")
 
@@ -332,8 +338,15 @@ def _depth_block(prefix: str, scores: dict) -> dict[str, Any]:
     return {f"{prefix}{k}": scores[k] for k in keys}
 
 
+def _plain_scores(scores: dict) -> dict[str, Any]:
+    """Depth scores as JSON-ready numbers (correlations by value, no curves)."""
+    return {k: (v.value if isinstance(v, M.CorrelationResult) else v)
+            for k, v in scores.items() if k not in ("calibration", "sparsification")}
+
+
 def evaluate_run(model, dataset, out_dir: Path, *, views: Sequence[int] | None = None, seed: int = 0,
-                 sparse_depth: dict | None = None, product_views: int = 1, progress: bool = True) -> dict:
+                 sparse_depth: dict | None = None, product_views: int = 1, progress: bool = True,
+                 calibration=None) -> dict:
     """Render and score ``views`` (default: the test split) of one trained model.
 
     Writes ``metrics.json`` (per-view values, means, pooled scores, conventions) and
@@ -343,6 +356,7 @@ def evaluate_run(model, dataset, out_dir: Path, *, views: Sequence[int] | None =
     """
     from tqdm.auto import tqdm
 
+    from ..calibration import apply_depth_calibration
     from ..evaluate import OPACITY_MASK, camera_z_maps, score_view, write_view_products
 
     out_dir = Path(out_dir)
@@ -351,15 +365,22 @@ def evaluate_run(model, dataset, out_dir: Path, *, views: Sequence[int] | None =
     generator = torch.Generator(device=device).manual_seed(seed)
     report = M.MetricReport()
     report.conventions.update(sparse_depth_conventions())
+    report.conventions["scored_points"] = ("depth is scored only on the capture points of the SCORE role "
+                                           "(capture_points: blocks of space disjoint from the points that train "
+                                           "the depth likelihood and fit the recalibration)")
+    report.conventions["depth_calibration"] = ("methods marked calibrated report depth_std recalibrated on the "
+                                               "CALIBRATE capture points seen from training views, intervals at "
+                                               "level p scaled by s(p)/s(0.683); raw scores under depth_raw/")
     report.conventions["constant_uncertainty"] = ("a constant uncertainty map (deterministic NeRF) has undefined "
                                                    "correlations and AUSE; its NLL uses the variance floor")
     pooled = {"err_rmse": [], "err_mae": [], "unc": [], "nll_sum": 0.0, "n_pix": 0}
     colour_cov = np.zeros_like(M.DEFAULT_CALIBRATION_LEVELS)
     colour_cov_n = 0
-    depth_pool = {"gt": [], "pred": [], "std": []}
+    depth_pool = {"gt": [], "pred": [], "std": [], "std_raw": []}
     depth_source = "colmap" if sparse_depth is not None else ("dense" if getattr(dataset, "depths", None) is not None
                                                                else None)
     render_s = []
+    interval_scale = None if calibration is None or calibration.depth is None else calibration.depth.relative_scale
     for i, v in enumerate(tqdm(views, desc="evaluate", disable=not progress)):
         rays = dataset.rays(v).to(device)
         _sync(device)
@@ -367,7 +388,7 @@ def evaluate_run(model, dataset, out_dir: Path, *, views: Sequence[int] | None =
         maps = model.render_view(rays, generator=generator)
         _sync(device)
         render_s.append(time.perf_counter() - t0)
-        products = camera_z_maps(maps)
+        products = apply_depth_calibration(camera_z_maps(maps), calibration)
         gt = dataset.images[v].numpy()
         gt_depth = dataset.depths[v].numpy() if getattr(dataset, "depths", None) is not None else None
         if i < product_views:
@@ -394,26 +415,27 @@ def evaluate_run(model, dataset, out_dir: Path, *, views: Sequence[int] | None =
         colour_cov_n += cal.num_values
         # depth against ground truth samples
         if depth_source is not None:
-            d, s, op = products["depth_mean"], products["depth_std"], products["opacity"]
+            d, op = products["depth_mean"], products["opacity"]
+            s, s_raw = products["depth_std"], products.get("depth_std_raw", products["depth_std"])
             if depth_source == "colmap":
                 sd = sparse_depth[v]
                 keep = sd.sample(op) > OPACITY_MASK
-                g_s, d_s, s_s = sd.depth[keep], sd.sample(d)[keep], sd.sample(s)[keep]
-                ds = sparse_depth_scores(d, s, sd, opacity=op, opacity_mask=OPACITY_MASK)
+                g_s, d_s, s_s, s_r = sd.depth[keep], sd.sample(d)[keep], sd.sample(s)[keep], sd.sample(s_raw)[keep]
             else:
                 mask = (gt_depth > 0) & (op > OPACITY_MASK)
-                g_s, d_s, s_s = gt_depth[mask], d[mask], s[mask]
-                ds = paired_depth_scores(g_s, d_s, s_s)
-            scores.update(_depth_block("depth/", ds))
-            depth_pool["gt"].append(np.asarray(g_s, np.float64))
-            depth_pool["pred"].append(np.asarray(d_s, np.float64))
-            depth_pool["std"].append(np.asarray(s_s, np.float64))
+                g_s, d_s, s_s, s_r = gt_depth[mask], d[mask], s[mask], s_raw[mask]
+            scores.update(_depth_block("depth/", paired_depth_scores(g_s, d_s, s_s, interval_scale=interval_scale)))
+            if calibration is not None:
+                scores.update(_depth_block("depth_raw/", paired_depth_scores(g_s, d_s, s_r)))
+            for key, value in (("gt", g_s), ("pred", d_s), ("std", s_s), ("std_raw", s_r)):
+                depth_pool[key].append(np.asarray(value, np.float64))
         report.add(f"view_{v:03d}", **scores)
 
     result = report.to_dict()
     result["num_draws"] = int(model.render_settings.num_draws)
     result["opacity_mask"] = OPACITY_MASK
     result["depth_source"] = depth_source
+    result["depth_calibration"] = None if calibration is None else calibration.to_dict()
     curves: dict[str, np.ndarray] = {}
     # pooled colour scores: every test pixel of the scene at once
     err_rmse, err_mae, unc = (np.concatenate(pooled[k]).astype(np.float64) for k in ("err_rmse", "err_mae", "unc"))
@@ -441,10 +463,12 @@ def evaluate_run(model, dataset, out_dir: Path, *, views: Sequence[int] | None =
         for metric in ("rmse", "mae"):
             pooled_out[f"ause_{metric}"] = pooled_out[f"ause_{metric}_normalised"] = math.nan
     if depth_source is not None:
-        g, d, s = (np.concatenate(depth_pool[k]) if depth_pool[k] else np.zeros(0) for k in ("gt", "pred", "std"))
-        ds = paired_depth_scores(g, d, s)
-        pooled_out["depth"] = {k: (v.value if isinstance(v, M.CorrelationResult) else v)
-                               for k, v in ds.items() if k not in ("calibration", "sparsification")}
+        g, d, s, s_raw = (np.concatenate(depth_pool[k]) if depth_pool[k] else np.zeros(0)
+                          for k in ("gt", "pred", "std", "std_raw"))
+        ds = paired_depth_scores(g, d, s, interval_scale=interval_scale)
+        pooled_out["depth"] = _plain_scores(ds)
+        if calibration is not None:
+            pooled_out["depth_raw"] = _plain_scores(paired_depth_scores(g, d, s_raw))
         if ds["calibration"] is not None:
             curves.update(_pack("depth_calibration", ds["calibration"]))
         if ds["sparsification"] is not None:
@@ -513,7 +537,9 @@ def run_method(spec: MethodSpec, dataset, scene_path: Path, run_dir: Path, setti
     run_dir.mkdir(parents=True, exist_ok=True)
     stages = load_stages(run_dir)
     fp_train = config_fingerprint(cfg)
-    fp_eval = config_fingerprint(cfg, "eval", list(views), settings.seed, sparse_depth is not None)
+    fp_cal = config_fingerprint(cfg, "calibrate", settings.seed)
+    fp_eval = config_fingerprint(cfg, "eval", list(views), settings.seed, sparse_depth is not None, SCORED_POINTS,
+                                 spec.calibrate)
     fp_time = config_fingerprint(cfg, "timing", settings.seed, settings.timing_repeats)
     tag = f"{dataset.name}/{spec.name}"
     model = None
@@ -536,11 +562,31 @@ def run_method(spec: MethodSpec, dataset, scene_path: Path, run_dir: Path, setti
             model = load_trained_model(run_dir, dataset=dataset, device=settings.device)[1]
         return model
 
+    calibration = None
+    if spec.calibrate:
+        from ..calibration import calibrate_run, describe, load_run_calibration
+
+        calibration = load_run_calibration(run_dir)
+        if stages.get("calibrate", {}).get("fingerprint") != fp_cal:
+            t0 = time.perf_counter()
+            try:
+                calibration = calibrate_run(run_dir, model=loaded(), dataset=dataset, seed=settings.seed)
+                stages["calibrate"] = {"fingerprint": fp_cal, "calibrate_s": time.perf_counter() - t0}
+                log(f"[{tag}] calibrate: {describe(calibration)}")
+            except ValueError as exc:  # too few capture points: scored raw, and the reason kept
+                (run_dir / "calibration.json").unlink(missing_ok=True)
+                calibration = None
+                stages["calibrate"] = {"fingerprint": fp_cal, "failed": str(exc)}
+                log(f"[{tag}] calibrate: not fitted ({exc})")
+            stages.pop("eval", None)
+            save_stages(run_dir, stages)
+        else:
+            log(f"[{tag}] calibrate: done, skipped")
     if stages.get("eval", {}).get("fingerprint") != fp_eval or not (run_dir / "metrics.json").exists():
         log(f"[{tag}] eval: {len(views)} test views")
         t0 = time.perf_counter()
         evaluate_run(loaded(), dataset, run_dir, views=views, seed=settings.seed, sparse_depth=sparse_depth,
-                     product_views=settings.product_views, progress=progress)
+                     product_views=settings.product_views, progress=progress, calibration=calibration)
         stages["eval"] = {"fingerprint": fp_eval, "eval_s": time.perf_counter() - t0}
         save_stages(run_dir, stages)
     else:
@@ -586,11 +632,14 @@ def run_scene(scene: str, methods: Sequence[str], out_root: Path, settings: Benc
         dataset = load_dataset(scene_path, split_every=5)
     views = select_views(list(dataset.test_indices), settings)
     sparse = None
-    if kind == "llff" and getattr(dataset, "depths", None) is None:
-        try:
-            sparse = sparse_depth_for_dataset(dataset, views)
-        except FileNotFoundError as exc:
-            log(f"[{dataset.name}] no sparse depth ground truth: {exc}")
+    if getattr(dataset, "depths", None) is None:
+        from ..capture_points import SCORE, load_capture_points, sparse_depth_for_role
+
+        points = load_capture_points(dataset)
+        if points is None:
+            log(f"[{dataset.name}] no sparse depth ground truth: the scene has no COLMAP points")
+        else:
+            sparse = sparse_depth_for_role(dataset, points, views, SCORE)
     name = dataset.name
     results = {}
     for m in methods:

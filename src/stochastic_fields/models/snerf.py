@@ -27,7 +27,7 @@ from torch import Tensor, nn
 from ..distortion import distortion_loss, distortion_loss_packed, normalised_coordinate
 from ..fields.base import StochasticField
 from ..fields.grid import GridField
-from ..losses import LossConfig, Priors, field_kl, gaussian_likelihood_nll
+from ..losses import LossConfig, Priors, field_kl, gaussian_likelihood_nll, termination_depth_nll
 from ..occupancy import OccupancyGrid, density_threshold, density_upper_estimate
 from ..rays import PackedRaySamples, RayBundle, RaySamples
 from ..renderer import RayRender, RenderSettings, render_any_samples, render_image, skip_empty
@@ -142,8 +142,15 @@ class SNeRF(RadianceModel):
                               warmup_steps=settings.occupancy_warmup_steps,
                               update_every_n_steps=settings.occupancy_update_every, generator=gen)
 
+    #: the trainer passes capture-point depth batches (``depth=``) to this model
+    accepts_depth = True
+
     def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
-                      generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
+                      generator: torch.Generator | None = None,
+                      depth: tuple[RayBundle, Tensor] | None = None) -> tuple[Tensor, dict[str, float]]:
+        """The variational loss (losses module doc) on a batch of rays [R] with colours [R, 3];
+        ``depth``: capture-point rays [M] and their surface ray distances t* [M] for the
+        sparse-depth likelihood (weighted by ``loss.lambda_depth``)."""
         cfg = self.loss_config
         settings = self.render_settings
         samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing, stratified=True,
@@ -192,11 +199,28 @@ class SNeRF(RadianceModel):
             dist = self._distortion(out, samples)
             loss = loss + cfg.lambda_distortion * dist
             logs["distortion"] = dist.item()
+        if depth is not None and cfg.lambda_depth > 0:
+            depth_nll = self._depth_nll(*depth, generator=generator)
+            loss = loss + cfg.lambda_depth * depth_nll
+            logs["depth_nll"] = depth_nll.item()
         if self.tv_weight > 0 and isinstance(self.field, GridField):
             tv = self.field.total_variation(generator=generator)
             loss = loss + self.tv_weight * tv
             logs["tv"] = tv.item()
         return loss, logs
+
+    def _depth_nll(self, rays: RayBundle, target_t: Tensor, *, generator: torch.Generator | None) -> Tensor:
+        """``termination_depth_nll`` of capture-point rays [M] at their surface distances [M]:
+        dense stratified samples (as the colour rays, without skipping), ``train_draws`` trajectories."""
+        settings = self.render_settings
+        samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing, stratified=True,
+                                    generator=generator)
+        params = self.field(samples.positions.reshape(-1, 3), samples.directions.reshape(-1, 3))
+        params = params.reshape(*samples.t_starts.shape)
+        out = render_any_samples(params, samples, settings, num_draws=self.train_draws, generator=generator,
+                                 colour_estimator="draws")
+        return termination_depth_nll(out.extras["weights"], samples.t_mids, samples.deltas, target_t,
+                                     self.loss_config.depth_relative_std)
 
     def _distortion(self, out: RayRender, samples: RaySamples | PackedRaySamples) -> Tensor:
         """Mean distortion over training rays and trajectories (stochastic_fields.distortion)."""

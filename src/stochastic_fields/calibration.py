@@ -1,0 +1,256 @@
+"""Post-hoc recalibration of S-NeRF's depth uncertainty from the capture's own points.
+
+The rendered depth standard deviation sigma ranks errors but its scale (and the shape of the
+error distribution) need not match what happens on real scenes. Quantile recalibration
+(Kuleshov et al. 2018) fixes this with data a user has: the capture points of the CALIBRATE role
+(``capture_points``: structure-from-motion points split by blocks of space, disjoint from the
+points that train the depth likelihood and from those that score), rendered from the training
+views.
+
+With standardised errors |z| = |d - d*| / sigma on those points and z_p = Phi^-1((1 + p) / 2),
+the map stores, for nominal central levels p,
+
+    s(p) = Q_p(|z|) / z_p                       (Q_p: empirical p-quantile)
+
+so that the interval ``d +- s(p) z_p sigma`` holds the fitted points at rate p. Applied:
+
+    sigma_cal = s(p1) sigma,  p1 = Phi(1) - Phi(-1) = 0.6827   (the calibrated one-sigma std)
+    interval at level p:  d +- z_p sigma_cal * s(p) / s(p1)    (``relative_scale``)
+
+A Gaussian error model with the right scale gives s(p) constant; heavier or lighter tails give
+an s(p) that rises or falls with p. The raw sigma stays available (``depth_std_raw``).
+docs/uncertainty.md states the protocol and its limits (the points are seen from training views,
+the test views from elsewhere).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.special import ndtri
+
+#: Central level of +-1 standard deviation: Phi(1) - Phi(-1).
+ONE_SIGMA_LEVEL: float = 0.682689492137086
+#: Levels at which a map is fitted: 0.01, 0.02, ..., 0.99.
+CALIBRATION_LEVELS: np.ndarray = np.round(np.arange(1, 100) / 100.0, 2)
+#: Fewest standardised errors a map may be fitted on (below it the quantiles are noise).
+MIN_CALIBRATION_SAMPLES: int = 50
+#: Smallest scale a fitted map may hold (a map of zeros would claim certainty).
+MIN_CALIBRATION_SCALE: float = 1e-3
+#: File of a run's calibration.
+CALIBRATION_FILE = "calibration.json"
+
+
+@dataclass
+class QuantileCalibration:
+    """Quantile recalibration of one quantity's standard deviation (module doc).
+
+    Attributes:
+        quantity: what it calibrates (e.g. "depth_std", camera-z).
+        levels: [L] nominal central levels in (0, 1), increasing.
+        scales: [L] s(p) at those levels (> 0; s(p) z_p is non-decreasing in p).
+        num_samples: standardised errors it was fitted on.
+        source: the data it was fitted on, in words.
+    """
+
+    quantity: str
+    levels: np.ndarray
+    scales: np.ndarray
+    num_samples: int
+    source: str = ""
+
+    @classmethod
+    def fit(cls, abs_z: np.ndarray, *, quantity: str, source: str = "",
+            levels: np.ndarray = CALIBRATION_LEVELS) -> "QuantileCalibration":
+        """Fit s(p) = Q_p(|z|) / z_p on standardised errors ``abs_z`` [N] (finite, >= 0).
+
+        Raises ValueError for fewer than ``MIN_CALIBRATION_SAMPLES`` values or non-finite ones."""
+        z = np.asarray(abs_z, dtype=np.float64).reshape(-1)
+        if z.size < MIN_CALIBRATION_SAMPLES:
+            raise ValueError(f"calibration of {quantity} needs at least {MIN_CALIBRATION_SAMPLES} standardised "
+                             f"errors, got {z.size} ({source})")
+        if not np.isfinite(z).all() or (z < 0).any():
+            raise ValueError(f"calibration of {quantity}: standardised errors must be finite and >= 0")
+        levels = np.asarray(levels, dtype=np.float64)
+        q = np.quantile(z, levels)  # non-decreasing in p
+        scales = np.maximum(q / ndtri((1.0 + levels) / 2.0), MIN_CALIBRATION_SCALE)
+        return cls(quantity, levels, scales, int(z.size), source)
+
+    def scale_at(self, p: float | np.ndarray) -> np.ndarray:
+        """s(p), linear between fitted levels, constant beyond the first and last."""
+        return np.interp(np.asarray(p, dtype=np.float64), self.levels, self.scales)
+
+    @property
+    def std_scale(self) -> float:
+        """s(0.6827): the factor from the raw to the calibrated one-sigma std."""
+        return float(self.scale_at(ONE_SIGMA_LEVEL))
+
+    def relative_scale(self, p: float | np.ndarray) -> np.ndarray:
+        """s(p) / s(0.6827): the interval multiplier at level p for the *calibrated* std."""
+        return self.scale_at(p) / self.std_scale
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"quantity": self.quantity, "levels": self.levels.tolist(), "scales": self.scales.tolist(),
+                "num_samples": self.num_samples, "source": self.source, "std_scale": self.std_scale}
+
+    @classmethod
+    def from_dict(cls, data: dict, *, where: str = "calibration") -> "QuantileCalibration":
+        try:
+            levels = np.asarray(data["levels"], dtype=np.float64)
+            scales = np.asarray(data["scales"], dtype=np.float64)
+            out = cls(str(data["quantity"]), levels, scales, int(data["num_samples"]), str(data.get("source", "")))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{where}: malformed quantile calibration ({exc!r})") from exc
+        if (levels.ndim != 1 or levels.shape != scales.shape or levels.size == 0 or not np.isfinite(levels).all()
+                or not np.isfinite(scales).all() or (levels <= 0).any() or (levels >= 1).any()
+                or (np.diff(levels) <= 0).any() or (scales <= 0).any()):
+            raise ValueError(f"{where}: levels must increase inside (0, 1) and scales be positive and finite, "
+                             f"with one scale per level")
+        return out
+
+
+def standardised_errors(gt: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
+    """|gt - mean| / std over the entries with a finite, positive std: [N] -> [N'] float64."""
+    gt, mean, std = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (gt, mean, std))
+    keep = np.isfinite(gt) & np.isfinite(mean) & np.isfinite(std) & (std > 0)
+    return np.abs(gt[keep] - mean[keep]) / std[keep]
+
+
+# --------------------------------------------------------------------------------------------
+# a run's calibration
+# --------------------------------------------------------------------------------------------
+
+
+def render_at_points(model, dataset, sparse: dict, *, generator: torch.Generator | None = None) -> dict[str, np.ndarray]:
+    """Render the rays through the pixels of {view: SparseDepth} (continuous uv): camera-z depth
+    mean, total std and opacity [N], with the points' depths [N] as "gt" (float64)."""
+    from .cameras import generate_rays_at
+
+    views = [v for v, sd in sparse.items() if len(sd)]
+    if not views:
+        return {k: np.zeros(0) for k in ("gt", "depth_mean", "depth_std", "opacity")}
+    idx = torch.cat([torch.full((len(sparse[v]),), v, dtype=torch.long) for v in views])
+    uv = torch.cat([torch.from_numpy(sparse[v].uv) for v in views]).float()
+    gt = np.concatenate([sparse[v].depth for v in views])
+    device = next(model.parameters()).device
+    rays = generate_rays_at(dataset.cameras, idx, uv, dataset.near, dataset.far).to(device)
+    with torch.no_grad():
+        maps = model.render_view(rays.reshape(1, len(idx)), generator=generator)
+    z = maps["z_scale"].double().cpu().reshape(-1)
+    return {"gt": gt,
+            "depth_mean": (maps["depth_mean"].double().cpu().reshape(-1) * z).numpy(),
+            "depth_std": (maps["depth_var_total"].double().cpu().clamp_min(0).sqrt().reshape(-1) * z).numpy(),
+            "opacity": maps["opacity"].double().cpu().reshape(-1).numpy()}
+
+
+def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float | None = None) -> QuantileCalibration:
+    """Fit the depth map on the CALIBRATE capture points seen from the training views (pixels
+    with rendered opacity above ``opacity_mask``, as the depth scores). ValueError when the
+    scene has no capture points or too few of that role."""
+    from .capture_points import CALIBRATE, load_capture_points, sparse_depth_for_role
+    from .evaluate import OPACITY_MASK
+
+    mask = OPACITY_MASK if opacity_mask is None else opacity_mask
+    points = load_capture_points(dataset)
+    if points is None:
+        raise ValueError(f"{dataset.root}: no capture points (sparse/0/points3D.bin or dense depth) to calibrate on")
+    sparse = sparse_depth_for_role(dataset, points, dataset.train_indices, CALIBRATE)
+    device = next(model.parameters()).device
+    r = render_at_points(model, dataset, sparse, generator=torch.Generator(device=device).manual_seed(seed))
+    keep = r["opacity"] > mask
+    z = standardised_errors(r["gt"][keep], r["depth_mean"][keep], r["depth_std"][keep])
+    return QuantileCalibration.fit(z, quantity="depth_std",
+                                   source=f"{len(z)} {points.source} points of the calibrate role seen from the "
+                                          f"{len(dataset.train_indices)} training views (opacity > {mask})")
+
+
+@dataclass
+class RunCalibration:
+    """What a run stores in ``calibration.json``: one map per calibrated quantity (depth for now)."""
+
+    depth: QuantileCalibration | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"depth": None if self.depth is None else self.depth.to_dict()}
+
+    @classmethod
+    def from_dict(cls, data: dict, *, where: str) -> "RunCalibration":
+        if not isinstance(data, dict):
+            raise ValueError(f"{where}: expected a JSON object, got {type(data).__name__}")
+        depth = data.get("depth")
+        return cls(depth=None if depth is None else QuantileCalibration.from_dict(depth, where=f"{where}: depth"))
+
+
+def save_run_calibration(run_dir: str | Path, calibration: RunCalibration) -> Path:
+    from .io_utils import atomic_write_text
+
+    path = Path(run_dir) / CALIBRATION_FILE
+    atomic_write_text(path, json.dumps(calibration.to_dict(), indent=2))
+    return path
+
+
+def load_run_calibration(run_dir: str | Path) -> RunCalibration | None:
+    """The run's calibration.json, or None when it has none. ValueError (naming the file) if malformed."""
+    path = Path(run_dir) / CALIBRATION_FILE
+    if not path.is_file():
+        return None
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"cannot read {path}: {exc}") from exc
+    return RunCalibration.from_dict(data, where=str(path))
+
+
+def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int = 0, model=None,
+                  dataset=None) -> RunCalibration:
+    """Fit the run's calibration from its capture points and write ``RUN/calibration.json``."""
+    from .trainer import load_trained_model
+
+    if model is None:
+        _, model, dataset = load_trained_model(Path(run_dir), dataset=dataset, device=device)
+    calibration = RunCalibration(depth=fit_depth_calibration(model, dataset, seed=seed))
+    save_run_calibration(run_dir, calibration)
+    return calibration
+
+
+def describe(calibration: RunCalibration) -> str:
+    """A few lines for people: the fitted factors at 68% and 95%."""
+    d = calibration.depth
+    if d is None:
+        return "no calibrated quantity"
+    return (f"depth std: x{d.std_scale:.3g} (one sigma, 68.3%), x{float(d.scale_at(0.95)):.3g} at 95% "
+            f"[{d.source}]")
+
+
+def apply_depth_calibration(products: dict[str, np.ndarray], calibration: RunCalibration | None) -> dict[str, np.ndarray]:
+    """Camera-z products with ``depth_std`` calibrated and the raw one kept as ``depth_std_raw``
+    (unchanged when ``calibration`` has no depth map). Returns a new dict."""
+    out = dict(products)
+    if calibration is None or calibration.depth is None:
+        return out
+    out["depth_std_raw"] = products["depth_std"]
+    out["depth_std"] = (products["depth_std"].astype(np.float64) * calibration.depth.std_scale).astype(
+        products["depth_std"].dtype)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# ``stochastic-fields calibrate``
+# --------------------------------------------------------------------------------------------
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--run", required=True, help="Trained run folder.")
+    p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
+    p.add_argument("--seed", type=int, default=0, help="Seed of the K draws of the calibration renders.")
+
+
+def run(args) -> None:
+    cal = calibrate_run(Path(args.run), device=args.device, seed=args.seed)
+    print(f"calibrated {args.run}: {describe(cal)}")
+    print(f"written: {Path(args.run) / CALIBRATION_FILE} (render, eval and export apply it; raw std as depth_std_raw)")

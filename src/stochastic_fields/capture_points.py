@@ -1,0 +1,180 @@
+"""The capture's own 3D points as sparse depth, split by blocks of space into three roles.
+
+A user of their own capture has no ground-truth depth, but structure-from-motion leaves
+triangulated surface points (COLMAP ``points3D.bin``). They serve three jobs that must not see
+each other's data (docs/uncertainty.md, "Independence"):
+
+* ``FIT``: a depth likelihood term during training (``loss.lambda_depth``),
+* ``CALIBRATE``: fitting the depth-uncertainty recalibration (``stochastic_fields.calibration``),
+* ``SCORE``: depth scores of the test views, and nothing else.
+
+Neighbouring points share their errors (the same surface, the same grid cells), so the split is
+by **blocks of space**, not point by point: the robust extent of the points (their
+``SPLIT_EXTENT_PERCENTILES``, per axis) is cut into ``SPLIT_BLOCKS_PER_AXIS^3`` blocks, the
+occupied blocks are shuffled with ``SPLIT_SEED``, and walked in that order giving each block
+wholly to one role until that role holds its ``SPLIT_FRACTIONS`` share of the points. Points
+outside the extent join the block they are clamped into. The split is a function of the points
+alone (not of the run's options), so training, calibration and evaluation always agree on it.
+
+Scenes without SfM points but with dense depth (the embedded synthetic scene) get stand-in
+capture points: a seeded ``SYNTHETIC_POINTS_FRACTION`` of every training view's surface pixels,
+back-projected (``synthetic_capture_points``). They play the part of SfM points (surface points
+seen from training views); test views are scored on their exact dense depth.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+
+#: Roles of a capture point.
+FIT, CALIBRATE, SCORE = 0, 1, 2
+ROLE_NAMES: dict[int, str] = {FIT: "fit", CALIBRATE: "calibrate", SCORE: "score"}
+
+#: Blocks per axis of the spatial split (6^3 = 216 blocks; fern's points occupy about 70 of them).
+SPLIT_BLOCKS_PER_AXIS: int = 6
+#: Share of the points per role (fit, calibrate, score).
+SPLIT_FRACTIONS: tuple[float, float, float] = (0.4, 0.2, 0.4)
+#: Seed of the block shuffle.
+SPLIT_SEED: int = 0
+#: Percentiles of the point coordinates that bound the block grid (outliers are clamped in).
+SPLIT_EXTENT_PERCENTILES: tuple[float, float] = (1.0, 99.0)
+#: Fraction of a training view's surface pixels taken as stand-in capture points (dense-depth scenes).
+SYNTHETIC_POINTS_FRACTION: float = 0.02
+
+
+def split_points_by_blocks(xyz: np.ndarray, *, blocks_per_axis: int = SPLIT_BLOCKS_PER_AXIS,
+                           fractions: Sequence[float] = SPLIT_FRACTIONS, seed: int = SPLIT_SEED) -> np.ndarray:
+    """Role (FIT, CALIBRATE or SCORE) of every point [P, 3] -> [P] int8, by blocks of space (module doc).
+
+    Every block goes wholly to one role. Raises ValueError for an empty or non-finite point set,
+    fractions that are negative or do not sum to 1, or fewer than 1 block per axis.
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or xyz.shape[0] == 0:
+        raise ValueError(f"split_points_by_blocks needs points [P, 3] with P > 0, got shape {xyz.shape}")
+    if not np.isfinite(xyz).all():
+        raise ValueError("split_points_by_blocks: points contain NaN or inf")
+    frac = np.asarray(fractions, dtype=np.float64)
+    if frac.shape != (3,) or (frac < 0).any() or abs(frac.sum() - 1.0) > 1e-9:
+        raise ValueError(f"fractions must be three non-negative shares summing to 1, got {tuple(fractions)}")
+    if blocks_per_axis < 1:
+        raise ValueError(f"blocks_per_axis must be >= 1, got {blocks_per_axis}")
+    n = int(blocks_per_axis)
+    lo, hi = np.percentile(xyz, SPLIT_EXTENT_PERCENTILES, axis=0)
+    span = np.where(hi > lo, hi - lo, 1.0)
+    cell = np.clip(np.floor((xyz - lo) / span * n), 0, n - 1).astype(np.int64)  # [P, 3]
+    key = (cell[:, 0] * n + cell[:, 1]) * n + cell[:, 2]
+    blocks, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    order = np.random.default_rng(seed).permutation(len(blocks))
+    # walk the shuffled blocks: a block joins the first role whose share is not yet filled
+    targets = np.cumsum(frac) * xyz.shape[0]
+    block_role = np.empty(len(blocks), dtype=np.int8)
+    filled = 0
+    for b in order:
+        role = int(np.searchsorted(targets, filled, side="right"))
+        block_role[b] = min(role, 2)
+        filled += counts[b]
+    return block_role[inverse]
+
+
+@dataclass
+class CapturePoints:
+    """The capture's surface points and their roles.
+
+    Attributes:
+        xyz: [P, 3] float64 world points.
+        roles: [P] int8 FIT / CALIBRATE / SCORE.
+        source: "colmap" (structure from motion) or "synthetic" (stand-in, see module doc).
+        visible: per view, the indices of the points the view observed (COLMAP tracks, or the
+            view a stand-in point came from); None: decide by a z-buffer.
+        colmap: the ColmapPoints when read from COLMAP (tracks), else None.
+    """
+
+    xyz: np.ndarray
+    roles: np.ndarray
+    source: str
+    visible: list[np.ndarray] | None = None
+    colmap: object | None = None
+
+    def counts(self) -> dict[str, int]:
+        return {name: int((self.roles == r).sum()) for r, name in ROLE_NAMES.items()}
+
+
+def synthetic_capture_points(dataset, *, fraction: float = SYNTHETIC_POINTS_FRACTION,
+                             seed: int = SPLIT_SEED) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Stand-in SfM points of a dense-depth scene: a seeded ``fraction`` of every training view's
+    surface pixels, back-projected at the pixel centre. Returns (xyz [P, 3], per-view visible
+    point indices; only training views see points)."""
+    from .cameras import camera_to_world, intrinsics_3x3
+
+    if dataset.depths is None:
+        raise ValueError(f"{dataset.root}: no dense depth to take stand-in capture points from")
+    rng = np.random.default_rng(seed)
+    K = intrinsics_3x3(dataset.cameras).double()
+    c2w = camera_to_world(dataset.cameras).double()
+    xyz, visible, start = [], [np.zeros(0, dtype=np.int64) for _ in range(dataset.num_views)], 0
+    for v in dataset.train_indices:
+        depth = dataset.depths[v].double()
+        rows, cols = torch.nonzero(depth > 0, as_tuple=True)
+        take = rng.random(rows.numel()) < fraction
+        rows, cols = rows[torch.from_numpy(take)], cols[torch.from_numpy(take)]
+        z = depth[rows, cols]
+        uv1 = torch.stack([cols.double() + 0.5, rows.double() + 0.5, torch.ones_like(z)], dim=-1)
+        cam = (torch.linalg.solve(K[v], uv1.T).T) * z[:, None]
+        world = cam @ c2w[v, :3, :3].T + c2w[v, :3, 3]
+        xyz.append(world.numpy())
+        visible[v] = np.arange(start, start + len(z), dtype=np.int64)
+        start += len(z)
+    return np.concatenate(xyz) if xyz else np.zeros((0, 3)), visible
+
+
+def load_capture_points(dataset) -> CapturePoints | None:
+    """The capture points of a dataset: COLMAP points (``<root>/sparse/0/points3D.bin``) when
+    present, stand-in points for a dense-depth scene, else None. Roles from
+    ``split_points_by_blocks``."""
+    from .data.colmap import read_points3d_binary
+    from .eval.colmap_depth import points_file, track_visibility
+
+    path = points_file(dataset.root)
+    if path.is_file():
+        pts = read_points3d_binary(path)
+        if len(pts.xyz) == 0:
+            return None
+        visible = track_visibility(pts, dataset.num_views)
+        return CapturePoints(pts.xyz, split_points_by_blocks(pts.xyz), "colmap", visible, pts)
+    if getattr(dataset, "depths", None) is not None:
+        xyz, visible = synthetic_capture_points(dataset)
+        if len(xyz) == 0:
+            return None
+        return CapturePoints(xyz, split_points_by_blocks(xyz), "synthetic", visible)
+    return None
+
+
+def sparse_depth_for_role(dataset, points: CapturePoints, views: Sequence[int], role: int) -> dict:
+    """{view: SparseDepth} of the points of one ``role`` in ``views`` (nearest point per pixel).
+
+    COLMAP points use their tracks when the image-id match checks out for these views
+    (``eval.colmap_depth.sparse_depth_for_dataset``), stand-in points the view they came from;
+    otherwise a z-buffer."""
+    from .eval.colmap_depth import project_sparse_depth, sparse_depth_for_dataset
+
+    views = [int(v) for v in views]
+    if points.colmap is not None:
+        full = sparse_depth_for_dataset(dataset, views, points=points.colmap)
+    else:
+        full = project_sparse_depth(dataset.cameras, points.xyz, views, visible=points.visible,
+                                    visibility_name=points.source)
+    return {v: restrict_sparse_depth(sd, points.roles[sd.point_index] == role) for v, sd in full.items()}
+
+
+def restrict_sparse_depth(sd, keep: np.ndarray):
+    """A SparseDepth with only the entries where ``keep`` [M] is True."""
+    from dataclasses import replace
+
+    keep = np.asarray(keep, dtype=bool)
+    return replace(sd, rows=sd.rows[keep], cols=sd.cols[keep], uv=sd.uv[keep], depth=sd.depth[keep],
+                   point_index=sd.point_index[keep])
