@@ -130,6 +130,8 @@ def cmd_demo(args: argparse.Namespace) -> None:
 EXTRA_COMMANDS = {
     "export": ("stochastic_fields.products.cli", "Export depth maps, uncertainty maps and point clouds of a trained run."),
     "bench": ("stochastic_fields.bench", "Speed-against-error benchmark (see benchmarks/)."),
+    "calibrate": ("stochastic_fields.calibration",
+                  "Fit a run's depth-uncertainty recalibration from its capture points (calibration.json)."),
 }
 
 
