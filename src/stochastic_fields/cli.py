@@ -56,8 +56,32 @@ def cmd_train(args: argparse.Namespace) -> None:
     run_dir = Path(args.out)
     cfg = experiment_from_args(args, run_dir)
     dataset = load_run_dataset(cfg, run_dir)
-    Trainer(cfg, run_dir, dataset).train(progress=not args.quiet)
+    model = Trainer(cfg, run_dir, dataset).train(progress=not args.quiet)
     print(f"trained: {run_dir / 'checkpoint.pt'}")
+    _calibrate_after_training(run_dir, model, dataset)
+
+
+def _calibrate_after_training(run_dir: Path, model, dataset):
+    """Fit the depth recalibration of an S-NeRF run from its capture points (calibration.json);
+    a scene without enough of them keeps the raw std (said, not an error). Returns the calibration or None."""
+    from .calibration import calibrate_run, describe
+
+    if not getattr(model, "accepts_depth", False):
+        return None
+    try:
+        calibration = calibrate_run(run_dir, model=model, dataset=dataset)
+    except ValueError as exc:
+        print(f"depth uncertainty not recalibrated: {exc}")
+        return None
+    print(f"depth uncertainty recalibrated ({run_dir / 'calibration.json'}): {describe(calibration)}")
+    return calibration
+
+
+def _run_calibration(args: argparse.Namespace):
+    """The run's calibration.json unless --raw-uncertainty."""
+    from .calibration import load_run_calibration
+
+    return None if args.raw_uncertainty else load_run_calibration(Path(args.run))
 
 
 def _apply_render_overrides(model, args: argparse.Namespace) -> None:
@@ -75,7 +99,8 @@ def cmd_render(args: argparse.Namespace) -> None:
     _apply_render_overrides(model, args)
     views = _parse_views(args.views, dataset)
     out = Path(args.out) if args.out else Path(args.run) / "renders"
-    evaluate(model, dataset, out, views=views, num_draws=args.num_draws, progress=not args.quiet)
+    evaluate(model, dataset, out, views=views, num_draws=args.num_draws, progress=not args.quiet,
+             calibration=_run_calibration(args))
     print(f"rendered {len(views)} views into {out / 'views'}")
 
 
@@ -89,7 +114,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
     views = _parse_views(args.views, dataset)
     out = Path(args.out) if args.out else Path(args.run)
     result = evaluate(model, dataset, out, views=views, num_draws=args.num_draws, progress=not args.quiet,
-                      write_products=not args.no_products)
+                      write_products=not args.no_products, calibration=_run_calibration(args))
     _print_summary(result, f"{cfg.method} on {dataset.name}: {len(views)} views, K={result['num_draws']}")
     print(f"metrics: {out / 'metrics.json'}")
 
@@ -114,8 +139,9 @@ def cmd_demo(args: argparse.Namespace) -> None:
     t0 = time.perf_counter()
     dataset = load_run_dataset(cfg, run_dir)
     model = Trainer(cfg, run_dir, dataset).train(progress=not args.quiet)
+    calibration = _calibrate_after_training(run_dir, model, dataset)
     t_train = time.perf_counter() - t0
-    result = evaluate(model, dataset, run_dir, progress=not args.quiet)
+    result = evaluate(model, dataset, run_dir, progress=not args.quiet, calibration=calibration)
     wall = time.perf_counter() - t0
     result["wall_time_s"] = {"train_and_data": round(t_train, 1), "total": round(wall, 1)}
     from .io_utils import atomic_write_text
@@ -157,6 +183,9 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--colour-estimator", choices=COLOUR_ESTIMATORS, default=None,
                        help="S-NeRF colour statistics: 'draws' (SPEC 3) or 'rao_blackwell' (density draws "
                             "only, colour noise integrated exactly; default: the run's render.colour_estimator).")
+        p.add_argument("--raw-uncertainty", action="store_true",
+                       help="Ignore the run's calibration.json: depth_std is the raw rendered std (by default the "
+                            "recalibrated std, with the raw one kept as depth_std_raw).")
         p.add_argument("--quiet", action="store_true", help="No progress bars.")
         if name == "eval":
             p.add_argument("--no-products", action="store_true", help="Only metrics, no per-view files.")

@@ -1,0 +1,201 @@
+"""Capture points (spatial split), the sparse-depth likelihood and the depth recalibration,
+against float64 loops, gradcheck, Monte-Carlo samples with known miscalibration and geometry."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy import stats
+
+from stochastic_fields.calibration import (CALIBRATION_LEVELS, ONE_SIGMA_LEVEL, QuantileCalibration, RunCalibration,
+                                           apply_depth_calibration, standardised_errors)
+from stochastic_fields.capture_points import (CALIBRATE, FIT, SCORE, SPLIT_BLOCKS_PER_AXIS, split_points_by_blocks)
+from stochastic_fields.constants import DEPTH_MIXTURE_WEIGHT_FLOOR
+from stochastic_fields.eval import metrics as M
+from stochastic_fields.losses import termination_depth_nll
+
+
+# ----------------------------------------------------------------------------- depth likelihood
+def _nll_loop(weights, t_mids, deltas, target, rho) -> float:
+    """float64 triple loop of -1/(R K) sum_{r,k} log sum_i max(w, floor) N(t* | t_i, s_i^2)."""
+    R, K, S = weights.shape
+    total = 0.0
+    for r in range(R):
+        for k in range(K):
+            mix = 0.0
+            for i in range(S):
+                var = deltas[r, i] ** 2 / 12 + (rho * target[r]) ** 2
+                dens = math.exp(-0.5 * (target[r] - t_mids[r, i]) ** 2 / var) / math.sqrt(2 * math.pi * var)
+                mix += max(weights[r, k, i], DEPTH_MIXTURE_WEIGHT_FLOOR) * dens
+            total -= math.log(mix)
+    return total / (R * K)
+
+
+def test_termination_depth_nll_matches_float64_loop():
+    g = torch.Generator().manual_seed(0)
+    R, K, S = 5, 3, 7
+    edges = torch.sort(torch.rand(R, S + 1, generator=g, dtype=torch.float64) * 10 + 1, dim=-1).values
+    t_mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
+    w = torch.rand(R, K, S, generator=g, dtype=torch.float64)
+    w = w / w.sum(-1, keepdim=True) * 0.9
+    w[0, 0] = 0.0  # an empty trajectory: only the floor remains
+    target = t_mids[:, 3] + 0.3
+    got = termination_depth_nll(w, t_mids, deltas, target, 0.01).item()
+    ref = _nll_loop(w.numpy(), t_mids.numpy(), deltas.numpy(), target.numpy(), 0.01)
+    assert got == pytest.approx(ref, rel=1e-10)
+
+
+def test_termination_depth_nll_gradcheck_and_direction():
+    g = torch.Generator().manual_seed(1)
+    R, K, S = 3, 2, 6
+    t_mids = torch.linspace(1, 6, S, dtype=torch.float64).expand(R, S).clone()
+    deltas = torch.ones(R, S, dtype=torch.float64)
+    w = (torch.rand(R, K, S, generator=g, dtype=torch.float64) * 0.15 + 0.01).requires_grad_()
+    target = torch.tensor([2.1, 3.4, 5.0], dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda w: termination_depth_nll(w, t_mids, deltas, target, 0.02), (w,))
+    # the gradient moves mass towards the sample nearest the surface: most negative there
+    termination_depth_nll(w, t_mids, deltas, target, 0.02).backward()
+    nearest = (t_mids - target[:, None]).abs().argmin(-1)
+    assert torch.equal(w.grad.argmin(-1), nearest[:, None].expand(R, K))
+
+
+def test_termination_depth_nll_hard_cases_finite():
+    S = 64
+    t_mids = torch.linspace(1, 100, S).expand(4, S).clone()
+    deltas = torch.full((4, S), 99 / S)
+    w = torch.zeros(4, 2, S)
+    w[1, :, 10] = 1.0  # opaque wall far from the target
+    w[2, :, :] = 1e-30  # denormal weights
+    w[3, :, 20] = 1.0  # wall at the target
+    w.requires_grad_()
+    target = torch.tensor([50.0, 80.0, 1e-3, float(t_mids[0, 20])])
+    loss = termination_depth_nll(w, t_mids, deltas, target, 0.01)
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(w.grad).all()
+    per_ray = [termination_depth_nll(w[r:r + 1].detach(), t_mids[r:r + 1], deltas[r:r + 1], target[r:r + 1], 0.01)
+               for r in range(4)]
+    assert per_ray[3] < per_ray[0]  # the wall at the surface explains it better than no mass at all
+
+
+# ----------------------------------------------------------------------------- spatial split
+def test_split_points_by_blocks_roles_blocks_and_shares():
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(size=(20000, 3)) * [3.0, 1.0, 10.0] + [0, 0, 40]
+    roles = split_points_by_blocks(xyz)
+    assert roles.dtype == np.int8 and set(np.unique(roles)) == {FIT, CALIBRATE, SCORE}
+    shares = np.bincount(roles, minlength=3) / len(roles)
+    assert shares == pytest.approx([0.4, 0.2, 0.4], abs=0.08)  # whole blocks: close to, not exactly, the shares
+    # every block belongs wholly to one role (recompute the block of each point)
+    n = SPLIT_BLOCKS_PER_AXIS
+    lo, hi = np.percentile(xyz, (1, 99), axis=0)
+    cell = np.clip(np.floor((xyz - lo) / (hi - lo) * n), 0, n - 1).astype(int)
+    key = (cell[:, 0] * n + cell[:, 1]) * n + cell[:, 2]
+    for k in np.unique(key):
+        assert len(np.unique(roles[key == k])) == 1
+    assert np.array_equal(roles, split_points_by_blocks(xyz))  # deterministic
+    assert not np.array_equal(roles, split_points_by_blocks(xyz, seed=1))
+
+
+@pytest.mark.parametrize("xyz, kwargs, message", [
+    (np.zeros((0, 3)), {}, "P > 0"),
+    (np.zeros((5, 2)), {}, "shape"),
+    (np.array([[0.0, 0.0, np.nan]]), {}, "NaN"),
+    (np.zeros((5, 3)), {"fractions": (0.5, 0.5, 0.5)}, "summing to 1"),
+    (np.zeros((5, 3)), {"fractions": (1.2, -0.2, 0.0)}, "non-negative"),
+    (np.zeros((5, 3)), {"blocks_per_axis": 0}, "blocks_per_axis"),
+])
+def test_split_points_by_blocks_rejects_bad_input(xyz, kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        split_points_by_blocks(xyz, **kwargs)
+
+
+# ----------------------------------------------------------------------------- recalibration
+def _coverage(err, std, levels, scale=None):
+    return M.calibration_curve(err, np.zeros_like(err), std, levels=levels, interval_scale=scale).coverage
+
+
+def test_quantile_calibration_recovers_a_known_scale():
+    """Errors twice as large as the predicted std: s(p) = 2 at every level, and the recalibrated
+    intervals hold their level on fresh samples (within 3 binomial standard errors)."""
+    rng = np.random.default_rng(0)
+    std = rng.uniform(0.5, 3.0, size=40000)
+    err = rng.normal(size=std.size) * 2.0 * std
+    cal = QuantileCalibration.fit(standardised_errors(err, np.zeros_like(err), std), quantity="depth_std")
+    assert cal.std_scale == pytest.approx(2.0, rel=0.03)
+    assert cal.scales[5:-5] == pytest.approx(np.full(cal.scales[5:-5].shape, 2.0), rel=0.05)
+    std2 = rng.uniform(0.5, 3.0, size=40000)
+    err2 = rng.normal(size=std2.size) * 2.0 * std2
+    levels = np.array([ONE_SIGMA_LEVEL, 0.9, 0.95])
+    raw = _coverage(err2, std2, levels)
+    fixed = _coverage(err2, std2 * cal.std_scale, levels, cal.relative_scale)
+    tol = 3 * np.sqrt(levels * (1 - levels) / err2.size) + 0.005
+    assert (raw < levels - 0.2).all()  # overconfident before
+    assert np.abs(fixed - levels) == pytest.approx(np.zeros(3), abs=tol.max())
+
+
+def test_quantile_calibration_fixes_heavy_tails_level_by_level():
+    """Laplace errors with a Gaussian-looking std: one scale cannot fit 68% and 95% at once, the
+    level-dependent map does (the synthetic scene's 42% / 97% pattern)."""
+    rng = np.random.default_rng(1)
+    std = np.ones(60000)
+    err = rng.laplace(scale=1.0, size=std.size)
+    cal = QuantileCalibration.fit(np.abs(err), quantity="depth_std")
+    # exact: Q_p(|Laplace|) = -ln(1 - p)
+    for p in (0.5, ONE_SIGMA_LEVEL, 0.95):
+        assert float(cal.scale_at(p)) == pytest.approx(-math.log(1 - p) / stats.norm.ppf((1 + p) / 2), rel=0.03)
+    err2 = rng.laplace(scale=1.0, size=std.size)
+    levels = np.array([ONE_SIGMA_LEVEL, 0.95])
+    single = _coverage(err2, std * cal.std_scale, levels)
+    mapped = _coverage(err2, std * cal.std_scale, levels, cal.relative_scale)
+    assert abs(single[1] - 0.95) > 0.015  # a single scale misses the 95% level
+    assert mapped == pytest.approx(levels, abs=0.01)
+
+
+def test_quantile_calibration_round_trip_and_validation():
+    cal = QuantileCalibration.fit(np.linspace(0.01, 3.0, 500), quantity="depth_std", source="test")
+    back = QuantileCalibration.from_dict(cal.to_dict())
+    assert np.array_equal(back.scales, cal.scales) and back.num_samples == 500 and back.source == "test"
+    assert np.array_equal(back.levels, CALIBRATION_LEVELS)
+    with pytest.raises(ValueError, match="at least"):
+        QuantileCalibration.fit(np.ones(10), quantity="depth_std")
+    with pytest.raises(ValueError, match="finite"):
+        QuantileCalibration.fit(np.r_[np.ones(60), np.nan], quantity="depth_std")
+    bad = cal.to_dict()
+    bad["scales"] = [-1.0] * len(bad["levels"])
+    with pytest.raises(ValueError, match="calibration.json: depth"):
+        RunCalibration.from_dict({"depth": bad}, where="calibration.json")
+    with pytest.raises(ValueError, match="malformed"):
+        QuantileCalibration.from_dict({"levels": [0.5]}, where="x")
+
+
+def test_apply_depth_calibration_keeps_the_raw_std():
+    cal = RunCalibration(depth=QuantileCalibration("depth_std", CALIBRATION_LEVELS,
+                                                   np.full(CALIBRATION_LEVELS.shape, 2.5), 1000))
+    products = {"depth_std": np.array([[1.0, 2.0]], np.float32), "depth_mean": np.ones((1, 2), np.float32)}
+    out = apply_depth_calibration(products, cal)
+    assert np.array_equal(out["depth_std_raw"], products["depth_std"])
+    assert out["depth_std"] == pytest.approx(np.array([[2.5, 5.0]]))
+    assert apply_depth_calibration(products, None) == products
+
+
+# ----------------------------------------------------------------------------- capture-point rays
+def test_training_depth_rays_hit_the_stand_in_points(tiny_scene):
+    """The synthetic scene's stand-in capture points: the FIT rays at t* land on the points'
+    world positions (pixel-centre back-projection), and every ray comes from a training view."""
+    from stochastic_fields.capture_points import load_capture_points, sparse_depth_for_role
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.trainer import TrainingDepth
+
+    ds = load_dataset(tiny_scene, split_every=5)
+    pts = load_capture_points(ds)
+    assert pts.source == "synthetic" and pts.counts()["fit"] > 0
+    per_view = sparse_depth_for_role(ds, pts, ds.train_indices, FIT)
+    xyz = np.concatenate([pts.xyz[sd.point_index] for sd in per_view.values()])
+    td = TrainingDepth.from_dataset(ds, torch.device("cpu"))
+    hit = (td.rays.origins + td.target_t[:, None] * td.rays.directions).double().numpy()
+    assert len(hit) == len(xyz)
+    np.testing.assert_allclose(hit, xyz, atol=2e-4 * np.abs(xyz).max())
+    assert all(v in ds.train_indices for v in per_view)
