@@ -31,6 +31,8 @@ ROWS: tuple[tuple[str, str, tuple[tuple[str, object], ...], str], ...] = (
     ("base", "snerf_predictive", (), "S-NeRF + learned pixel noise, independent noise per point (the paper)"),
     ("shared_noise", "snerf_predictive", (("render.shared_noise", True),),
      "noise shared along each ray per draw (trajectory-consistent draws), training and rendering"),
+    ("rao_blackwell", "snerf_predictive", (("render.colour_estimator", "rao_blackwell"),),
+     "Rao-Blackwellised colour statistics at render time (less Monte-Carlo noise in the variance)"),
     ("depth", "snerf_predictive", (("loss.lambda_depth", 0.1),),
      "+ sparse-depth likelihood of the FIT capture points (weight 0.1)"),
     ("depth_shared_noise", "snerf_predictive", (("loss.lambda_depth", 0.1), ("render.shared_noise", True)),
