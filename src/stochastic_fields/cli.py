@@ -130,6 +130,10 @@ def cmd_demo(args: argparse.Namespace) -> None:
 EXTRA_COMMANDS = {
     "export": ("stochastic_fields.products.cli", "Export depth maps, uncertainty maps and point clouds of a trained run."),
     "bench": ("stochastic_fields.bench", "Speed-against-error benchmark (see benchmarks/)."),
+    "occupancy": ("stochastic_fields.products.planner_cli", "Occupancy probabilities of a run (npz + OctoMap .ot)."),
+    "free-path": ("stochastic_fields.products.free_path_cli", "P(collision-free) of segments or a path, with its error."),
+    "rosbag": ("stochastic_fields.products.rosbag", "ROS 2 bag (depth, std, CameraInfo, colour, PointCloud2) of an export."),
+    "rerun": ("stochastic_fields.products.rerun_log", "rerun recording (.rrd) of an export."),
 }
 
 
