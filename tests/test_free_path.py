@@ -159,3 +159,31 @@ def test_occupancy_map_slab_npz_and_octomap(tmp_path):
         want = expect if 1.0 <= centre[0] < 2.0 else occ.min_probability
         assert node.getOccupancy() == pytest.approx(want, rel=1e-4)
     assert tree.getNumLeafNodes() < 24 * 8 * 8  # free space pruned into larger cells
+
+
+def test_planner_goes_round_a_wall_through_its_gap():
+    """A wall x in [1, 1.25) with a gap at y > 0.25: the plan passes the gap, its straight
+    segments are free with probability 1, and a straight line through the wall is not."""
+    from stochastic_fields.products.plan import plan_voxel_path, simplify_voxel_path
+
+    class WallWithGap:
+        def density_params(self, points):
+            wall = (points[..., 0] >= 1.0) & (points[..., 0] < 1.25) & (points[..., 1] < 0.25)
+            loc = torch.where(wall, torch.full_like(points[..., 0], 1e3), torch.full_like(points[..., 0], -1e3))
+            return loc, torch.ones_like(loc)
+
+    region = SceneRegion("aabb", torch.tensor([[0.0, -1.0, -0.25], [2.0, 1.0, 0.25]]))
+    occ = occupancy_map(WallWithGap(), region, 0.125)
+    start, goal = np.array([0.3, -0.8, 0.0]), np.array([1.8, -0.8, 0.0])
+    vox, risk = plan_voxel_path(occ, start, goal)
+    centres = occ.origin + (vox + 0.5) * occ.voxel_size
+    assert risk < 1e-6 and centres[:, 1].max() > 0.25  # through the gap, no risk taken
+    way = simplify_voxel_path(occ, vox)
+    whole, parts = path_free_probability(WallWithGap(), torch.from_numpy(way), num_draws=32, step=0.05,
+                                         generator=torch.Generator().manual_seed(0))
+    assert whole.probability.item() == 1.0 and torch.all(parts.probability == 1)
+    direct = segment_free_probability(WallWithGap(), torch.from_numpy(start)[None], torch.from_numpy(goal)[None],
+                                      num_draws=32, step=0.05, generator=torch.Generator().manual_seed(0))
+    assert direct.probability.item() == 0.0
+    with pytest.raises(ValueError, match="outside the known region"):
+        plan_voxel_path(occ, np.array([5.0, 0, 0]), goal)
