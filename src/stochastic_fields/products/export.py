@@ -294,6 +294,7 @@ def write_view_files(out_dir: Path, name: str, products: DepthProducts, opts: Ex
                 np.savez_compressed(fh, prob_depth_greater=vol,
                                     thresholds=np.asarray(opts.free_space_thresholds, np.float32),
                                     num_draws=np.int64(products.num_draws), units=np.str_(products.units),
+                                    intrinsics=products.intrinsics, world_to_camera=products.world_to_camera,
                                     conventions=np.str_("prob_depth_greater[t, i, j] = fraction of the K draws whose "
                                                         "camera-z depth at pixel (i, j) exceeds thresholds[t]; "
                                                         + CONVENTIONS))
@@ -433,6 +434,9 @@ def export_views(model, specs: Sequence[ViewSpec], out: Path, opts: ExportOption
                  run_name: str = "") -> dict:
     """Render, write and summarise ``specs`` into ``out`` (see the module doc)."""
     opts.validate()
+    if "ros" in opts.formats and opts.metres_per_unit is None:
+        raise ValueError("export_views: --known-distance is resolved against the dataset's cameras by export_run; "
+                         "pass metres_per_unit here")
     out = Path(out)
     device = next(model.parameters()).device
     generator = torch.Generator(device=device).manual_seed(opts.seed)
