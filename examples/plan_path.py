@@ -32,6 +32,8 @@ def main() -> None:
     ap.add_argument("--start", required=True, help="x,y,z (world, scene units)")
     ap.add_argument("--goal", required=True, help="x,y,z")
     ap.add_argument("--num-draws", type=int, default=256)
+    ap.add_argument("--blocking-length", type=float, default=None,
+                    help="Occupied = a crossing of this length is blocked with opacity >= 0.5 (default: the voxel).")
     ap.add_argument("--png", type=Path, default=None, help="Write a top-down picture of the map and the path.")
     args = ap.parse_args()
     torch.set_num_threads(1)
@@ -42,7 +44,7 @@ def main() -> None:
     H, W = image_size(ds.cameras)
     voxel = footprint_voxel_size(model.region, intrinsics_3x3(ds.cameras), ds.cameras.extrinsics, H, W, ds.near, ds.far,
                                  max_cells=500_000)
-    occ = occupancy_map(model.field, model.region, voxel, progress=True)
+    occ = occupancy_map(model.field, model.region, voxel, blocking_length=args.blocking_length, progress=True)
     print(f"occupancy: voxel {voxel:.4f}, grid {occ.shape}, {int((occ.probability > 0.5).sum())} voxels with P > 0.5")
     vox, risk = plan_voxel_path(occ, start, goal)
     way = simplify_voxel_path(occ, vox)

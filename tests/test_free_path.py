@@ -187,3 +187,18 @@ def test_planner_goes_round_a_wall_through_its_gap():
     assert direct.probability.item() == 0.0
     with pytest.raises(ValueError, match="outside the known region"):
         plan_voxel_path(occ, np.array([5.0, 0, 0]), goal)
+
+
+def test_blocking_length_sets_the_threshold():
+    """tau = log 2 / ell: a diffuse slab (density N(3, 0.5^2)) is not blocked at voxel scale
+    (0.125 -> tau 5.5) but is for a 0.5-long crossing (tau 1.39)."""
+    region = SceneRegion("aabb", torch.tensor([[0.0, -0.5, -0.5], [3.0, 0.5, 0.5]]))
+    fine = occupancy_map(SlabField(3.0, 0.5), region, 0.125, min_probability=0.0)
+    long = occupancy_map(SlabField(3.0, 0.5), region, 0.125, blocking_length=0.5)
+    assert fine.density_threshold == pytest.approx(math.log(2) / 0.125)
+    np.testing.assert_allclose(fine.probability[(fine.centres()[:, 0] >= 1) & (fine.centres()[:, 0] < 2)], stats.norm.sf((math.log(2) / 0.125 - 3.0) / 0.5), rtol=1e-5)
+    np.testing.assert_allclose(long.probability, stats.norm.sf((math.log(2) / 0.5 - 3.0) / 0.5), rtol=1e-5)
+    slab = (fine.centres()[:, 0] >= 1) & (fine.centres()[:, 0] < 2)
+    assert fine.probability[slab].max() < 0.01 < 0.99 < long.probability.min()
+    with pytest.raises(ValueError, match="blocking length"):
+        blocking_threshold(0.0)

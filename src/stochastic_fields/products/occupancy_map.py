@@ -8,11 +8,14 @@ for a density threshold tau >= 0 (closed form, no sampling):
 
     P(alpha(x) > tau) = P(mu + s eps > tau) = Phi((mu - tau) / s)
 
-The default threshold asks "does a ray crossing this voxel get blocked": a straight crossing of
-length ``voxel_size`` is blocked with probability at least ``blocked_opacity`` (default 0.5)
-when ``1 - exp(-alpha voxel_size) >= blocked_opacity``, i.e.
+The default threshold asks "would a straight crossing of length ell through density like this
+be blocked": opacity ``1 - exp(-alpha ell) >= blocked_opacity`` (default 0.5), i.e.
 
-    tau = -log(1 - blocked_opacity) / voxel_size.
+    tau = -log(1 - blocked_opacity) / ell,    ell = blocking_length (default: the voxel size).
+
+A field whose surfaces are thinner than a voxel passes the voxel-size test; a diffuse one (a
+briefly trained model spreads a surface over several voxels with densities of a few per unit)
+does not, and needs the planner's own length (robot size, clearance) as ``blocking_length``.
 
 Resolution: from the images' footprint (the world length one pixel covers at the frustum points
 inside the region, median over views: depth / focal length), times ``pixels_per_voxel``, and
@@ -69,12 +72,14 @@ def probability_density_exceeds(density_loc: Tensor, density_scale: Tensor, thre
     return torch.special.ndtr((density_loc - threshold) / density_scale)
 
 
-def blocking_threshold(voxel_size: float, blocked_opacity: float = BLOCKED_OPACITY) -> float:
-    """Density tau above which one crossing of length ``voxel_size`` has opacity >= ``blocked_opacity``:
-    ``tau = -log(1 - blocked_opacity) / voxel_size`` (log(2) / voxel_size for 0.5)."""
+def blocking_threshold(length: float, blocked_opacity: float = BLOCKED_OPACITY) -> float:
+    """Density tau above which one straight crossing of ``length`` has opacity >= ``blocked_opacity``:
+    ``tau = -log(1 - blocked_opacity) / length`` (log(2) / length for 0.5)."""
     if not 0.0 < blocked_opacity < 1.0:
         raise ValueError(f"blocked_opacity must lie in (0, 1), got {blocked_opacity}")
-    return -math.log1p(-blocked_opacity) / voxel_size
+    if not (length > 0 and math.isfinite(length)):
+        raise ValueError(f"blocking length must be a positive length, got {length}")
+    return -math.log1p(-blocked_opacity) / length
 
 
 def region_world_bounds(region) -> tuple[np.ndarray, np.ndarray]:
@@ -154,19 +159,24 @@ class OccupancyMap:
 
 @torch.no_grad()
 def occupancy_map(field, region, voxel_size: float, *, density_threshold: float | None = None,
-                  blocked_opacity: float = BLOCKED_OPACITY, min_probability: float = OCCUPANCY_MIN_PROBABILITY,
-                  chunk: int = OCCUPANCY_CHUNK, progress: bool = False) -> OccupancyMap:
+                  blocked_opacity: float = BLOCKED_OPACITY, blocking_length: float | None = None,
+                  min_probability: float = OCCUPANCY_MIN_PROBABILITY, chunk: int = OCCUPANCY_CHUNK,
+                  progress: bool = False) -> OccupancyMap:
     """Evaluate P(occupied) at the centres of a grid over ``region`` (module doc).
 
     Args:
         field: anything with ``density_params(points [N, 3]) -> (loc [N], scale [N])`` (world points).
         region: a SceneRegion (its world AABB is gridded; voxels whose centre is outside are unknown).
         voxel_size: edge length; the origin is floor(lo / voxel_size) * voxel_size.
-        density_threshold: tau (default: :func:`blocking_threshold` of ``voxel_size``).
+        density_threshold: tau (default: :func:`blocking_threshold` of ``blocking_length``,
+            itself defaulting to ``voxel_size``).
     """
     if not voxel_size > 0:
         raise ValueError(f"voxel size must be positive, got {voxel_size}")
-    tau = blocking_threshold(voxel_size, blocked_opacity) if density_threshold is None else float(density_threshold)
+    if density_threshold is None:
+        tau = blocking_threshold(blocking_length if blocking_length is not None else voxel_size, blocked_opacity)
+    else:
+        tau = float(density_threshold)
     lo, hi = region_world_bounds(region)
     origin = np.floor(lo / voxel_size) * voxel_size
     shape = tuple(int(n) for n in np.maximum(np.ceil((hi - origin) / voxel_size).astype(int), 1))
@@ -196,8 +206,9 @@ def occupancy_map(field, region, voxel_size: float, *, density_threshold: float 
 
 OCCUPANCY_CONVENTIONS: str = (
     "probability[n] = P(density > density_threshold) at the centre origin + (indices[n] + 0.5) * voxel_size "
-    "(rectified normal, closed form Phi((mu - tau) / s)); density_threshold = -log(1 - 0.5) / voxel_size unless "
-    "given: a straight crossing of one voxel is blocked with probability >= 0.5; voxels inside the region "
+    "(rectified normal, closed form Phi((mu - tau) / s)); density_threshold = -log(1 - blocked_opacity) / "
+    "blocking_length (default 0.5 and the voxel size): a straight crossing of that length through such density is "
+    "blocked with opacity >= blocked_opacity; voxels inside the region "
     "(inside_region, np.unpackbits(...)[:X*Y*Z].reshape(shape)) that are not listed have P < min_probability; "
     "voxels outside it are unknown; coordinates in the world frame, scene units (x metres_per_unit = metres)")
 
@@ -267,7 +278,8 @@ def occupancy_metadata(occ: OccupancyMap) -> dict:
 
 def occupancy_from_run(run_dir: str | Path, out: str | Path, *, voxel_size: float | None = None,
                        pixels_per_voxel: float = OCCUPANCY_PIXELS_PER_VOXEL, max_cells: int = OCCUPANCY_MAX_CELLS,
-                       blocked_opacity: float = BLOCKED_OPACITY, metres_per_unit: float | None = None,
+                       blocked_opacity: float = BLOCKED_OPACITY, blocking_length: float | None = None,
+                       density_threshold: float | None = None, metres_per_unit: float | None = None,
                        octomap: bool = True, device: str | None = None, progress: bool = True) -> dict:
     """``stochastic-fields occupancy``: the occupancy map of a trained run into folder ``out``
     (``occupancy.npz``, ``occupancy.ot``, ``occupancy.json``). Returns the metadata."""
@@ -284,7 +296,8 @@ def occupancy_from_run(run_dir: str | Path, out: str | Path, *, voxel_size: floa
         voxel_size = footprint_voxel_size(model.region, intrinsics_3x3(dataset.cameras).to(dev),
                                           dataset.cameras.extrinsics.to(dev), H, W, dataset.near.to(dev),
                                           dataset.far.to(dev), pixels_per_voxel=pixels_per_voxel, max_cells=max_cells)
-    occ = occupancy_map(model.field, model.region, voxel_size, blocked_opacity=blocked_opacity, progress=progress)
+    occ = occupancy_map(model.field, model.region, voxel_size, blocked_opacity=blocked_opacity,
+                        blocking_length=blocking_length, density_threshold=density_threshold, progress=progress)
     occ.metres_per_unit = metres_per_unit
     out = Path(out)
     files = [write_occupancy_npz(out / "occupancy.npz", occ)]

@@ -21,7 +21,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="Pixels a voxel spans where the cameras see it (default 2).")
     p.add_argument("--max-cells", type=int, default=OCCUPANCY_MAX_CELLS, help="Most voxels (coarser beyond).")
     p.add_argument("--blocked-opacity", type=float, default=BLOCKED_OPACITY,
-                   help="Occupied = one voxel crossing has at least this opacity (default 0.5).")
+                   help="Occupied = a straight crossing of --blocking-length has at least this opacity (default 0.5).")
+    p.add_argument("--blocking-length", type=float, default=None,
+                   help="Length of that crossing (scene units; default: the voxel size). Use the robot's size or "
+                        "clearance when the model's surfaces are diffuse.")
+    p.add_argument("--density-threshold", type=float, default=None,
+                   help="Occupied = density above this (overrides --blocked-opacity/--blocking-length).")
     p.add_argument("--metres-per-unit", type=float, default=None,
                    help="Metres per scene unit (the .ot file is then in metres; recorded in the npz).")
     p.add_argument("--no-octomap", action="store_true", help="Skip the OctoMap .ot file.")
@@ -35,6 +40,7 @@ def run(args: argparse.Namespace) -> None:
         raise ValueError(f"--voxel-size must be positive, got {args.voxel_size}")
     meta = occupancy_from_run(args.run, out, voxel_size=args.voxel_size, pixels_per_voxel=args.pixels_per_voxel,
                               max_cells=args.max_cells, blocked_opacity=args.blocked_opacity,
+                              blocking_length=args.blocking_length, density_threshold=args.density_threshold,
                               metres_per_unit=args.metres_per_unit, octomap=not args.no_octomap,
                               device=args.device, progress=not args.quiet)
     print(f"occupancy of {args.run} into {out}: voxel {meta['voxel_size']:.4g} {meta['units']}, grid {meta['shape']}, "

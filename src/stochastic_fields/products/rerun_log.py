@@ -112,5 +112,5 @@ def add_arguments(p) -> None:
 def run(args) -> None:
     logged = write_rerun(args.export, args.out)
     points = sum(n for e, n in logged.items() if e.startswith(RERUN_POINTS) or e == "world/fused")
-    print(f"wrote rerun recording {args.out}: {len([e for e in logged if e.count('/') == 2])} cameras, "
+    print(f"wrote rerun recording {args.out}: {len([e for e in logged if e.startswith(RERUN_CAMERAS) and e.count('/') == 2])} cameras, "
           f"{points} points (open with `rerun {args.out}`)")
