@@ -1,6 +1,6 @@
 """Plan a path on a run's occupancy map and print the free-path probability of each segment.
 
-    PYTHONPATH=src python examples/plan_path.py --run runs/demo --start -1.5,-1.5,0.3 --goal 1.5,1.5,0.3
+    PYTHONPATH=src python examples/plan_path.py --run runs/demo --start=-1.6,0,0.3 --goal=1.6,0,0.3 --blocking-length 0.2
 
 1. occupancy map of the run (``stochastic-fields occupancy`` computes the same; P(voxel blocked),
    closed form from the field's rectified normals, resolution from the images' footprint);
@@ -8,7 +8,7 @@
    shortened into straight segments through voxels with P <= 0.01;
 3. P(each segment is free) and P(the whole path is free) from K density trajectories
    (products/free_path.py), with Monte-Carlo errors;
-4. a picture (``--png``): the occupancy map's max-probability projection with the path on top.
+4. a picture (``--png``): the occupancy map at the path's height (max over those layers) with the path.
 """
 
 from __future__ import annotations
@@ -58,20 +58,24 @@ def main() -> None:
         print(f"  segment {s}: {np.round(way[s], 3)} -> {np.round(way[s + 1], 3)}  "
               f"P(free) = {parts.probability[s]:.3f} +- {parts.stderr[s]:.3f}  "
               f"(mean transmittance {parts.transmittance_mean[s]:.3f})")
-    print(f"whole path: P(free) = {whole.probability[0]:.3f} +- {whole.stderr[0]:.3f} (K = {args.num_draws})")
+    print(f"whole path: P(transmittance > 0.5) = {whole.probability[0]:.3f} +- {whole.stderr[0]:.3f} "
+          f"(mean {whole.transmittance_mean[0]:.3f}); P(every segment free) = {whole.every_segment_free[0]:.3f} "
+          f"(K = {args.num_draws})")
     if args.png is not None:
         import matplotlib
 
         matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
-        top = np.nanmax(occ.dense(unknown=np.nan), axis=2)  # max over z
+        zc = occ.origin[2] + (np.arange(occ.shape[2]) + 0.5) * voxel
+        band = (zc >= way[:, 2].min() - voxel) & (zc <= way[:, 2].max() + voxel)  # the path's height
+        top = np.nanmax(occ.dense(unknown=np.nan)[:, :, band], axis=2)
         ext = [occ.origin[0], occ.origin[0] + occ.shape[0] * voxel, occ.origin[1], occ.origin[1] + occ.shape[1] * voxel]
         fig, ax = plt.subplots(figsize=(5, 4.5), dpi=110)
         im = ax.imshow(top.T, origin="lower", extent=ext, cmap="magma", vmin=0, vmax=1)
-        ax.plot(way[:, 0], way[:, 1], "c-o", ms=3, lw=1.5, label=f"P(free) = {whole.probability[0]:.2f}")
+        ax.plot(way[:, 0], way[:, 1], "c-o", ms=3, lw=1.5, label=f"path, P(every segment free) = {whole.every_segment_free[0]:.2f}")
         ax.legend(loc="upper left", fontsize=8)
-        fig.colorbar(im, ax=ax, label="max over z of P(occupied)")
+        fig.colorbar(im, ax=ax, label=f"P(occupied), max over z in [{zc[band].min():.2f}, {zc[band].max():.2f}]")
         ax.set_xlabel("x")
         ax.set_ylabel("y")
         fig.savefig(args.png, bbox_inches="tight")

@@ -102,6 +102,8 @@ def test_path_is_the_product_of_its_segments():
                                          generator=torch.Generator().manual_seed(4))
     np.testing.assert_allclose(whole.transmittance[0].numpy(), parts.transmittance.prod(0).numpy(), rtol=1e-12)
     assert whole.probability.item() <= parts.probability.min().item()
+    every = (parts.transmittance > 0.5).all(0).double().mean().item()
+    assert whole.every_segment_free.item() == pytest.approx(every) and whole.probability.item() <= every
     # shared along the path: both segments of a draw saw the same eps, so their optical depths
     # scale with the lengths inside the slab (0.5 and 0.5)
     np.testing.assert_allclose(parts.transmittance[0].numpy(), parts.transmittance[1].numpy(), rtol=1e-12)

@@ -15,7 +15,10 @@ the spread of tau over draws shrinks as the spacing does (tau averages n indepen
 shared noise does not average out, and is the conservative choice for a planner.
 
 A path (waypoints w_0..w_m) is free in draw k when its whole transmittance ``prod_s T_sk``
-exceeds ``level``; the draws are the same trajectories for every segment.
+exceeds ``level``; the draws are the same trajectories for every segment. A long path through
+faint density (a model's residual "fog") accumulates optical depth, so its whole transmittance can
+fall below the level while every segment passes; ``every_segment_free`` (the fraction of draws in
+which every segment's own transmittance exceeds the level) answers the segment-wise question.
 
 Everything is batched torch on the field's device (CPU or CUDA).
 """
@@ -49,12 +52,15 @@ class FreePathResult:
     transmittance: Tensor
     num_samples: Tensor
     level: float
+    every_segment_free: Tensor | None = None
 
     def to_dict(self) -> dict:
         return {"probability_free": self.probability.tolist(), "stderr": self.stderr.tolist(),
                 "bound_95": self.bound_95.tolist(), "transmittance_mean": self.transmittance_mean.tolist(),
                 "num_samples": self.num_samples.tolist(), "level": self.level,
-                "num_draws": int(self.transmittance.shape[-1])}
+                "num_draws": int(self.transmittance.shape[-1]),
+                **({"every_segment_free": self.every_segment_free.tolist()}
+                   if self.every_segment_free is not None else {})}
 
 
 def free_probability(transmittance: Tensor, level: float) -> tuple[Tensor, Tensor, Tensor]:
@@ -157,4 +163,6 @@ def path_free_probability(field, waypoints: Tensor, *, num_draws: int = FREE_PAT
         n = torch.cat([n_s for _, n_s in taus])
     else:
         tau, n = segment_optical_depths(fn, starts, ends, num_draws=num_draws, step=step, generator=generator)
-    return _result(tau.sum(0, keepdim=True), n.sum(0, keepdim=True), level), _result(tau, n, level)
+    whole = _result(tau.sum(0, keepdim=True), n.sum(0, keepdim=True), level)
+    whole.every_segment_free = (torch.exp(-tau) > level).all(0).to(tau.dtype).mean()[None]
+    return whole, _result(tau, n, level)

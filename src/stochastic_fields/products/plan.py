@@ -69,9 +69,10 @@ def plan_voxel_path(occ: OccupancyMap, start: np.ndarray, goal: np.ndarray, *,
 
 
 def simplify_voxel_path(occ: OccupancyMap, voxels: np.ndarray, *, max_probability: float = 0.01) -> np.ndarray:
-    """World waypoints [W, 3]: greedy shortcuts along the voxel chain [M, 3], a shortcut kept when
-    every voxel its straight line passes (sampled at a quarter voxel) has P <= ``max_probability``
-    or is already on the chain."""
+    """World waypoints [W, 3]: greedy shortcuts along the voxel chain [M, 3]. A shortcut from chain
+    voxel i to j is kept when every voxel its straight line passes (sampled at a quarter voxel) has
+    P <= max(``max_probability``, the largest P of chain voxels i..j): it takes no more risk per
+    voxel than the chain it replaces."""
     dense = occ.dense(unknown=1.0)
     centres = occ.origin + (voxels + 0.5) * occ.voxel_size
     out = [centres[0]]
@@ -83,7 +84,8 @@ def simplify_voxel_path(occ: OccupancyMap, voxels: np.ndarray, *, max_probabilit
             n = int(np.ceil(np.linalg.norm(b - a) / (0.25 * occ.voxel_size))) + 1
             pts = a + np.linspace(0, 1, n)[:, None] * (b - a)
             ijk = np.clip(occ.index_of(pts), 0, np.asarray(occ.shape) - 1)
-            if np.all(dense[tuple(ijk.T)] <= max_probability):
+            allowed = max(max_probability, float(np.max(dense[tuple(voxels[i:j + 1].T)])))
+            if np.all(dense[tuple(ijk.T)] <= allowed):
                 break
             j -= 1
         out.append(centres[j])
