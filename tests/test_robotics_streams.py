@@ -173,3 +173,19 @@ def test_eval_npz_carries_camera_and_units(tmp_path, run_dir, dataset):  # noqa:
     np.testing.assert_allclose(z["world_to_camera"], dataset.cameras.extrinsics[3].double().numpy())
     assert z["intrinsics"].shape == (3, 3) and str(z["units"]) == "scene units"
     assert float(z["far"]) == pytest.approx(float(dataset.far[3]))
+
+
+def test_plan_path_example_runs(tmp_path, run_dir, monkeypatch, capsys):  # noqa: F811
+    """examples/plan_path.py end to end on a run folder: prints the free-path probability of each
+    segment and of the whole path, draws the picture."""
+    import runpy
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "examples" / "plan_path.py"
+    png = tmp_path / "plan.png"
+    monkeypatch.setattr(sys, "argv", [str(script), "--run", str(run_dir), "--start=-1.5,0,0.3", "--goal=1.5,0,0.3",
+                                      "--num-draws", "16", "--png", str(png)])
+    runpy.run_path(str(script), run_name="__main__")
+    out = capsys.readouterr().out
+    assert "segment 0:" in out and "whole path: P(transmittance > 0.5) =" in out and png.is_file()
