@@ -69,7 +69,7 @@ def main() -> None:
 
         zc = occ.origin[2] + (np.arange(occ.shape[2]) + 0.5) * voxel
         band = (zc >= way[:, 2].min() - voxel) & (zc <= way[:, 2].max() + voxel)  # the path's height
-        top = np.nanmax(occ.dense(unknown=np.nan)[:, :, band], axis=2)
+        top = np.fmax.reduce(occ.dense(unknown=np.nan)[:, :, band], axis=2)  # NaN (unknown) only where all are
         ext = [occ.origin[0], occ.origin[0] + occ.shape[0] * voxel, occ.origin[1], occ.origin[1] + occ.shape[1] * voxel]
         fig, ax = plt.subplots(figsize=(5, 4.5), dpi=110)
         im = ax.imshow(top.T, origin="lower", extent=ext, cmap="magma", vmin=0, vmax=1)
