@@ -90,7 +90,7 @@ def test_export_exact_geometry(tmp_path, tiny_scene, dataset, exact_model):
     assert c["pixels"] == 2 * dataset.height * dataset.width
     assert c["after_opacity"] == c["after_filters"] == hits
     assert 0 < c["after_fusion"] < c["after_filters"]
-    assert set(s["files"]) >= {"views/view_001.npz", "views/view_002_depth_mean.png", "views/view_002_depth_q5.json",
+    assert set(s["files"]) >= {"views/view_001.npz", "views/view_002_depth_mean.png", "views/view_002_depth_draw_q5.json",
                                "views/view_001.tiff", "clouds/view_001.ply", "fused.ply", "fused_cloud.png",
                                "views/view_002_free_space.npz"}
     assert all((out / f).is_file() for f in s["files"]) and (out / "summary.json").is_file()
@@ -103,7 +103,7 @@ def test_export_exact_geometry(tmp_path, tiny_scene, dataset, exact_model):
     # quantiles and free space recomputed from the draws the export saved
     z = np.load(out / "views" / "view_001.npz")
     draws = z["depth_draws"].astype(np.float64)
-    np.testing.assert_allclose(z["depth_q5"], np.quantile(draws, 0.05, axis=-1), rtol=1e-6)
+    np.testing.assert_allclose(z["depth_draw_q5"], np.quantile(draws, 0.05, axis=-1), rtol=1e-6)
     np.testing.assert_allclose(z["depth_mean"], draws.mean(-1), rtol=1e-5)
     np.testing.assert_allclose(z["depth_mean"][z["valid"]], dataset.depths[1].numpy()[z["valid"]], rtol=0.05)
     fs = np.load(out / "views" / "view_001_free_space.npz")
@@ -215,7 +215,7 @@ def test_cli_export_of_a_run(tmp_path, run_dir, dataset):
     assert s["views"] == ["view_001", "view_006"] and s["num_draws"] == 8  # the tiny preset's K
     assert s["counts"]["after_opacity"] == 2 * H * W  # min-opacity 0 keeps every pixel
     z = np.load(out / "views" / "view_006.npz")
-    assert z["depth_q50"].shape == (H, W) and np.all(z["depth_q10"] <= z["depth_q90"])
+    assert z["depth_draw_q50"].shape == (H, W) and np.all(z["depth_draw_q10"] <= z["depth_draw_q90"])
     np.testing.assert_allclose(z["world_to_camera"], dataset.cameras.extrinsics[6].double().numpy(), atol=0)
     assert np.all((z["depth_mean"] > 0) & (z["depth_mean"] <= float(dataset.far[6]) * (1 + 1e-5)))
     _no_temp_files(out)

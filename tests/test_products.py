@@ -78,7 +78,7 @@ def test_draw_quantiles_hand_value_and_bad_levels():
     assert float(draw_quantiles(torch.tensor([4.0, 1.0, 3.0, 2.0]), [0.25])[0]) == pytest.approx(1.75)
     with pytest.raises(ValueError, match="strictly between 0 and 1"):
         draw_quantiles(torch.zeros(3, 4), [0.5, 1.0])
-    assert quantile_name(0.05) == "depth_q5" and quantile_name(0.025) == "depth_q2p5"
+    assert quantile_name(0.05) == "depth_draw_q5" and quantile_name(0.025) == "depth_draw_q2p5"
 
 
 def test_prob_depth_greater_matches_loop():
@@ -269,14 +269,14 @@ def test_tiff_and_npz_round_trip(tmp_path):
             np.testing.assert_array_equal(maps[name][p.valid], m[p.valid])
             assert np.all(np.isnan(maps[name][~p.valid]))
     z = np.load(write_npz(tmp_path / "v.npz", p, include_draws=True))
-    names = ("depth_mean", "depth_std", "depth_std_epistemic", "depth_std_spread", "opacity", "depth_q5", "depth_q95")
+    names = ("depth_mean", "depth_std", "depth_std_epistemic", "depth_std_spread", "opacity", "depth_draw_q5", "depth_draw_q95", "depth_band90_lower", "depth_band90_upper")
     for name in names:
         assert z[name].dtype == np.float32 and z[name].shape == (H, W)
     np.testing.assert_array_equal(z["intrinsics"], p.intrinsics)
     np.testing.assert_array_equal(z["world_to_camera"], p.world_to_camera)
     assert int(z["num_draws"]) == 16 and str(z["units"]) == "scene units" and "camera-z" in str(z["conventions"])
     np.testing.assert_array_equal(z["depth_draws"], draws.astype(np.float32))
-    np.testing.assert_allclose(z["depth_q95"], np.quantile(draws, 0.95, axis=-1), rtol=1e-6)
+    np.testing.assert_allclose(z["depth_draw_q95"], np.quantile(draws, 0.95, axis=-1), rtol=1e-6)
 
 
 # ----------------------------------------------------------------------------- filters and fusion

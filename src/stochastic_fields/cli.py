@@ -158,6 +158,10 @@ EXTRA_COMMANDS = {
     "bench": ("stochastic_fields.bench", "Speed-against-error benchmark (see benchmarks/)."),
     "calibrate": ("stochastic_fields.calibration",
                   "Fit a run's depth-uncertainty recalibration from its capture points (calibration.json)."),
+    "occupancy": ("stochastic_fields.products.planner_cli", "Occupancy probabilities of a run (npz + OctoMap .ot)."),
+    "free-path": ("stochastic_fields.products.free_path_cli", "P(collision-free) of segments or a path, with its error."),
+    "rosbag": ("stochastic_fields.products.rosbag", "ROS 2 bag (depth, std, CameraInfo, colour, PointCloud2) of an export."),
+    "rerun": ("stochastic_fields.products.rerun_log", "rerun recording (.rrd) of an export."),
 }
 
 

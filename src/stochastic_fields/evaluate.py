@@ -55,12 +55,28 @@ def _save_png(path: Path, rgb: np.ndarray) -> None:
         iio.imwrite(tmp, rgb)
 
 
+def view_camera_arrays(dataset, view: int) -> dict[str, np.ndarray]:
+    """The camera and units of a dataset view, stored next to its maps in every npz:
+    ``intrinsics`` [3, 3] (pixel centres at +0.5), ``world_to_camera`` [4, 4] (OpenCV), ``near``,
+    ``far`` (camera z), ``units`` and ``depth_kind``."""
+    from .cameras import intrinsics_3x3
+
+    return {
+        "intrinsics": intrinsics_3x3(dataset.cameras)[view].double().cpu().numpy(),
+        "world_to_camera": dataset.cameras.extrinsics[view].double().cpu().numpy(),
+        "near": np.float64(dataset.near[view]), "far": np.float64(dataset.far[view]),
+        "units": np.str_("scene units"),
+        "depth_kind": np.str_("camera_z; OpenCV camera, pixel (row i, col j) centre at (j + 0.5, i + 0.5)"),
+    }
+
+
 def write_view_products(out_dir: Path, name: str, products: dict[str, np.ndarray], gt_colour: np.ndarray | None,
-                        gt_depth: np.ndarray | None) -> None:
+                        gt_depth: np.ndarray | None, camera: dict[str, np.ndarray] | None = None) -> None:
+    """``name.npz`` (the maps, plus ``camera``'s arrays: see :func:`view_camera_arrays`) and PNGs."""
     out_dir.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_dir / f"{name}.npz") as tmp:
         with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **products)
+            np.savez_compressed(fh, **products, **(camera or {}))
     mask = products["opacity"] > OPACITY_MASK
     _save_png(out_dir / f"{name}_colour_mean.png", to_uint8_rgb(products["colour_mean"]))
     std = products["colour_std"].mean(-1)
@@ -128,7 +144,8 @@ def evaluate(model, dataset, out_dir: Path, *, views: list[int] | None = None, n
         gt = dataset.images[v].numpy()
         gt_depth = dataset.depths[v].numpy() if getattr(dataset, "depths", None) is not None else None
         if write_products:
-            write_view_products(Path(out_dir) / "views", f"view_{v:03d}", products, gt, gt_depth)
+            write_view_products(Path(out_dir) / "views", f"view_{v:03d}", products, gt, gt_depth,
+                                camera=view_camera_arrays(dataset, v))
         report.add(f"view_{v:03d}", **score_view(products, gt, gt_depth, calibration))
         if gt_depth is not None:
             mask = (gt_depth > 0) & (products["opacity"] > OPACITY_MASK)

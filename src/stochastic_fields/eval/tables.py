@@ -357,7 +357,7 @@ def evaluate_run(model, dataset, out_dir: Path, *, views: Sequence[int] | None =
     from tqdm.auto import tqdm
 
     from ..calibration import apply_depth_calibration
-    from ..evaluate import OPACITY_MASK, camera_z_maps, score_view, write_view_products
+    from ..evaluate import OPACITY_MASK, camera_z_maps, score_view, view_camera_arrays, write_view_products
 
     out_dir = Path(out_dir)
     views = list(dataset.test_indices) if views is None else [int(v) for v in views]
@@ -392,7 +392,8 @@ def evaluate_run(model, dataset, out_dir: Path, *, views: Sequence[int] | None =
         gt = dataset.images[v].numpy()
         gt_depth = dataset.depths[v].numpy() if getattr(dataset, "depths", None) is not None else None
         if i < product_views:
-            write_view_products(out_dir / "views", f"view_{v:03d}", products, gt, gt_depth)
+            write_view_products(out_dir / "views", f"view_{v:03d}", products, gt, gt_depth,
+                                camera=view_camera_arrays(dataset, v))
         mean = products["colour_mean"].astype(np.float64)
         var = products["colour_std"].astype(np.float64) ** 2
         scores = score_view(products, gt, None)  # depth is scored below, the same way for every source

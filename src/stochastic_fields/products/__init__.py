@@ -12,6 +12,17 @@ Layers (each module one job; heavy libraries are imported where they are used):
     export        the ``stochastic-fields export`` driver (cameras, files, summary.json)
     cli           its command-line options
 
+For robots (each read back in the tests with the consumer's own library):
+
+    ros_depth      REP 118 depth images (float metres, uint16 millimetres) + std + CameraInfo
+                   (integer pixel centres), metric scale handling, Open3D TSDF integration
+    occupancy_map  P(voxel blocked) in closed form from the rectified normal; sparse npz + OctoMap .ot
+    free_path      P(segment / path collision-free) from K density trajectories, with its MC error
+    plan           risk-weighted voxel paths on an occupancy map
+    rosbag         ROS 2 bag of an export (rosbags: Image, CameraInfo, PointCloud2, TF)
+    rerun_log      rerun .rrd recording of an export
+    planner_cli, free_path_cli   the ``occupancy`` and ``free-path`` commands
+
 Conventions: every depth is camera-z depth in scene units (SPEC 1); cameras are OpenCV with
 pixel centres at +0.5; see ``depth_maps.CONVENTIONS`` (also written into every file).
 """

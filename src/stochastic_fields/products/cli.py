@@ -30,6 +30,14 @@ def _formats(text: str) -> tuple[str, ...]:
     return items
 
 
+def _known_distance(values) -> tuple[float, float, float] | None:
+    if values is None:
+        return None
+    if len(values) != 3:
+        raise ValueError(f"--known-distance takes I,J,METRES (two camera indices and a distance), got {list(values)}")
+    return tuple(values)
+
+
 def add_arguments(p: argparse.ArgumentParser) -> None:
     d = ExportOptions()
     p.add_argument("--run", required=True, help="Trained run folder (with checkpoint.pt and config.json).")
@@ -42,7 +50,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=None, help="Output folder (default: RUN/export).")
     p.add_argument("--num-draws", type=int, default=None, help="K depth trajectories per pixel (default: the run's).")
     p.add_argument("--formats", type=_formats, default=d.formats,
-                   help=f"Per-view map formats, comma-separated subset of {','.join(FORMATS)} (default: all).")
+                   help=f"Per-view map formats, comma-separated subset of {','.join(FORMATS)} (default: "
+                        f"{','.join(d.formats)}; 'ros' = REP 118 metres/millimetres + CameraInfo, needs a scale).")
     p.add_argument("--quantiles", type=_floats("--quantiles"), default=d.quantiles,
                    help="Depth quantile levels from the K draws (default 0.05,0.95).")
     p.add_argument("--min-opacity", type=float, default=d.min_opacity,
@@ -64,6 +73,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="Add per-point 3x3 covariances (cov_xx..cov_zz) to the PLYs.")
     p.add_argument("--save-draws", action="store_true", help="Keep the per-draw depths [H, W, K] in each npz.")
     p.add_argument("--units", default=d.units, help="Name of the length unit written into the files.")
+    p.add_argument("--metres-per-unit", type=float, default=None,
+                   help="Metres per scene unit (needed by --formats ros; recorded in every npz). LLFF/SfM scenes "
+                        "have no metric scale of their own.")
+    p.add_argument("--known-distance", type=_floats("--known-distance"), default=None,
+                   help="I,J,METRES: dataset cameras I and J are METRES apart (sets the metric scale instead of "
+                        "--metres-per-unit).")
     p.add_argument("--seed", type=int, default=d.seed, help="Seed of the K draws.")
     p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
     p.add_argument("--quiet", action="store_true", help="No progress bars.")
@@ -75,7 +90,8 @@ def options_from_args(args: argparse.Namespace) -> ExportOptions:
         quantiles=tuple(args.quantiles), min_opacity=args.min_opacity, max_std=args.max_std,
         max_rel_std=args.max_rel_std, keep_fraction=args.keep_fraction, colour_by=args.colour_by, fuse=args.fuse,
         voxel_size=args.voxel_size, free_space_thresholds=tuple(args.free_space_thresholds),
-        covariance=args.covariance, save_draws=args.save_draws, units=args.units, seed=args.seed,
+        covariance=args.covariance, save_draws=args.save_draws, units=args.units,
+        metres_per_unit=args.metres_per_unit, known_distance=_known_distance(args.known_distance), seed=args.seed,
         device=args.device, progress=not args.quiet)
 
 

@@ -9,11 +9,17 @@ multiplied by ``z_scale`` (:func:`stochastic_fields.evaluate.camera_z_maps`). Pe
     depth_std_spread    = sqrt(mean_k sum_i w_ik (z_i - D_k)^2)  (termination spread inside a draw)
     depth_std           = sqrt(epistemic^2 + spread^2)           (total, law of total variance)
     opacity             = mean_k sum_i w_ik                     (probability the ray hits something)
-    depth_quantiles[q]  = empirical q-quantile of {D_k}          (see :func:`draw_quantiles`)
+    depth_draw_q<p>     = empirical q-quantile of {D_k}          (see :func:`draw_quantiles`)
+    depth_band<L>_lower = depth_mean - z_L depth_std,  depth_band<L>_upper = depth_mean + z_L depth_std
+                          (central L% band of a normal with the total variance, z_L = Phi^-1((1 + L) / 2))
 
-The quantiles come from the K draws only, so they describe the epistemic part of the
-uncertainty (where the surface is), not the termination spread; with K = 16 the 5%/95%
-quantiles are interpolated between the two smallest/largest draws.
+The draw quantiles come from the K draws' expected depths only, so they describe the epistemic
+part of the uncertainty (where each trajectory's expected surface is), not the termination
+spread; they are named ``depth_draw_q<p>`` for that reason and are **not** a predictive band (on
+the demo run the 5-95% draw interval holds the true depth for 1.2% of pixels). The predictive
+band that holds its level is ``depth_band<L>_lower/upper`` from the total variance; its coverage
+is tested on the synthetic scene (tests/test_ros_depth.py) and reported by ``export`` when the
+scene has ground truth.
 
 Rays that hit nothing report ``D_k = far`` (volume_rendering.expected_depth); ``valid`` marks
 pixels with ``opacity >= min_opacity``. File writers (all atomic: temporary file + ``os.replace``):
@@ -29,6 +35,7 @@ pixels with ``opacity >= min_opacity``. File writers (all atomic: temporary file
 from __future__ import annotations
 
 import json
+from statistics import NormalDist
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -43,6 +50,8 @@ from ..io_utils import atomic_path, atomic_write_text
 FLAT_MAP_RANGE: float = 1e-3
 #: Largest value of a 16-bit PNG; 0 is reserved for "no depth".
 PNG16_MAX: int = 65535
+#: Levels of the predictive depth bands written next to the maps (central 90%).
+BAND_LEVELS: tuple[float, ...] = (0.9,)
 
 #: What every file states about its numbers.
 CONVENTIONS: str = (
@@ -50,8 +59,10 @@ CONVENTIONS: str = (
     "OpenCV camera (x right, y down, z forward), pixel (row i, column j) has its centre at "
     "(u, v) = (j + 0.5, i + 0.5); world_to_camera maps world points to camera points, "
     "x_cam = R x_world + t; depth_std is the total std (epistemic + termination spread, law of "
-    "total variance); depth_quantiles are empirical quantiles of the K per-draw depths (linear "
-    "interpolation between order statistics, numpy's default 'linear' method); valid = "
+    "total variance); depth_draw_q<p> (and depth_quantiles) are empirical quantiles of the K per-draw "
+    "expected depths (linear interpolation between order statistics, numpy's default 'linear' method): "
+    "epistemic only, not a predictive band; depth_band<L>_lower/upper = depth_mean -/+ z depth_std with "
+    "z = Phi^-1((1 + L/100) / 2), the central L% band of a normal with the total variance; valid = "
     "opacity >= min_opacity; rays that hit nothing report depth = far per draw"
 )
 
@@ -73,6 +84,10 @@ class DepthProducts:
         units: name of the length unit ("scene units" unless the scene says more).
         min_opacity: threshold behind ``valid``.
         depth_draws: [H, W, K] camera-z depth of each draw, or None.
+        colour_std: [H, W, 3] std of the rendered colour over the draws, or None.
+        band_levels: levels L of the predictive bands ``depth_band<L>_lower/upper`` (see module doc).
+        metres_per_unit: metres per scene unit when known (``--metres-per-unit`` or a known
+            distance), else None; ``scale_source`` says where it came from.
     """
 
     depth_mean: np.ndarray
@@ -92,6 +107,10 @@ class DepthProducts:
     units: str = "scene units"
     min_opacity: float = 0.5
     depth_draws: np.ndarray | None = field(default=None, repr=False)
+    colour_std: np.ndarray | None = field(default=None, repr=False)
+    band_levels: tuple[float, ...] = BAND_LEVELS
+    metres_per_unit: float | None = None
+    scale_source: str = "unknown: scene units are not known to be metres"
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -115,13 +134,35 @@ class DepthProducts:
         }
         for level, q in zip(self.quantile_levels, self.depth_quantiles):
             out[quantile_name(float(level))] = q
+        for level in self.band_levels:
+            lower, upper = gaussian_band(self.depth_mean, self.depth_std, level)
+            out[band_name(level, "lower")] = lower
+            out[band_name(level, "upper")] = upper
         return out
 
 
 def quantile_name(level: float) -> str:
-    """File/array name of a quantile map: 0.05 -> ``depth_q5``, 0.95 -> ``depth_q95``,
-    0.025 -> ``depth_q2p5`` (percent, '.' written as 'p')."""
-    return "depth_q" + f"{level * 100:g}".replace(".", "p")
+    """File/array name of a draw-quantile map: 0.05 -> ``depth_draw_q5``, 0.95 -> ``depth_draw_q95``,
+    0.025 -> ``depth_draw_q2p5`` (percent, '.' written as 'p'). "draw": a quantile of the K
+    draws' expected depths (epistemic), not of the predictive depth distribution."""
+    return "depth_draw_q" + f"{level * 100:g}".replace(".", "p")
+
+
+def band_name(level: float, side: str) -> str:
+    """Name of a predictive band map: (0.9, 'lower') -> ``depth_band90_lower``."""
+    return "depth_band" + f"{level * 100:g}".replace(".", "p") + f"_{side}"
+
+
+def gaussian_band(mean: np.ndarray, std: np.ndarray, level: float) -> tuple[np.ndarray, np.ndarray]:
+    """Central ``level`` band of N(mean, std^2): ``mean -/+ z std``, ``z = Phi^-1((1 + level) / 2)``
+    (1.645 for 0.9). Shapes: [...] -> ([...], [...]) float32. Example: mean 2, std 0.1, 0.9 ->
+    (1.8355, 2.1645)."""
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"band level must lie strictly between 0 and 1, got {level}")
+    z = NormalDist().inv_cdf(0.5 * (1.0 + level))
+    mean = np.asarray(mean, np.float64)
+    std = np.asarray(std, np.float64)
+    return (mean - z * std).astype(np.float32), (mean + z * std).astype(np.float32)
 
 
 def check_quantile_levels(levels: Sequence[float]) -> np.ndarray:
@@ -202,6 +243,7 @@ def compute_depth_products(maps: dict[str, torch.Tensor], intrinsics: np.ndarray
         units=units,
         min_opacity=float(min_opacity),
         depth_draws=z["depth_draws"] if keep_draws else None,
+        colour_std=z.get("colour_std"),
     )
 
 
@@ -209,9 +251,10 @@ def compute_depth_products(maps: dict[str, torch.Tensor], intrinsics: np.ndarray
 def write_npz(path: str | Path, products: DepthProducts, *, include_draws: bool = False) -> Path:
     """One ``.npz`` per view (atomic). Arrays: every map of :meth:`DepthProducts.maps` (float32
     [H, W]), ``depth_quantiles`` [Q, H, W], ``quantile_levels`` [Q], ``colour_mean`` [H, W, 3],
-    ``valid`` [H, W] bool, ``intrinsics`` [3, 3] and ``world_to_camera`` [4, 4] (float64),
-    ``num_draws``, ``near``, ``far``, ``min_opacity``, ``units`` and ``conventions`` (strings);
-    ``depth_draws`` [H, W, K] when ``include_draws``."""
+    ``colour_std`` [H, W, 3] (when rendered), ``valid`` [H, W] bool, ``intrinsics`` [3, 3] and
+    ``world_to_camera`` [4, 4] (float64), ``num_draws``, ``near``, ``far``, ``min_opacity``,
+    ``units``, ``metres_per_unit`` (NaN when unknown), ``scale_source``, ``band_levels`` and
+    ``conventions``; ``depth_draws`` [H, W, K] when ``include_draws``."""
     path = Path(path)
     arrays = {k: np.asarray(v, dtype=np.float32) for k, v in products.maps().items()}
     arrays.update(
@@ -226,8 +269,13 @@ def write_npz(path: str | Path, products: DepthProducts, *, include_draws: bool 
         far=np.float64(products.far),
         min_opacity=np.float64(products.min_opacity),
         units=np.str_(products.units),
+        metres_per_unit=np.float64(np.nan if products.metres_per_unit is None else products.metres_per_unit),
+        scale_source=np.str_(products.scale_source),
+        band_levels=np.asarray(products.band_levels, np.float32),
         conventions=np.str_(CONVENTIONS),
     )
+    if products.colour_std is not None:
+        arrays["colour_std"] = products.colour_std.astype(np.float32)
     if include_draws:
         if products.depth_draws is None:
             raise ValueError(f"write_npz({path}): include_draws=True but the products hold no draws")

@@ -9,6 +9,8 @@ or none; ``summary.json`` is written last and marks a finished export):
     OUT/views/<name>.tiff                float32 pages, NaN where invalid
     OUT/views/<name>_depth_vis.png       colourised depth mean/std with colour bars
     OUT/views/<name>_free_space.npz      P(depth > d) [T, H, W] for --free-space-thresholds
+    OUT/views/<name>_depth_m.tiff, _depth_mm.png, _depth_std_*, _camera_info.yaml/.json
+                                         REP 118 depth in metres/millimetres (format 'ros', ros_depth.py)
     OUT/clouds/<name>.ply                filtered point cloud of the view (pointcloud.write_ply)
     OUT/fused.ply, OUT/fused_cloud.png   inverse-variance fusion of all views (--fuse)
     OUT/summary.json                     counts per stage, files, colour mapping, ground-truth checks
@@ -41,13 +43,17 @@ from .fusion import fuse_clouds
 from .pointcloud import (CloudArrays, PointFilter, cloud_from_products, filter_cloud, most_confident,
                          uncertainty_range, write_ply)
 from .render_cloud import render_cloud_png
+from .ros_depth import MetricScale, write_ros_depth
 
-FORMATS: tuple[str, ...] = ("npz", "png16", "tiff", "png")
+FORMATS: tuple[str, ...] = ("npz", "png16", "tiff", "png", "ros")
+#: Formats written when none are named ('ros' needs a metric scale, so it is asked for by name).
+DEFAULT_FORMATS: tuple[str, ...] = ("npz", "png16", "tiff", "png")
 #: Tolerance on R^T R = I for a user's world_to_camera: poses typed or exported with 5-6
 #: significant digits pass, a scaled or sheared matrix (off by 1e-2 or more) does not.
 ROTATION_TOLERANCE: float = 1e-4
 #: Central interval levels checked against ground truth, and their Gaussian half-widths in std.
-CALIBRATION_LEVELS: dict[str, tuple[float, float]] = {"68": (0.682689492, 1.0), "95": (0.95, 1.959963985)}
+CALIBRATION_LEVELS: dict[str, tuple[float, float]] = {"68": (0.682689492, 1.0), "90": (0.9, 1.644853627),
+                                                      "95": (0.95, 1.959963985)}
 
 
 @dataclass
@@ -62,8 +68,8 @@ class ExportOptions:
     """Output folder (default: RUN/export)."""
     num_draws: int | None = None
     """K depth trajectories per pixel (default: the run's render.num_draws)."""
-    formats: tuple[str, ...] = FORMATS
-    """Per-view map formats: npz, png16, tiff, png (colourised)."""
+    formats: tuple[str, ...] = DEFAULT_FORMATS
+    """Per-view map formats: npz, png16, tiff, png (colourised), ros (REP 118 metres/millimetres + CameraInfo)."""
     quantiles: tuple[float, ...] = (0.05, 0.95)
     """Depth quantile levels from the K draws."""
     min_opacity: float = 0.5
@@ -88,6 +94,12 @@ class ExportOptions:
     """Store the [H, W, K] per-draw depths in the npz (for free-space queries at any distance)."""
     units: str = "scene units"
     """Name of the length unit written into every file."""
+    metres_per_unit: float | None = None
+    """Metres per scene unit (needed by the 'ros' format; written into every npz)."""
+    known_distance: tuple[float, float, float] | None = None
+    """(i, j, metres): dataset cameras i and j are this far apart; sets metres_per_unit."""
+    scale_source: str | None = None
+    """Where metres_per_unit came from (set by export_run for a known distance)."""
     seed: int = 0
     """Seed of the K draws."""
     device: str | None = None
@@ -111,7 +123,20 @@ class ExportOptions:
         if any(not (math.isfinite(t) and t > 0) for t in self.free_space_thresholds):
             raise ValueError(
                 f"free-space thresholds must be positive distances, got {list(self.free_space_thresholds)}")
+        if self.metres_per_unit is not None and not (math.isfinite(self.metres_per_unit) and self.metres_per_unit > 0):
+            raise ValueError(f"--metres-per-unit must be a positive number, got {self.metres_per_unit}")
+        if self.metres_per_unit is not None and self.known_distance is not None and self.scale_source is None:
+            raise ValueError("give either --metres-per-unit or --known-distance, not both")
+        if "ros" in self.formats and self.metres_per_unit is None and self.known_distance is None:
+            raise ValueError("--formats ros writes depth in metres: give --metres-per-unit or --known-distance "
+                             "I,J,METRES (scene units are not metres for LLFF or structure-from-motion captures)")
         self.point_filter()
+
+    def metric_scale(self) -> MetricScale | None:
+        """The metric scale of the export, or None when unknown."""
+        if self.metres_per_unit is None:
+            return None
+        return MetricScale(float(self.metres_per_unit), self.scale_source or "--metres-per-unit (given by the user)")
 
     def point_filter(self) -> PointFilter:
         return PointFilter(min_opacity=self.min_opacity, max_std=self.max_std, max_rel_std=self.max_rel_std,
@@ -245,6 +270,9 @@ def write_view_files(out_dir: Path, name: str, products: DepthProducts, opts: Ex
     """Write the per-view map files of ``opts.formats`` (+ free-space volume). Returns the paths."""
     views_dir = out_dir / "views"
     files: list[Path] = []
+    scale = opts.metric_scale()
+    if scale is not None:
+        products.metres_per_unit, products.scale_source = scale.metres_per_unit, scale.source
     if "npz" in opts.formats:
         files.append(write_npz(views_dir / f"{name}.npz", products, include_draws=opts.save_draws))
     if "png16" in opts.formats:
@@ -254,6 +282,8 @@ def write_view_files(out_dir: Path, name: str, products: DepthProducts, opts: Ex
                                      max_depth=products.far, units=products.units, quantity=qname))
     if "tiff" in opts.formats:
         files.append(write_tiff(views_dir / f"{name}.tiff", products))
+    if "ros" in opts.formats:
+        files.extend(write_ros_depth(views_dir, name, products, scale))
     if "png" in opts.formats:
         files.append(write_colourised(views_dir / f"{name}_depth_vis.png", products, title=name))
     if opts.free_space_thresholds:
@@ -264,6 +294,7 @@ def write_view_files(out_dir: Path, name: str, products: DepthProducts, opts: Ex
                 np.savez_compressed(fh, prob_depth_greater=vol,
                                     thresholds=np.asarray(opts.free_space_thresholds, np.float32),
                                     num_draws=np.int64(products.num_draws), units=np.str_(products.units),
+                                    intrinsics=products.intrinsics, world_to_camera=products.world_to_camera,
                                     conventions=np.str_("prob_depth_greater[t, i, j] = fraction of the K draws whose "
                                                         "camera-z depth at pixel (i, j) exceeds thresholds[t]; "
                                                         + CONVENTIONS))
@@ -313,7 +344,7 @@ class CalibrationAccumulator:
             },
             "convention": "fraction of ground-truth camera-z depths inside the central interval, over pixels with "
                           "opacity >= min_opacity and a ground truth; gaussian_total_std: |mean - gt| <= z * depth_std "
-                          "(z = 1 for 68.27%, 1.96 for 95%); draw_quantiles: empirical quantiles of the K draws "
+                          "(z = 1 for 68.27%, 1.645 for 90% (the exported depth_band90), 1.96 for 95%); draw_quantiles: empirical quantiles of the K draws "
                           "(15.87-84.13% and 2.5-97.5%), which cover only the epistemic part",
         }
         for key, (_, z) in CALIBRATION_LEVELS.items():
@@ -378,6 +409,15 @@ def export_run(run_dir: str | Path, opts: ExportOptions) -> dict:
     if not run_dir.is_dir():
         raise FileNotFoundError(f"run folder {run_dir} does not exist")
     cfg, model, dataset = load_trained_model(run_dir, device=opts.device)
+    if opts.known_distance is not None:
+        from .ros_depth import metres_per_unit_from_known_distance
+
+        i, j, metres = opts.known_distance
+        if i != int(i) or j != int(j):
+            raise ValueError(f"--known-distance: camera indices must be integers, got {i}, {j}")
+        known = metres_per_unit_from_known_distance(dataset.cameras.extrinsics.double().cpu().numpy(), int(i), int(j),
+                                                    float(metres))
+        opts.metres_per_unit, opts.scale_source = known.metres_per_unit, known.source
     if opts.cameras is not None:
         specs = load_cameras_json(opts.cameras, default_near=float(dataset.near.min()),
                                   default_far=float(dataset.far.max()))
@@ -394,6 +434,9 @@ def export_views(model, specs: Sequence[ViewSpec], out: Path, opts: ExportOption
                  run_name: str = "") -> dict:
     """Render, write and summarise ``specs`` into ``out`` (see the module doc)."""
     opts.validate()
+    if "ros" in opts.formats and opts.metres_per_unit is None:
+        raise ValueError("export_views: --known-distance is resolved against the dataset's cameras by export_run; "
+                         "pass metres_per_unit here")
     out = Path(out)
     device = next(model.parameters()).device
     generator = torch.Generator(device=device).manual_seed(opts.seed)
@@ -434,6 +477,8 @@ def export_views(model, specs: Sequence[ViewSpec], out: Path, opts: ExportOption
         "num_draws": num_draws,
         "options": {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(opts).items()},
         "units": opts.units,
+        "metres_per_unit": opts.metres_per_unit,
+        "scale_source": opts.metric_scale().source if opts.metric_scale() else "unknown",
         "conventions": CONVENTIONS,
         "colour_mapping": mapping,
         "per_view": per_view,

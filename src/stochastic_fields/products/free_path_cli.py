@@ -1,0 +1,111 @@
+"""``stochastic-fields free-path``: P(collision-free) of segments or a path of a trained run.
+
+Input JSON (world coordinates, scene units): ``{"segments": [[[x0, y0, z0], [x1, y1, z1]], ...]}``
+and/or ``{"path": [[x, y, z], ...]}``. Output JSON (``--out``, else printed): per segment
+``probability_free``, ``stderr``, ``bound_95``, ``transmittance_mean``, ``num_samples``; for
+the path also the whole path's. Step along segments: ``--step`` or half the occupancy voxel
+size from the images' footprint.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+from .free_path import FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, path_free_probability, segment_free_probability
+
+
+def _points(path: Path, key: str, value, shape_tail: tuple[int, ...]) -> torch.Tensor:
+    try:
+        t = torch.as_tensor(value, dtype=torch.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{path}: {key!r} must be numbers, got {value!r}") from exc
+    if t.ndim != len(shape_tail) + 1 or tuple(t.shape[1:]) != shape_tail or t.shape[0] == 0 \
+            or not bool(torch.isfinite(t).all()):
+        want = "[[[x0, y0, z0], [x1, y1, z1]], ...]" if key == "segments" else "[[x, y, z], ...] (2 or more)"
+        raise ValueError(f"{path}: {key!r} must be {want} of finite numbers, got shape {tuple(t.shape)}")
+    return t
+
+
+def load_queries(path: str | Path) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """(segments [B, 2, 3] or None, path [M, 3] or None) from the JSON file (module doc)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"free-path queries file {path} does not exist")
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(data, dict) or not ({"segments", "path"} & set(data)):
+        raise ValueError(f"{path}: expected an object with 'segments' and/or 'path'")
+    segs = _points(path, "segments", data["segments"], (2, 3)) if "segments" in data else None
+    way = _points(path, "path", data["path"], (3,)) if "path" in data else None
+    if way is not None and way.shape[0] < 2:
+        raise ValueError(f"{path}: 'path' needs at least 2 waypoints, got {way.shape[0]}")
+    return segs, way
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--run", required=True, help="Trained S-NeRF run folder.")
+    p.add_argument("--queries", required=True, type=Path, help='JSON with "segments" and/or "path" (world, scene units).')
+    p.add_argument("--out", type=Path, default=None, help="Write the answers to this JSON file (default: print).")
+    p.add_argument("--num-draws", type=int, default=FREE_PATH_NUM_DRAWS, help="K density trajectories (default 256).")
+    p.add_argument("--level", type=float, default=FREE_TRANSMITTANCE_LEVEL,
+                   help="Free = transmittance along the segment above this (default 0.5).")
+    p.add_argument("--step", type=float, default=None, help="Sample spacing along segments (default: from footprint).")
+    p.add_argument("--shared-noise", choices=("run", "true", "false"), default="run",
+                   help="Share eps along a segment per draw (default: as the run renders).")
+    p.add_argument("--seed", type=int, default=0, help="Seed of the draws.")
+    p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
+
+
+def run(args: argparse.Namespace) -> None:
+    from ..cameras import image_size, intrinsics_3x3
+    from ..io_utils import atomic_write_text
+    from ..trainer import load_trained_model
+    from .occupancy_map import footprint_voxel_size
+
+    segs, way = load_queries(args.queries)
+    if args.num_draws < 1:
+        raise ValueError(f"--num-draws must be >= 1, got {args.num_draws}")
+    _, model, dataset = load_trained_model(Path(args.run), device=args.device)
+    if not hasattr(model, "field") or not hasattr(model, "region"):
+        raise ValueError(f"{args.run}: free-path needs an S-NeRF run (a stochastic field)")
+    device = model.region.box.device
+    step = args.step
+    if step is None:
+        H, W = image_size(dataset.cameras)
+        step = 0.5 * footprint_voxel_size(model.region, intrinsics_3x3(dataset.cameras).to(device),
+                                          dataset.cameras.extrinsics.to(device), H, W, dataset.near.to(device),
+                                          dataset.far.to(device))
+    shared = model.render_settings.shared_noise if args.shared_noise == "run" else args.shared_noise == "true"
+    gen = torch.Generator(device=device).manual_seed(args.seed)
+    field = _FloatField(model.field)
+    answer: dict = {"step": step, "shared_noise": shared, "units": "scene units"}
+    if segs is not None:
+        r = segment_free_probability(field, segs[:, 0].to(device), segs[:, 1].to(device), num_draws=args.num_draws,
+                                     level=args.level, step=step, shared_noise=shared, generator=gen)
+        answer["segments"] = r.to_dict()
+    if way is not None:
+        whole, parts = path_free_probability(field, way.to(device), num_draws=args.num_draws, level=args.level,
+                                             step=step, shared_noise=shared, generator=gen)
+        answer["path"] = {"whole": whole.to_dict(), "segments": parts.to_dict()}
+    text = json.dumps(answer, indent=2)
+    if args.out is not None:
+        atomic_write_text(args.out, text)
+        print(f"free-path answers written to {args.out}")
+    else:
+        print(text)
+
+
+class _FloatField:
+    """Evaluates a float32 field at float64 query points."""
+
+    def __init__(self, field) -> None:
+        self.field = field
+
+    def density_params(self, points: torch.Tensor):
+        return self.field.density_params(points.float())
