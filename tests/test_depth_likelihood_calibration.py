@@ -199,3 +199,34 @@ def test_training_depth_rays_hit_the_stand_in_points(tiny_scene):
     assert len(hit) == len(xyz)
     np.testing.assert_allclose(hit, xyz, atol=2e-4 * np.abs(xyz).max())
     assert all(v in ds.train_indices for v in per_view)
+
+
+def test_calibration_views_lie_halfway_between_training_neighbours(tiny_scene):
+    """Each virtual camera: centre at the midpoint of its pair, rotation halfway (equal geodesic
+    angle to both), the pair's intrinsics and widest bounds; pairs are nearest training neighbours."""
+    from scipy.spatial.transform import Rotation
+
+    from stochastic_fields.calibration import calibration_views
+    from stochastic_fields.cameras import camera_centres, intrinsics_3x3
+    from stochastic_fields.data import load_dataset
+
+    ds = load_dataset(tiny_scene, split_every=5)
+    cams, near, far, pairs = calibration_views(ds)
+    centres = camera_centres(ds.cameras).double()
+    R_all = ds.cameras.extrinsics.double()[:, :3, :3].numpy()
+    for p, (i, j) in enumerate(pairs):
+        assert i in ds.train_indices and j in ds.train_indices and i != j
+        others = [v for v in ds.train_indices if v != i]
+        dist = {v: float((centres[v] - centres[i]).norm()) for v in others}
+        dist_j = {v: float((centres[v] - centres[j]).norm()) for v in ds.train_indices if v != j}
+        assert min(dist, key=dist.get) == j or min(dist_j, key=dist_j.get) == i
+        c = camera_centres(cams).double()[p]
+        torch.testing.assert_close(c, 0.5 * (centres[i] + centres[j]), atol=1e-4, rtol=0)
+        R = cams.extrinsics.double()[p, :3, :3].numpy()
+        a_i = (Rotation.from_matrix(R) * Rotation.from_matrix(R_all[i]).inv()).magnitude()
+        a_j = (Rotation.from_matrix(R) * Rotation.from_matrix(R_all[j]).inv()).magnitude()
+        a_ij = (Rotation.from_matrix(R_all[j]) * Rotation.from_matrix(R_all[i]).inv()).magnitude()
+        assert a_i == pytest.approx(a_ij / 2, abs=1e-5) and a_j == pytest.approx(a_ij / 2, abs=1e-5)
+        torch.testing.assert_close(intrinsics_3x3(cams)[p], intrinsics_3x3(ds.cameras)[i])
+        assert float(near[p]) == pytest.approx(min(float(ds.near[i]), float(ds.near[j])))
+        assert float(far[p]) == pytest.approx(max(float(ds.far[i]), float(ds.far[j])))

@@ -4,8 +4,9 @@ The rendered depth standard deviation sigma ranks errors but its scale (and the 
 error distribution) need not match what happens on real scenes. Quantile recalibration
 (Kuleshov et al. 2018) fixes this with data a user has: the capture points of the CALIBRATE role
 (``capture_points``: structure-from-motion points split by blocks of space, disjoint from the
-points that train the depth likelihood and from those that score), rendered from the training
-views.
+points that train the depth likelihood and from those that score), rendered from calibration
+views: virtual cameras halfway between neighbouring training views (novel viewpoints, as the
+test views are, made without them; ``calibration_views``).
 
 With standardised errors |z| = |d - d*| / sigma on those points and z_p = Phi^-1((1 + p) / 2),
 the map stores, for nominal central levels p,
@@ -19,8 +20,7 @@ so that the interval ``d +- s(p) z_p sigma`` holds the fitted points at rate p. 
 
 A Gaussian error model with the right scale gives s(p) constant; heavier or lighter tails give
 an s(p) that rises or falls with p. The raw sigma stays available (``depth_std_raw``).
-docs/uncertainty.md states the protocol and its limits (the points are seen from training views,
-the test views from elsewhere).
+docs/uncertainty.md states the protocol and its limits.
 """
 
 from __future__ import annotations
@@ -126,9 +126,11 @@ def standardised_errors(gt: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np
 # --------------------------------------------------------------------------------------------
 
 
-def render_at_points(model, dataset, sparse: dict, *, generator: torch.Generator | None = None) -> dict[str, np.ndarray]:
-    """Render the rays through the pixels of {view: SparseDepth} (continuous uv): camera-z depth
-    mean, total std and opacity [N], with the points' depths [N] as "gt" (float64)."""
+def render_at_points(model, cameras, near, far, sparse: dict, *,
+                     generator: torch.Generator | None = None) -> dict[str, np.ndarray]:
+    """Render the rays through the pixels of {view: SparseDepth} (continuous uv) of ``cameras``
+    (bounds ``near``/``far``: floats or [V]): camera-z depth mean, total std and opacity [N], with
+    the points' depths [N] as "gt" (float64)."""
     from .cameras import generate_rays_at
 
     views = [v for v, sd in sparse.items() if len(sd)]
@@ -138,7 +140,7 @@ def render_at_points(model, dataset, sparse: dict, *, generator: torch.Generator
     uv = torch.cat([torch.from_numpy(sparse[v].uv) for v in views]).float()
     gt = np.concatenate([sparse[v].depth for v in views])
     device = next(model.parameters()).device
-    rays = generate_rays_at(dataset.cameras, idx, uv, dataset.near, dataset.far).to(device)
+    rays = generate_rays_at(cameras, idx, uv, near, far).to(device)
     with torch.no_grad():
         maps = model.render_view(rays.reshape(1, len(idx)), generator=generator)
     z = maps["z_scale"].double().cpu().reshape(-1)
@@ -148,25 +150,72 @@ def render_at_points(model, dataset, sparse: dict, *, generator: torch.Generator
             "opacity": maps["opacity"].double().cpu().reshape(-1).numpy()}
 
 
+def calibration_views(dataset) -> tuple[object, torch.Tensor, torch.Tensor, list[tuple[int, int]]]:
+    """Virtual cameras halfway between each training view and its nearest other training view
+    (centre: midpoint; rotation: slerp at 1/2; intrinsics, size of the first; bounds: the pair's
+    widest). Novel viewpoints among the training ones, like the test views a user renders, made
+    without any test view. Returns (cameras [P], near [P], far [P], the (i, j) view pairs)."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    from .cameras import camera_centres, intrinsics_3x3, make_cameras
+
+    train = list(dataset.train_indices)
+    if len(train) < 2:
+        raise ValueError(f"{dataset.root}: calibration views need at least 2 training views, got {len(train)}")
+    centres = camera_centres(dataset.cameras).double()[train]
+    dist = torch.cdist(centres, centres)
+    dist.fill_diagonal_(float("inf"))
+    pairs = sorted({tuple(sorted((train[a], train[int(dist[a].argmin())]))) for a in range(len(train))})
+    w2c = dataset.cameras.extrinsics.double()
+    K = intrinsics_3x3(dataset.cameras).double()
+    mids, Ks = [], []
+    for i, j in pairs:
+        rot = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([w2c[i, :3, :3].numpy(), w2c[j, :3, :3].numpy()])))
+        R = torch.from_numpy(rot([0.5]).as_matrix()[0])
+        c = 0.5 * (centres[train.index(i)] + centres[train.index(j)])
+        m = torch.eye(4, dtype=torch.float64)
+        m[:3, :3], m[:3, 3] = R, -R @ c
+        mids.append(m)
+        Ks.append(K[i])
+    cams = make_cameras(torch.stack(Ks).float(), torch.stack(mids).float(), int(dataset.height), int(dataset.width))
+    near = torch.stack([torch.minimum(dataset.near[i], dataset.near[j]) for i, j in pairs]).float()
+    far = torch.stack([torch.maximum(dataset.far[i], dataset.far[j]) for i, j in pairs]).float()
+    return cams, near, far, pairs
+
+
 def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float | None = None) -> QuantileCalibration:
-    """Fit the depth map on the CALIBRATE capture points seen from the training views (pixels
-    with rendered opacity above ``opacity_mask``, as the depth scores). ValueError when the
-    scene has no capture points or too few of that role."""
-    from .capture_points import CALIBRATE, load_capture_points, sparse_depth_for_role
+    """Fit the depth map on the CALIBRATE capture points seen from the calibration views
+    (``calibration_views``: halfway between neighbouring training views; a point counts when both
+    views of the pair observed it), at pixels with rendered opacity above ``opacity_mask`` (as
+    the depth scores). ValueError when the scene has no capture points or too few of that role."""
+    from .capture_points import CALIBRATE, load_capture_points
+    from .eval.colmap_depth import project_sparse_depth
     from .evaluate import OPACITY_MASK
 
     mask = OPACITY_MASK if opacity_mask is None else opacity_mask
     points = load_capture_points(dataset)
     if points is None:
         raise ValueError(f"{dataset.root}: no capture points (sparse/0/points3D.bin or dense depth) to calibrate on")
-    sparse = sparse_depth_for_role(dataset, points, dataset.train_indices, CALIBRATE)
+    cams, near, far, pairs = calibration_views(dataset)
+    role = points.roles == CALIBRATE
+    visible = []
+    for i, j in pairs:
+        if points.visible is None:
+            seen = np.arange(len(points.xyz))
+        elif points.source == "colmap":
+            seen = np.intersect1d(points.visible[i], points.visible[j])
+        else:  # stand-in points come from one view each: either view of the pair
+            seen = np.union1d(points.visible[i], points.visible[j])
+        visible.append(seen[role[seen]])
+    sparse = project_sparse_depth(cams, points.xyz, range(len(pairs)), visible=visible, visibility_name="pair")
     device = next(model.parameters()).device
-    r = render_at_points(model, dataset, sparse, generator=torch.Generator(device=device).manual_seed(seed))
+    r = render_at_points(model, cams, near, far, sparse, generator=torch.Generator(device=device).manual_seed(seed))
     keep = r["opacity"] > mask
     z = standardised_errors(r["gt"][keep], r["depth_mean"][keep], r["depth_std"][keep])
     return QuantileCalibration.fit(z, quantity="depth_std",
-                                   source=f"{len(z)} {points.source} points of the calibrate role seen from the "
-                                          f"{len(dataset.train_indices)} training views (opacity > {mask})")
+                                   source=f"{len(z)} {points.source} points of the calibrate role seen from "
+                                          f"{len(pairs)} views halfway between neighbouring training views "
+                                          f"(opacity > {mask})")
 
 
 @dataclass

@@ -229,6 +229,9 @@ def method_config(spec: MethodSpec, base: ExperimentConfig, scene_path: Path) ->
 #: the eval fingerprint so that runs scored on every point are re-scored.
 SCORED_POINTS = "score-role blocks"
 
+#: How the depth recalibration is fitted (part of the calibrate fingerprint: a new protocol refits).
+CALIBRATION_PROTOCOL = "calibrate-role capture points from views halfway between neighbouring training views"
+
 #: Config entries that do not change what a run computes (left out of fingerprints).
 _NON_SEMANTIC = ("train.device", "train.eval_every", "train.checkpoint_every", "render.chunk_rays", "data.path")
 
@@ -538,7 +541,7 @@ def run_method(spec: MethodSpec, dataset, scene_path: Path, run_dir: Path, setti
     run_dir.mkdir(parents=True, exist_ok=True)
     stages = load_stages(run_dir)
     fp_train = config_fingerprint(cfg)
-    fp_cal = config_fingerprint(cfg, "calibrate", settings.seed)
+    fp_cal = config_fingerprint(cfg, "calibrate", settings.seed, CALIBRATION_PROTOCOL)
     fp_eval = config_fingerprint(cfg, "eval", list(views), settings.seed, sparse_depth is not None, SCORED_POINTS,
                                  spec.calibrate)
     fp_time = config_fingerprint(cfg, "timing", settings.seed, settings.timing_repeats)
