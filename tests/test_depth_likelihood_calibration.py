@@ -202,8 +202,9 @@ def test_training_depth_rays_hit_the_stand_in_points(tiny_scene):
 
 
 def test_calibration_views_lie_halfway_between_training_neighbours(tiny_scene):
-    """Each virtual camera: centre at the midpoint of its pair, rotation halfway (equal geodesic
-    angle to both), the pair's intrinsics and widest bounds; pairs are nearest training neighbours."""
+    """Each virtual camera: centre halfway along the arc around the scene centre (direction of the
+    chord's midpoint, the pair's mean distance), rotation halfway (equal geodesic angle to both),
+    the pair's intrinsics and widest bounds; pairs are nearest training neighbours."""
     from scipy.spatial.transform import Rotation
 
     from stochastic_fields.calibration import calibration_views
@@ -221,7 +222,10 @@ def test_calibration_views_lie_halfway_between_training_neighbours(tiny_scene):
         dist_j = {v: float((centres[v] - centres[j]).norm()) for v in ds.train_indices if v != j}
         assert min(dist, key=dist.get) == j or min(dist_j, key=dist_j.get) == i
         c = camera_centres(cams).double()[p]
-        torch.testing.assert_close(c, 0.5 * (centres[i] + centres[j]), atol=1e-4, rtol=0)
+        o = ds.aabb.double().mean(0)
+        mid = 0.5 * (centres[i] + centres[j]) - o
+        radius = 0.5 * ((centres[i] - o).norm() + (centres[j] - o).norm())
+        torch.testing.assert_close(c, o + mid / mid.norm() * radius, atol=1e-4, rtol=0)
         R = cams.extrinsics.double()[p, :3, :3].numpy()
         a_i = (Rotation.from_matrix(R) * Rotation.from_matrix(R_all[i]).inv()).magnitude()
         a_j = (Rotation.from_matrix(R) * Rotation.from_matrix(R_all[j]).inv()).magnitude()
@@ -230,3 +234,49 @@ def test_calibration_views_lie_halfway_between_training_neighbours(tiny_scene):
         torch.testing.assert_close(intrinsics_3x3(cams)[p], intrinsics_3x3(ds.cameras)[i])
         assert float(near[p]) == pytest.approx(min(float(ds.near[i]), float(ds.near[j])))
         assert float(far[p]) == pytest.approx(max(float(ds.far[i]), float(ds.far[j])))
+
+
+class _MeshDepthModel(torch.nn.Module):
+    """Renders the exact mesh depth plus an error ``error_factor`` times larger than the std it reports."""
+
+    def __init__(self, mesh_path, error_factor: float, rel_std: float = 0.02):
+        super().__init__()
+        import open3d as o3d
+        import trimesh
+
+        self.anchor = torch.nn.Parameter(torch.zeros(1))
+        mesh = trimesh.load(str(mesh_path), force="mesh", process=False)
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+                                 o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+        self.error_factor, self.rel_std = error_factor, rel_std
+
+    def render_view(self, rays, *, generator=None, **_):
+        import open3d as o3d
+
+        o, d = rays.origins.reshape(-1, 3).numpy(), rays.directions.reshape(-1, 3).numpy()
+        t = self.scene.cast_rays(o3d.core.Tensor(np.concatenate([o, d], -1).astype(np.float32)))["t_hit"].numpy()
+        hit = np.isfinite(t)
+        t = np.where(hit, t, 1.0).astype(np.float64)
+        s = self.rel_std * t
+        err = np.random.default_rng(0).normal(size=t.shape) * s * self.error_factor
+        f = lambda a: torch.from_numpy(np.asarray(a, np.float32)).reshape(rays.shape)  # noqa: E731
+        return {"depth_mean": f(t + err), "depth_var_total": f(s ** 2), "opacity": f(hit.astype(np.float64)),
+                "z_scale": rays.z_scale}
+
+
+def test_fit_depth_calibration_recovers_the_error_factor(tmp_path):
+    """End to end (capture points, calibration views, projection, rendering at their pixels, camera-z):
+    a model whose errors are 3x its reported std gets s(p) ~ 3 at the central levels."""
+    from stochastic_fields.calibration import fit_depth_calibration
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.data.synthetic import make_synthetic_scene
+
+    scene = make_synthetic_scene(tmp_path / "scene", num_views=20, width=192, height=144, seed=0)
+    ds = load_dataset(scene, split_every=5)
+    cal = fit_depth_calibration(_MeshDepthModel(scene / "scene.ply", 3.0), ds)
+    assert cal.num_samples >= 150
+    for p in (0.3, 0.5, ONE_SIGMA_LEVEL):
+        assert float(cal.scale_at(p)) == pytest.approx(3.0, rel=0.2)
+    exact = fit_depth_calibration(_MeshDepthModel(scene / "scene.ply", 1.0), ds)
+    assert exact.std_scale == pytest.approx(1.0, rel=0.2)

@@ -152,7 +152,8 @@ def render_at_points(model, cameras, near, far, sparse: dict, *,
 
 def calibration_views(dataset) -> tuple[object, torch.Tensor, torch.Tensor, list[tuple[int, int]]]:
     """Virtual cameras halfway between each training view and its nearest other training view
-    (centre: midpoint; rotation: slerp at 1/2; intrinsics, size of the first; bounds: the pair's
+    (centre: halfway along the arc around the scene box's centre o, at the pair's mean distance
+    from o; rotation: slerp at 1/2; intrinsics, size of the first; bounds: the pair's
     widest). Novel viewpoints among the training ones, like the test views a user renders, made
     without any test view. Returns (cameras [P], near [P], far [P], the (i, j) view pairs)."""
     from scipy.spatial.transform import Rotation, Slerp
@@ -168,11 +169,16 @@ def calibration_views(dataset) -> tuple[object, torch.Tensor, torch.Tensor, list
     pairs = sorted({tuple(sorted((train[a], train[int(dist[a].argmin())]))) for a in range(len(train))})
     w2c = dataset.cameras.extrinsics.double()
     K = intrinsics_3x3(dataset.cameras).double()
+    o = dataset.aabb.double().mean(0)
     mids, Ks = [], []
     for i, j in pairs:
         rot = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([w2c[i, :3, :3].numpy(), w2c[j, :3, :3].numpy()])))
         R = torch.from_numpy(rot([0.5]).as_matrix()[0])
-        c = 0.5 * (centres[train.index(i)] + centres[train.index(j)])
+        ci, cj = centres[train.index(i)], centres[train.index(j)]
+        # on the arc around the scene centre o (orbits stay outside the scene; forward-facing
+        # captures, far from o, move by a negligible amount)
+        mid = 0.5 * (ci + cj) - o
+        c = o + mid / mid.norm().clamp_min(1e-12) * 0.5 * ((ci - o).norm() + (cj - o).norm())
         m = torch.eye(4, dtype=torch.float64)
         m[:3, :3], m[:3, 3] = R, -R @ c
         mids.append(m)
@@ -202,10 +208,8 @@ def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float 
     for i, j in pairs:
         if points.visible is None:
             seen = np.arange(len(points.xyz))
-        elif points.source == "colmap":
+        else:
             seen = np.intersect1d(points.visible[i], points.visible[j])
-        else:  # stand-in points come from one view each: either view of the pair
-            seen = np.union1d(points.visible[i], points.visible[j])
         visible.append(seen[role[seen]])
     sparse = project_sparse_depth(cams, points.xyz, range(len(pairs)), visible=visible, visibility_name="pair")
     device = next(model.parameters()).device

@@ -18,7 +18,8 @@ alone (not of the run's options), so training, calibration and evaluation always
 
 Scenes without SfM points but with dense depth (the embedded synthetic scene) get stand-in
 capture points: a seeded ``SYNTHETIC_POINTS_FRACTION`` of every training view's surface pixels,
-back-projected (``synthetic_capture_points``). They play the part of SfM points (surface points
+back-projected, observed by every training view whose depth map agrees with them
+(``synthetic_capture_points``). They play the part of SfM points (surface points
 seen from training views); test views are scored on their exact dense depth.
 """
 
@@ -44,6 +45,9 @@ SPLIT_SEED: int = 0
 SPLIT_EXTENT_PERCENTILES: tuple[float, float] = (1.0, 99.0)
 #: Fraction of a training view's surface pixels taken as stand-in capture points (dense-depth scenes).
 SYNTHETIC_POINTS_FRACTION: float = 0.02
+#: A training view observes a stand-in point when its depth map at the point's pixel is within this
+#: relative distance of the point's depth (a z-test: the pixel's surface is the point's, not an occluder).
+SYNTHETIC_VISIBILITY_RTOL: float = 0.02
 
 
 def split_points_by_blocks(xyz: np.ndarray, *, blocks_per_axis: int = SPLIT_BLOCKS_PER_AXIS,
@@ -107,29 +111,42 @@ class CapturePoints:
 def synthetic_capture_points(dataset, *, fraction: float = SYNTHETIC_POINTS_FRACTION,
                              seed: int = SPLIT_SEED) -> tuple[np.ndarray, list[np.ndarray]]:
     """Stand-in SfM points of a dense-depth scene: a seeded ``fraction`` of every training view's
-    surface pixels, back-projected at the pixel centre. Returns (xyz [P, 3], per-view visible
-    point indices; only training views see points)."""
-    from .cameras import camera_to_world, intrinsics_3x3
+    surface pixels, back-projected at the pixel centre. Returns (xyz [P, 3], per-view visible point
+    indices): as a COLMAP track, a training view observes a point when the point projects inside it
+    in front of the camera and its depth map there agrees within ``SYNTHETIC_VISIBILITY_RTOL``
+    (test views observe none)."""
+    from .cameras import camera_to_world, in_image, intrinsics_3x3, project_points, select_cameras
 
     if dataset.depths is None:
         raise ValueError(f"{dataset.root}: no dense depth to take stand-in capture points from")
     rng = np.random.default_rng(seed)
     K = intrinsics_3x3(dataset.cameras).double()
     c2w = camera_to_world(dataset.cameras).double()
-    xyz, visible, start = [], [np.zeros(0, dtype=np.int64) for _ in range(dataset.num_views)], 0
+    xyz = []
     for v in dataset.train_indices:
         depth = dataset.depths[v].double()
         rows, cols = torch.nonzero(depth > 0, as_tuple=True)
-        take = rng.random(rows.numel()) < fraction
-        rows, cols = rows[torch.from_numpy(take)], cols[torch.from_numpy(take)]
+        take = torch.from_numpy(rng.random(rows.numel()) < fraction)
+        rows, cols = rows[take], cols[take]
         z = depth[rows, cols]
         uv1 = torch.stack([cols.double() + 0.5, rows.double() + 0.5, torch.ones_like(z)], dim=-1)
         cam = (torch.linalg.solve(K[v], uv1.T).T) * z[:, None]
-        world = cam @ c2w[v, :3, :3].T + c2w[v, :3, 3]
-        xyz.append(world.numpy())
-        visible[v] = np.arange(start, start + len(z), dtype=np.int64)
-        start += len(z)
-    return np.concatenate(xyz) if xyz else np.zeros((0, 3)), visible
+        xyz.append(cam @ c2w[v, :3, :3].T + c2w[v, :3, 3])
+    if not xyz:
+        return np.zeros((0, 3)), [np.zeros(0, dtype=np.int64) for _ in range(dataset.num_views)]
+    points = torch.cat(xyz)
+    visible = [np.zeros(0, dtype=np.int64) for _ in range(dataset.num_views)]
+    for v in dataset.train_indices:
+        cam = select_cameras(dataset.cameras, [v])
+        cam64 = type(cam)(cam.intrinsics.double(), cam.extrinsics.double(), cam.height.double(), cam.width.double())
+        uv, zc = project_points(cam64, points)
+        inside = in_image(cam64, uv, zc)[0]
+        rows = uv[0, :, 1].floor().long().clamp(0, dataset.height - 1)
+        cols = uv[0, :, 0].floor().long().clamp(0, dataset.width - 1)
+        surface = dataset.depths[v].double()[rows, cols]
+        agree = inside & (surface > 0) & ((surface - zc[0]).abs() <= SYNTHETIC_VISIBILITY_RTOL * zc[0])
+        visible[v] = torch.nonzero(agree).reshape(-1).numpy().astype(np.int64)
+    return points.numpy(), visible
 
 
 def load_capture_points(dataset) -> CapturePoints | None:
