@@ -35,8 +35,6 @@ ROWS: tuple[tuple[str, str, tuple[tuple[str, object], ...], str], ...] = (
      "Rao-Blackwellised colour statistics at render time (less Monte-Carlo noise in the variance)"),
     ("depth", "snerf_predictive", (("loss.lambda_depth", 0.1),),
      "+ sparse-depth likelihood of the FIT capture points (weight 0.1)"),
-    ("depth_shared_noise", "snerf_predictive", (("loss.lambda_depth", 0.1), ("render.shared_noise", True)),
-     "both of the above"),
     ("ensemble", "ensemble", (), "reference: deep ensemble of 5"),
     ("deterministic", "deterministic", (), "reference: deterministic NeRF"),
 )
