@@ -280,3 +280,41 @@ def test_fit_depth_calibration_recovers_the_error_factor(tmp_path):
         assert float(cal.scale_at(p)) == pytest.approx(3.0, rel=0.2)
     exact = fit_depth_calibration(_MeshDepthModel(scene / "scene.ply", 1.0), ds)
     assert exact.std_scale == pytest.approx(1.0, rel=0.2)
+
+
+def test_export_applies_the_run_calibration(tmp_path, tiny_scene):
+    """Export with a recalibration: depth_std = s(0.683) x raw (raw kept), the 90% band uses
+    s(0.9) / s(0.683) on top, and the summary records the map."""
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.products.export import ExportOptions, dataset_view_specs, export_views
+
+    scales = np.linspace(1.5, 4.0, CALIBRATION_LEVELS.size)
+    cal = RunCalibration(depth=QuantileCalibration("depth_std", CALIBRATION_LEVELS, scales, 500))
+    ds = load_dataset(tiny_scene)
+    model = _MeshDepthModel(tiny_scene / "scene.ply", 1.0)
+    model.render_view = _with_draws(model.render_view)
+    opts = ExportOptions(formats=("npz",), progress=False)
+    summary = export_views(model, dataset_view_specs(ds, [1]), tmp_path / "cal", opts, calibration=cal)
+    assert summary["depth_calibration"]["depth"]["std_scale"] == pytest.approx(cal.depth.std_scale)
+    with np.load(next((tmp_path / "cal" / "views").glob("*.npz"))) as f:
+        raw, std, mean = f["depth_std_raw"], f["depth_std"], f["depth_mean"]
+        valid = f["valid"] & (raw > 0)
+        np.testing.assert_allclose(std[valid], raw[valid] * cal.depth.std_scale, rtol=1e-5)
+        half = (f["depth_band90_upper"] - mean)[valid]
+        expected = stats.norm.ppf(0.95) * std[valid] * cal.depth.relative_scale(0.9)
+        np.testing.assert_allclose(half, expected, rtol=1e-4, atol=1e-6)
+
+
+def _with_draws(render):
+    """Add the per-draw depths and colour maps that export reads (draws: mean +- std, K = 4)."""
+    def wrapped(rays, *, num_draws=None, generator=None, keep_draws=False, **_):
+        maps = render(rays)
+        s = maps["depth_var_total"].sqrt()
+        signs = torch.tensor([-1.0, 1.0, -1.0, 1.0])
+        maps["depth_draws"] = maps["depth_mean"][..., None] + s[..., None] * signs
+        maps["depth_var_epistemic"] = maps["depth_var_total"]
+        maps["depth_var_spread"] = torch.zeros_like(maps["depth_var_total"])
+        maps["colour_mean"] = torch.full((*rays.shape, 3), 0.5)
+        maps["colour_var"] = torch.zeros((*rays.shape, 3))
+        return maps
+    return wrapped

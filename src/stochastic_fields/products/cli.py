@@ -80,6 +80,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="I,J,METRES: dataset cameras I and J are METRES apart (sets the metric scale instead of "
                         "--metres-per-unit).")
     p.add_argument("--seed", type=int, default=d.seed, help="Seed of the K draws.")
+    p.add_argument("--raw-uncertainty", action="store_true",
+                   help="Ignore the run's calibration.json: depth_std and the bands use the raw total std.")
+    p.add_argument("--raw-uncertainty", action="store_true",
+                   help="Ignore the run's calibration.json: depth_std and the bands use the raw total std.")
     p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
     p.add_argument("--quiet", action="store_true", help="No progress bars.")
 
@@ -92,7 +96,7 @@ def options_from_args(args: argparse.Namespace) -> ExportOptions:
         voxel_size=args.voxel_size, free_space_thresholds=tuple(args.free_space_thresholds),
         covariance=args.covariance, save_draws=args.save_draws, units=args.units,
         metres_per_unit=args.metres_per_unit, known_distance=_known_distance(args.known_distance), seed=args.seed,
-        device=args.device, progress=not args.quiet)
+        raw_uncertainty=args.raw_uncertainty, device=args.device, progress=not args.quiet)
 
 
 def run(args: argparse.Namespace) -> None:

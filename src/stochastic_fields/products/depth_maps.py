@@ -10,8 +10,13 @@ multiplied by ``z_scale`` (:func:`stochastic_fields.evaluate.camera_z_maps`). Pe
     depth_std           = sqrt(epistemic^2 + spread^2)           (total, law of total variance)
     opacity             = mean_k sum_i w_ik                     (probability the ray hits something)
     depth_draw_q<p>     = empirical q-quantile of {D_k}          (see :func:`draw_quantiles`)
-    depth_band<L>_lower = depth_mean - z_L depth_std,  depth_band<L>_upper = depth_mean + z_L depth_std
-                          (central L% band of a normal with the total variance, z_L = Phi^-1((1 + L) / 2))
+    depth_band<L>_lower = depth_mean - z_L m(L) depth_std,  depth_band<L>_upper = depth_mean + z_L m(L) depth_std
+                          (central L% band, z_L = Phi^-1((1 + L) / 2); m(L) = 1, a normal with the total
+                          variance, or the run's recalibration s(L) / s(0.683))
+
+With a recalibrated run (``RUN/calibration.json``, ``stochastic_fields.calibration``)
+``depth_std`` is the recalibrated std ``s(0.683) x`` the total std above, which stays available as
+``depth_std_raw``.
 
 The draw quantiles come from the K draws' expected depths only, so they describe the epistemic
 part of the uncertainty (where each trajectory's expected surface is), not the termination
@@ -38,11 +43,12 @@ import json
 from statistics import NormalDist
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
 
+from ..calibration import apply_depth_calibration
 from ..evaluate import camera_z_maps
 from ..io_utils import atomic_path, atomic_write_text
 
@@ -86,6 +92,8 @@ class DepthProducts:
         depth_draws: [H, W, K] camera-z depth of each draw, or None.
         colour_std: [H, W, 3] std of the rendered colour over the draws, or None.
         band_levels: levels L of the predictive bands ``depth_band<L>_lower/upper`` (see module doc).
+        depth_std_raw: the total std before recalibration (``depth_std`` is recalibrated), or None.
+        band_multiplier: m(L) of the bands (recalibration), or None (1).
         metres_per_unit: metres per scene unit when known (``--metres-per-unit`` or a known
             distance), else None; ``scale_source`` says where it came from.
     """
@@ -111,6 +119,8 @@ class DepthProducts:
     band_levels: tuple[float, ...] = BAND_LEVELS
     metres_per_unit: float | None = None
     scale_source: str = "unknown: scene units are not known to be metres"
+    depth_std_raw: np.ndarray | None = field(default=None, repr=False)
+    band_multiplier: Callable[[float], float] | None = field(default=None, repr=False)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -132,10 +142,13 @@ class DepthProducts:
             "depth_std_spread": self.depth_std_spread,
             "opacity": self.opacity,
         }
+        if self.depth_std_raw is not None:
+            out["depth_std_raw"] = self.depth_std_raw
         for level, q in zip(self.quantile_levels, self.depth_quantiles):
             out[quantile_name(float(level))] = q
         for level in self.band_levels:
-            lower, upper = gaussian_band(self.depth_mean, self.depth_std, level)
+            m = 1.0 if self.band_multiplier is None else float(self.band_multiplier(level))
+            lower, upper = gaussian_band(self.depth_mean, self.depth_std * m, level)
             out[band_name(level, "lower")] = lower
             out[band_name(level, "upper")] = upper
         return out
@@ -207,7 +220,7 @@ def draw_quantiles(draws: torch.Tensor, levels: Sequence[float]) -> torch.Tensor
 def compute_depth_products(maps: dict[str, torch.Tensor], intrinsics: np.ndarray, world_to_camera: np.ndarray, *,
                            near: float, far: float, quantiles: Sequence[float] = (0.05, 0.95),
                            min_opacity: float = 0.5, units: str = "scene units",
-                           keep_draws: bool = False) -> DepthProducts:
+                           keep_draws: bool = False, calibration=None) -> DepthProducts:
     """Depth products of one view from the renderer's maps.
 
     Args:
@@ -218,11 +231,14 @@ def compute_depth_products(maps: dict[str, torch.Tensor], intrinsics: np.ndarray
         quantiles: levels in (0, 1) of :func:`draw_quantiles`.
         min_opacity: pixels with lower opacity are not ``valid``.
         keep_draws: keep the [H, W, K] camera-z draws (needed for free-space queries).
+        calibration: the run's ``calibration.RunCalibration`` (recalibrated ``depth_std`` and
+            bands, raw std kept as ``depth_std_raw``), or None.
     """
     if "depth_draws" not in maps:
         raise ValueError("compute_depth_products needs per-draw depths: render with keep_draws=True")
     levels = np.unique(check_quantile_levels(quantiles))  # ascending, no duplicates
-    z = camera_z_maps(maps)  # camera-z numpy float32
+    z = apply_depth_calibration(camera_z_maps(maps), calibration)  # camera-z numpy float32
+    depth_cal = None if calibration is None else calibration.depth
     draws = torch.from_numpy(z["depth_draws"]).double()  # [H, W, K]
     q = draw_quantiles(draws, levels).float().numpy()  # [Q, H, W]
     return DepthProducts(
@@ -244,6 +260,8 @@ def compute_depth_products(maps: dict[str, torch.Tensor], intrinsics: np.ndarray
         min_opacity=float(min_opacity),
         depth_draws=z["depth_draws"] if keep_draws else None,
         colour_std=z.get("colour_std"),
+        depth_std_raw=z.get("depth_std_raw"),
+        band_multiplier=None if depth_cal is None else (lambda level: float(depth_cal.relative_scale(level))),
     )
 
 

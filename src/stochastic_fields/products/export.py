@@ -102,6 +102,8 @@ class ExportOptions:
     """Where metres_per_unit came from (set by export_run for a known distance)."""
     seed: int = 0
     """Seed of the K draws."""
+    raw_uncertainty: bool = False
+    """Ignore the run's calibration.json (depth_std then is the raw total std; by default it is recalibrated, the raw one kept as depth_std_raw)."""
     device: str | None = None
     """auto, cpu or cuda (default: the run's)."""
     progress: bool = True
@@ -254,8 +256,10 @@ def dataset_view_specs(dataset, views: Sequence[int]) -> list[ViewSpec]:
 
 
 # ------------------------------------------------------------------------------- rendering
-def render_products(model, spec: ViewSpec, opts: ExportOptions, generator: torch.Generator) -> DepthProducts:
-    """Render one camera with K draws and return its depth products (draws kept)."""
+def render_products(model, spec: ViewSpec, opts: ExportOptions, generator: torch.Generator,
+                    calibration=None) -> DepthProducts:
+    """Render one camera with K draws and return its depth products (draws kept; ``calibration``:
+    the run's depth recalibration, see ``compute_depth_products``)."""
     device = next(model.parameters()).device
     cams = make_cameras(torch.from_numpy(spec.intrinsics).float()[None],
                         torch.from_numpy(spec.world_to_camera).float()[None], spec.height, spec.width)
@@ -263,7 +267,8 @@ def render_products(model, spec: ViewSpec, opts: ExportOptions, generator: torch
     maps = model.render_view(rays, num_draws=opts.num_draws, generator=generator, keep_draws=True)
     return compute_depth_products(maps, intrinsics_3x3(cams)[0].double().numpy(), cams.extrinsics[0].double().numpy(),
                                   near=spec.near, far=spec.far, quantiles=opts.quantiles,
-                                  min_opacity=opts.min_opacity, units=opts.units, keep_draws=True)
+                                  min_opacity=opts.min_opacity, units=opts.units, keep_draws=True,
+                                  calibration=calibration)
 
 
 def write_view_files(out_dir: Path, name: str, products: DepthProducts, opts: ExportOptions) -> list[Path]:
@@ -426,12 +431,15 @@ def export_run(run_dir: str | Path, opts: ExportOptions) -> dict:
         specs = dataset_view_specs(dataset, views)
     out = Path(opts.out) if opts.out is not None else run_dir / "export"
     mesh_path = Path(dataset.root) / "scene.ply"
+    from ..calibration import load_run_calibration
+
+    calibration = None if opts.raw_uncertainty else load_run_calibration(run_dir)
     return export_views(model, specs, out, opts, mesh_path=mesh_path if mesh_path.is_file() else None,
-                        run_name=str(run_dir))
+                        run_name=str(run_dir), calibration=calibration)
 
 
 def export_views(model, specs: Sequence[ViewSpec], out: Path, opts: ExportOptions, *, mesh_path: Path | None = None,
-                 run_name: str = "") -> dict:
+                 run_name: str = "", calibration=None) -> dict:
     """Render, write and summarise ``specs`` into ``out`` (see the module doc)."""
     opts.validate()
     if "ros" in opts.formats and opts.metres_per_unit is None:
@@ -447,7 +455,7 @@ def export_views(model, specs: Sequence[ViewSpec], out: Path, opts: ExportOption
     files: list[Path] = []
     num_draws = None
     for index, spec in enumerate(tqdm(specs, desc="export", disable=not opts.progress, dynamic_ncols=True)):
-        products = render_products(model, spec, opts, generator)
+        products = render_products(model, spec, opts, generator, calibration)
         num_draws = products.num_draws
         files += write_view_files(out, spec.name, products, opts)
         calib.add(products, spec.gt_depth)
@@ -480,6 +488,7 @@ def export_views(model, specs: Sequence[ViewSpec], out: Path, opts: ExportOption
         "metres_per_unit": opts.metres_per_unit,
         "scale_source": opts.metric_scale().source if opts.metric_scale() else "unknown",
         "conventions": CONVENTIONS,
+        "depth_calibration": None if calibration is None else calibration.to_dict(),
         "colour_mapping": mapping,
         "per_view": per_view,
     }
