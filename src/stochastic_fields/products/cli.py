@@ -82,8 +82,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=d.seed, help="Seed of the K draws.")
     p.add_argument("--raw-uncertainty", action="store_true",
                    help="Ignore the run's calibration.json: depth_std and the bands use the raw total std.")
-    p.add_argument("--raw-uncertainty", action="store_true",
-                   help="Ignore the run's calibration.json: depth_std and the bands use the raw total std.")
     p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
     p.add_argument("--quiet", action="store_true", help="No progress bars.")
 
