@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 RUN ?= runs/demo
 
-.PHONY: demo test test-fast notebook bench eval-tables sysdeps venv clean
+.PHONY: demo test test-fast notebook bench eval-tables uncertainty-study sysdeps venv clean
 
 $(STAMP): pyproject.toml requirements-cpu.txt scripts/install_system_deps.sh
 	bash scripts/install_system_deps.sh
@@ -37,6 +37,10 @@ bench: $(STAMP)
 # Tables 1-3 at the documented CPU budget (about 1.5 hours on 2 CPU cores; resumable)
 eval-tables: $(STAMP)
 	$(PY) benchmarks/eval_tables.py --scenes fern flower --timing-repeats 1 --out benchmarks/results/eval_tables
+
+# the one-factor-at-a-time uncertainty study (about 1.5 hours on 2 CPU cores; resumable)
+uncertainty-study: $(STAMP)
+	$(PY) benchmarks/uncertainty_study.py --out benchmarks/results/uncertainty_study
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache
