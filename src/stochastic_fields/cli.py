@@ -18,18 +18,28 @@ from .renderer import COLOUR_ESTIMATORS
 
 def _add_experiment_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default=None, choices=C.PRESETS,
-                   help="Start from a named preset (default: 'default', or the run's saved config when resuming).")
+                   help="Start from a named preset (default: 'default', or the run's saved config when resuming). "
+                        "What each sets: " + C.presets_help().replace("%", "%%") + ".")
+    p.add_argument("--config", type=Path, default=None, metavar="FILE",
+                   help="JSON file of options with the nested structure of a run's config.json (may be partial), "
+                        "applied on top of the preset or saved config; explicit --group.name options override it.")
     C.add_config_arguments(p)
 
 
 def experiment_from_args(args: argparse.Namespace, run_dir: Path) -> C.ExperimentConfig:
-    """The run's saved config when resuming, else the preset; explicit options apply on top."""
+    """The run's saved config when resuming, else the preset; then ``--config FILE``; then
+    explicit options. The data path is stored resolved (absolute). Validated."""
     saved = run_dir / "config.json"
-    if saved.exists() and args.preset is None:
+    if saved.is_file() and args.preset is None:
         cfg = C.load_config(saved)
     else:
         cfg = C.preset(args.preset or "default")
-    return C.apply_overrides(cfg, args)
+    if getattr(args, "config", None) is not None:
+        C.merge_dict(cfg, C.read_config_file(args.config), str(args.config))
+    C.apply_overrides(cfg, args)
+    if cfg.data.path:
+        cfg.data.path = str(Path(cfg.data.path).expanduser().resolve())
+    return cfg
 
 
 def _parse_views(spec: str | None, dataset) -> list[int]:
@@ -42,19 +52,36 @@ def _parse_views(spec: str | None, dataset) -> list[int]:
     try:
         views = [int(v) for v in spec.split(",") if v.strip()]
     except ValueError as exc:
-        raise SystemExit(f"--views must be 'test', 'train', 'all' or comma-separated indices, got {spec!r}") from exc
+        raise ValueError(f"--views must be 'test', 'train', 'all' or comma-separated indices, got {spec!r}") from exc
+    if not views:
+        raise ValueError(f"--views {spec!r} names no view")
     bad = [v for v in views if not 0 <= v < dataset.num_views]
     if bad:
-        raise SystemExit(f"--views {bad} out of range: the scene has {dataset.num_views} views (0..{dataset.num_views - 1})")
+        raise ValueError(f"--views {bad} out of range: the scene has {dataset.num_views} views (0..{dataset.num_views - 1})")
     return views
+
+
+def _num_draws(text: str) -> int:
+    """--num-draws: an integer >= 2 (a variance needs two draws)."""
+    try:
+        k = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 2, got {text!r}") from None
+    if k < 2:
+        raise argparse.ArgumentTypeError(f"must be >= 2 (the uncertainty is a variance over K draws), got {k}")
+    return k
 
 
 def cmd_train(args: argparse.Namespace) -> None:
     from .scenes import load_run_dataset
     from .trainer import Trainer
 
-    run_dir = Path(args.out)
+    from .io_utils import check_output_folder
+    from .trainer import check_resume
+
+    run_dir = check_output_folder(Path(args.out), "--out")
     cfg = experiment_from_args(args, run_dir)
+    check_resume(run_dir, cfg)  # before anything is written or generated
     dataset = load_run_dataset(cfg, run_dir)
     Trainer(cfg, run_dir, dataset).train(progress=not args.quiet)
     print(f"trained: {run_dir / 'checkpoint.pt'}")
@@ -109,8 +136,12 @@ def cmd_demo(args: argparse.Namespace) -> None:
     from .scenes import load_run_dataset
     from .trainer import Trainer
 
-    run_dir = Path(args.out)
+    from .io_utils import check_output_folder
+    from .trainer import check_resume
+
+    run_dir = check_output_folder(Path(args.out), "--out")
     cfg = experiment_from_args(argparse.Namespace(**{**vars(args), "preset": args.preset or "demo"}), run_dir)
+    check_resume(run_dir, cfg)
     t0 = time.perf_counter()
     dataset = load_run_dataset(cfg, run_dir)
     model = Trainer(cfg, run_dir, dataset).train(progress=not args.quiet)
@@ -149,7 +180,8 @@ def build_parser() -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=helptext)
         p.add_argument("--run", required=True, help="Trained run folder.")
         p.add_argument("--views", default=None, help="'test' (default), 'train', 'all' or indices like 1,2,3.")
-        p.add_argument("--num-draws", type=int, default=None, help="K trajectories per ray (default: the run's render.num_draws).")
+        p.add_argument("--num-draws", type=_num_draws, default=None,
+                       help="K trajectories per ray, >= 2 (default: the run's render.num_draws).")
         p.add_argument("--out", default=None, help="Output folder (default: inside the run folder).")
         p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
         p.add_argument("--colour-estimator", choices=COLOUR_ESTIMATORS, default=None,
@@ -181,6 +213,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _describe_os_error(exc: OSError) -> str:
+    """One line for an environment error: what failed, on which file, and why."""
+    import errno
+
+    where = f" {exc.filename}" if exc.filename else ""
+    reason = exc.strerror or str(exc)
+    hints = {errno.ENOSPC: "free some space or choose another --out",
+             errno.EACCES: "check the folder's permissions or choose another --out",
+             errno.EROFS: "the file system is read-only; choose another --out",
+             errno.EEXIST: "a file is in the way of a folder",
+             errno.ENOTDIR: "a file is in the way of a folder",
+             errno.EISDIR: "a folder is where a file was expected"}
+    hint = hints.get(exc.errno or -1)
+    return f"cannot access{where}: {reason}" + (f" ({hint})" if hint else "")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
@@ -188,6 +236,13 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as exc:
         print(f"stochastic-fields {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # permissions, full disk, a file where a folder should be
+        print(f"stochastic-fields {args.command}: error: {_describe_os_error(exc)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"stochastic-fields {args.command}: interrupted (complete files only were written; training "
+              "resumes from its last checkpoint)", file=sys.stderr)
+        return 130
     return 0
 
 

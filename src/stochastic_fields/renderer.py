@@ -44,6 +44,7 @@ from .fields.base import FieldParams, StochasticField
 from .logistic_normal_table import logistic_normal_moments_tabulated
 from .rays import PackedRaySamples, RayBundle, RaySamples
 from .samplers import Spacing, sample_along_rays
+from .validation import Checker, boolean, check_fields, choice, colour_or_none, integer, real
 from .volume_rendering import (TrajectoryStatistics, concatenate_draws, render_weights, render_weights_packed,
                                trajectory_statistics, trajectory_statistics_packed, weights_alpha_from_optical_depth)
 
@@ -98,6 +99,34 @@ class RenderSettings:
     """Rendering colour statistics: 'draws' samples every colour (SPEC 3: C_k = sum_i w_ik r_ik, variance over k); 'rao_blackwell' draws only densities and integrates each trajectory's colour noise exactly given its weights (E[C_k|w_k] = sum_i w_ik E[r_i], Var[C_k|w_k] = sum_i w_ik^2 Var[r_i], tabulated logistic-normal moments), estimating the same mean and variance with less Monte-Carlo noise and no colour draws (benchmarks/results). Training always draws colours."""
     adaptive_rule: Literal["precision", "change"] = "precision"
     """Adaptive K stopping rule: 'precision' stops when the small-K bias of 1/var left before the cap, predicted from the draws' kurtosis, is below adaptive_rtol (aims at the NLL of K = adaptive_max_draws); 'change' when the variances change by less than adaptive_rtol between batches (stops earlier, NLL measured 4% above K = 128's at rtol 0.05). See stochastic_fields.adaptive."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, RENDER_CHECKS)
+
+
+#: Declared range of every RenderSettings field (checked on construction, load and CLI overrides).
+RENDER_CHECKS: dict[str, Checker] = {
+    "num_samples": integer(2, 100_000),
+    "num_draws": integer(1, 100_000),
+    "quadrature": choice("alpha", "trapezoid"),
+    "spacing": choice("linear", "disparity"),
+    "shared_noise": boolean(),
+    "chunk_rays": integer(1),
+    "background": colour_or_none(),
+    "skip_empty_space": boolean(),
+    "occupancy_num_std": real(0.0),
+    "occupancy_alpha_threshold": real(0.0, 1.0, lo_open=True, hi_open=True),
+    "occupancy_resolution": integer(1, 1024),
+    "occupancy_update_every": integer(1),
+    "occupancy_warmup_steps": integer(0),
+    "colour_variance": choice("epistemic", "predictive"),
+    "adaptive_draws": boolean(),
+    "adaptive_batch_draws": integer(2, 100_000),
+    "adaptive_max_draws": integer(2, 100_000),
+    "adaptive_rtol": real(0.0, lo_open=True),
+    "colour_estimator": choice(*COLOUR_ESTIMATORS),
+    "adaptive_rule": choice("precision", "change"),
+}
 
 
 def dense_noise(num_rays: int, num_draws: int, num_samples: int, *, shared_noise: bool = False,

@@ -2,7 +2,9 @@
 
 For each camera (dataset views, or a ``cameras.json`` of intrinsics/poses), render K depth
 trajectories and write (every file atomically, so an interrupted export leaves complete files
-or none; ``summary.json`` is written last and marks a finished export):
+or none; the whole folder is written beside OUT as ``.OUT.partial-*`` and swapped in when
+complete, so OUT is always one finished export, never a mix of an old and an interrupted one;
+``summary.json`` marks a finished export):
 
     OUT/views/<name>.npz                 all maps, float32, + intrinsics/pose/units/K (depth_maps.write_npz)
     OUT/views/<name>_depth_mean.png/.json 16-bit depth + scale sidecar (also _depth_std, _depth_q<p>)
@@ -33,7 +35,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..cameras import generate_rays_for_view, intrinsics_3x3, make_cameras
-from ..io_utils import atomic_path, atomic_write_text
+from ..io_utils import atomic_folder, atomic_path, atomic_write_text, check_file_name
 from .depth_maps import (CONVENTIONS, DepthProducts, check_quantile_levels, compute_depth_products,
                          draw_quantiles, quantile_name, write_colourised, write_npz, write_png16, write_tiff)
 from .free_space import free_space_volume
@@ -205,11 +207,17 @@ def load_cameras_json(path: str | Path, *, default_near: float, default_far: flo
             if isinstance(v, bool) or not isinstance(v, (int, float)) or v != int(v) or int(v) < 1:
                 raise ValueError(f"{path}: camera {i}: {key!r} must be a positive integer, got {v!r}")
             size[key] = int(v)
-        near = float(cam.get("near", default_near))
-        far = float(cam.get("far", default_far))
+        try:
+            near = float(cam.get("near", default_near))
+            far = float(cam.get("far", default_far))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: camera {i}: 'near'/'far' must be numbers, got near={cam.get('near')!r} "
+                             f"far={cam.get('far')!r}") from exc
         if not (0 < near < far and math.isfinite(far)):
             raise ValueError(f"{path}: camera {i}: need 0 < near < far, got near={near} far={far}")
-        specs.append(ViewSpec(str(cam.get("name", f"cam_{i:03d}")), K, w2c, size["height"], size["width"], near, far))
+        name = cam.get("name", f"cam_{i:03d}")
+        check_file_name(name, f"{path}: camera {i}: 'name'")
+        specs.append(ViewSpec(name, K, w2c, size["height"], size["width"], near, far))
     names = [s.name for s in specs]
     if len(set(names)) != len(names):
         raise ValueError(f"{path}: camera names must be unique, got {names}")
@@ -390,10 +398,29 @@ def export_run(run_dir: str | Path, opts: ExportOptions) -> dict:
                         run_name=str(run_dir))
 
 
+#: Entries an export folder holds: a non-empty folder with anything else is not replaced.
+EXPORT_ENTRIES: frozenset[str] = frozenset({"views", "clouds", "fused.ply", "fused_cloud.png", "summary.json"})
+
+
+def is_export_folder(path: Path) -> bool:
+    """True for a folder holding only what an export writes (a previous or interrupted export)."""
+    return all(p.name in EXPORT_ENTRIES or p.name.startswith(".") for p in Path(path).iterdir())
+
+
 def export_views(model, specs: Sequence[ViewSpec], out: Path, opts: ExportOptions, *, mesh_path: Path | None = None,
                  run_name: str = "") -> dict:
-    """Render, write and summarise ``specs`` into ``out`` (see the module doc)."""
+    """Render, write and summarise ``specs`` into ``out`` (see the module doc): the files go to a
+    fresh folder beside ``out`` that replaces it when complete (``io_utils.atomic_folder``); an
+    existing ``out`` that holds anything but a previous export is refused."""
     opts.validate()
+    for spec in specs:
+        check_file_name(spec.name, "view name")
+    with atomic_folder(out, replaceable=is_export_folder, option="--out") as work:
+        return _export_views_into(model, specs, work, opts, mesh_path=mesh_path, run_name=run_name)
+
+
+def _export_views_into(model, specs: Sequence[ViewSpec], out: Path, opts: ExportOptions, *,
+                       mesh_path: Path | None, run_name: str) -> dict:
     out = Path(out)
     device = next(model.parameters()).device
     generator = torch.Generator(device=device).manual_seed(opts.seed)

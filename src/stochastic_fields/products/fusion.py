@@ -23,6 +23,8 @@ import numpy as np
 from ..constants import PRODUCT_DEPTH_VARIANCE_FLOOR
 from .pointcloud import COVARIANCE_NAMES, CloudArrays, confidence_from_std
 
+#: Largest voxel index per axis: floor(x / voxel_size) stays exact in float64 and int64 far below it.
+MAX_VOXEL_INDEX: float = 2.0**40
 #: Default voxel side in median pixel footprints.
 VOXEL_FOOTPRINTS: float = 1.0
 
@@ -57,6 +59,10 @@ def fuse_clouds(clouds: list[CloudArrays] | CloudArrays, voxel_size: float | Non
         return cloud, {"input": 0, "fused": 0, "voxel_size": size, "max_count": 0}
     if "depth_var" not in cloud.attributes:
         raise ValueError("fuse_clouds needs the per-point 'depth_var' attribute")
+    reach = float(np.abs(cloud.positions).max())
+    if reach / size >= MAX_VOXEL_INDEX:
+        raise ValueError(f"voxel_size {voxel_size} is too small for a cloud reaching {reach:.4g} scene units from "
+                         f"the origin (voxel indices past {MAX_VOXEL_INDEX:.0e}); use >= {reach / MAX_VOXEL_INDEX:.3g}")
     keys = np.floor(cloud.positions / size).astype(np.int64)
     _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
     inverse = inverse.reshape(-1)
