@@ -98,10 +98,12 @@ def cmd_render(args: argparse.Namespace) -> None:
     from .evaluate import evaluate
     from .trainer import load_trained_model
 
+    from .io_utils import check_output_folder
+
+    out = check_output_folder(Path(args.out) if args.out else Path(args.run) / "renders", "--out")
     cfg, model, dataset = load_trained_model(Path(args.run), device=args.device)
     _apply_render_overrides(model, args)
     views = _parse_views(args.views, dataset)
-    out = Path(args.out) if args.out else Path(args.run) / "renders"
     evaluate(model, dataset, out, views=views, num_draws=args.num_draws, progress=not args.quiet)
     print(f"rendered {len(views)} views into {out / 'views'}")
 
@@ -111,10 +113,12 @@ def cmd_eval(args: argparse.Namespace) -> None:
     from .evaluate import evaluate
     from .trainer import load_trained_model
 
+    from .io_utils import check_output_folder
+
+    out = check_output_folder(Path(args.out) if args.out else Path(args.run), "--out")
     cfg, model, dataset = load_trained_model(Path(args.run), device=args.device)
     _apply_render_overrides(model, args)
     views = _parse_views(args.views, dataset)
-    out = Path(args.out) if args.out else Path(args.run)
     result = evaluate(model, dataset, out, views=views, num_draws=args.num_draws, progress=not args.quiet,
                       write_products=not args.no_products)
     _print_summary(result, f"{cfg.method} on {dataset.name}: {len(views)} views, K={result['num_draws']}")
@@ -233,7 +237,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         args.func(args)
-    except (ValueError, FileNotFoundError) as exc:
+    except (ValueError, FileNotFoundError, FloatingPointError) as exc:
         print(f"stochastic-fields {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # permissions, full disk, a file where a folder should be

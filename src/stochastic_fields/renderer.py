@@ -32,6 +32,7 @@ packed path draws ``[K, N]`` (one eps per kept sample); pass ``noise=`` to fix t
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field as dataclass_field
 from typing import Callable, Literal
 
@@ -255,6 +256,23 @@ def _folded_optical_depth_params(params: FieldParams, samples: RaySamples) -> tu
     return (params.density_loc * deltas)[:, None, :], (params.density_scale * deltas)[:, None, :]
 
 
+#: Half dtypes: their 10-bit (float16) / 7-bit (bfloat16) mantissas lose transmittance products,
+#: cumulative optical depths and depths of tens of scene units, so renders upcast them to float32.
+HALF_DTYPES: tuple[torch.dtype, ...] = (torch.float16, torch.bfloat16)
+
+
+def upcast_half(obj):
+    """``obj`` (tensor, tuple, dataclass of them, or None) with float16/bfloat16 tensors as float32."""
+    if isinstance(obj, Tensor):
+        return obj.float() if obj.dtype in HALF_DTYPES else obj
+    if isinstance(obj, tuple):
+        return tuple(upcast_half(o) for o in obj)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return dataclasses.replace(obj, **{f.name: upcast_half(getattr(obj, f.name)) for f in dataclasses.fields(obj)
+                                           if f.init})
+    return obj
+
+
 def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSettings, *, num_draws: int,
                    deterministic: bool = False, generator: torch.Generator | None = None,
                    noise: tuple[Tensor, Tensor] | None = None, colour_estimator: str | None = None,
@@ -266,7 +284,9 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
     block), shared noise for all K at once (as the packed layout, which then agrees exactly).
     ``colour_estimator`` overrides ``settings.colour_estimator``; ``colour_moments`` gives the
     Rao-Blackwellised estimator's per-sample moments if already computed (``colour_moments()``).
+    float16/bfloat16 inputs are rendered in float32 (``upcast_half``); the statistics are float32.
     """
+    params, samples, noise, colour_moments = upcast_half((params, samples, noise, colour_moments))
     R, S = samples.t_starts.shape
     dev, dt = params.density_loc.device, params.density_loc.dtype
     rao_blackwell = _use_rao_blackwell(settings, colour_estimator, deterministic)
@@ -315,6 +335,7 @@ def render_samples_packed(params: FieldParams, samples: PackedRaySamples, settin
     if settings.quadrature != "alpha":
         raise ValueError(f"packed samples (empty-space skipping) need quadrature='alpha', got "
                          f"{settings.quadrature!r}: the packed trapezoid interpolates across skipped gaps")
+    params, samples, noise, colour_moments = upcast_half((params, samples, noise, colour_moments))
     R, N = samples.num_rays, samples.ray_indices.shape[0]
     dev, dt = params.density_loc.device, params.density_loc.dtype
     rao_blackwell = _use_rao_blackwell(settings, colour_estimator, deterministic)

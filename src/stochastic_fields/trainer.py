@@ -30,7 +30,8 @@ from .rays import RayBundle
 #: Options a resumed run may change: how long and how often, where, and render chunking. Any
 #: other difference (model shape, data, losses, learning rate, seed...) is refused on resume.
 RESUMABLE_OPTIONS: tuple[str, ...] = ("train.iterations", "train.eval_every", "train.checkpoint_every",
-                                      "train.device", "render.chunk_rays")
+                                      "train.device", "render.chunk_rays", "render.num_draws",
+                                      "render.colour_estimator")
 LOG_NAME = "train_log.jsonl"
 
 

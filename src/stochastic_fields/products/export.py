@@ -335,7 +335,12 @@ def surface_distances(points: np.ndarray, mesh_path: str | Path) -> np.ndarray:
     import open3d as o3d
     import trimesh
 
-    mesh = trimesh.load(str(mesh_path), force="mesh", process=False)
+    try:
+        mesh = trimesh.load(str(mesh_path), force="mesh", process=False)
+    except Exception as exc:  # trimesh raises bare exceptions for damaged files ("PLY is unexpected length!")
+        raise ValueError(f"{mesh_path}: cannot read the ground-truth mesh ({type(exc).__name__}: {exc})") from exc
+    if not hasattr(mesh, "faces") or len(mesh.faces) == 0:
+        raise ValueError(f"{mesh_path}: the ground-truth mesh has no triangles")
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
                         o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
