@@ -168,8 +168,16 @@ EXTRA_COMMANDS = {
 }
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with a short error: the bad option and value on one line, and where the help is
+    (the full usage of the config options runs to dozens of lines)."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message}\n(see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="stochastic-fields", description=__doc__,
+    parser = _Parser(prog="stochastic-fields", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
 

@@ -207,6 +207,9 @@ def _load_frames(json_path: Path, meta: dict, want_depth: bool, downscale: int, 
             background = ()
         if len(background) != 3:
             raise DatasetError(json_path, f"'background' must be 3 numbers, got {meta['background']}")
+    for i, frame in enumerate(frames):
+        if not isinstance(frame, dict):
+            raise DatasetError(json_path, f"frame {i} must be a JSON object, got {frame!r}")
     has_depth = [("depth_file_path" in f) for f in frames]
     want_depth = want_depth and any(has_depth)
     if want_depth and not all(has_depth):
@@ -218,8 +221,6 @@ def _load_frames(json_path: Path, meta: dict, want_depth: bool, downscale: int, 
                           meta.get("depth_unit_scale_factor", DEFAULT_DEPTH_UNIT_SCALE), positive=True)
     arrays, paths, Ks, poses, depths = [], [], [], [], []
     for i, frame in enumerate(frames):
-        if not isinstance(frame, dict):
-            raise DatasetError(json_path, f"frame {i} must be a JSON object, got {frame!r}")
         if "file_path" not in frame:
             raise DatasetError(json_path, f"frame {i} has no file_path")
         path = _resolve_file(json_path, str(frame["file_path"]), "image")

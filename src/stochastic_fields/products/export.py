@@ -39,7 +39,7 @@ from ..io_utils import atomic_folder, atomic_path, atomic_write_text, check_file
 from .depth_maps import (CONVENTIONS, DepthProducts, check_quantile_levels, compute_depth_products,
                          draw_quantiles, quantile_name, write_colourised, write_npz, write_png16, write_tiff)
 from .free_space import free_space_volume
-from .fusion import fuse_clouds
+from .fusion import check_voxel_size, fuse_clouds
 from .pointcloud import (CloudArrays, PointFilter, cloud_from_products, filter_cloud, most_confident,
                          uncertainty_range, write_ply)
 from .render_cloud import render_cloud_png
@@ -397,6 +397,9 @@ def export_run(run_dir: str | Path, opts: ExportOptions) -> dict:
     else:
         views = parse_views(opts.views, dataset.num_views, dataset.train_indices, dataset.test_indices)
         specs = dataset_view_specs(dataset, views)
+    if opts.voxel_size is not None:  # against the scene's extent, before any render
+        reach = max(float(dataset.aabb.abs().max()), float(dataset.cameras.extrinsics[:, :3, 3].abs().max()))
+        check_voxel_size(opts.voxel_size, reach)
     out = Path(opts.out) if opts.out is not None else run_dir / "export"
     mesh_path = Path(dataset.root) / "scene.ply"
     return export_views(model, specs, out, opts, mesh_path=mesh_path if mesh_path.is_file() else None,
