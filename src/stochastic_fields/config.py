@@ -31,9 +31,9 @@ class DataConfig:
     images: str = "images_8"
     """LLFF image folder to read (images_8 is 504x378 for fern): a folder name inside the scene, no path separators."""
     split_every: int = 5
-    """Training views are those with index % split_every == 0 (SPEC 7); the rest are test views. Integer >= 1."""
+    """Training views are those with index % split_every == 0 (SPEC 7); the rest are test views."""
     downscale: int = 1
-    """Integer downscale of Blender images (lego: 8 gives 100x100); integer >= 1. LLFF scenes refuse values other than 1: choose data.images instead."""
+    """Integer downscale of Blender images (lego: 8 gives 100x100). LLFF scenes refuse values other than 1: choose data.images instead."""
 
     def __post_init__(self) -> None:
         V.check_fields(self, DATA_CHECKS)
@@ -409,7 +409,8 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type = Experiment
         conv, choices = _parser_for(hint)
         spellings = [f"--{name}"] + ([f"--{name.replace('_', '-')}"] if "_" in name else [])
         default = f.default if f.default is not dataclasses.MISSING else "see preset"
-        rule = f" [range: {checks[f.name].rule}]" if f.name in checks and choices is None else ""
+        rule = (f" [range: {checks[f.name].rule}]" if f.name in checks and choices is None
+                and checks[f.name].rule != "a string" else "")
         parser.add_argument(*spellings, dest=name, type=conv, choices=choices, default=argparse.SUPPRESS,
                             help=(docs.get(f.name, "") + rule).replace("%", "%%") + " (default: %s)" % (default,))
 
