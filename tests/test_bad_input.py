@@ -91,6 +91,9 @@ TRAIN_CASES = [
     (["--data.images", "../images"], ["data.images", "../images"]),
     (["--method", "nope"], ["method", "nope"]),
     (["--data.path", "/nonexistent/scene"], ["/nonexistent/scene"]),
+    (["--train.iterations", "99999999999999999999"], ["train.iterations", "99999999999999999999"]),
+    (["--render.num_draws", "100000"], ["render.num_draws", "100000"]),
+    (["--loss.random_points_per_axis", "5000"], ["loss.random_points_per_axis", "5000"]),
 ]
 
 
@@ -131,6 +134,12 @@ def test_config_file_errors_name_file_and_key(name, content, expected, tmp_path,
     for s in expected:
         assert s in err, (s, err)
     assert not out.exists()
+
+
+def test_out_is_empty(tmp_path, tiny_scene, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    rc, err = run_cli(["train", "--out", "", "--quiet", "--data.path", tiny_scene], capsys)
+    assert rc == 2 and "--out must name a folder, got ''" in err and list(tmp_path.iterdir()) == []
 
 
 def test_out_is_a_file(tmp_path, tiny_scene, capsys):
@@ -197,6 +206,16 @@ RUN_CASES = [
     ("export camera not rigid", lambda run, tmp: ["export", "--run", run, "--cameras",
                                                   _cameras_file(tmp, world_to_camera=(2 * np.eye(4)).tolist()),
                                                   "--out", tmp / "e"], ["cams.json", "rigid", "2.0"]),
+    ("render views twice", lambda run, tmp: ["render", "--run", run, "--views", "1,1"], ["--views", "'1,1'"]),
+    ("eval K huge", lambda run, tmp: ["eval", "--run", run, "--num-draws", "99999999999"],
+     ["--num-draws", "99999999999"]),
+    ("export units newline", lambda run, tmp: ["export", "--run", run, "--units", "m\nelement vertex 0",
+                                               "--out", tmp / "e"], ["units", "'m\\nelement vertex 0'"]),
+    ("export seed", lambda run, tmp: ["export", "--run", run, "--seed", "-1", "--out", tmp / "e"], ["seed", "-1"]),
+    ("export views twice", lambda run, tmp: ["export", "--run", run, "--views", "2,2", "--out", tmp / "e"],
+     ["--views", "'2,2'"]),
+    ("export out run folder", lambda run, tmp: ["export", "--run", run, "--views", "1", "--out", run],
+     ["--out", "did not write"]),
     ("export out file", lambda run, tmp: ["export", "--run", run, "--out", tmp / "f.txt"], ["--out", "f.txt"]),
     ("export out foreign folder", lambda run, tmp: ["export", "--run", run, "--views", "1", "--formats", "npz",
                                                     "--out", tmp / "mine"], ["--out", "mine", "did not write"]),
@@ -325,7 +344,7 @@ def test_load_config_names_file_and_key(tmp_path):
     data["render"]["num_draws"] = 0
     path = tmp_path / "config.json"
     path.write_text(json.dumps(data))
-    with pytest.raises(ValueError, match=r"config.json: option render.num_draws: must be an integer >= 1 and <= 100000, got 0"):
+    with pytest.raises(ValueError, match=r"config.json: option render.num_draws: must be an integer >= 1 and <= 4096, got 0"):
         C.load_config(path)
 
 

@@ -55,10 +55,16 @@ def _parse_views(spec: str | None, dataset) -> list[int]:
         raise ValueError(f"--views must be 'test', 'train', 'all' or comma-separated indices, got {spec!r}") from exc
     if not views:
         raise ValueError(f"--views {spec!r} names no view")
+    if len(set(views)) != len(views):
+        raise ValueError(f"--views {spec!r} names a view more than once")
     bad = [v for v in views if not 0 <= v < dataset.num_views]
     if bad:
         raise ValueError(f"--views {bad} out of range: the scene has {dataset.num_views} views (0..{dataset.num_views - 1})")
     return views
+
+
+#: Upper bound of --num-draws (and of render.num_draws): K draws cost K times one render.
+MAX_CLI_DRAWS: int = 4096
 
 
 def _num_draws(text: str) -> int:
@@ -67,21 +73,24 @@ def _num_draws(text: str) -> int:
         k = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected an integer >= 2, got {text!r}") from None
-    if k < 2:
-        raise argparse.ArgumentTypeError(f"must be >= 2 (the uncertainty is a variance over K draws), got {k}")
+    if not 2 <= k <= MAX_CLI_DRAWS:
+        raise argparse.ArgumentTypeError(f"must be in [2, {MAX_CLI_DRAWS}] (the uncertainty is a variance over K "
+                                         f"draws), got {k}")
     return k
 
 
 def cmd_train(args: argparse.Namespace) -> None:
+    from .models.registry import resolve_device
     from .scenes import load_run_dataset
     from .trainer import Trainer
 
     from .io_utils import check_output_folder
     from .trainer import check_resume
 
-    run_dir = check_output_folder(Path(args.out), "--out")
+    run_dir = check_output_folder(args.out, "--out")
     cfg = experiment_from_args(args, run_dir)
     check_resume(run_dir, cfg)  # before anything is written or generated
+    resolve_device(cfg.train.device)  # an absent CUDA device is refused before the scene is generated
     dataset = load_run_dataset(cfg, run_dir)
     Trainer(cfg, run_dir, dataset).train(progress=not args.quiet)
     print(f"trained: {run_dir / 'checkpoint.pt'}")
@@ -100,7 +109,7 @@ def cmd_render(args: argparse.Namespace) -> None:
 
     from .io_utils import check_output_folder
 
-    out = check_output_folder(Path(args.out) if args.out else Path(args.run) / "renders", "--out")
+    out = check_output_folder(args.out if args.out is not None else Path(args.run) / "renders", "--out")
     cfg, model, dataset = load_trained_model(Path(args.run), device=args.device)
     _apply_render_overrides(model, args)
     views = _parse_views(args.views, dataset)
@@ -115,7 +124,7 @@ def cmd_eval(args: argparse.Namespace) -> None:
 
     from .io_utils import check_output_folder
 
-    out = check_output_folder(Path(args.out) if args.out else Path(args.run), "--out")
+    out = check_output_folder(args.out if args.out is not None else Path(args.run), "--out")
     cfg, model, dataset = load_trained_model(Path(args.run), device=args.device)
     _apply_render_overrides(model, args)
     views = _parse_views(args.views, dataset)
@@ -137,15 +146,17 @@ def _print_summary(result: dict, title: str) -> None:
 def cmd_demo(args: argparse.Namespace) -> None:
     """Generate the embedded scene, train S-NeRF, render and score the held-out views."""
     from .evaluate import evaluate
+    from .models.registry import resolve_device
     from .scenes import load_run_dataset
     from .trainer import Trainer
 
     from .io_utils import check_output_folder
     from .trainer import check_resume
 
-    run_dir = check_output_folder(Path(args.out), "--out")
+    run_dir = check_output_folder(args.out, "--out")
     cfg = experiment_from_args(argparse.Namespace(**{**vars(args), "preset": args.preset or "demo"}), run_dir)
     check_resume(run_dir, cfg)
+    resolve_device(cfg.train.device)
     t0 = time.perf_counter()
     dataset = load_run_dataset(cfg, run_dir)
     model = Trainer(cfg, run_dir, dataset).train(progress=not args.quiet)

@@ -130,8 +130,8 @@ def _device_name(s: str) -> bool:
 DATA_CHECKS: dict[str, V.Checker] = {
     "path": V.text(),
     "images": V.text(pattern_rule="a folder name (no '/', not '.' or '..')", accept=_folder_name),
-    "split_every": V.integer(1),
-    "downscale": V.integer(1),
+    "split_every": V.integer(1, 10**6),
+    "downscale": V.integer(1, 1024),
 }
 FIELD_CHECKS: dict[str, V.Checker] = {
     "backend": V.choice("grid", "mlp"),
@@ -141,21 +141,21 @@ FIELD_CHECKS: dict[str, V.Checker] = {
     "dropout": V.real(0.0, 1.0, hi_open=True),
     "grid_levels": V.integer(1, 16),
     "grid_pixels_per_voxel": V.real(0.0, lo_open=True),
-    "grid_max_cells": V.integer(8),
+    "grid_max_cells": V.integer(8, 2**31),
     "grid_feature_dim": V.integer(1, 1024),
     "grid_decoder_width": V.integer(0, 8192),
     "grid_init_density_loc": V.real(),
 }
 TRAIN_CHECKS: dict[str, V.Checker] = {
-    "iterations": V.integer(1),
-    "rays_per_batch": V.integer(1),
-    "train_draws": V.integer(1),
+    "iterations": V.integer(1, 10**9),
+    "rays_per_batch": V.integer(1, 2**24),
+    "train_draws": V.integer(1, 4096),
     "lr": V.real(0.0, lo_open=True),
     "lr_final_factor": V.real(0.0, 1.0, lo_open=True),
     "tv_weight": V.real(0.0),
     "seed": V.integer(0, 2**63 - 1),
-    "eval_every": V.integer(0),
-    "checkpoint_every": V.integer(0),
+    "eval_every": V.integer(0, 10**9),
+    "checkpoint_every": V.integer(0, 10**9),
     "device": V.text(pattern_rule="'auto', 'cpu', 'cuda' or 'cuda:N'", accept=_device_name),
 }
 

@@ -89,6 +89,8 @@ def open_append_no_follow(path: str | os.PathLike):
 
 def check_output_folder(path: str | os.PathLike, option: str) -> Path:
     """``path`` unless it exists as something other than a folder (ValueError naming ``option``)."""
+    if not str(path).strip():
+        raise ValueError(f"{option} must name a folder, got {str(path)!r}")
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise ValueError(f"{option} {path} exists and is not a folder")

@@ -68,11 +68,11 @@ def _loss_checks() -> dict:
         "learn_likelihood_std": boolean(),
         "kl": choice("none", "fixed_prior", "full"),
         "kl_estimator": choice("closed_form", "monte_carlo"),
-        "kl_mc_samples": integer(1),
+        "kl_mc_samples": integer(1, 4096),
         "lambda_random": real(0.0),
         "lambda_observed": real(0.0),
-        "random_points_per_axis": integer(1, 1000),
-        "observed_kl_samples": integer(0),
+        "random_points_per_axis": integer(1, 256),
+        "observed_kl_samples": integer(0, 2**24),
         "lambda_distortion": real(0.0),
     }
 

@@ -106,13 +106,18 @@ class ExportOptions:
             raise ValueError(f"min_opacity must be in [0, 1], got {self.min_opacity}")
         if self.colour_by not in ("rgb", "uncertainty"):
             raise ValueError(f"colour_by must be 'rgb' or 'uncertainty', got {self.colour_by!r}")
-        if self.num_draws is not None and self.num_draws < 2:
-            raise ValueError(f"num_draws must be >= 2 for depth uncertainty, got {self.num_draws}")
+        if self.num_draws is not None and not 2 <= self.num_draws <= 4096:
+            raise ValueError(f"num_draws must be in [2, 4096] for depth uncertainty, got {self.num_draws}")
         if self.voxel_size is not None and not self.voxel_size > 0:
             raise ValueError(f"voxel_size must be positive, got {self.voxel_size}")
         if any(not (math.isfinite(t) and t > 0) for t in self.free_space_thresholds):
             raise ValueError(
                 f"free-space thresholds must be positive distances, got {list(self.free_space_thresholds)}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
+        if not isinstance(self.units, str) or not 0 < len(self.units) <= 64 or not self.units.isprintable():
+            raise ValueError(f"units must be 1-64 printable characters (it is written into file headers), "
+                             f"got {self.units!r}")
         self.point_filter()
 
     def point_filter(self) -> PointFilter:
@@ -151,6 +156,8 @@ def parse_views(spec: str, num_views: int, train: Sequence[int], test: Sequence[
         raise ValueError(f"--views must be 'test', 'train', 'all' or comma-separated indices, got {spec!r}") from exc
     if not views:
         raise ValueError(f"--views {spec!r} names no view")
+    if len(set(views)) != len(views):
+        raise ValueError(f"--views {spec!r} names a view more than once")
     bad = [v for v in views if not 0 <= v < num_views]
     if bad:
         raise ValueError(f"--views {bad} out of range: the scene has {num_views} views (0..{num_views - 1})")
