@@ -185,6 +185,23 @@ def test_log_symlink_is_not_followed(tmp_path, tiny_scene, capsys):
     assert target.read_text() == "precious\n"
 
 
+def test_planted_folder_links_are_refused(run, tmp_path, capsys):
+    import shutil
+
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    (copy / "views").symlink_to(outside, target_is_directory=True)
+    rc, err = run_cli(["eval", "--run", copy, "--views", "1", "--quiet"], capsys)
+    assert rc == 2 and "views is a symbolic link" in err and list(outside.iterdir()) == []
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    (fresh / "scene").symlink_to(outside, target_is_directory=True)
+    rc, err = run_cli(["train", "--out", fresh, *TRAIN], capsys)
+    assert rc == 2 and "scene is a symbolic link" in err and list(outside.iterdir()) == []
+
+
 # --------------------------------------------------------------------------- export folder
 def test_interrupted_reexport_keeps_the_finished_one(run, tmp_path, monkeypatch, capsys):
     from stochastic_fields.products import export as E

@@ -107,9 +107,10 @@ def cmd_render(args: argparse.Namespace) -> None:
     from .evaluate import evaluate
     from .trainer import load_trained_model
 
-    from .io_utils import check_output_folder
+    from .io_utils import check_no_symlinks, check_output_folder
 
     out = check_output_folder(args.out if args.out is not None else Path(args.run) / "renders", "--out")
+    check_no_symlinks(out, "views", "metrics.json")
     cfg, model, dataset = load_trained_model(Path(args.run), device=args.device)
     _apply_render_overrides(model, args)
     views = _parse_views(args.views, dataset)
@@ -122,9 +123,10 @@ def cmd_eval(args: argparse.Namespace) -> None:
     from .evaluate import evaluate
     from .trainer import load_trained_model
 
-    from .io_utils import check_output_folder
+    from .io_utils import check_no_symlinks, check_output_folder
 
     out = check_output_folder(args.out if args.out is not None else Path(args.run), "--out")
+    check_no_symlinks(out, "views", "metrics.json")
     cfg, model, dataset = load_trained_model(Path(args.run), device=args.device)
     _apply_render_overrides(model, args)
     views = _parse_views(args.views, dataset)

@@ -131,3 +131,16 @@ def atomic_folder(path: str | os.PathLike, *, replaceable: Callable[[Path], bool
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+def check_no_symlinks(root: str | os.PathLike, *names: str) -> None:
+    """ValueError naming the link if any of the folders/files ``names`` under ``root`` (or a
+    folder between them and ``root``) is a symbolic link: writing through a link planted in an
+    output folder could write outside it."""
+    root = Path(root)
+    for name in names:
+        p = root / name
+        while p != root and p != p.parent:
+            if p.is_symlink():
+                raise ValueError(f"{p} is a symbolic link; refusing to write through it (remove the link)")
+            p = p.parent

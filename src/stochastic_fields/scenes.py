@@ -19,6 +19,10 @@ def load_run_dataset(cfg: ExperimentConfig, run_dir: Path, *, generate: bool = T
     from .data.dataset import detect_format, load_dataset
 
     path = scene_path(cfg, run_dir)
+    if not cfg.data.path:
+        from .io_utils import check_no_symlinks
+
+        check_no_symlinks(run_dir, EMBEDDED_SCENE_DIR)  # the scene is generated into the run folder
     if not cfg.data.path and not (path / "transforms.json").exists():
         if not generate:
             raise FileNotFoundError(f"the embedded scene is missing from {path}")
