@@ -68,6 +68,24 @@ def test_refused_resume_changes_nothing(run, extra, named, capsys, tiny_scene):
     assert rc == 0, err
 
 
+def test_run_damaged_by_an_old_failed_resume_still_loads(run, tmp_path):
+    """Before the resume check, a failed resume rewrote config.json (grid_levels 2 for a
+    3-level checkpoint): the checkpoint's own config repairs it, with a warning."""
+    import shutil
+
+    from stochastic_fields.config import load_config, save_config
+    from stochastic_fields.trainer import load_trained_model
+
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    cfg = load_config(copy / "config.json")
+    cfg.field.grid_levels = 2
+    save_config(cfg, copy / "config.json")
+    with pytest.warns(UserWarning, match="field.grid_levels"):
+        cfg, model, _ = load_trained_model(copy)
+    assert cfg.field.grid_levels == 3
+
+
 def test_resume_may_extend_iterations(tmp_path, tiny_scene, capsys):
     out = tmp_path / "run"
     assert main(["train", "--data.path", str(tiny_scene), "--out", str(out), *TRAIN]) == 0

@@ -19,7 +19,7 @@ from tqdm.auto import tqdm
 
 from .cameras import generate_rays
 from .checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
-from .config import ExperimentConfig, from_dict, save_config, to_dict
+from .config import ExperimentConfig, from_dict, save_config, to_dict, validate_experiment
 from .io_utils import atomic_write_text, open_append_no_follow, remove_stale_temporaries
 from .models.base import RadianceModel
 from .models.registry import build_model, resolve_device
@@ -139,6 +139,7 @@ def quick_eval(model: RadianceModel, dataset, view: int, device: torch.device) -
 
 class Trainer:
     def __init__(self, cfg: ExperimentConfig, run_dir: Path, dataset):
+        validate_experiment(cfg)  # fields set by attribute after construction are checked here
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         self.dataset = dataset
@@ -260,7 +261,11 @@ class Trainer:
 
 
 def load_trained_model(run_dir: Path, dataset=None, device: str | None = None):
-    """(cfg, model, dataset) from a run folder; the model is in eval mode."""
+    """(cfg, model, dataset) from a run folder; the model is in eval mode.
+
+    The config is the run's config.json; when it differs from the config stored in the
+    checkpoint in an option that shapes the model or its training (a run damaged by an earlier
+    failed resume), the checkpoint's config is used, with a warning naming the options."""
     from .config import load_config
     from .scenes import load_run_dataset
 
@@ -268,18 +273,27 @@ def load_trained_model(run_dir: Path, dataset=None, device: str | None = None):
     ckpt = run_dir / CHECKPOINT_NAME
     if not ckpt.is_file():
         raise FileNotFoundError(f"run folder {run_dir} has no {CHECKPOINT_NAME}: train it first")
-    cfg = load_config(run_dir / "config.json")
+    dev_name = None
     if device is not None:
         from .config import TRAIN_CHECKS
 
         try:
-            cfg.train.device = TRAIN_CHECKS["device"](device)
+            dev_name = TRAIN_CHECKS["device"](device)
         except ValueError as exc:
             raise ValueError(f"--device must be {exc}, got {device!r}") from None
+    state = load_checkpoint(ckpt, map_location="cpu")
+    cfg = load_config(run_dir / "config.json")
+    trained = saved_run_config(run_dir, state)
+    if trained is not None and config_differences(trained, cfg):
+        listed = ", ".join(k for k, _, _ in config_differences(trained, cfg))
+        warnings.warn(f"{run_dir / 'config.json'} differs from the config stored in {ckpt} ({listed}); "
+                      "using the checkpoint's", stacklevel=2)
+        cfg = trained
+    if dev_name is not None:
+        cfg.train.device = dev_name
     dataset = load_run_dataset(cfg, run_dir) if dataset is None else dataset
     dev = resolve_device(cfg.train.device)
     model = build_model(cfg, dataset).to(dev)
-    state = load_checkpoint(ckpt, map_location=dev)
     try:
         model.load_state_dict(state["model"])
     except RuntimeError as exc:
