@@ -368,6 +368,23 @@ def test_every_numeric_field_has_a_declared_range():
         C.preset(name)
 
 
+def test_docstrings_state_the_declared_ranges():
+    """config.py's groups and RenderSettings state each numeric field's checked range in its
+    docstring, word for word (so the text cannot drift from the check)."""
+    import dataclasses
+    import typing
+
+    from stochastic_fields.renderer import RENDER_CHECKS
+
+    for cls, checks in ((C.DataConfig, C.DATA_CHECKS), (C.FieldConfig, C.FIELD_CHECKS),
+                        (C.TrainConfig, C.TRAIN_CHECKS), (RenderSettings, RENDER_CHECKS)):
+        docs = C.field_docs(cls)
+        hints = typing.get_type_hints(cls)
+        for f in dataclasses.fields(cls):
+            if hints[f.name] in (int, float):
+                assert f"Range: {checks[f.name].rule}." in docs[f.name], (cls.__name__, f.name, docs[f.name])
+
+
 def test_checkers_normalise_values():
     r = RenderSettings(background=[1, 0, 0.5], num_draws=4)
     assert r.background == (1.0, 0.0, 0.5) and isinstance(r.background[0], float)

@@ -96,6 +96,7 @@ def test_presets_are_data_and_listed_in_help(capsys):
     text = " ".join(capsys.readouterr().out.split())
     assert "tiny: train.iterations=150, train.rays_per_batch=256" in text
     assert "llff: data.images=images_8, render.spacing=disparity" in text
-    assert "[range: a finite number > 0]" in text  # declared ranges appear too
+    assert "Adam learning rate (grid cells use 10x). Range: a finite number > 0." in text  # declared ranges too
+    assert "[range: a finite number > 0]" in text  # fields whose docstring has no range get it appended
     with pytest.raises(ValueError, match="unknown preset 'fast'"):
         C.preset("fast")

@@ -29,11 +29,11 @@ class DataConfig:
     path: str = ""
     """Scene folder: LLFF (poses_bounds.npy + images_N/), Blender/nerfstudio (transforms*.json). Empty: the embedded synthetic scene, generated into the run folder. Stored resolved (absolute) in the run's config.json."""
     images: str = "images_8"
-    """LLFF image folder to read (images_8 is 504x378 for fern): a folder name inside the scene, no path separators."""
+    """LLFF image folder to read (images_8 is 504x378 for fern): a folder name inside the scene, no path separators. Range: a folder name (no '/', not '.' or '..')."""
     split_every: int = 5
-    """Training views are those with index % split_every == 0 (SPEC 7); the rest are test views."""
+    """Training views are those with index % split_every == 0 (SPEC 7); the rest are test views. Range: an integer >= 1 and <= 1000000."""
     downscale: int = 1
-    """Integer downscale of Blender images (lego: 8 gives 100x100). LLFF scenes refuse values other than 1: choose data.images instead."""
+    """Integer downscale of Blender images (lego: 8 gives 100x100). LLFF scenes refuse values other than 1: choose data.images instead. Range: an integer >= 1 and <= 1024."""
 
     def __post_init__(self) -> None:
         V.check_fields(self, DATA_CHECKS)
@@ -46,25 +46,25 @@ class FieldConfig:
     backend: Literal["grid", "mlp"] = "grid"
     """'grid': fast multi-resolution voxel grid (CPU default); 'mlp': the paper's 8x256 MLP."""
     init_std: float = 1.0
-    """Initial standard deviation of density and colour logits."""
+    """Initial standard deviation of density and colour logits. Range: a finite number > 0."""
     mlp_depth: int = 8
-    """MLP trunk layers."""
+    """MLP trunk layers. Range: an integer >= 1 and <= 64."""
     mlp_width: int = 256
-    """MLP trunk width."""
+    """MLP trunk width. Range: an integer >= 1 and <= 8192."""
     dropout: float = 0.0
-    """Dropout after odd MLP layers (MC-Dropout baseline)."""
+    """Dropout after odd MLP layers (MC-Dropout baseline). Range: a finite number >= 0 and < 1."""
     grid_levels: int = 3
-    """Grid levels, each half the resolution of the next."""
+    """Grid levels, each half the resolution of the next. Range: an integer >= 1 and <= 16."""
     grid_pixels_per_voxel: float = 1.5
-    """Finest voxel size in pixel footprints (resolution follows the images)."""
+    """Finest voxel size in pixel footprints (resolution follows the images). Range: a finite number > 0."""
     grid_max_cells: int = 2_000_000
-    """Cap on cells of the finest level."""
+    """Cap on cells of the finest level. Range: an integer >= 8 and <= 2147483648."""
     grid_feature_dim: int = 8
-    """Colour feature channels per cell."""
+    """Colour feature channels per cell. Range: an integer >= 1 and <= 1024."""
     grid_decoder_width: int = 32
-    """Hidden width of the colour decoder (0: colours stored directly, view-independent)."""
+    """Hidden width of the colour decoder (0: colours stored directly, view-independent). Range: an integer >= 0 and <= 8192."""
     grid_init_density_loc: float = -1.0
-    """Initial mean of the pre-ReLU density everywhere."""
+    """Initial mean of the pre-ReLU density everywhere. Range: a finite number."""
 
     def __post_init__(self) -> None:
         V.check_fields(self, FIELD_CHECKS)
@@ -75,25 +75,25 @@ class TrainConfig:
     """Optimisation."""
 
     iterations: int = 3000
-    """Optimiser steps."""
+    """Optimiser steps. Range: an integer >= 1 and <= 1000000000."""
     rays_per_batch: int = 1024
-    """Training rays per step."""
+    """Training rays per step. Range: an integer >= 1 and <= 16777216."""
     train_draws: int = 8
-    """K during training (Monte-Carlo likelihood)."""
+    """K during training (Monte-Carlo likelihood). Range: an integer >= 1 and <= 4096."""
     lr: float = 5e-3
-    """Adam learning rate (grid cells use 10x)."""
+    """Adam learning rate (grid cells use 10x). Range: a finite number > 0."""
     lr_final_factor: float = 0.1
-    """Learning rate at the end, as a fraction of lr (exponential decay)."""
+    """Learning rate at the end, as a fraction of lr (exponential decay). Range: a finite number > 0 and <= 1."""
     tv_weight: float = 1e-3
-    """Total-variation weight on grid cells (grid backend)."""
+    """Total-variation weight on grid cells (grid backend). Range: a finite number >= 0."""
     seed: int = 0
-    """Seed for initialisation, ray batches and draws."""
+    """Seed for initialisation, ray batches and draws. Range: an integer >= 0 and <= 9223372036854775807."""
     eval_every: int = 500
-    """Steps between quick evaluations on one test view (0: never)."""
+    """Steps between quick evaluations on one test view (0: never). Range: an integer >= 0 and <= 1000000000."""
     checkpoint_every: int = 500
-    """Steps between checkpoints (written atomically; training resumes from the last)."""
+    """Steps between checkpoints (written atomically; training resumes from the last). Range: an integer >= 0 and <= 1000000000."""
     device: str = "auto"
-    """'auto' (CUDA when present), 'cpu', 'cuda' or 'cuda:N'."""
+    """'auto' (CUDA when present), 'cpu', 'cuda' or 'cuda:N'. Range: 'auto', 'cpu', 'cuda' or 'cuda:N'."""
 
     def __post_init__(self) -> None:
         V.check_fields(self, TRAIN_CHECKS)
@@ -409,10 +409,11 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type = Experiment
         conv, choices = _parser_for(hint)
         spellings = [f"--{name}"] + ([f"--{name.replace('_', '-')}"] if "_" in name else [])
         default = f.default if f.default is not dataclasses.MISSING else "see preset"
+        doc = docs.get(f.name, "")
         rule = (f" [range: {checks[f.name].rule}]" if f.name in checks and choices is None
-                and checks[f.name].rule != "a string" else "")
+                and checks[f.name].rule != "a string" and "Range:" not in doc else "")
         parser.add_argument(*spellings, dest=name, type=conv, choices=choices, default=argparse.SUPPRESS,
-                            help=(docs.get(f.name, "") + rule).replace("%", "%%") + " (default: %s)" % (default,))
+                            help=(doc + rule).replace("%", "%%") + " (default: %s)" % (default,))
 
 
 def apply_overrides(cfg: ExperimentConfig, args: argparse.Namespace) -> ExperimentConfig:

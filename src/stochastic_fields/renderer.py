@@ -61,9 +61,9 @@ class RenderSettings:
     """How rays are rendered. Every field is a CLI option."""
 
     num_samples: int = 64
-    """Samples per ray (bins between near and far)."""
+    """Samples per ray (bins between near and far). Range: an integer >= 2 and <= 100000."""
     num_draws: int = 16
-    """K: stochastic trajectories per ray when rendering (training uses TrainConfig.train_draws)."""
+    """K: stochastic trajectories per ray when rendering (training uses TrainConfig.train_draws). Range: an integer >= 1 and <= 4096."""
     quadrature: Literal["alpha", "trapezoid"] = "alpha"
     """Volume-rendering quadrature: 'alpha' compositing (default, measured more accurate on steep densities) or the paper's 'trapezoid'."""
     spacing: Spacing = "linear"
@@ -71,31 +71,31 @@ class RenderSettings:
     shared_noise: bool = False
     """Share eps along each ray per draw (trajectory-consistent draws) instead of independent eps per point."""
     chunk_rays: int = 2048
-    """Rays per chunk when rendering full images (memory bound: chunk * S * K floats)."""
+    """Rays per chunk when rendering full images (memory bound: chunk * S * K floats). Range: an integer >= 1 and <= 16777216."""
     background: tuple[float, float, float] | None = None
-    """Background colour composited behind the scene (None: black/no compositing)."""
+    """Background colour composited behind the scene (None: black/no compositing). Range: None or three numbers in [0, 1] (r,g,b)."""
     skip_empty_space: bool = True
     """S-NeRF: keep an occupancy grid (in the scene region's unit cube), updated from the density upper estimate relu(mu_a + n s_a) (n = occupancy_num_std), and evaluate the field only at samples in occupied cells (training and rendering; needs quadrature='alpha'; set false to use 'trapezoid'). Default on: benchmarks/results measures fewer field evaluations per ray and faster training steps at equal PSNR."""
     occupancy_num_std: float = OCCUPANCY_UPPER_NUM_STD
-    """Occupancy upper estimate relu(mu_a + n s_a): n standard deviations (3: a draw exceeds it with probability 0.13%). Smaller n skips more of the space S-NeRF is unsure about, at a cost in uncertainty (benchmarks/results)."""
+    """Occupancy upper estimate relu(mu_a + n s_a): n standard deviations (3: a draw exceeds it with probability 0.13%). Smaller n skips more of the space S-NeRF is unsure about, at a cost in uncertainty (benchmarks/results). Range: a finite number >= 0."""
     occupancy_alpha_threshold: float = OCCUPANCY_ALPHA_THRESHOLD
-    """A cell is occupied where the upper estimate gives one render interval an opacity above this."""
+    """A cell is occupied where the upper estimate gives one render interval an opacity above this. Range: a finite number > 0 and < 1."""
     occupancy_resolution: int = 64
-    """Cells per axis of the occupancy grid over the region's unit cube."""
+    """Cells per axis of the occupancy grid over the region's unit cube. Range: an integer >= 1 and <= 512."""
     occupancy_update_every: int = 16
-    """Training steps between occupancy-grid updates."""
+    """Training steps between occupancy-grid updates. Range: an integer >= 1 and <= 1000000000."""
     occupancy_warmup_steps: int = 256
-    """Steps during which every occupancy cell is re-evaluated at each update (afterwards a random subset)."""
+    """Steps during which every occupancy cell is re-evaluated at each update (afterwards a random subset). Range: an integer >= 0 and <= 1000000000."""
     colour_variance: Literal["epistemic", "predictive"] = "epistemic"
     """S-NeRF colour variance: 'epistemic' is the variance over the K trajectories (SPEC 3); 'predictive' adds sigma_n^2, the likelihood's pixel noise (the model's predictive variance of an observed pixel; learn sigma_n with loss.learn_likelihood_std)."""
     adaptive_draws: bool = False
     """Render with adaptive K (stochastic_fields.adaptive): trajectories in batches of adaptive_batch_draws until the colour and depth variance estimates change by less than adaptive_rtol, at most adaptive_max_draws. Used when no explicit num_draws is asked for."""
     adaptive_batch_draws: int = 8
-    """Adaptive K: trajectories drawn per batch (one field evaluation serves every batch)."""
+    """Adaptive K: trajectories drawn per batch (one field evaluation serves every batch). Range: an integer >= 2 and <= 4096."""
     adaptive_max_draws: int = 128
-    """Adaptive K: cap on the trajectories per ray."""
+    """Adaptive K: cap on the trajectories per ray. Range: an integer >= 2 and <= 4096."""
     adaptive_rtol: float = 0.05
-    """Adaptive K: tolerance of adaptive_rule ('precision': predicted relative change of the mean precision 1/var between the current K and the cap; 'change': relative L1 change of the per-pixel colour and depth variances from one batch to the next). Measured (benchmarks/results): with colour_estimator='rao_blackwell', precision at 0.01 ends within 2% of the cap's NLL in about 0.7x its time."""
+    """Adaptive K: tolerance of adaptive_rule ('precision': predicted relative change of the mean precision 1/var between the current K and the cap; 'change': relative L1 change of the per-pixel colour and depth variances from one batch to the next). Measured (benchmarks/results): with colour_estimator='rao_blackwell', precision at 0.01 ends within 2% of the cap's NLL in about 0.7x its time. Range: a finite number > 0."""
     colour_estimator: Literal["draws", "rao_blackwell"] = "draws"
     """Rendering colour statistics: 'draws' samples every colour (SPEC 3: C_k = sum_i w_ik r_ik, variance over k); 'rao_blackwell' draws only densities and integrates each trajectory's colour noise exactly given its weights (E[C_k|w_k] = sum_i w_ik E[r_i], Var[C_k|w_k] = sum_i w_ik^2 Var[r_i], tabulated logistic-normal moments), estimating the same mean and variance with less Monte-Carlo noise and no colour draws (benchmarks/results). Training always draws colours."""
     adaptive_rule: Literal["precision", "change"] = "precision"

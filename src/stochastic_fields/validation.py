@@ -44,11 +44,14 @@ class Checker:
 
 
 def _bound_text(lo, hi, lo_open: bool, hi_open: bool) -> str:
+    def fmt(v) -> str:
+        return str(v) if isinstance(v, int) else f"{v:g}"
+
     parts = []
     if lo is not None:
-        parts.append(f"{'>' if lo_open else '>='} {lo:g}")
+        parts.append(f"{'>' if lo_open else '>='} {fmt(lo)}")
     if hi is not None:
-        parts.append(f"{'<' if hi_open else '<='} {hi:g}")
+        parts.append(f"{'<' if hi_open else '<='} {fmt(hi)}")
     return " and ".join(parts)
 
 
