@@ -18,18 +18,28 @@ from .renderer import COLOUR_ESTIMATORS
 
 def _add_experiment_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--preset", default=None, choices=C.PRESETS,
-                   help="Start from a named preset (default: 'default', or the run's saved config when resuming).")
+                   help="Start from a named preset (default: 'default', or the run's saved config when resuming). "
+                        "What each sets: " + C.presets_help().replace("%", "%%") + ".")
+    p.add_argument("--config", type=Path, default=None, metavar="FILE",
+                   help="JSON file of options with the nested structure of a run's config.json (may be partial), "
+                        "applied on top of the preset or saved config; explicit --group.name options override it.")
     C.add_config_arguments(p)
 
 
 def experiment_from_args(args: argparse.Namespace, run_dir: Path) -> C.ExperimentConfig:
-    """The run's saved config when resuming, else the preset; explicit options apply on top."""
+    """The run's saved config when resuming, else the preset; then ``--config FILE``; then
+    explicit options. The data path is stored resolved (absolute). Validated."""
     saved = run_dir / "config.json"
-    if saved.exists() and args.preset is None:
+    if saved.is_file() and args.preset is None:
         cfg = C.load_config(saved)
     else:
         cfg = C.preset(args.preset or "default")
-    return C.apply_overrides(cfg, args)
+    if getattr(args, "config", None) is not None:
+        C.merge_dict(cfg, C.read_config_file(args.config), str(args.config))
+    C.apply_overrides(cfg, args)
+    if cfg.data.path:
+        cfg.data.path = str(Path(cfg.data.path).expanduser().resolve())
+    return cfg
 
 
 def _parse_views(spec: str | None, dataset) -> list[int]:
@@ -42,19 +52,45 @@ def _parse_views(spec: str | None, dataset) -> list[int]:
     try:
         views = [int(v) for v in spec.split(",") if v.strip()]
     except ValueError as exc:
-        raise SystemExit(f"--views must be 'test', 'train', 'all' or comma-separated indices, got {spec!r}") from exc
+        raise ValueError(f"--views must be 'test', 'train', 'all' or comma-separated indices, got {spec!r}") from exc
+    if not views:
+        raise ValueError(f"--views {spec!r} names no view")
+    if len(set(views)) != len(views):
+        raise ValueError(f"--views {spec!r} names a view more than once")
     bad = [v for v in views if not 0 <= v < dataset.num_views]
     if bad:
-        raise SystemExit(f"--views {bad} out of range: the scene has {dataset.num_views} views (0..{dataset.num_views - 1})")
+        raise ValueError(f"--views {bad} out of range: the scene has {dataset.num_views} views (0..{dataset.num_views - 1})")
     return views
 
 
+#: Upper bound of --num-draws (and of render.num_draws): K draws cost K times one render.
+MAX_CLI_DRAWS: int = 4096
+
+
+def _num_draws(text: str) -> int:
+    """--num-draws: an integer >= 2 (a variance needs two draws)."""
+    try:
+        k = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 2, got {text!r}") from None
+    if not 2 <= k <= MAX_CLI_DRAWS:
+        raise argparse.ArgumentTypeError(f"must be in [2, {MAX_CLI_DRAWS}] (the uncertainty is a variance over K "
+                                         f"draws), got {k}")
+    return k
+
+
 def cmd_train(args: argparse.Namespace) -> None:
+    from .models.registry import resolve_device
     from .scenes import load_run_dataset
     from .trainer import Trainer
 
-    run_dir = Path(args.out)
+    from .io_utils import check_output_folder
+    from .trainer import check_resume
+
+    run_dir = check_output_folder(args.out, "--out")
     cfg = experiment_from_args(args, run_dir)
+    check_resume(run_dir, cfg)  # before anything is written or generated
+    resolve_device(cfg.train.device)  # an absent CUDA device is refused before the scene is generated
     dataset = load_run_dataset(cfg, run_dir)
     model = Trainer(cfg, run_dir, dataset).train(progress=not args.quiet)
     print(f"trained: {run_dir / 'checkpoint.pt'}")
@@ -95,10 +131,13 @@ def cmd_render(args: argparse.Namespace) -> None:
     from .evaluate import evaluate
     from .trainer import load_trained_model
 
+    from .io_utils import check_no_symlinks, check_output_folder
+
+    out = check_output_folder(args.out if args.out is not None else Path(args.run) / "renders", "--out")
+    check_no_symlinks(out, "views", "metrics.json")
     cfg, model, dataset = load_trained_model(Path(args.run), device=args.device)
     _apply_render_overrides(model, args)
     views = _parse_views(args.views, dataset)
-    out = Path(args.out) if args.out else Path(args.run) / "renders"
     evaluate(model, dataset, out, views=views, num_draws=args.num_draws, progress=not args.quiet,
              calibration=_run_calibration(args))
     print(f"rendered {len(views)} views into {out / 'views'}")
@@ -109,10 +148,13 @@ def cmd_eval(args: argparse.Namespace) -> None:
     from .evaluate import evaluate
     from .trainer import load_trained_model
 
+    from .io_utils import check_no_symlinks, check_output_folder
+
+    out = check_output_folder(args.out if args.out is not None else Path(args.run), "--out")
+    check_no_symlinks(out, "views", "metrics.json")
     cfg, model, dataset = load_trained_model(Path(args.run), device=args.device)
     _apply_render_overrides(model, args)
     views = _parse_views(args.views, dataset)
-    out = Path(args.out) if args.out else Path(args.run)
     result = evaluate(model, dataset, out, views=views, num_draws=args.num_draws, progress=not args.quiet,
                       write_products=not args.no_products, calibration=_run_calibration(args))
     _print_summary(result, f"{cfg.method} on {dataset.name}: {len(views)} views, K={result['num_draws']}")
@@ -131,11 +173,17 @@ def _print_summary(result: dict, title: str) -> None:
 def cmd_demo(args: argparse.Namespace) -> None:
     """Generate the embedded scene, train S-NeRF, render and score the held-out views."""
     from .evaluate import evaluate
+    from .models.registry import resolve_device
     from .scenes import load_run_dataset
     from .trainer import Trainer
 
-    run_dir = Path(args.out)
+    from .io_utils import check_output_folder
+    from .trainer import check_resume
+
+    run_dir = check_output_folder(args.out, "--out")
     cfg = experiment_from_args(argparse.Namespace(**{**vars(args), "preset": args.preset or "demo"}), run_dir)
+    check_resume(run_dir, cfg)
+    resolve_device(cfg.train.device)
     t0 = time.perf_counter()
     dataset = load_run_dataset(cfg, run_dir)
     model = Trainer(cfg, run_dir, dataset).train(progress=not args.quiet)
@@ -165,8 +213,16 @@ EXTRA_COMMANDS = {
 }
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with a short error: the bad option and value on one line, and where the help is
+    (the full usage of the config options runs to dozens of lines)."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message}\n(see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="stochastic-fields", description=__doc__,
+    parser = _Parser(prog="stochastic-fields", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -181,7 +237,8 @@ def build_parser() -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=helptext)
         p.add_argument("--run", required=True, help="Trained run folder.")
         p.add_argument("--views", default=None, help="'test' (default), 'train', 'all' or indices like 1,2,3.")
-        p.add_argument("--num-draws", type=int, default=None, help="K trajectories per ray (default: the run's render.num_draws).")
+        p.add_argument("--num-draws", type=_num_draws, default=None,
+                       help="K trajectories per ray, >= 2 (default: the run's render.num_draws).")
         p.add_argument("--out", default=None, help="Output folder (default: inside the run folder).")
         p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
         p.add_argument("--colour-estimator", choices=COLOUR_ESTIMATORS, default=None,
@@ -216,13 +273,36 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _describe_os_error(exc: OSError) -> str:
+    """One line for an environment error: what failed, on which file, and why."""
+    import errno
+
+    where = f" {exc.filename}" if exc.filename else ""
+    reason = exc.strerror or str(exc)
+    hints = {errno.ENOSPC: "free some space or choose another --out",
+             errno.EACCES: "check the folder's permissions or choose another --out",
+             errno.EROFS: "the file system is read-only; choose another --out",
+             errno.EEXIST: "a file is in the way of a folder",
+             errno.ENOTDIR: "a file is in the way of a folder",
+             errno.EISDIR: "a folder is where a file was expected"}
+    hint = hints.get(exc.errno or -1)
+    return f"cannot access{where}: {reason}" + (f" ({hint})" if hint else "")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         args.func(args)
-    except (ValueError, FileNotFoundError) as exc:
+    except (ValueError, FileNotFoundError, FloatingPointError) as exc:
         print(f"stochastic-fields {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # permissions, full disk, a file where a folder should be
+        print(f"stochastic-fields {args.command}: error: {_describe_os_error(exc)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"stochastic-fields {args.command}: interrupted (complete files only were written; training "
+              "resumes from its last checkpoint)", file=sys.stderr)
+        return 130
     return 0
 
 

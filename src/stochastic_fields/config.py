@@ -17,6 +17,7 @@ from dataclasses import dataclass, field as dc_field
 from pathlib import Path
 from typing import Any, Literal
 
+from . import validation as V
 from .losses import LossConfig
 from .renderer import RenderSettings
 
@@ -26,13 +27,16 @@ class DataConfig:
     """Which scene to learn and how to split it."""
 
     path: str = ""
-    """Scene folder: LLFF (poses_bounds.npy + images_N/), Blender/nerfstudio (transforms*.json). Empty: the embedded synthetic scene, generated into the run folder."""
+    """Scene folder: LLFF (poses_bounds.npy + images_N/), Blender/nerfstudio (transforms*.json). Empty: the embedded synthetic scene, generated into the run folder. Stored resolved (absolute) in the run's config.json."""
     images: str = "images_8"
-    """LLFF image folder to read (images_8 is 504x378 for fern)."""
+    """LLFF image folder to read (images_8 is 504x378 for fern): a folder name inside the scene, no path separators. Range: a folder name (no '/', not '.' or '..')."""
     split_every: int = 5
-    """Training views are those with index % split_every == 0 (SPEC 7); the rest are test views."""
+    """Training views are those with index % split_every == 0 (SPEC 7); the rest are test views. Range: an integer >= 1 and <= 1000000."""
     downscale: int = 1
-    """Integer downscale of Blender images (lego: 8 gives 100x100)."""
+    """Integer downscale of Blender images (lego: 8 gives 100x100). LLFF scenes refuse values other than 1: choose data.images instead. Range: an integer >= 1 and <= 1024."""
+
+    def __post_init__(self) -> None:
+        V.check_fields(self, DATA_CHECKS)
 
 
 @dataclass
@@ -42,25 +46,28 @@ class FieldConfig:
     backend: Literal["grid", "mlp"] = "grid"
     """'grid': fast multi-resolution voxel grid (CPU default); 'mlp': the paper's 8x256 MLP."""
     init_std: float = 1.0
-    """Initial standard deviation of density and colour logits."""
+    """Initial standard deviation of density and colour logits. Range: a finite number > 0."""
     mlp_depth: int = 8
-    """MLP trunk layers."""
+    """MLP trunk layers. Range: an integer >= 1 and <= 64."""
     mlp_width: int = 256
-    """MLP trunk width."""
+    """MLP trunk width. Range: an integer >= 1 and <= 8192."""
     dropout: float = 0.0
-    """Dropout after odd MLP layers (MC-Dropout baseline)."""
+    """Dropout after odd MLP layers (MC-Dropout baseline). Range: a finite number >= 0 and < 1."""
     grid_levels: int = 3
-    """Grid levels, each half the resolution of the next."""
+    """Grid levels, each half the resolution of the next. Range: an integer >= 1 and <= 16."""
     grid_pixels_per_voxel: float = 1.5
-    """Finest voxel size in pixel footprints (resolution follows the images)."""
+    """Finest voxel size in pixel footprints (resolution follows the images). Range: a finite number > 0."""
     grid_max_cells: int = 2_000_000
-    """Cap on cells of the finest level."""
+    """Cap on cells of the finest level. Range: an integer >= 8 and <= 2147483648."""
     grid_feature_dim: int = 8
-    """Colour feature channels per cell."""
+    """Colour feature channels per cell. Range: an integer >= 1 and <= 1024."""
     grid_decoder_width: int = 32
-    """Hidden width of the colour decoder (0: colours stored directly, view-independent)."""
+    """Hidden width of the colour decoder (0: colours stored directly, view-independent). Range: an integer >= 0 and <= 8192."""
     grid_init_density_loc: float = -1.0
-    """Initial mean of the pre-ReLU density everywhere."""
+    """Initial mean of the pre-ReLU density everywhere. Range: a finite number."""
+
+    def __post_init__(self) -> None:
+        V.check_fields(self, FIELD_CHECKS)
 
 
 @dataclass
@@ -68,25 +75,28 @@ class TrainConfig:
     """Optimisation."""
 
     iterations: int = 3000
-    """Optimiser steps."""
+    """Optimiser steps. Range: an integer >= 1 and <= 1000000000."""
     rays_per_batch: int = 1024
-    """Training rays per step."""
+    """Training rays per step. Range: an integer >= 1 and <= 16777216."""
     train_draws: int = 8
-    """K during training (Monte-Carlo likelihood)."""
+    """K during training (Monte-Carlo likelihood). Range: an integer >= 1 and <= 4096."""
     lr: float = 5e-3
-    """Adam learning rate (grid cells use 10x)."""
+    """Adam learning rate (grid cells use 10x). Range: a finite number > 0."""
     lr_final_factor: float = 0.1
-    """Learning rate at the end, as a fraction of lr (exponential decay)."""
+    """Learning rate at the end, as a fraction of lr (exponential decay). Range: a finite number > 0 and <= 1."""
     tv_weight: float = 1e-3
-    """Total-variation weight on grid cells (grid backend)."""
+    """Total-variation weight on grid cells (grid backend). Range: a finite number >= 0."""
     seed: int = 0
-    """Seed for initialisation, ray batches and draws."""
+    """Seed for initialisation, ray batches and draws. Range: an integer >= 0 and <= 9223372036854775807."""
     eval_every: int = 500
-    """Steps between quick evaluations on one test view (0: never)."""
+    """Steps between quick evaluations on one test view (0: never). Range: an integer >= 0 and <= 1000000000."""
     checkpoint_every: int = 500
-    """Steps between checkpoints (written atomically; training resumes from the last)."""
+    """Steps between checkpoints (written atomically; training resumes from the last). Range: an integer >= 0 and <= 1000000000."""
     device: str = "auto"
-    """'auto' (CUDA when present), 'cpu' or 'cuda'."""
+    """'auto' (CUDA when present), 'cpu', 'cuda' or 'cuda:N'. Range: 'auto', 'cpu', 'cuda' or 'cuda:N'."""
+
+    def __post_init__(self) -> None:
+        V.check_fields(self, TRAIN_CHECKS)
 
 
 @dataclass
@@ -101,35 +111,127 @@ class ExperimentConfig:
     loss: LossConfig = dc_field(default_factory=LossConfig)
     train: TrainConfig = dc_field(default_factory=TrainConfig)
 
+    def __post_init__(self) -> None:
+        validate_experiment(self)
+
+
+def _folder_name(s: str) -> bool:
+    return bool(s) and s not in (".", "..") and "/" not in s and "\\" not in s and "\0" not in s
+
+
+def _device_name(s: str) -> bool:
+    if s in ("auto", "cpu", "cuda"):
+        return True
+    return s.startswith("cuda:") and s[5:].isdigit()
+
+
+# Declared ranges: the one place each field is checked (on construction, on load, after CLI
+# overrides); --help shows them as "[range: ...]".
+DATA_CHECKS: dict[str, V.Checker] = {
+    "path": V.text(),
+    "images": V.text(pattern_rule="a folder name (no '/', not '.' or '..')", accept=_folder_name),
+    "split_every": V.integer(1, 10**6),
+    "downscale": V.integer(1, 1024),
+}
+FIELD_CHECKS: dict[str, V.Checker] = {
+    "backend": V.choice("grid", "mlp"),
+    "init_std": V.real(0.0, lo_open=True),
+    "mlp_depth": V.integer(1, 64),
+    "mlp_width": V.integer(1, 8192),
+    "dropout": V.real(0.0, 1.0, hi_open=True),
+    "grid_levels": V.integer(1, 16),
+    "grid_pixels_per_voxel": V.real(0.0, lo_open=True),
+    "grid_max_cells": V.integer(8, 2**31),
+    "grid_feature_dim": V.integer(1, 1024),
+    "grid_decoder_width": V.integer(0, 8192),
+    "grid_init_density_loc": V.real(),
+}
+TRAIN_CHECKS: dict[str, V.Checker] = {
+    "iterations": V.integer(1, 10**9),
+    "rays_per_batch": V.integer(1, 2**24),
+    "train_draws": V.integer(1, 4096),
+    "lr": V.real(0.0, lo_open=True),
+    "lr_final_factor": V.real(0.0, 1.0, lo_open=True),
+    "tv_weight": V.real(0.0),
+    "seed": V.integer(0, 2**63 - 1),
+    "eval_every": V.integer(0, 10**9),
+    "checkpoint_every": V.integer(0, 10**9),
+    "device": V.text(pattern_rule="'auto', 'cpu', 'cuda' or 'cuda:N'", accept=_device_name),
+}
+
+#: Methods whose renders report a variance over K trajectories: they need render.num_draws >= 2.
+STOCHASTIC_METHODS: tuple[str, ...] = ("snerf",)
+
+
+def validate_experiment(cfg: "ExperimentConfig") -> None:
+    """Check every field of ``cfg`` against its declared range (ConfigError naming the dotted
+    option and the value), and the rules that join fields."""
+    from .models.registry import METHODS
+
+    if not isinstance(cfg.method, str) or cfg.method not in METHODS:
+        raise V.ConfigError("method", "one of " + ", ".join(sorted(METHODS)), cfg.method)
+    for f in dataclasses.fields(cfg):
+        group = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(group):
+            try:
+                group.__post_init__()
+            except V.ConfigError as exc:
+                raise exc.prefixed(f"{f.name}.") from None
+    if cfg.method in STOCHASTIC_METHODS and cfg.render.num_draws < 2:
+        raise V.ConfigError("render.num_draws", f"an integer >= 2 for method {cfg.method!r} (the variance over K "
+                            "draws is its uncertainty)", cfg.render.num_draws)
+    if cfg.method == "snerf" and cfg.render.quadrature == "trapezoid" and cfg.render.skip_empty_space:
+        raise V.ConfigError("render.skip_empty_space", "false with render.quadrature='trapezoid' (empty-space "
+                            "skipping needs alpha compositing)", cfg.render.skip_empty_space)
+
+
+#: Named presets as data: dotted option -> value, applied on top of the defaults (``--help``
+#: lists them). ``demo``: the embedded synthetic scene in a few minutes on 2 CPU cores; ``llff``:
+#: forward-facing LLFF scenes (disparity spacing); ``tiny``: seconds, for tests.
+PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
+    "default": {},
+    "demo": {"train.iterations": 2000, "render.background": (1.0, 1.0, 1.0), "data.split_every": 4},
+    "llff": {"data.images": "images_8", "render.spacing": "disparity", "render.num_samples": 64,
+             "train.iterations": 3000},
+    "tiny": {"train.iterations": 150, "train.rays_per_batch": 256, "train.eval_every": 0,
+             "train.checkpoint_every": 100, "render.num_samples": 32, "render.num_draws": 8,
+             "render.background": (1.0, 1.0, 1.0), "data.split_every": 4},
+}
+PRESETS = tuple(PRESET_OVERRIDES)
+
 
 def preset(name: str) -> ExperimentConfig:
-    """Named presets. ``demo``: the embedded synthetic scene in a few minutes on 2 CPU cores.
-    ``llff``: forward-facing LLFF scenes (disparity spacing). ``tiny``: seconds, for tests."""
+    """The defaults with ``PRESET_OVERRIDES[name]`` applied (validated)."""
+    if name not in PRESET_OVERRIDES:
+        raise ValueError(f"unknown preset {name!r}; choose from {', '.join(PRESETS)}")
     cfg = ExperimentConfig()
-    if name == "demo":
-        cfg.train.iterations = 2000
-        cfg.render.background = (1.0, 1.0, 1.0)
-        cfg.data.split_every = 4
-    elif name == "llff":
-        cfg.data.images = "images_8"
-        cfg.render.spacing = "disparity"
-        cfg.render.num_samples = 64
-        cfg.train.iterations = 3000
-    elif name == "tiny":
-        cfg.train.iterations = 150
-        cfg.train.rays_per_batch = 256
-        cfg.train.eval_every = 0
-        cfg.train.checkpoint_every = 100
-        cfg.render.num_samples = 32
-        cfg.render.num_draws = 8
-        cfg.render.background = (1.0, 1.0, 1.0)
-        cfg.data.split_every = 4
-    elif name != "default":
-        raise ValueError(f"unknown preset {name!r}; choose from default, demo, llff, tiny")
+    for key, value in PRESET_OVERRIDES[name].items():
+        set_dotted(cfg, key, value)
+    validate_experiment(cfg)
     return cfg
 
 
-PRESETS = ("default", "demo", "llff", "tiny")
+def presets_help() -> str:
+    """One line per preset with the options it sets (for ``--help``)."""
+    lines = []
+    for name, overrides in PRESET_OVERRIDES.items():
+        items = ", ".join(f"{k}={','.join(map(str, v)) if isinstance(v, tuple) else v}" for k, v in overrides.items())
+        lines.append(f"{name}: {items or 'the defaults'}")
+    return "; ".join(lines)
+
+
+def set_dotted(cfg: Any, key: str, value: Any) -> None:
+    """Set ``cfg.<a>.<b> = value`` for ``key = "a.b"`` (no validation; ValueError for unknown keys)."""
+    obj = cfg
+    parts = key.split(".")
+    for p in parts[:-1]:
+        if not dataclasses.is_dataclass(obj) or p not in {f.name for f in dataclasses.fields(obj)}:
+            raise ValueError(f"unknown option {key!r}")
+        obj = getattr(obj, p)
+    if not dataclasses.is_dataclass(obj) or parts[-1] not in {f.name for f in dataclasses.fields(obj)} \
+            or dataclasses.is_dataclass(getattr(obj, parts[-1])):
+        raise ValueError(f"unknown option {key!r}")
+    setattr(obj, parts[-1], value)
 
 
 # --------------------------------------------------------------------------- serialisation
@@ -137,24 +239,66 @@ def to_dict(cfg: Any) -> dict:
     return dataclasses.asdict(cfg)
 
 
-def from_dict(cls: type, data: dict) -> Any:
-    """Build dataclass ``cls`` from a (possibly partial) dict; unknown keys are an error."""
+def from_dict(cls: type, data: dict, prefix: str = "") -> Any:
+    """Build dataclass ``cls`` from a (possibly partial) dict; unknown keys and values outside
+    their declared ranges are a ValueError naming the dotted option."""
+    if not isinstance(data, dict):
+        raise ValueError(f"option group {prefix.rstrip('.') or cls.__name__}: expected a JSON object, got {data!r}")
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = set(data) - names
     if unknown:
-        raise ValueError(f"unknown {cls.__name__} option(s): {sorted(unknown)}")
+        raise ValueError(f"unknown {cls.__name__} option(s): {sorted(prefix + str(u) for u in unknown)}")
     kwargs = {}
     for f in dataclasses.fields(cls):
         if f.name not in data:
             continue
         value = data[f.name]
         if dataclasses.is_dataclass(hints[f.name]):
-            value = from_dict(hints[f.name], value)
+            value = from_dict(hints[f.name], value, prefix=f"{prefix}{f.name}.")
         elif isinstance(value, list):
             value = tuple(value)
         kwargs[f.name] = value
-    return cls(**kwargs)
+    try:
+        return cls(**kwargs)
+    except V.ConfigError as exc:
+        raise exc.prefixed(prefix) from None
+
+
+def merge_dict(cfg: ExperimentConfig, data: Any, source: str) -> ExperimentConfig:
+    """Apply a (partial) nested dict like config.json onto ``cfg`` (in place) and validate;
+    errors name ``source`` and the dotted key."""
+    def walk(obj: Any, d: Any, prefix: str) -> None:
+        if not isinstance(d, dict):
+            raise ValueError(f"{source}: {prefix.rstrip('.') or 'the top level'} must be a JSON object, got {d!r}")
+        names = {f.name for f in dataclasses.fields(obj)}
+        for key, value in d.items():
+            if key not in names:
+                raise ValueError(f"{source}: unknown option {prefix + str(key)!r}")
+            if dataclasses.is_dataclass(getattr(obj, key)):
+                walk(getattr(obj, key), value, f"{prefix}{key}.")
+            else:
+                setattr(obj, key, tuple(value) if isinstance(value, list) else value)
+    walk(cfg, data, "")
+    try:
+        validate_experiment(cfg)
+    except V.ConfigError as exc:
+        raise ValueError(f"{source}: {exc}") from None
+    return cfg
+
+
+def read_config_file(path: str | Path) -> dict:
+    """The JSON object in ``path`` (ValueError/FileNotFoundError naming the file)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"config file {path} does not exist")
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"cannot read config {path}: {exc}") from exc
+    if not isinstance(data, dict):
+        raise ValueError(f"config {path}: expected a JSON object, got {type(data).__name__}")
+    return data
 
 
 def save_config(cfg: ExperimentConfig, path: Path) -> None:
@@ -164,11 +308,11 @@ def save_config(cfg: ExperimentConfig, path: Path) -> None:
 
 
 def load_config(path: Path) -> ExperimentConfig:
+    data = read_config_file(path)
     try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ValueError(f"cannot read config {path}: {exc}") from exc
-    return from_dict(ExperimentConfig, data)
+        return from_dict(ExperimentConfig, data)
+    except ValueError as exc:
+        raise ValueError(f"config {path}: {exc}") from None
 
 
 # --------------------------------------------------------------------------- argparse bridge
@@ -187,31 +331,74 @@ def field_docs(cls: type) -> dict[str, str]:
     return docs
 
 
+BOOL_WORDS: dict[str, bool] = {"true": True, "on": True, "yes": True, "1": True,
+                               "false": False, "off": False, "no": False, "0": False}
+
+
+def parse_bool(text: str) -> bool:
+    """on/off, true/false, yes/no, 1/0 (any case) -> bool; argparse error otherwise."""
+    try:
+        return BOOL_WORDS[text.strip().lower()]
+    except KeyError:
+        raise argparse.ArgumentTypeError(f"expected one of on/off, true/false, yes/no, 1/0, got {text!r}") from None
+
+
+def _parse_float_tuple(text: str) -> tuple[float, ...] | None:
+    if text.strip().lower() == "none":
+        return None
+    try:
+        return tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers like 1,1,1 (or none), got {text!r}") from None
+
+
+def _typed(base: type):
+    def parse(text: str):
+        try:
+            return base(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected {'an integer' if base is int else 'a number'}, "
+                                             f"got {text!r}") from None
+    return parse
+
+
 def _parser_for(hint: Any):
     origin = typing.get_origin(hint)
     args = typing.get_args(hint)
     if origin is Literal:
         return str, [str(a) for a in args]
     if hint is bool:
-        return (lambda s: {"true": True, "1": True, "yes": True, "false": False, "0": False, "no": False}[s.lower()]), None
-    if hint in (int, float, str):
-        return hint, None
+        return parse_bool, None
+    if hint in (int, float):
+        return _typed(hint), None
+    if hint is str:
+        return str, None
     if origin in (typing.Union, getattr(__import__("types"), "UnionType", None)):
         inner = [a for a in args if a is not type(None)]
         if len(inner) == 1 and typing.get_origin(inner[0]) is tuple:
-            return (lambda s: None if s.lower() == "none" else tuple(float(v) for v in s.split(","))), None
+            return _parse_float_tuple, None
         if len(inner) == 1:
             base, choices = _parser_for(inner[0])
             return (lambda s: None if s.lower() == "none" else base(s)), choices
     if origin is tuple:
-        return (lambda s: tuple(float(v) for v in s.split(","))), None
+        return _parse_float_tuple, None
     return str, None
 
 
+def _checks_of(cls: type) -> dict:
+    from .losses import LOSS_CHECKS
+    from .renderer import RENDER_CHECKS
+
+    return {DataConfig: DATA_CHECKS, FieldConfig: FIELD_CHECKS, TrainConfig: TRAIN_CHECKS,
+            RenderSettings: RENDER_CHECKS, LossConfig: LOSS_CHECKS}.get(cls, {})
+
+
 def add_config_arguments(parser: argparse.ArgumentParser, cls: type = ExperimentConfig, prefix: str = "") -> None:
-    """Add one ``--group.name`` option per leaf field, help text from the field docstrings."""
+    """Add one ``--group.name`` option per leaf field (also spelled ``--group.na-me``), help
+    text from the field docstrings plus the declared range."""
     hints = typing.get_type_hints(cls)
     docs = field_docs(cls)
+    checks = _checks_of(cls)
     for f in dataclasses.fields(cls):
         hint = hints[f.name]
         name = f"{prefix}{f.name}"
@@ -220,12 +407,18 @@ def add_config_arguments(parser: argparse.ArgumentParser, cls: type = Experiment
             add_config_arguments(parser.add_argument_group(f"{name} options", group_doc), hint, prefix=f"{name}.")
             continue
         conv, choices = _parser_for(hint)
-        parser.add_argument(f"--{name}", dest=name, type=conv, choices=choices, default=argparse.SUPPRESS,
-                            help=docs.get(f.name, "").replace("%", "%%") + " (default: %s)" % (f.default if f.default is not dataclasses.MISSING else "see preset"))
+        spellings = [f"--{name}"] + ([f"--{name.replace('_', '-')}"] if "_" in name else [])
+        default = f.default if f.default is not dataclasses.MISSING else "see preset"
+        doc = docs.get(f.name, "")
+        rule = (f" [range: {checks[f.name].rule}]" if f.name in checks and choices is None
+                and checks[f.name].rule != "a string" and "Range:" not in doc else "")
+        parser.add_argument(*spellings, dest=name, type=conv, choices=choices, default=argparse.SUPPRESS,
+                            help=(doc + rule).replace("%", "%%") + " (default: %s)" % (default,))
 
 
 def apply_overrides(cfg: ExperimentConfig, args: argparse.Namespace) -> ExperimentConfig:
-    """Set every dotted option present in ``args`` on ``cfg`` (in place); returns cfg."""
+    """Set every dotted option present in ``args`` on ``cfg`` (in place) and validate the
+    result (ValueError naming the option and value); returns cfg."""
     for key, value in vars(args).items():
         if "." not in key and key != "method":
             continue
@@ -236,4 +429,5 @@ def apply_overrides(cfg: ExperimentConfig, args: argparse.Namespace) -> Experime
         if not hasattr(obj, parts[-1]):
             continue
         setattr(obj, parts[-1], value)
+    validate_experiment(cfg)
     return cfg

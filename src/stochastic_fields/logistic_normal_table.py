@@ -82,8 +82,15 @@ def logistic_normal_moments_tabulated(loc: Tensor, scale: Tensor) -> tuple[Tenso
     Shapes: ``loc``, ``scale`` broadcast to ``[*B]``; returns two ``[*B]`` tensors on their
     device and dtype. Differentiable (piecewise-bilinear in the table coordinates). Scales must be
     positive (the fields guarantee it). Accuracy: see ``constants.LOGISTIC_TABLE_A_MAX``.
+    float16/bfloat16 inputs are read in float32 (autocast disabled) and the results cast back.
     """
     loc, scale = torch.broadcast_tensors(loc, scale)
+    if loc.dtype in (torch.float16, torch.bfloat16) or scale.dtype in (torch.float16, torch.bfloat16):
+        # half mantissas cannot hold the table's coordinates or exp(log v): read in float32
+        # (autocast off), return in the input dtype
+        with torch.autocast(device_type=loc.device.type, enabled=False):
+            mean, variance = logistic_normal_moments_tabulated(loc.float(), scale.float())
+        return mean.to(loc.dtype), variance.to(loc.dtype)
     table = _table(loc.device, loc.dtype)
     lo, hi = LOGISTIC_TABLE_LOG_SCALE_RANGE
     a = mackay_location(loc, scale)

@@ -33,7 +33,7 @@ class LossConfig:
     """Weights and choices of the variational loss."""
 
     likelihood_std: float = 0.05
-    """sigma_n: standard deviation of the Gaussian pixel likelihood (colour units, [0, 1]); the starting value when learned."""
+    """sigma_n: standard deviation of the Gaussian pixel likelihood (colour units, [0, 1]); the starting value when learned. Range: a finite number > 0."""
     learn_likelihood_std: bool = False
     """Learn sigma_n (one per colour channel) with the rest of the objective instead of fixing it. Render with render.colour_variance='predictive' to add sigma_n^2 to the colour variance."""
     kl: Literal["none", "fixed_prior", "full"] = "full"
@@ -41,24 +41,53 @@ class LossConfig:
     kl_estimator: Literal["closed_form", "monte_carlo"] = "closed_form"
     """Exact KL or the paper's Monte-Carlo estimate."""
     kl_mc_samples: int = 8
-    """Draws per point for the Monte-Carlo KL."""
+    """Draws per point for the Monte-Carlo KL. Range: an integer >= 1 and <= 4096."""
     lambda_random: float = 1e-2
-    """Weight of the mean KL over random scene points."""
+    """Weight of the mean KL over random scene points. Range: a finite number >= 0."""
     lambda_observed: float = 5e-2
-    """Weight of the mean KL over the training-ray samples."""
+    """Weight of the mean KL over the training-ray samples. Range: a finite number >= 0."""
     random_points_per_axis: int = 12
-    """Stratified random KL points: n per axis, n^3 points per step."""
+    """Stratified random KL points: n per axis, n^3 points per step. Range: an integer >= 1 and <= 256."""
     observed_kl_samples: int = 4096
-    """Training-ray samples per step on which the observed-prior KL is evaluated (a uniform random subset: an unbiased estimate of the mean over all samples at a fraction of the cost; 0 = all)."""
+    """Training-ray samples per step on which the observed-prior KL is evaluated (a uniform random subset: an unbiased estimate of the mean over all samples at a fraction of the cost; 0 = all). Range: an integer >= 0 and <= 16777216."""
     lambda_depth: float = 0.0
-    """Weight of the sparse-depth likelihood of the capture's own structure-from-motion points (FIT role of the spatial split, stochastic_fields.capture_points): -mean_k log sum_i w_ik N(t* | t_i, s_i^2) per point ray (termination_depth_nll). 0 = off."""
+    """Weight of the sparse-depth likelihood of the capture's own structure-from-motion points (FIT role of the spatial split, stochastic_fields.capture_points): -mean_k log sum_i w_ik N(t* | t_i, s_i^2) per point ray (termination_depth_nll). 0 = off. Range: a finite number >= 0."""
     depth_rays_per_batch: int = 256
-    """Capture-point rays per training step for the depth likelihood (drawn from the training views' FIT points)."""
+    """Capture-point rays per training step for the depth likelihood (drawn from the training views' FIT points). Range: an integer >= 1 and <= 1048576."""
     depth_relative_std: float = 0.01
-    """Depth noise of a capture point relative to its depth (added to each sample's bin width in the depth likelihood)."""
+    """Depth noise of a capture point relative to its depth (added to each sample's bin width in the depth likelihood). Range: a finite number > 0."""
     lambda_distortion: float = 0.0
-    """Weight of the Mip-NeRF 360 distortion regulariser on every training trajectory (stochastic_fields.distortion): penalises weight spread along rays (floaters). 0 = off (the paper's objective); on fern at 1000 steps it did not empty space for skipping and cost PSNR at weight 20 (docs/design.md)."""
+    """Weight of the Mip-NeRF 360 distortion regulariser on every training trajectory (stochastic_fields.distortion): penalises weight spread along rays (floaters). 0 = off (the paper's objective); on fern at 1000 steps it did not empty space for skipping and cost PSNR at weight 20 (docs/design.md). Range: a finite number >= 0."""
 
+
+    def __post_init__(self) -> None:
+        from .validation import check_fields
+
+        check_fields(self, LOSS_CHECKS)
+
+
+def _loss_checks() -> dict:
+    """Declared range of every LossConfig field (checked on construction, load and CLI overrides)."""
+    from .validation import boolean, choice, integer, real
+
+    return {
+        "likelihood_std": real(0.0, lo_open=True),
+        "learn_likelihood_std": boolean(),
+        "kl": choice("none", "fixed_prior", "full"),
+        "kl_estimator": choice("closed_form", "monte_carlo"),
+        "kl_mc_samples": integer(1, 4096),
+        "lambda_random": real(0.0),
+        "lambda_observed": real(0.0),
+        "random_points_per_axis": integer(1, 256),
+        "observed_kl_samples": integer(0, 2**24),
+        "lambda_depth": real(0.0),
+        "depth_rays_per_batch": integer(1, 2**20),
+        "depth_relative_std": real(0.0, lo_open=True),
+        "lambda_distortion": real(0.0),
+    }
+
+
+LOSS_CHECKS = _loss_checks()
 
 class Priors(nn.Module):
     """Learned prior parameters (scalars shared by every point of the scene)."""

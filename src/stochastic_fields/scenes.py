@@ -19,6 +19,10 @@ def load_run_dataset(cfg: ExperimentConfig, run_dir: Path, *, generate: bool = T
     from .data.dataset import detect_format, load_dataset
 
     path = scene_path(cfg, run_dir)
+    if not cfg.data.path:
+        from .io_utils import check_no_symlinks
+
+        check_no_symlinks(run_dir, EMBEDDED_SCENE_DIR)  # the scene is generated into the run folder
     if not cfg.data.path and not (path / "transforms.json").exists():
         if not generate:
             raise FileNotFoundError(f"the embedded scene is missing from {path}")
@@ -26,5 +30,8 @@ def load_run_dataset(cfg: ExperimentConfig, run_dir: Path, *, generate: bool = T
 
         make_synthetic_scene(path)
     if detect_format(path) == "llff":
+        if cfg.data.downscale != 1:
+            raise ValueError(f"option data.downscale={cfg.data.downscale} applies to Blender/nerfstudio scenes; "
+                             f"{path} is an LLFF scene: choose its resolution with data.images (images_4, images_8)")
         return load_dataset(path, images=cfg.data.images, split_every=cfg.data.split_every)
     return load_dataset(path, split_every=cfg.data.split_every, downscale=cfg.data.downscale)

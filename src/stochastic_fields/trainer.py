@@ -19,11 +19,83 @@ from tqdm.auto import tqdm
 
 from .cameras import generate_rays
 from .checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
-from .config import ExperimentConfig, save_config, to_dict
+from .config import ExperimentConfig, from_dict, save_config, to_dict, validate_experiment
+from .io_utils import atomic_write_text, open_append_no_follow, remove_stale_temporaries
 from .models.base import RadianceModel
 from .models.registry import build_model, resolve_device
 from .optim import FieldOptimizer
 from .rays import RayBundle
+
+
+#: Options a resumed run may change: how long and how often, where, and render chunking. Any
+#: other difference (model shape, data, losses, learning rate, seed...) is refused on resume.
+RESUMABLE_OPTIONS: tuple[str, ...] = ("train.iterations", "train.eval_every", "train.checkpoint_every",
+                                      "train.device", "render.chunk_rays", "render.num_draws",
+                                      "render.colour_estimator")
+LOG_NAME = "train_log.jsonl"
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = tuple(v) if isinstance(v, list) else v
+    return out
+
+
+def _comparable_data_path(value: str) -> str:
+    return str(Path(value).expanduser().resolve()) if value else ""
+
+
+def config_differences(saved: ExperimentConfig, new: ExperimentConfig) -> list[tuple[str, object, object]]:
+    """(dotted option, saved value, new value) for every option that differs and may not change
+    on resume (everything outside ``RESUMABLE_OPTIONS``; data paths compared resolved)."""
+    a, b = _flat(to_dict(saved)), _flat(to_dict(new))
+    diffs = []
+    for key in sorted(set(a) | set(b)):
+        if key in RESUMABLE_OPTIONS:
+            continue
+        va, vb = a.get(key), b.get(key)
+        if key == "data.path":
+            va, vb = _comparable_data_path(va or ""), _comparable_data_path(vb or "")
+        if va != vb:
+            diffs.append((key, a.get(key), b.get(key)))
+    return diffs
+
+
+def saved_run_config(run_dir: Path, state: dict | None = None) -> ExperimentConfig | None:
+    """The config the run's checkpoint was trained with (its ``config_json``; else config.json),
+    or None when the folder has no checkpoint."""
+    ckpt = Path(run_dir) / CHECKPOINT_NAME
+    if not ckpt.exists():
+        return None
+    if state is None:
+        state = load_checkpoint(ckpt)
+    text = state.get("config_json")
+    if isinstance(text, str):
+        try:
+            return from_dict(ExperimentConfig, json.loads(text))
+        except (ValueError, json.JSONDecodeError) as exc:
+            raise ValueError(f"checkpoint {ckpt}: its stored config is unreadable ({exc})") from exc
+    from .config import load_config
+
+    return load_config(Path(run_dir) / "config.json")
+
+
+def check_resume(run_dir: Path, cfg: ExperimentConfig, state: dict | None = None) -> None:
+    """Refuse (ValueError naming each differing option, saved and new value) to resume a run
+    folder's checkpoint with a config that changes anything but ``RESUMABLE_OPTIONS``. Reads only."""
+    saved = saved_run_config(run_dir, state)
+    if saved is None:
+        return
+    diffs = config_differences(saved, cfg)
+    if diffs:
+        listed = "; ".join(f"{k}: {va!r} in the run, {vb!r} now" for k, va, vb in diffs)
+        raise ValueError(f"cannot resume {Path(run_dir) / CHECKPOINT_NAME} with different options ({listed}). "
+                         f"Only {', '.join(RESUMABLE_OPTIONS)} may change when resuming; train into a new --out "
+                         "folder for the rest. Nothing was changed on disk.")
 
 
 @dataclass
@@ -102,6 +174,7 @@ def quick_eval(model: RadianceModel, dataset, view: int, device: torch.device) -
 
 class Trainer:
     def __init__(self, cfg: ExperimentConfig, run_dir: Path, dataset):
+        validate_experiment(cfg)  # fields set by attribute after construction are checked here
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         self.dataset = dataset
@@ -137,7 +210,12 @@ class Trainer:
         if not self.checkpoint_path.exists():
             return False
         state = load_checkpoint(self.checkpoint_path, map_location=self.device)
-        self.model.load_state_dict(state["model"])
+        check_resume(self.run_dir, self.cfg, state)
+        try:
+            self.model.load_state_dict(state["model"])
+        except RuntimeError as exc:  # shapes or names differ from the config's model
+            raise ValueError(f"checkpoint {self.checkpoint_path} does not fit the configured model: "
+                             f"{str(exc).splitlines()[0]}") from exc
         try:
             self.optimizer.load_state_dict(state["optimizer"])
         except ValueError as exc:  # e.g. a checkpoint from before the row-sparse grid optimiser
@@ -149,12 +227,33 @@ class Trainer:
         self.draw_generator.set_state(state["draw_rng"].to(self.draw_generator.device) if self.device.type == "cuda" else state["draw_rng"])
         return True
 
+    def _truncate_log(self) -> None:
+        """Keep only the log records of steps up to the restored step: steps redone after a
+        resume (or after a restart without checkpoint) are logged once, by the run that keeps them."""
+        path = self.run_dir / LOG_NAME
+        if path.is_symlink():
+            raise ValueError(f"{path} is a symbolic link; refusing to write through it (remove the link)")
+        if not path.exists():
+            return
+        kept = []
+        for line in path.read_text().splitlines():
+            try:
+                if int(json.loads(line)["step"]) <= self.step:
+                    kept.append(line)
+            except (ValueError, KeyError, TypeError):
+                continue  # a line cut by a kill: dropped
+        atomic_write_text(path, "".join(k + "\n" for k in kept))
+
     # ------------------------------------------------------------------ loop
     def train(self, *, progress: bool = True, max_steps: int | None = None) -> RadianceModel:
         """Train to ``cfg.train.iterations`` (or stop after ``max_steps`` more steps, for tests)."""
+        if self.run_dir.exists() and not self.run_dir.is_dir():
+            raise ValueError(f"--out {self.run_dir} exists and is not a folder")
+        resumed = self.try_resume()  # validates the checkpoint against the config before any write
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        remove_stale_temporaries(self.run_dir)
         save_config(self.cfg, self.run_dir / "config.json")
-        resumed = self.try_resume()
+        self._truncate_log()
         data = TrainingRays.from_dataset(self.dataset, self.device)
         depth_data = None
         if self.cfg.loss.lambda_depth > 0 and getattr(self.model, "accepts_depth", False):
@@ -164,13 +263,13 @@ class Trainer:
                               "capture points in its training views: training without the depth term", stacklevel=2)
         total = self.cfg.train.iterations
         stop_at = total if max_steps is None else min(total, self.step + max_steps)
-        log_path = self.run_dir / "train_log.jsonl"
+        log_path = self.run_dir / LOG_NAME
         eval_view = self.dataset.test_indices[0] if len(self.dataset.test_indices) else None
         bar = tqdm(total=total, initial=self.step, desc="train" + (" (resumed)" if resumed else ""),
                    disable=not progress, dynamic_ncols=True)
         self.model.train()
         t_last = time.perf_counter()
-        with log_path.open("a") as log:
+        with open_append_no_follow(log_path) as log:
             while self.step < stop_at:
                 rays, target = data.batch(self.cfg.train.rays_per_batch, self.generator)
                 extra = {}
@@ -207,7 +306,11 @@ class Trainer:
 
 
 def load_trained_model(run_dir: Path, dataset=None, device: str | None = None):
-    """(cfg, model, dataset) from a run folder; the model is in eval mode."""
+    """(cfg, model, dataset) from a run folder; the model is in eval mode.
+
+    The config is the run's config.json; when it differs from the config stored in the
+    checkpoint in an option that shapes the model or its training (a run damaged by an earlier
+    failed resume), the checkpoint's config is used, with a warning naming the options."""
     from .config import load_config
     from .scenes import load_run_dataset
 
@@ -215,13 +318,31 @@ def load_trained_model(run_dir: Path, dataset=None, device: str | None = None):
     ckpt = run_dir / CHECKPOINT_NAME
     if not ckpt.is_file():
         raise FileNotFoundError(f"run folder {run_dir} has no {CHECKPOINT_NAME}: train it first")
-    cfg = load_config(run_dir / "config.json")
+    dev_name = None
     if device is not None:
-        cfg.train.device = device
+        from .config import TRAIN_CHECKS
+
+        try:
+            dev_name = TRAIN_CHECKS["device"](device)
+        except ValueError as exc:
+            raise ValueError(f"--device must be {exc}, got {device!r}") from None
+    state = load_checkpoint(ckpt, map_location="cpu")
+    cfg = load_config(run_dir / "config.json")
+    trained = saved_run_config(run_dir, state)
+    if trained is not None and config_differences(trained, cfg):
+        listed = ", ".join(k for k, _, _ in config_differences(trained, cfg))
+        warnings.warn(f"{run_dir / 'config.json'} differs from the config stored in {ckpt} ({listed}); "
+                      "using the checkpoint's", stacklevel=2)
+        cfg = trained
+    if dev_name is not None:
+        cfg.train.device = dev_name
     dataset = load_run_dataset(cfg, run_dir) if dataset is None else dataset
     dev = resolve_device(cfg.train.device)
     model = build_model(cfg, dataset).to(dev)
-    state = load_checkpoint(ckpt, map_location=dev)
-    model.load_state_dict(state["model"])
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as exc:
+        raise ValueError(f"checkpoint {ckpt} does not fit the model of {run_dir / 'config.json'}: "
+                         f"{str(exc).splitlines()[0]}") from exc
     model.eval()
     return cfg, model, dataset

@@ -58,6 +58,20 @@ _MAX_AABB_POINTS: int = 200_000
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 
 
+#: Tolerance on R^T R = I for a frame's camera-to-world rotation: poses written with 4-5
+#: significant digits pass, a scaled, sheared or singular matrix does not.
+POSE_ROTATION_TOLERANCE: float = 1e-3
+
+
+def _number(json_path: Path, where: str, key: str, value: Any, *, positive: bool = False) -> float:
+    """``float(value)`` for a JSON number, else DatasetError naming the file, the key and the value."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)) \
+            or (positive and not float(value) > 0):
+        raise DatasetError(json_path, f"{where}{key!r} must be a finite{' positive' if positive else ''} number, "
+                           f"got {value!r}")
+    return float(value)
+
+
 def _read_json(path: Path) -> dict[str, Any]:
     if not path.is_file():
         raise DatasetError(path, "missing transforms file")
@@ -93,6 +107,12 @@ def _frame_pose(json_path: Path, index: int, frame: dict[str, Any]) -> np.ndarra
         raise DatasetError(json_path, f"frame {index}: transform_matrix must be 4x4 or 3x4, got shape {m.shape}")
     if not np.isfinite(m).all():
         raise DatasetError(json_path, f"frame {index}: transform_matrix has NaN/inf entries")
+    R = m[:3, :3]
+    if (m.shape == (4, 4) and not np.allclose(m[3], [0, 0, 0, 1])) or np.linalg.det(R) <= 0 \
+            or not np.allclose(R.T @ R, np.eye(3), atol=POSE_ROTATION_TOLERANCE):
+        raise DatasetError(json_path, f"frame {index}: transform_matrix must be a rigid camera-to-world transform "
+                           f"[[R, t], [0, 0, 0, 1]] with R a rotation (R^T R = I within {POSE_ROTATION_TOLERANCE}, "
+                           f"det R = 1), got {m.tolist()}")
     full = np.eye(4)
     full[:3] = m[:3]
     return full
@@ -109,20 +129,30 @@ def _frame_intrinsics(json_path: Path, meta: dict, frame: dict, index: int, H: i
         if value not in (None, 0, 0.0):
             raise DatasetError(json_path, f"frame {index}: lens distortion {key}={value} is not supported "
                                "(undistort the images first)")
-    w, h = get("w"), get("h")
-    if (w is not None and int(w) != W) or (h is not None and int(h) != H):
-        raise DatasetError(json_path, f"frame {index}: json says {w}x{h} but the image is {W}x{H}")
-    fl_x, fl_y = get("fl_x"), get("fl_y")
-    if fl_x is None and get("camera_angle_x") is not None:
-        fl_x = 0.5 * W / math.tan(0.5 * float(get("camera_angle_x")))
-    if fl_y is None and get("camera_angle_y") is not None:
-        fl_y = 0.5 * H / math.tan(0.5 * float(get("camera_angle_y")))
+    where = f"frame {index}: "
+
+    def num(key: str, positive: bool = False) -> float | None:
+        value = get(key)
+        return None if value is None else _number(json_path, where, key, value, positive=positive)
+
+    w, h = num("w", True), num("h", True)
+    if (w is not None and w != W) or (h is not None and h != H):
+        raise DatasetError(json_path, f"frame {index}: json says {get('w')}x{get('h')} but the image is {W}x{H}")
+    fl_x, fl_y = num("fl_x"), num("fl_y")
+    for key, size, axis in (("camera_angle_x", W, "x"), ("camera_angle_y", H, "y")):
+        angle = num(key)
+        if angle is None or (fl_x if axis == "x" else fl_y) is not None:
+            continue
+        if not 0.0 < angle < math.pi:
+            raise DatasetError(json_path, f"{where}{key!r} must be a field of view in radians in (0, pi), got {angle}")
+        focal = 0.5 * size / math.tan(0.5 * angle)
+        fl_x, fl_y = (focal, fl_y) if axis == "x" else (fl_x, focal)
     if fl_x is None and fl_y is None:
         raise DatasetError(json_path, "no focal length: need fl_x/fl_y or camera_angle_x")
     fl_x = float(fl_y if fl_x is None else fl_x)
     fl_y = float(fl_x if fl_y is None else fl_y)
-    cx = float(get("cx")) if get("cx") is not None else W / 2.0
-    cy = float(get("cy")) if get("cy") is not None else H / 2.0
+    cx = num("cx") if get("cx") is not None else W / 2.0
+    cy = num("cy") if get("cy") is not None else H / 2.0
     if not all(math.isfinite(x) for x in (fl_x, fl_y, cx, cy)) or fl_x <= 0 or fl_y <= 0:
         raise DatasetError(json_path, f"frame {index}: bad intrinsics fl_x={fl_x} fl_y={fl_y} cx={cx} cy={cy}")
     return np.array([[fl_x, 0.0, cx], [0.0, fl_y, cy], [0.0, 0.0, 1.0]])
@@ -177,6 +207,9 @@ def _load_frames(json_path: Path, meta: dict, want_depth: bool, downscale: int, 
             background = ()
         if len(background) != 3:
             raise DatasetError(json_path, f"'background' must be 3 numbers, got {meta['background']}")
+    for i, frame in enumerate(frames):
+        if not isinstance(frame, dict):
+            raise DatasetError(json_path, f"frame {i} must be a JSON object, got {frame!r}")
     has_depth = [("depth_file_path" in f) for f in frames]
     want_depth = want_depth and any(has_depth)
     if want_depth and not all(has_depth):
@@ -184,7 +217,8 @@ def _load_frames(json_path: Path, meta: dict, want_depth: bool, downscale: int, 
     if want_depth and downscale > 1:
         raise DatasetError(json_path, f"downscale={downscale} with depth maps: area-averaging mixes surfaces; "
                            "render the scene at the wanted size or pass load_depth=False")
-    depth_scale = float(meta.get("depth_unit_scale_factor", DEFAULT_DEPTH_UNIT_SCALE))
+    depth_scale = _number(json_path, "", "depth_unit_scale_factor",
+                          meta.get("depth_unit_scale_factor", DEFAULT_DEPTH_UNIT_SCALE), positive=True)
     arrays, paths, Ks, poses, depths = [], [], [], [], []
     for i, frame in enumerate(frames):
         if "file_path" not in frame:
@@ -292,13 +326,16 @@ def load_blender(
 
     near_v = near if near is not None else _hint(first, metas, "near")
     far_v = far if far is not None else _hint(first, metas, "far")
-    near_v = BLENDER_NEAR if near_v is None else float(near_v)
-    far_v = BLENDER_FAR if far_v is None else float(far_v)
+    near_v = BLENDER_NEAR if near_v is None else _number(first, "", "near", near_v)
+    far_v = BLENDER_FAR if far_v is None else _number(first, "", "far", far_v)
     if not (0 < near_v < far_v) or not math.isfinite(far_v):
         raise DatasetError(first, f"need 0 < near < far, got near={near_v} far={far_v}")
 
     if files[0][1] == "all":
-        every = split_every if split_every is not None else int(_hint(first, metas, "split_every") or 5)
+        hint = _hint(first, metas, "split_every")
+        if hint is not None and (isinstance(hint, bool) or not isinstance(hint, int) or hint < 1):
+            raise DatasetError(first, f"'split_every' must be a positive integer, got {hint!r}")
+        every = split_every if split_every is not None else (hint or 5)
         train, test = split_every_indices(V, every, first)
     else:
         n_train = loaded[0][0].shape[0]
@@ -313,8 +350,11 @@ def load_blender(
 
     aabb_hint = _hint(first, metas, "aabb")
     if aabb_hint is not None:
-        aabb = torch.as_tensor(aabb_hint, dtype=torch.float32)
-        if aabb.shape != (2, 3) or not bool(torch.all(aabb[1] > aabb[0])):
+        try:
+            aabb = torch.as_tensor(aabb_hint, dtype=torch.float32)
+        except (TypeError, ValueError, RuntimeError):
+            aabb = torch.zeros(0)
+        if aabb.shape != (2, 3) or not bool(torch.isfinite(aabb).all()) or not bool(torch.all(aabb[1] > aabb[0])):
             raise DatasetError(first, f"'aabb' must be [[xmin, ymin, zmin], [xmax, ymax, zmax]], got {aabb_hint}")
     else:
         pts = None

@@ -35,6 +35,10 @@ from .errors import DatasetError
 _ASPECT_TOLERANCE: float = 0.01
 
 
+#: Tolerance on R^T R = I for the rotation block of a poses_bounds.npy row (float32 files from
+#: COLMAP pass; a singular, scaled or sheared block does not).
+LLFF_ROTATION_TOLERANCE: float = 1e-3
+
 def read_poses_bounds(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """(poses [V, 3, 5], bounds [V, 2]) from ``poses_bounds.npy``, validated.
 
@@ -64,6 +68,13 @@ def read_poses_bounds(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     hwf = poses[:, :, 4]
     if (hwf <= 0).any():
         raise DatasetError(path, "hwf column (height, width, focal) must be positive")
+    R = poses[:, :, :3]
+    gram_err = np.abs(np.einsum("vji,vjk->vik", R, R) - np.eye(3)).max(axis=(1, 2))
+    bad = (gram_err > LLFF_ROTATION_TOLERANCE) | (np.linalg.det(R) <= 0)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise DatasetError(path, f"row {i}: the 3x3 pose block must be a rotation (R^T R = I within "
+                           f"{LLFF_ROTATION_TOLERANCE}, det R = 1), got {R[i].tolist()} (rows {np.flatnonzero(bad).tolist()})")
     return poses, bounds
 
 

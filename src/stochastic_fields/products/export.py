@@ -2,7 +2,9 @@
 
 For each camera (dataset views, or a ``cameras.json`` of intrinsics/poses), render K depth
 trajectories and write (every file atomically, so an interrupted export leaves complete files
-or none; ``summary.json`` is written last and marks a finished export):
+or none; the whole folder is written beside OUT as ``.OUT.partial-*`` and swapped in when
+complete, so OUT is always one finished export, never a mix of an old and an interrupted one;
+``summary.json`` marks a finished export):
 
     OUT/views/<name>.npz                 all maps, float32, + intrinsics/pose/units/K (depth_maps.write_npz)
     OUT/views/<name>_depth_mean.png/.json 16-bit depth + scale sidecar (also _depth_std, _depth_q<p>)
@@ -35,11 +37,11 @@ import torch
 from tqdm.auto import tqdm
 
 from ..cameras import generate_rays_for_view, intrinsics_3x3, make_cameras
-from ..io_utils import atomic_path, atomic_write_text
+from ..io_utils import atomic_folder, atomic_path, atomic_write_text, check_file_name
 from .depth_maps import (CONVENTIONS, DepthProducts, check_quantile_levels, compute_depth_products,
                          draw_quantiles, quantile_name, write_colourised, write_npz, write_png16, write_tiff)
 from .free_space import free_space_volume
-from .fusion import fuse_clouds
+from .fusion import check_voxel_size, fuse_clouds
 from .pointcloud import (CloudArrays, PointFilter, cloud_from_products, filter_cloud, most_confident,
                          uncertainty_range, write_ply)
 from .render_cloud import render_cloud_png
@@ -118,8 +120,8 @@ class ExportOptions:
             raise ValueError(f"min_opacity must be in [0, 1], got {self.min_opacity}")
         if self.colour_by not in ("rgb", "uncertainty"):
             raise ValueError(f"colour_by must be 'rgb' or 'uncertainty', got {self.colour_by!r}")
-        if self.num_draws is not None and self.num_draws < 2:
-            raise ValueError(f"num_draws must be >= 2 for depth uncertainty, got {self.num_draws}")
+        if self.num_draws is not None and not 2 <= self.num_draws <= 4096:
+            raise ValueError(f"num_draws must be in [2, 4096] for depth uncertainty, got {self.num_draws}")
         if self.voxel_size is not None and not self.voxel_size > 0:
             raise ValueError(f"voxel_size must be positive, got {self.voxel_size}")
         if any(not (math.isfinite(t) and t > 0) for t in self.free_space_thresholds):
@@ -132,6 +134,11 @@ class ExportOptions:
         if "ros" in self.formats and self.metres_per_unit is None and self.known_distance is None:
             raise ValueError("--formats ros writes depth in metres: give --metres-per-unit or --known-distance "
                              "I,J,METRES (scene units are not metres for LLFF or structure-from-motion captures)")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
+        if not isinstance(self.units, str) or not 0 < len(self.units) <= 64 or not self.units.isprintable():
+            raise ValueError(f"units must be 1-64 printable characters (it is written into file headers), "
+                             f"got {self.units!r}")
         self.point_filter()
 
     def metric_scale(self) -> MetricScale | None:
@@ -176,6 +183,8 @@ def parse_views(spec: str, num_views: int, train: Sequence[int], test: Sequence[
         raise ValueError(f"--views must be 'test', 'train', 'all' or comma-separated indices, got {spec!r}") from exc
     if not views:
         raise ValueError(f"--views {spec!r} names no view")
+    if len(set(views)) != len(views):
+        raise ValueError(f"--views {spec!r} names a view more than once")
     bad = [v for v in views if not 0 <= v < num_views]
     if bad:
         raise ValueError(f"--views {bad} out of range: the scene has {num_views} views (0..{num_views - 1})")
@@ -232,11 +241,17 @@ def load_cameras_json(path: str | Path, *, default_near: float, default_far: flo
             if isinstance(v, bool) or not isinstance(v, (int, float)) or v != int(v) or int(v) < 1:
                 raise ValueError(f"{path}: camera {i}: {key!r} must be a positive integer, got {v!r}")
             size[key] = int(v)
-        near = float(cam.get("near", default_near))
-        far = float(cam.get("far", default_far))
+        try:
+            near = float(cam.get("near", default_near))
+            far = float(cam.get("far", default_far))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"{path}: camera {i}: 'near'/'far' must be numbers, got near={cam.get('near')!r} "
+                             f"far={cam.get('far')!r}") from exc
         if not (0 < near < far and math.isfinite(far)):
             raise ValueError(f"{path}: camera {i}: need 0 < near < far, got near={near} far={far}")
-        specs.append(ViewSpec(str(cam.get("name", f"cam_{i:03d}")), K, w2c, size["height"], size["width"], near, far))
+        name = cam.get("name", f"cam_{i:03d}")
+        check_file_name(name, f"{path}: camera {i}: 'name'")
+        specs.append(ViewSpec(name, K, w2c, size["height"], size["width"], near, far))
     names = [s.name for s in specs]
     if len(set(names)) != len(names):
         raise ValueError(f"{path}: camera names must be unique, got {names}")
@@ -363,7 +378,12 @@ def surface_distances(points: np.ndarray, mesh_path: str | Path) -> np.ndarray:
     import open3d as o3d
     import trimesh
 
-    mesh = trimesh.load(str(mesh_path), force="mesh", process=False)
+    try:
+        mesh = trimesh.load(str(mesh_path), force="mesh", process=False)
+    except Exception as exc:  # trimesh raises bare exceptions for damaged files ("PLY is unexpected length!")
+        raise ValueError(f"{mesh_path}: cannot read the ground-truth mesh ({type(exc).__name__}: {exc})") from exc
+    if not hasattr(mesh, "faces") or len(mesh.faces) == 0:
+        raise ValueError(f"{mesh_path}: the ground-truth mesh has no triangles")
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, dtype=np.float32)),
                         o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
@@ -429,6 +449,9 @@ def export_run(run_dir: str | Path, opts: ExportOptions) -> dict:
     else:
         views = parse_views(opts.views, dataset.num_views, dataset.train_indices, dataset.test_indices)
         specs = dataset_view_specs(dataset, views)
+    if opts.voxel_size is not None:  # against the scene's extent, before any render
+        reach = max(float(dataset.aabb.abs().max()), float(dataset.cameras.extrinsics[:, :3, 3].abs().max()))
+        check_voxel_size(opts.voxel_size, reach)
     out = Path(opts.out) if opts.out is not None else run_dir / "export"
     mesh_path = Path(dataset.root) / "scene.ply"
     from ..calibration import load_run_calibration
@@ -438,13 +461,34 @@ def export_run(run_dir: str | Path, opts: ExportOptions) -> dict:
                         run_name=str(run_dir), calibration=calibration)
 
 
+#: Entries an export folder holds: a non-empty folder with anything else is not replaced.
+EXPORT_ENTRIES: frozenset[str] = frozenset({"views", "clouds", "fused.ply", "fused_cloud.png", "summary.json"})
+
+
+def is_export_folder(path: Path) -> bool:
+    """True for a folder holding only what an export writes (a previous or interrupted export)."""
+    return all(p.name in EXPORT_ENTRIES or p.name.startswith(".") for p in Path(path).iterdir())
+
+
 def export_views(model, specs: Sequence[ViewSpec], out: Path, opts: ExportOptions, *, mesh_path: Path | None = None,
                  run_name: str = "", calibration=None) -> dict:
-    """Render, write and summarise ``specs`` into ``out`` (see the module doc)."""
+    """Render, write and summarise ``specs`` into ``out`` (see the module doc): the files go to a
+    fresh folder beside ``out`` that replaces it when complete (``io_utils.atomic_folder``); an
+    existing ``out`` that holds anything but a previous export is refused. ``calibration``: the
+    run's depth recalibration (``compute_depth_products``), or None."""
     opts.validate()
     if "ros" in opts.formats and opts.metres_per_unit is None:
         raise ValueError("export_views: --known-distance is resolved against the dataset's cameras by export_run; "
                          "pass metres_per_unit here")
+    for spec in specs:
+        check_file_name(spec.name, "view name")
+    with atomic_folder(out, replaceable=is_export_folder, option="--out") as work:
+        return _export_views_into(model, specs, work, opts, mesh_path=mesh_path, run_name=run_name,
+                                  calibration=calibration)
+
+
+def _export_views_into(model, specs: Sequence[ViewSpec], out: Path, opts: ExportOptions, *,
+                       mesh_path: Path | None, run_name: str, calibration=None) -> dict:
     out = Path(out)
     device = next(model.parameters()).device
     generator = torch.Generator(device=device).manual_seed(opts.seed)

@@ -23,8 +23,20 @@ import numpy as np
 from ..constants import PRODUCT_DEPTH_VARIANCE_FLOOR
 from .pointcloud import COVARIANCE_NAMES, CloudArrays, confidence_from_std
 
+#: Largest voxel index per axis: floor(x / voxel_size) stays exact in float64 and int64 far below it.
+MAX_VOXEL_INDEX: float = 2.0**40
 #: Default voxel side in median pixel footprints.
 VOXEL_FOOTPRINTS: float = 1.0
+
+
+def check_voxel_size(voxel_size: float, reach: float) -> None:
+    """ValueError unless ``voxel_size`` is positive, finite and keeps the voxel index of every
+    point within ``reach`` scene units of the origin below ``MAX_VOXEL_INDEX``."""
+    if not (np.isfinite(voxel_size) and voxel_size > 0):
+        raise ValueError(f"voxel_size must be a positive number, got {voxel_size}")
+    if reach / voxel_size >= MAX_VOXEL_INDEX:
+        raise ValueError(f"voxel_size {voxel_size} is too small for a scene reaching {reach:.4g} units from the "
+                         f"origin (voxel indices past {MAX_VOXEL_INDEX:.0e}); use >= {reach / MAX_VOXEL_INDEX:.3g}")
 
 
 def default_voxel_size(cloud: CloudArrays) -> float:
@@ -57,6 +69,7 @@ def fuse_clouds(clouds: list[CloudArrays] | CloudArrays, voxel_size: float | Non
         return cloud, {"input": 0, "fused": 0, "voxel_size": size, "max_count": 0}
     if "depth_var" not in cloud.attributes:
         raise ValueError("fuse_clouds needs the per-point 'depth_var' attribute")
+    check_voxel_size(size, float(np.abs(cloud.positions).max()))
     keys = np.floor(cloud.positions / size).astype(np.int64)
     _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
     inverse = inverse.reshape(-1)
