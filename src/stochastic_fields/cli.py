@@ -130,6 +130,7 @@ def cmd_demo(args: argparse.Namespace) -> None:
 EXTRA_COMMANDS = {
     "export": ("stochastic_fields.products.cli", "Export depth maps, uncertainty maps and point clouds of a trained run."),
     "bench": ("stochastic_fields.bench", "Speed-against-error benchmark (see benchmarks/)."),
+    "prepare": ("stochastic_fields.data.prepare", "Photos or a video -> camera poses with pycolmap (SfM) -> a scene folder to train on."),
 }
 
 

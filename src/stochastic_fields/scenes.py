@@ -25,6 +25,6 @@ def load_run_dataset(cfg: ExperimentConfig, run_dir: Path, *, generate: bool = T
         from .data.synthetic import make_synthetic_scene
 
         make_synthetic_scene(path)
-    if detect_format(path) == "llff":
+    if detect_format(path) == "llff":  # LLFF picks images_N; Blender/nerfstudio/COLMAP a downscale factor
         return load_dataset(path, images=cfg.data.images, split_every=cfg.data.split_every)
     return load_dataset(path, split_every=cfg.data.split_every, downscale=cfg.data.downscale)
