@@ -173,3 +173,12 @@ def test_fern_photos_without_poses_recover_llff_cameras(shared_data, tmp_path):
     bare = load_dataset(scene)
     torch.testing.assert_close(bare.cameras.extrinsics, ours.cameras.extrinsics, atol=1e-5, rtol=0)
     torch.testing.assert_close(bare.near, ours.near)
+
+
+def test_prepare_is_a_cli_command(tmp_path, capsys):
+    from stochastic_fields.cli import build_parser, main
+
+    args = build_parser().parse_args(["prepare", str(tmp_path / "in"), "--out", str(tmp_path / "s"), "--threads", "1"])
+    assert args.command == "prepare" and args.threads == 1 and args.camera_model == "SIMPLE_RADIAL"
+    assert main(["prepare", str(tmp_path / "in"), "--out", str(tmp_path / "s"), "--quiet"]) == 2
+    assert f"{tmp_path / 'in'}: input does not exist" in capsys.readouterr().err
