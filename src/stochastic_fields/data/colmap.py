@@ -36,6 +36,7 @@ convention this package uses for every camera.
 
 from __future__ import annotations
 
+import functools
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -360,12 +361,21 @@ def undistort_image(image: np.ndarray, camera: ColmapCamera) -> tuple[np.ndarray
         raise ValueError(f"camera {camera.camera_id} is {camera.width}x{camera.height} but the image is {W}x{H}")
     if camera.model in PINHOLE_MODELS:
         return image, K
-    pc = pycolmap_camera(camera)
+    grid = _undistortion_grid(camera.model, int(W), int(H), tuple(float(x) for x in camera.params))
+    src = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32)).permute(2, 0, 1)[None]
+    out = F.grid_sample(src, grid[None], mode="bilinear", padding_mode="border", align_corners=False)
+    return out[0].permute(1, 2, 0).contiguous().numpy(), K
+
+
+@functools.lru_cache(maxsize=8)
+def _undistortion_grid(model: str, W: int, H: int, params: tuple[float, ...]) -> torch.Tensor:
+    """[H, W, 2] grid_sample coordinates (align_corners=False) of the distorted pixel each pinhole
+    pixel centre sees; cached, as every frame of a capture usually shares one camera."""
+    camera = ColmapCamera(0, model, W, H, np.asarray(params))
+    K = pinhole_intrinsics(camera)
     v, u = np.meshgrid(np.arange(H) + 0.5, np.arange(W) + 0.5, indexing="ij")
     rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], axis=-1).reshape(-1, 3)
-    uv = np.asarray(pc.img_from_cam(rays, check_cheirality=False), dtype=np.float64).reshape(H, W, 2)
-    grid = np.stack([uv[..., 0] / W * 2.0 - 1.0, uv[..., 1] / H * 2.0 - 1.0], axis=-1)  # align_corners=False
-    src = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32)).permute(2, 0, 1)[None]
-    out = F.grid_sample(src, torch.from_numpy(grid).float()[None], mode="bilinear", padding_mode="border",
-                        align_corners=False)
-    return out[0].permute(1, 2, 0).contiguous().numpy(), K
+    uv = np.asarray(pycolmap_camera(camera).img_from_cam(rays, check_cheirality=False), dtype=np.float64)
+    uv = uv.reshape(H, W, 2)
+    grid = np.stack([uv[..., 0] / W * 2.0 - 1.0, uv[..., 1] / H * 2.0 - 1.0], axis=-1)
+    return torch.from_numpy(grid).float()
