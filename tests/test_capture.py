@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from stochastic_fields.cameras import intrinsics_3x3, make_cameras, opencv_w2c_to_opengl_c2w
 from stochastic_fields.data import DatasetError, detect_format, load_dataset, read_colmap_model
-from stochastic_fields.data.capture import FAR_PERCENTILE, NEAR_PERCENTILE, is_forward_facing
+from stochastic_fields.data.capture import FAR_PERCENTILE, MIN_TRACK_LENGTH, NEAR_PERCENTILE, is_forward_facing
 from stochastic_fields.data.colmap import ColmapCamera, pycolmap_camera, undistort_image
 from stochastic_fields.data.prepare import CAMERA_MODELS, nerfstudio_intrinsics
 from stochastic_fields.eval.colmap_depth import sparse_depth_for_dataset
@@ -103,11 +103,13 @@ def _write_colmap_text(folder, ds, xyz, tracks, *, camera_line: str | None = Non
 
 
 def _percentile_bounds(ds, xyz, tracks):
-    """LLFF's rule in a float64 loop: per view, 0.1/99.9 percentiles of its tracked points' z."""
+    """LLFF's rule in a float64 loop: per view, 0.1/99.9 percentiles of the z of its tracked points
+    that at least MIN_TRACK_LENGTH views see."""
     w2c = ds.cameras.extrinsics.double().numpy()
     near, far = [], []
     for v in range(ds.num_views):
-        z = [float(w2c[v, 2, :3] @ p + w2c[v, 2, 3]) for p, tr in zip(xyz, tracks) if any(t[0] == v for t in tr)]
+        z = [float(w2c[v, 2, :3] @ p + w2c[v, 2, 3]) for p, tr in zip(xyz, tracks)
+             if any(t[0] == v for t in tr) and len(tr) >= MIN_TRACK_LENGTH]
         near.append(np.percentile(z, NEAR_PERCENTILE))
         far.append(np.percentile(z, FAR_PERCENTILE))
     return np.array(near), np.array(far)

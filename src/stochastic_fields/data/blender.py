@@ -406,7 +406,8 @@ def load_blender(
         near_t, far_t, bounds_source = torch.full((V,), near_v), torch.full((V,), far_v), "file"
     elif sparse is not None:
         try:
-            near_t, far_t = bounds_from_points(cameras, sparse[0], sparse[1], what=f"SfM points ({sparse[2]})")
+            near_t, far_t = bounds_from_points(cameras, sparse[0], sparse[1], track_lengths=sparse[5],
+                                               what=f"SfM points ({sparse[2]})")
         except ValueError as exc:
             raise DatasetError(sparse[2], str(exc)) from exc
         bounds_source = "sfm_points"
@@ -472,9 +473,10 @@ def _applied_transform(json_path: Path, meta: dict) -> np.ndarray:
 
 
 def _sparse_points(json_path: Path, meta: dict, cameras, paths: list[Path]):
-    """(xyz [P, 3] float64, per-view point indices, source file, rgb [P, 3] uint8, from_tracks) of
-    the capture's SfM points in the json's world frame, or None (module doc: COLMAP model, else
-    ply_file_path). ``from_tracks``: the per-view indices are COLMAP tracks, not projections."""
+    """(xyz [P, 3] float64, per-view point indices, source file, rgb [P, 3] uint8, from_tracks,
+    track lengths [P] or None) of the capture's SfM points in the json's world frame, or None (module
+    doc: COLMAP model, else ply_file_path). ``from_tracks``: the per-view indices are COLMAP tracks,
+    not projections."""
     folder = json_path.parent
     model_dir = find_colmap_model(folder)
     if model_dir is not None:
@@ -486,7 +488,7 @@ def _sparse_points(json_path: Path, meta: dict, cameras, paths: list[Path]):
         names = [p.name for p in paths]
         tracks = all(n in by_name for n in names)
         visible = [per_image[by_name[n]] for n in names] if tracks else visible_points_by_projection(cameras, xyz)
-        return xyz, visible, model_dir, model.points.rgb, tracks
+        return xyz, visible, model_dir, model.points.rgb, tracks, model.points.track_lengths
     ply = meta.get("ply_file_path")
     if ply:
         ply_path = folder / str(ply)
@@ -502,5 +504,5 @@ def _sparse_points(json_path: Path, meta: dict, cameras, paths: list[Path]):
         colours = getattr(getattr(cloud, "visual", None), "vertex_colors", None)
         rgb = (np.asarray(colours)[:, :3].astype(np.uint8) if colours is not None and len(colours) == len(xyz)
                else np.full((len(xyz), 3), 128, dtype=np.uint8))
-        return xyz, visible_points_by_projection(cameras, xyz), ply_path, rgb, False
+        return xyz, visible_points_by_projection(cameras, xyz), ply_path, rgb, False, None
     return None

@@ -8,8 +8,12 @@ that view observes,
     far_v  = percentile_99.9{ ... }
 
 so a COLMAP model, a prepared capture and an LLFF scene of the same photos get the same bounds
-(up to the SfM's arbitrary scale). A view that observes fewer than ``MIN_POINTS_PER_VIEW``
-points takes the smallest near and largest far of the other views.
+(up to the SfM's arbitrary scale). Where tracks are known only points seen by at least
+``MIN_TRACK_LENGTH`` images count: two-view triangulations are the least certain in depth, and
+with the few hundred points per view of a small capture the 0.1th percentile is the nearest
+point, so one bad triangulation would set near (fern from its ``images_8`` photos: one view's
+near fell to 0.64x LLFF's with two-view points, 1.01x without). A view that observes fewer than
+``MIN_POINTS_PER_VIEW`` points takes the smallest near and largest far of the other views.
 
 Forward-facing (LLFF-like, modelled in NDC) or not: every optical axis within
 ``FORWARD_FACING_MAX_ANGLE_DEG`` of the mean axis, and every SfM point in front of the mean
@@ -32,6 +36,8 @@ FORWARD_FACING_MIN_FRONT: float = 0.99
 #: Percentiles of the visible points' depths that give near and far (LLFF's imgs2poses).
 NEAR_PERCENTILE: float = 0.1
 FAR_PERCENTILE: float = 99.9
+#: Points observed by fewer images than this are left out of the bounds (module doc).
+MIN_TRACK_LENGTH: int = 3
 #: Fewer observed points than this and a view's own percentiles are not trusted.
 MIN_POINTS_PER_VIEW: int = 10
 #: A capture is forward-facing when every optical axis lies within this angle of the mean axis
@@ -58,13 +64,18 @@ def visible_points_by_projection(cameras: PinholeCamera, xyz: np.ndarray) -> lis
 
 
 def bounds_from_points(cameras: PinholeCamera, xyz: np.ndarray, visible: list[np.ndarray], *,
+                       track_lengths: np.ndarray | None = None,
                        what: str = "SfM points") -> tuple[torch.Tensor, torch.Tensor]:
     """(near [V], far [V]) camera-z bounds from the points each view observes (module doc).
 
-    Raises ValueError if no view observes ``MIN_POINTS_PER_VIEW`` points in front of it.
+    ``track_lengths`` [P]: images per point, when known; points below ``MIN_TRACK_LENGTH`` are
+    left out. Raises ValueError if no view observes ``MIN_POINTS_PER_VIEW`` points in front of it.
     """
     V = cameras.batch_size
     xyz64 = np.asarray(xyz, dtype=np.float64)
+    if track_lengths is not None:
+        reliable = np.asarray(track_lengths) >= MIN_TRACK_LENGTH
+        visible = [np.asarray(idx, dtype=np.int64)[reliable[np.asarray(idx, dtype=np.int64)]] for idx in visible]
     w2c = cameras.extrinsics.double().cpu().numpy()  # [V, 4, 4]
     near = np.full(V, np.nan)
     far = np.full(V, np.nan)

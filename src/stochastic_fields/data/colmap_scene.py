@@ -92,7 +92,7 @@ def _scene_from_model(root: Path, colmap: ColmapModel, imgs: torch.Tensor, camer
     visible = colmap.visible_points()
     xyz = colmap.points.xyz
     try:
-        near, far = bounds_from_points(cameras, xyz, visible)
+        near, far = bounds_from_points(cameras, xyz, visible, track_lengths=colmap.points.track_lengths)
     except ValueError as exc:
         raise DatasetError(model_dir / "points3D.bin", str(exc)) from exc
     points = torch.from_numpy(xyz).float()
