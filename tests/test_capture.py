@@ -167,7 +167,7 @@ def test_colmap_reader_matches_hand_written_model(colmap_capture):
 def test_photos_without_poses_point_to_prepare(tmp_path, colmap_capture):
     root = colmap_capture[0]
     shutil.copytree(root / "images", tmp_path / "photos")
-    with pytest.raises(DatasetError, match=r"photos.*unknown dataset format.*20 photos.*stochastic-fields prepare"):
+    with pytest.raises(DatasetError, match=r"photos.*unknown dataset format.*photos holds 20 photos.*stochastic-fields prepare"):
         load_dataset(tmp_path / "photos")
     (tmp_path / "broken" / "sparse" / "0").mkdir(parents=True)
     shutil.copy(root / "sparse" / "0" / "cameras.txt", tmp_path / "broken" / "sparse" / "0")

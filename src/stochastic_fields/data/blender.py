@@ -178,12 +178,6 @@ def _frame_camera(json_path: Path, meta: dict, frame: dict, index: int, H: int, 
     return ColmapCamera(index, "OPENCV", W, H, np.array(pinhole + [dist["k1"], dist["k2"], dist["p1"], dist["p2"]]))
 
 
-def _frame_intrinsics(json_path: Path, meta: dict, frame: dict, index: int, H: int, W: int) -> np.ndarray:
-    """[3, 3] K at the file's image size (the pinhole part of :func:`_frame_camera`)."""
-    params = _frame_camera(json_path, meta, frame, index, H, W).params
-    return np.array([[params[0], 0.0, params[2]], [0.0, params[1], params[3]], [0.0, 0.0, 1.0]])
-
-
 def _downscaled_file(json_path: Path, path: Path, factor: int) -> Path | None:
     """``<json dir>/<first folder>_<factor>/<rest>`` for ``path`` under the json's folder, if it exists."""
     if factor <= 1:

@@ -54,7 +54,8 @@ class SceneDataset:
         points3d_visible: per view, int64 indices into ``points3d`` of the points that view
             observes (from the SfM tracks, or by projection when a capture has no tracks); or
             None (LLFF: ``eval.colmap_depth`` reads the tracks from ``points3D.bin``).
-        bounds_source: where near/far came from ("file", "sfm_points", "depth_maps", "default").
+        bounds_source: where near/far came from: "file" (poses_bounds.npy, json keys), "sfm_points"
+            (the capture's SfM points) or "default" (Blender's near 2 / far 6, guessed).
         image_paths: source file of each view.
         forward_facing: True for LLFF-style captures (all cameras look the same way).
     """
@@ -287,11 +288,13 @@ def detect_format(path: str | Path) -> str:
         return "blender"
     if path.is_dir() and find_colmap_model(path) is not None:
         return "colmap"
-    photos = [p for p in (path.iterdir() if path.is_dir() else []) if p.suffix.lower() in IMAGE_SUFFIXES]
-    photos += [p for p in ((path / "images").iterdir() if (path / "images").is_dir() else [])
-               if p.suffix.lower() in IMAGE_SUFFIXES]
-    hint = (f"; it holds {len(photos)} photos without camera poses: run "
-            f"`stochastic-fields prepare {path} --out SCENE_DIR` first (structure from motion)" if photos else "")
+    hint = ""
+    for folder in (path, path / "images"):
+        photos = [p for p in (folder.iterdir() if folder.is_dir() else []) if p.suffix.lower() in IMAGE_SUFFIXES]
+        if photos:
+            hint = (f"; {folder} holds {len(photos)} photos without camera poses: run "
+                    f"`stochastic-fields prepare {folder} --out SCENE_DIR` first (structure from motion)")
+            break
     raise DatasetError(path, "unknown dataset format: expected poses_bounds.npy (LLFF), transforms*.json "
                        "(Blender/nerfstudio) or a COLMAP model (sparse/0/{cameras,images,points3D}.bin with "
                        f"images/){hint}")
