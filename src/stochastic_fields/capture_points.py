@@ -92,7 +92,8 @@ class CapturePoints:
     Attributes:
         xyz: [P, 3] float64 world points.
         roles: [P] int8 FIT / CALIBRATE / SCORE.
-        source: "colmap" (structure from motion) or "synthetic" (stand-in, see module doc).
+        source: "colmap" (structure from motion, with tracks), "sfm" (points without tracks)
+            or "synthetic" (stand-in, see module doc).
         visible: per view, the indices of the points the view observed (COLMAP tracks, or the
             view a stand-in point came from); None: decide by a z-buffer.
         colmap: the ColmapPoints when read from COLMAP (tracks), else None.
@@ -150,12 +151,19 @@ def synthetic_capture_points(dataset, *, fraction: float = SYNTHETIC_POINTS_FRAC
 
 
 def load_capture_points(dataset) -> CapturePoints | None:
-    """The capture points of a dataset: COLMAP points (``<root>/sparse/0/points3D.bin``) when
-    present, stand-in points for a dense-depth scene, else None. Roles from
-    ``split_points_by_blocks``."""
+    """The capture points of a dataset, or None. In this order: the loader's own SfM points with
+    their tracks (``dataset.points3d`` / ``points3d_visible``: a COLMAP capture or a prepared
+    scene); ``<root>/sparse/0/points3D.bin`` (LLFF, tracks matched by image id = view + 1);
+    the loader's points without tracks (z-buffer); stand-in points of a dense-depth scene.
+    Roles from ``split_points_by_blocks``."""
     from .data.colmap import read_points3d_binary
     from .eval.colmap_depth import points_file, track_visibility
 
+    own = getattr(dataset, "points3d", None)
+    own_visible = getattr(dataset, "points3d_visible", None)
+    if own is not None and own_visible is not None and len(own):
+        xyz = own.detach().double().cpu().numpy()
+        return CapturePoints(xyz, split_points_by_blocks(xyz), "colmap", list(own_visible))
     path = points_file(dataset.root)
     if path.is_file():
         pts = read_points3d_binary(path)
@@ -163,6 +171,9 @@ def load_capture_points(dataset) -> CapturePoints | None:
             return None
         visible = track_visibility(pts, dataset.num_views)
         return CapturePoints(pts.xyz, split_points_by_blocks(pts.xyz), "colmap", visible, pts)
+    if own is not None and len(own):
+        xyz = own.detach().double().cpu().numpy()
+        return CapturePoints(xyz, split_points_by_blocks(xyz), "sfm", None)
     if getattr(dataset, "depths", None) is not None:
         xyz, visible = synthetic_capture_points(dataset)
         if len(xyz) == 0:

@@ -210,6 +210,7 @@ EXTRA_COMMANDS = {
     "free-path": ("stochastic_fields.products.free_path_cli", "P(collision-free) of segments or a path, with its error."),
     "rosbag": ("stochastic_fields.products.rosbag", "ROS 2 bag (depth, std, CameraInfo, colour, PointCloud2) of an export."),
     "rerun": ("stochastic_fields.products.rerun_log", "rerun recording (.rrd) of an export."),
+    "prepare": ("stochastic_fields.data.prepare", "Photos or a video -> camera poses with pycolmap (SfM) -> a scene folder to train on."),
 }
 
 

@@ -29,7 +29,7 @@ def load_run_dataset(cfg: ExperimentConfig, run_dir: Path, *, generate: bool = T
         from .data.synthetic import make_synthetic_scene
 
         make_synthetic_scene(path)
-    if detect_format(path) == "llff":
+    if detect_format(path) == "llff":  # LLFF picks images_N; Blender/nerfstudio/COLMAP a downscale factor
         if cfg.data.downscale != 1:
             raise ValueError(f"option data.downscale={cfg.data.downscale} applies to Blender/nerfstudio scenes; "
                              f"{path} is an LLFF scene: choose its resolution with data.images (images_4, images_8)")

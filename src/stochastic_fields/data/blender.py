@@ -7,7 +7,14 @@ converted to OpenCV at this boundary
 
 Intrinsics, top level or per frame: ``fl_x``/``fl_y``/``cx``/``cy``/``w``/``h`` (nerfstudio;
 pixel centres at +0.5) or ``camera_angle_x`` (Blender: ``fx = fy = W / (2 tan(angle_x / 2))``,
-principal point at the image centre). Distortion coefficients must be zero.
+principal point at the image centre). Lens distortion as ns-process-data writes it
+(``camera_model`` OPENCV with ``k1 k2 k3 p1 p2``, OPENCV_FISHEYE with ``k1..k4``, top level or per
+frame) is removed: each photo is resampled to the pinhole camera with the same ``fl_x fl_y cx cy``
+and size (:func:`~stochastic_fields.data.colmap.undistort_image`).
+
+Downscaling (``downscale=d``): when ``images_<d>/`` sits beside the frames' ``images/`` folder
+(nerfstudio's layout, and what ``stochastic-fields prepare`` writes) those files are read;
+otherwise the full images are area-averaged.
 
 RGBA images are composited on white (or on a top-level ``"background": [r, g, b]``) and
 ``background`` records it; for RGB images that key states the background they show. An optional per-frame
@@ -16,8 +23,15 @@ no surface, as our synthetic scenes write; or a 16-bit PNG times ``depth_unit_sc
 nerfstudio's convention, default 1e-3).
 
 Optional top-level hints written by :mod:`~stochastic_fields.data.synthetic`: ``near``, ``far``
-(camera-z), ``aabb`` ([2, 3]), ``split_every``. Without near/far hints the Blender convention
-near = 2, far = 6 applies.
+(camera-z), ``aabb`` ([2, 3]), ``split_every``.
+
+Scene bounds without near/far hints come from the capture's SfM points, as LLFF's do
+(:mod:`~stochastic_fields.data.capture`): a COLMAP model beside the json (``sparse/0``,
+``colmap/sparse/0``; its points mapped by the json's ``applied_transform``, the tracks give each
+view's points by image name), else the json's ``ply_file_path`` point cloud (already in the
+json's frame; each view's points by projection). The points also become ``points3d`` for sparse
+depth. Without hints or points the Blender convention near = 2, far = 6 is used, with a warning
+that it is a guess.
 
 Splits: a folder with ``transforms_train.json`` and ``transforms_test.json`` loads both, and
 the files give the split; a single json (``transforms.json`` or one named file) is split with
@@ -28,6 +42,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -36,6 +51,8 @@ import torch
 import torch.nn.functional as F
 
 from ..cameras import backproject_depths, make_cameras, opengl_c2w_to_opencv_w2c
+from .capture import bounds_from_points, is_forward_facing, visible_points_by_projection
+from .colmap import ColmapCamera, find_colmap_model, read_colmap_model, rescale_camera, undistort_image
 from .dataset import (
     IMAGE_SUFFIXES,
     SceneDataset,
@@ -118,17 +135,22 @@ def _frame_pose(json_path: Path, index: int, frame: dict[str, Any]) -> np.ndarra
     return full
 
 
-def _frame_intrinsics(json_path: Path, meta: dict, frame: dict, index: int, H: int, W: int) -> np.ndarray:
-    """[3, 3] K at the file's image size."""
+#: nerfstudio ``camera_model`` names of perspective cameras (radial-tangential distortion).
+_PERSPECTIVE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+#: nerfstudio ``camera_model`` names of fisheye cameras (k1..k4, equidistant).
+_FISHEYE_MODELS = ("OPENCV_FISHEYE",)
+
+
+def _frame_camera(json_path: Path, meta: dict, frame: dict, index: int, H: int, W: int) -> ColmapCamera:
+    """The frame's camera at the full image size H x W, as a COLMAP camera model.
+
+    PINHOLE when every distortion coefficient is zero; else OPENCV (k1 k2 p1 p2), FULL_OPENCV
+    (with k3) or OPENCV_FISHEYE (k1..k4), following ``camera_model``.
+    """
 
     def get(key: str):
         return frame.get(key, meta.get(key))
 
-    for key in _DISTORTION_KEYS:
-        value = get(key)
-        if value not in (None, 0, 0.0):
-            raise DatasetError(json_path, f"frame {index}: lens distortion {key}={value} is not supported "
-                               "(undistort the images first)")
     where = f"frame {index}: "
 
     def num(key: str, positive: bool = False) -> float | None:
@@ -155,7 +177,60 @@ def _frame_intrinsics(json_path: Path, meta: dict, frame: dict, index: int, H: i
     cy = num("cy") if get("cy") is not None else H / 2.0
     if not all(math.isfinite(x) for x in (fl_x, fl_y, cx, cy)) or fl_x <= 0 or fl_y <= 0:
         raise DatasetError(json_path, f"frame {index}: bad intrinsics fl_x={fl_x} fl_y={fl_y} cx={cx} cy={cy}")
-    return np.array([[fl_x, 0.0, cx], [0.0, fl_y, cy], [0.0, 0.0, 1.0]])
+    dist = {}
+    for key in _DISTORTION_KEYS:
+        value = get(key)
+        try:
+            dist[key] = 0.0 if value is None else float(value)
+        except (TypeError, ValueError):
+            raise DatasetError(json_path, f"frame {index}: distortion {key}={value!r} is not a number") from None
+        if not math.isfinite(dist[key]):
+            raise DatasetError(json_path, f"frame {index}: distortion {key}={value} is not finite")
+    model = str(get("camera_model") or "OPENCV").upper()
+    pinhole = [fl_x, fl_y, cx, cy]
+    if model in _FISHEYE_MODELS:
+        if dist["p1"] or dist["p2"]:
+            raise DatasetError(json_path, f"frame {index}: OPENCV_FISHEYE has no tangential terms, got "
+                               f"p1={dist['p1']} p2={dist['p2']}")
+        return ColmapCamera(index, "OPENCV_FISHEYE", W, H,
+                            np.array(pinhole + [dist["k1"], dist["k2"], dist["k3"], dist["k4"]]))
+    if model not in _PERSPECTIVE_MODELS:
+        raise DatasetError(json_path, f"frame {index}: camera_model {model!r} is not supported (use one of "
+                           f"{', '.join(_PERSPECTIVE_MODELS + _FISHEYE_MODELS)})")
+    if dist["k4"]:
+        raise DatasetError(json_path, f"frame {index}: k4={dist['k4']} on a perspective camera is not supported "
+                           "(only OPENCV_FISHEYE has k4)")
+    if not any(dist.values()):
+        return ColmapCamera(index, "PINHOLE", W, H, np.array(pinhole))
+    if dist["k3"]:
+        return ColmapCamera(index, "FULL_OPENCV", W, H, np.array(
+            pinhole + [dist["k1"], dist["k2"], dist["p1"], dist["p2"], dist["k3"], 0.0, 0.0, 0.0]))
+    return ColmapCamera(index, "OPENCV", W, H, np.array(pinhole + [dist["k1"], dist["k2"], dist["p1"], dist["p2"]]))
+
+
+def _downscaled_file(json_path: Path, path: Path, factor: int) -> Path | None:
+    """``<json dir>/<first folder>_<factor>/<rest>`` for ``path`` under the json's folder, if it exists."""
+    if factor <= 1:
+        return None
+    try:
+        rel = path.relative_to(json_path.parent)
+    except ValueError:
+        return None
+    if len(rel.parts) < 2:
+        return None
+    cand = json_path.parent / f"{rel.parts[0]}_{factor}" / Path(*rel.parts[1:])
+    return cand if cand.is_file() else None
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    """(H, W) of an image file without decoding all of it."""
+    import imageio.v3 as iio
+
+    try:
+        shape = iio.improps(path).shape
+    except Exception as exc:
+        raise DatasetError(path, f"unreadable image ({type(exc).__name__}: {exc})") from exc
+    return int(shape[0]), int(shape[1])
 
 
 def _read_depth(path: Path, scale: float) -> np.ndarray:
@@ -225,17 +300,24 @@ def _load_frames(json_path: Path, meta: dict, want_depth: bool, downscale: int, 
             raise DatasetError(json_path, f"frame {i} has no file_path")
         path = _resolve_file(json_path, str(frame["file_path"]), "image")
         poses.append(_frame_pose(json_path, i, frame))
-        image = read_image(path)
-        H0, W0 = image.shape[:2]
-        K = _frame_intrinsics(json_path, meta, frame, i, H0, W0)
+        small = _downscaled_file(json_path, path, downscale)
+        image = read_image(small or path)
+        H0, W0 = _image_size(path) if small is not None else image.shape[:2]
+        camera = _frame_camera(json_path, meta, frame, i, H0, W0)
         if image.shape[-1] == 4:
             background = background or (1.0, 1.0, 1.0)
             alpha = image[..., 3:]
             image = image[..., :3] * alpha + (1.0 - alpha) * np.asarray(background, dtype=np.float32)
-        image = _area_downscale(np.ascontiguousarray(image[..., :3]), downscale)
+        image = np.ascontiguousarray(image[..., :3])
+        camera = rescale_camera(camera, image.shape[1], image.shape[0])
+        image, K = undistort_image(image, camera)
+        image = _area_downscale(image, 1 if small is not None else downscale)
         H, W = image.shape[:2]
-        K[0] *= W / W0
-        K[1] *= H / H0
+        K = K.copy()
+        K[0] *= W / camera.width
+        K[1] *= H / camera.height
+        if small is not None:
+            path = small
         if want_depth:
             dpath = json_path.parent / str(frame["depth_file_path"])
             if not dpath.is_file():
@@ -291,13 +373,15 @@ def load_blender(
             or pass ``load_depth=False``).
         split_every: split of a single json (train = ``index % split_every == 0``); default:
             the file's ``split_every`` hint, else 5.
-        near, far: camera-z bounds; default the file's hints, else 2 and 6 (Blender).
+        near, far: camera-z bounds; default the file's hints, else from the capture's SfM
+            points (module doc), else 2 and 6 (Blender) with a warning.
         load_depth: read ``depth_file_path`` maps when frames list them.
         frame_stride: load every n-th frame of each json only (quick looks, tests); the split
             is then made among the loaded frames.
 
     Returns:
-        SceneDataset (OpenCV cameras; ``forward_facing=False``).
+        SceneDataset (OpenCV cameras; ``forward_facing`` True only for an SfM capture whose
+        cameras all look one way, :func:`~stochastic_fields.data.capture.is_forward_facing`).
     """
     path = Path(path)
     if int(downscale) != downscale or downscale < 1:
@@ -326,10 +410,12 @@ def load_blender(
 
     near_v = near if near is not None else _hint(first, metas, "near")
     far_v = far if far is not None else _hint(first, metas, "far")
-    near_v = BLENDER_NEAR if near_v is None else _number(first, "", "near", near_v)
-    far_v = BLENDER_FAR if far_v is None else _number(first, "", "far", far_v)
-    if not (0 < near_v < far_v) or not math.isfinite(far_v):
-        raise DatasetError(first, f"need 0 < near < far, got near={near_v} far={far_v}")
+    if (near_v is None) != (far_v is None):
+        raise DatasetError(first, f"give both near and far or neither, got near={near_v} far={far_v}")
+    if near_v is not None:
+        near_v, far_v = _number(first, "", "near", near_v), _number(first, "", "far", far_v)
+        if not (0 < near_v < far_v) or not math.isfinite(far_v):
+            raise DatasetError(first, f"need 0 < near < far, got near={near_v} far={far_v}")
 
     if files[0][1] == "all":
         hint = _hint(first, metas, "split_every")
@@ -344,9 +430,25 @@ def load_blender(
 
     w2c = opengl_c2w_to_opencv_w2c(c2w_gl).float()
     cameras = make_cameras(K, w2c, H, W)
-    near_t = torch.full((V,), near_v)
-    far_t = torch.full((V,), far_v)
     depth_mask = None if depths is None else depths > 0
+    sparse = _sparse_points(first, metas[0], cameras, paths)
+    forward_facing = False
+    if near_v is not None:
+        near_t, far_t, bounds_source = torch.full((V,), near_v), torch.full((V,), far_v), "file"
+    elif sparse is not None:
+        try:
+            near_t, far_t = bounds_from_points(cameras, sparse[0], sparse[1], track_lengths=sparse[5],
+                                               what=f"SfM points ({sparse[2]})")
+        except ValueError as exc:
+            raise DatasetError(sparse[2], str(exc)) from exc
+        bounds_source = "sfm_points"
+        forward_facing = is_forward_facing(cameras, sparse[0])
+    else:
+        if _hint(first, metas, "camera_angle_x") is None:  # Blender's own files: near 2 / far 6 is their convention
+            warnings.warn(f"{first}: no near/far in the json and no SfM points (COLMAP model or ply_file_path) "
+                          f"beside it: guessing the Blender bounds near={BLENDER_NEAR:g}, far={BLENDER_FAR:g}. "
+                          "Pass near/far (json keys) if the scene lies elsewhere.", UserWarning, stacklevel=2)
+        near_t, far_t, bounds_source = torch.full((V,), BLENDER_NEAR), torch.full((V,), BLENDER_FAR), "default"
 
     aabb_hint = _hint(first, metas, "aabb")
     if aabb_hint is not None:
@@ -363,7 +465,9 @@ def load_blender(
             if pts.shape[0] > _MAX_AABB_POINTS:
                 step = math.ceil(pts.shape[0] / _MAX_AABB_POINTS)
                 pts = pts[::step]
-        aabb = fit_scene_aabb(cameras, near_t, far_t, pts, forward_facing=False)
+        elif sparse is not None:
+            pts = torch.from_numpy(sparse[0]).float()
+        aabb = fit_scene_aabb(cameras, near_t, far_t, pts, forward_facing=forward_facing)
 
     root = path if path.is_dir() else path.parent
     return SceneDataset(
@@ -380,5 +484,59 @@ def load_blender(
         depth_mask=depth_mask,
         background=background,
         image_paths=paths,
-        forward_facing=False,
+        forward_facing=forward_facing,
+        points3d=None if sparse is None else torch.from_numpy(sparse[0]).float(),
+        points3d_rgb=None if sparse is None else torch.from_numpy(sparse[3]).float() / 255.0,
+        points3d_visible=None if sparse is None or not sparse[4] else sparse[1],
+        bounds_source=bounds_source,
     )
+
+
+def _applied_transform(json_path: Path, meta: dict) -> np.ndarray:
+    """[4, 4] map from the COLMAP world to the json's world (``applied_transform``, identity if absent)."""
+    A = np.eye(4)
+    if meta.get("applied_transform") is not None:
+        try:
+            m = np.asarray(meta["applied_transform"], dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise DatasetError(json_path, f"applied_transform is not numeric ({exc})") from exc
+        if m.shape not in ((3, 4), (4, 4)) or not np.isfinite(m).all():
+            raise DatasetError(json_path, f"applied_transform must be a finite 3x4 or 4x4 matrix, got shape {m.shape}")
+        A[:3] = m[:3]
+    return A
+
+
+def _sparse_points(json_path: Path, meta: dict, cameras, paths: list[Path]):
+    """(xyz [P, 3] float64, per-view point indices, source file, rgb [P, 3] uint8, from_tracks,
+    track lengths [P] or None) of the capture's SfM points in the json's world frame, or None (module
+    doc: COLMAP model, else ply_file_path). ``from_tracks``: the per-view indices are COLMAP tracks,
+    not projections."""
+    folder = json_path.parent
+    model_dir = find_colmap_model(folder)
+    if model_dir is not None:
+        model = read_colmap_model(model_dir)
+        A = _applied_transform(json_path, meta)
+        xyz = model.points.xyz @ A[:3, :3].T + A[:3, 3]
+        by_name = {Path(im.name).name: v for v, im in enumerate(model.images)}
+        per_image = model.visible_points()
+        names = [p.name for p in paths]
+        tracks = all(n in by_name for n in names)
+        visible = [per_image[by_name[n]] for n in names] if tracks else visible_points_by_projection(cameras, xyz)
+        return xyz, visible, model_dir, model.points.rgb, tracks, model.points.track_lengths
+    ply = meta.get("ply_file_path")
+    if ply:
+        ply_path = folder / str(ply)
+        if not ply_path.is_file():
+            raise DatasetError(ply_path, f"missing point cloud (ply_file_path in {json_path.name})")
+        import trimesh
+
+        try:
+            cloud = trimesh.load(ply_path, process=False)
+            xyz = np.asarray(cloud.vertices, dtype=np.float64)
+        except Exception as exc:
+            raise DatasetError(ply_path, f"unreadable point cloud ({type(exc).__name__}: {exc})") from exc
+        colours = getattr(getattr(cloud, "visual", None), "vertex_colors", None)
+        rgb = (np.asarray(colours)[:, :3].astype(np.uint8) if colours is not None and len(colours) == len(xyz)
+               else np.full((len(xyz), 3), 128, dtype=np.uint8))
+        return xyz, visible_points_by_projection(cameras, xyz), ply_path, rgb, False, None
+    return None

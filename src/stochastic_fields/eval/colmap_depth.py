@@ -1,15 +1,17 @@
-"""Sparse depth ground truth for LLFF views from COLMAP points, and depth scores against it (SPEC 6).
+"""Sparse depth ground truth from SfM (COLMAP) points, and depth scores against it (SPEC 6).
 
-LLFF scenes have no depth maps, but their COLMAP model (``sparse/0/points3D.bin``) holds the
-triangulated points in the poses' world frame. Projecting them into a view gives real, sparse,
-camera-z depths at known pixels:
+Real captures have no depth maps, but their COLMAP model holds the triangulated points in the
+poses' world frame: LLFF ships ``sparse/0/points3D.bin``; COLMAP captures, prepared scenes and
+nerfstudio captures carry them in the dataset (``points3d``, with ``points3d_visible`` from the
+tracks), read once by the loader (:func:`sparse_depth_for_dataset` takes either). Projecting
+them into a view gives real, sparse, camera-z depths at known pixels:
 
     (u, v), z = project(camera_v, X_p)       pixel = (floor(v), floor(u)), depth = z
 
 Which points does view v see?
   * ``visibility="tracks"`` (default when it checks out): the points whose COLMAP track lists
-    the view's image. ``images.bin`` is not shipped with the LLFF scenes, so image ids are
-    matched to views by position: COLMAP numbers images 1..V in file-name order, and LLFF's
+    the view's image. A loaded capture knows them by image name. LLFF ships no ``images.bin``,
+    so there image ids are matched to views by position: COLMAP numbers images 1..V in file-name order, and LLFF's
     ``poses_bounds.npy`` rows follow the same sorted names, hence image id = view + 1. The
     assumption is checked per view: at least ``TRACK_CHECK_INSIDE`` of the tracked points must
     project inside the image and in front of the camera (measured on fern and flower: 100%
@@ -141,23 +143,37 @@ def project_sparse_depth(cameras, xyz: np.ndarray | Tensor, views: Sequence[int]
 
 def sparse_depth_for_dataset(dataset, views: Sequence[int] | None = None, *, visibility: Visibility = "auto",
                              points=None) -> dict[int, SparseDepth]:
-    """Sparse ground-truth depth of ``views`` (default: the test split) of an LLFF dataset.
+    """Sparse ground-truth depth of ``views`` (default: the test split) of a dataset with SfM points.
 
-    Reads ``<dataset.root>/sparse/0/points3D.bin`` unless ``points`` (ColmapPoints) is given.
-    ``visibility``: "tracks", "zbuffer" or "auto" (tracks when the id = view + 1 match checks
-    out for every requested view, else zbuffer). Raises FileNotFoundError naming the file if the
-    scene has no COLMAP points.
+    Where the points come from, in this order: ``points`` (ColmapPoints) when given; the
+    dataset's own ``points3d`` with ``points3d_visible`` (the tracks of a COLMAP capture or a
+    prepared scene, read once by the loader); ``<dataset.root>/sparse/0/points3D.bin`` (LLFF,
+    whose model has no images.bin); the dataset's ``points3d`` without tracks (a nerfstudio
+    ``ply_file_path``: z-buffer only).
+    ``visibility``: "tracks", "zbuffer" or "auto" (tracks when they are known and, for
+    points3D.bin, the id = view + 1 match checks out for every requested view, else zbuffer).
+    Raises FileNotFoundError naming the file if the scene has no SfM points.
     """
     from ..data.colmap import read_points3d_binary
 
     views = list(dataset.test_indices) if views is None else [int(v) for v in views]
+    if visibility not in ("auto", "tracks", "zbuffer"):
+        raise ValueError(f"visibility must be 'auto', 'tracks' or 'zbuffer', got {visibility!r}")
+    own_points = getattr(dataset, "points3d", None)
+    own_visible = getattr(dataset, "points3d_visible", None)
+    if points is None and own_points is not None and own_visible is not None:
+        xyz = own_points.detach().double().cpu().numpy()
+        return project_sparse_depth(dataset.cameras, xyz, views,
+                                    visible=None if visibility == "zbuffer" else own_visible)
     if points is None:
         path = points_file(dataset.root)
         if not path.is_file():
+            if own_points is not None:
+                if visibility == "tracks":
+                    raise ValueError(f"the SfM points of {dataset.root} have no tracks: use visibility='zbuffer'")
+                return project_sparse_depth(dataset.cameras, own_points.detach().double().cpu().numpy(), views)
             raise FileNotFoundError(f"no COLMAP points for sparse depth: {path} does not exist")
         points = read_points3d_binary(path)
-    if visibility not in ("auto", "tracks", "zbuffer"):
-        raise ValueError(f"visibility must be 'auto', 'tracks' or 'zbuffer', got {visibility!r}")
     visible = None
     if visibility in ("auto", "tracks"):
         visible = track_visibility(points, dataset.num_views)

@@ -1,0 +1,513 @@
+"""``stochastic-fields prepare``: from a folder of photos or a video to a posed scene, with pycolmap.
+
+Stages (each with a progress bar):
+
+1. Input. A folder of photos (png/jpg, one size) is copied to ``SCENE/images/``; a video is
+   split into frames at ``fps`` frames per second of footage: from each window of
+   ``video_fps / fps`` consecutive frames the sharpest (largest variance of the Laplacian) is
+   kept, so the frames are both sharp and spread out; at most ``max_frames`` are kept.
+2. Structure from motion with pycolmap (COLMAP's SIFT features, exhaustive matching for photos or
+   sequential matching for video frames, incremental mapping; one shared camera; CPU, or CUDA
+   where pycolmap is built with it). The largest reconstruction is kept.
+3. Output, next to the images::
+
+       SCENE/sparse/0/{cameras,images,points3D}.bin   COLMAP model (+ rigs/frames.bin of COLMAP 3.12+)
+       SCENE/transforms.json     nerfstudio-style: intrinsics incl. distortion, OpenGL poses, file_path
+       SCENE/sparse_pc.ply       the SfM points (nerfstudio's ply_file_path)
+       SCENE/images_2, images_4, images_8   area-downscaled copies
+       SCENE/colmap/database.db  features and matches (COLMAP's database)
+       SCENE/prepare.json        what was done: counts, reprojection error, timings, failures
+
+The transforms.json poses are in the COLMAP model's world frame (``applied_transform`` is the
+identity), so its loader finds the model beside it and takes the points, their tracks and
+near/far from there (docs/capture.md).
+
+Bad input raises :class:`~stochastic_fields.data.errors.DatasetError` naming the file: no
+images, unreadable photos or frames, a video that cannot be decoded, photos of different sizes,
+or fewer registered images than ``min_registered`` (listing each failed image and why).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from ..io_utils import atomic_path, atomic_write, atomic_write_text
+from .colmap import ColmapCamera, read_colmap_model
+from .dataset import IMAGE_SUFFIXES, read_image
+from .errors import DatasetError
+
+#: Video files ``prepare`` splits into frames (decoded with imageio's PyAV plugin).
+VIDEO_SUFFIXES: tuple[str, ...] = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
+#: Downscaled copies written next to ``images/`` (``images_<d>``), as LLFF and nerfstudio do.
+DOWNSCALE_FACTORS: tuple[int, ...] = (2, 4, 8)
+#: Default frames per second of footage kept from a video.
+DEFAULT_VIDEO_FPS: float = 2.0
+#: Default cap on the frames kept from a video.
+DEFAULT_MAX_FRAMES: int = 300
+#: Fewer registered images than this and no radiance field can be trained.
+MIN_REGISTERED_IMAGES: int = 3
+#: Default fraction of the input images that must register.
+DEFAULT_MIN_REGISTERED_FRACTION: float = 0.5
+#: Fewer SIFT features than this in an image is reported as the likely reason it failed.
+FEW_FEATURES: int = 100
+#: COLMAP camera models ``prepare`` offers, with the nerfstudio ``camera_model`` each is written as.
+CAMERA_MODELS: dict[str, str] = {
+    "SIMPLE_PINHOLE": "OPENCV", "PINHOLE": "OPENCV", "SIMPLE_RADIAL": "OPENCV", "RADIAL": "OPENCV",
+    "OPENCV": "OPENCV", "SIMPLE_RADIAL_FISHEYE": "OPENCV_FISHEYE", "RADIAL_FISHEYE": "OPENCV_FISHEYE",
+    "OPENCV_FISHEYE": "OPENCV_FISHEYE",
+}
+#: pycolmap's glog level while it runs (2 = errors only; its INFO lines would bury the progress bars).
+PYCOLMAP_LOG_LEVEL: int = 2
+
+
+@dataclass
+class PrepareResult:
+    """What ``prepare`` did (also written to ``SCENE/prepare.json``)."""
+
+    scene_dir: str
+    num_images: int
+    num_registered: int
+    num_points: int
+    mean_reprojection_error_px: float
+    camera_model: str
+    failed: dict[str, str] = field(default_factory=dict)
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    def summary(self) -> str:
+        lines = [f"registered {self.num_registered}/{self.num_images} images, {self.num_points} points, "
+                 f"mean reprojection error {self.mean_reprojection_error_px:.3f} px ({self.camera_model})",
+                 "time: " + ", ".join(f"{k} {v:.1f} s" for k, v in self.timings_s.items())]
+        lines += [f"  not registered: {name}: {why}" for name, why in self.failed.items()]
+        return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------- input
+def sharpness(image: np.ndarray) -> float:
+    """Variance of the 4-neighbour Laplacian of the grey image [H, W, C] or [H, W] (any range).
+
+    Blur removes high frequencies, so a blurred frame of the same scene scores lower.
+    """
+    g = np.asarray(image, dtype=np.float64)
+    if g.ndim == 3:
+        g = g[..., :3].mean(axis=-1)
+    lap = 4.0 * g[1:-1, 1:-1] - g[:-2, 1:-1] - g[2:, 1:-1] - g[1:-1, :-2] - g[1:-1, 2:]
+    return float(lap.var()) if lap.size else 0.0
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    import imageio.v3 as iio
+
+    atomic_write(path, lambda tmp: iio.imwrite(tmp, image, extension=".png"))
+
+
+def extract_video_frames(video: str | Path, out_dir: str | Path, *, fps: float = DEFAULT_VIDEO_FPS,
+                         max_frames: int = DEFAULT_MAX_FRAMES, progress: bool = True) -> list[Path]:
+    """Split a video into sharp, spread-out PNG frames ``out_dir/frame_00001.png, ...`` (module doc).
+
+    The window length is ``max(round(video_fps / fps), ceil(num_frames / max_frames))`` frames;
+    the sharpest frame of each window is kept. DatasetError naming the video if it cannot be
+    opened or decoded, or yields no frame.
+    """
+    import imageio.v3 as iio
+
+    video, out_dir = Path(video), Path(out_dir)
+    if not video.is_file():
+        raise DatasetError(video, "missing video file")
+    if not fps > 0 or int(max_frames) < 1:
+        raise ValueError(f"need fps > 0 and max_frames >= 1, got fps={fps} max_frames={max_frames}")
+    try:
+        meta = iio.immeta(video, plugin="pyav")
+    except Exception as exc:
+        raise DatasetError(video, f"cannot open the video ({type(exc).__name__}: {exc}); convert it to H.264 MP4, "
+                           "or extract the frames yourself and pass their folder") from exc
+    video_fps = float(meta.get("fps") or 0.0)
+    duration = float(meta.get("duration") or 0.0)
+    total = int(round(video_fps * duration)) if video_fps > 0 and duration > 0 else None
+    window = max(1, round(video_fps / fps)) if video_fps > 0 else 1
+    if total:
+        window = max(window, math.ceil(total / int(max_frames)))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    written: list[Path] = []
+    best, best_score, index = None, -1.0, -1
+    bar = tqdm(total=total, desc=f"frames of {video.name}", unit="frame", disable=not progress)
+    try:
+        for index, frame in enumerate(iio.imiter(video, plugin="pyav")):
+            bar.update(1)
+            score = sharpness(frame)
+            if score > best_score:
+                best, best_score = frame, score
+            if (index + 1) % window == 0:
+                written.append(out_dir / f"frame_{len(written) + 1:05d}.png")
+                _write_png(written[-1], np.ascontiguousarray(best[..., :3]))
+                best, best_score = None, -1.0
+    except Exception as exc:
+        raise DatasetError(video, f"cannot decode the video at frame {index + 1} ({type(exc).__name__}: {exc}; "
+                           f"codec {meta.get('codec', 'unknown')})") from exc
+    finally:
+        bar.close()
+    if best is not None:
+        written.append(out_dir / f"frame_{len(written) + 1:05d}.png")
+        _write_png(written[-1], np.ascontiguousarray(best[..., :3]))
+    if not written:
+        raise DatasetError(video, f"the video yielded no frame (codec {meta.get('codec', 'unknown')})")
+    if len(written) > max_frames:  # the duration was unknown or wrong: thin out evenly
+        keep = set(np.linspace(0, len(written) - 1, int(max_frames)).round().astype(int).tolist())
+        for i, p in enumerate(written):
+            if i not in keep:
+                p.unlink()
+        written = [p for i, p in enumerate(written) if i in keep]
+    return written
+
+
+def collect_photos(folder: str | Path, out_dir: str | Path, *, progress: bool = True) -> list[Path]:
+    """Check the photos of ``folder`` (readable, one size) and copy them into ``out_dir``.
+
+    Returns the copies, sorted by name. DatasetError naming the folder when it holds no photo, or
+    naming the photo that cannot be read or whose size differs from the first.
+    """
+    import imageio.v3 as iio
+
+    folder, out_dir = Path(folder), Path(out_dir)
+    if not folder.is_dir():
+        raise DatasetError(folder, "missing photo folder")
+    photos = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if not photos:
+        others = sorted(p.name for p in folder.iterdir())[:5]
+        raise DatasetError(folder, f"no images ({'/'.join(IMAGE_SUFFIXES)}) in the folder"
+                           + (f" (it holds {', '.join(others)}...)" if others else " (it is empty)"))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    size = None
+    copies = []
+    for photo in tqdm(photos, desc="photos", unit="img", disable=not progress):
+        try:
+            shape = iio.improps(photo).shape
+            iio.imread(photo)  # decode once: a truncated file fails here, not inside COLMAP
+        except Exception as exc:
+            raise DatasetError(photo, f"unreadable image ({type(exc).__name__}: {exc})") from exc
+        if size is None:
+            size = shape[:2]
+        elif shape[:2] != size:
+            raise DatasetError(photo, f"image size {shape[1]}x{shape[0]} differs from {size[1]}x{size[0]} of "
+                               f"{photos[0].name}: one capture, one camera size")
+        target = out_dir / photo.name
+        if photo.resolve() != target.resolve():
+            with atomic_path(target) as tmp:
+                shutil.copyfile(photo, tmp)
+        copies.append(target)
+    return copies
+
+
+# ---------------------------------------------------------------------- structure from motion
+def _device(name: str):
+    import pycolmap
+
+    if name not in ("auto", "cpu", "cuda"):
+        raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {name!r}")
+    if name == "cuda" and not pycolmap.has_cuda:
+        raise ValueError("device 'cuda' asked for, but this pycolmap is built without CUDA "
+                         "(install a CUDA build of pycolmap, or use --device cpu)")
+    return getattr(pycolmap.Device, name)
+
+
+def _failure_reasons(database: Path, names: list[str], registered: set[str], min_matches: int) -> dict[str, str]:
+    """Why each image of ``names`` not in ``registered`` failed, from the database's counts."""
+    import pycolmap
+
+    db = pycolmap.Database.open(database)
+    try:
+        ids = {im.name: int(im.image_id) for im in db.read_all_images()}
+        pair_ids, inliers = db.read_two_view_geometry_num_inliers()
+        best: dict[int, int] = {}
+        partners: dict[int, int] = {}
+        for pid, n in zip(pair_ids, inliers):
+            for iid in pycolmap.pair_id_to_image_pair(int(pid)):
+                best[iid] = max(best.get(iid, 0), int(n))
+                if n >= min_matches:
+                    partners[iid] = partners.get(iid, 0) + 1
+        reasons = {}
+        for name in names:
+            if name in registered:
+                continue
+            iid = ids.get(name)
+            if iid is None:
+                reasons[name] = "not imported by COLMAP (unreadable for it)"
+                continue
+            feats = int(db.num_keypoints_for_image(iid))
+            if feats < FEW_FEATURES:
+                reasons[name] = f"only {feats} SIFT features (blurred, dark or textureless?)"
+            elif partners.get(iid, 0) == 0:
+                reasons[name] = (f"too few matches: no other image shares {min_matches} geometrically verified "
+                                 f"matches with it (best {best.get(iid, 0)}; {feats} features)")
+            else:
+                reasons[name] = (f"{partners[iid]} images share >= {min_matches} verified matches with it (best "
+                                 f"{best.get(iid, 0)}), but the mapper could not place it in the model")
+        return reasons
+    finally:
+        db.close()
+
+
+def run_sfm(image_dir: Path, work_dir: Path, names: list[str], *, camera_model: str = "SIMPLE_RADIAL",
+            matcher: str = "exhaustive", num_threads: int = -1, device: str = "auto", seed: int = 0,
+            progress: bool = True):
+    """Features, matches and incremental mapping with pycolmap.
+
+    Returns (the largest pycolmap.Reconstruction or None, the database path, per-stage seconds).
+    """
+    import pycolmap
+
+    if camera_model not in CAMERA_MODELS:
+        raise ValueError(f"camera_model must be one of {', '.join(CAMERA_MODELS)}, got {camera_model!r}")
+    if matcher not in ("exhaustive", "sequential"):
+        raise ValueError(f"matcher must be 'exhaustive' or 'sequential', got {matcher!r}")
+    dev = _device(device)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    database = work_dir / "database.db"
+    if database.exists():
+        database.unlink()  # a new run: COLMAP would otherwise add to the old features
+    pycolmap.set_random_seed(int(seed))
+    timings: dict[str, float] = {}
+    old_level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = PYCOLMAP_LOG_LEVEL
+    stages = tqdm(total=3, desc="SfM", unit="stage", disable=not progress)
+    try:
+        t0 = time.perf_counter()
+        stages.set_postfix_str("features")
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = camera_model
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.num_threads = int(num_threads)
+        pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=extraction, device=dev)
+        timings["features"] = time.perf_counter() - t0
+        stages.update(1)
+
+        t0 = time.perf_counter()
+        stages.set_postfix_str(f"{matcher} matching")
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.num_threads = int(num_threads)
+        if matcher == "exhaustive":
+            pycolmap.match_exhaustive(database, matching_options=matching, device=dev)
+        else:
+            pycolmap.match_sequential(database, matching_options=matching, device=dev)
+        timings["matching"] = time.perf_counter() - t0
+        stages.update(1)
+
+        t0 = time.perf_counter()
+        stages.set_postfix_str("mapping")
+        mapping = pycolmap.IncrementalPipelineOptions()
+        mapping.num_threads = int(num_threads)
+        mapping.random_seed = int(seed)
+        out = work_dir / "sparse"
+        if out.exists():
+            shutil.rmtree(out)
+        out.mkdir(parents=True)
+        bar = tqdm(total=len(names), desc="registering", unit="img", disable=not progress, leave=False)
+        recs = pycolmap.incremental_mapping(database, image_dir, out, options=mapping,
+                                           initial_image_pair_callback=lambda: bar.update(2),
+                                           next_image_callback=lambda: bar.update(1))
+        bar.close()
+        timings["mapping"] = time.perf_counter() - t0
+        stages.update(1)
+    finally:
+        stages.close()
+        pycolmap.logging.minloglevel = old_level
+    rec = max(recs.values(), key=lambda r: r.num_reg_images()) if recs else None
+    return rec, database, timings
+
+
+# ---------------------------------------------------------------------- output
+def nerfstudio_intrinsics(camera: ColmapCamera) -> dict:
+    """nerfstudio's intrinsics keys (``camera_model``, ``fl_x fl_y cx cy w h``, ``k1 k2 [k3 k4] p1 p2``)
+    of a COLMAP camera of :data:`CAMERA_MODELS`."""
+    p = [float(x) for x in camera.params]
+    model = camera.model
+    if model not in CAMERA_MODELS:
+        raise ValueError(f"camera model {model} cannot be written as nerfstudio intrinsics")
+    if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "SIMPLE_RADIAL_FISHEYE", "RADIAL_FISHEYE"):
+        fx = fy = p[0]
+        cx, cy, extra = p[1], p[2], p[3:]
+    else:
+        fx, fy, cx, cy, extra = p[0], p[1], p[2], p[3], p[4:]
+    out = {"camera_model": CAMERA_MODELS[model], "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy,
+           "w": int(camera.width), "h": int(camera.height)}
+    if CAMERA_MODELS[model] == "OPENCV":
+        k = extra[:2] + [0.0] * (2 - len(extra[:2]))
+        pp = extra[2:4] if model == "OPENCV" else [0.0, 0.0]
+        out.update(k1=k[0], k2=k[1], p1=pp[0], p2=pp[1])
+    else:
+        k = extra + [0.0] * (4 - len(extra))
+        out.update(k1=k[0], k2=k[1], k3=k[2], k4=k[3])
+    return out
+
+
+def write_transforms(model_dir: Path, scene_dir: Path, image_folder: str = "images") -> Path:
+    """``scene_dir/transforms.json`` from the COLMAP model in ``model_dir`` (OpenGL camera-to-world)."""
+    from ..cameras import opencv_w2c_to_opengl_c2w
+
+    model = read_colmap_model(model_dir)
+    cams = {cid: nerfstudio_intrinsics(c) for cid, c in model.cameras.items()}
+    used = sorted({im.camera_id for im in model.images})
+    meta: dict = dict(cams[used[0]]) if len(used) == 1 else {}
+    frames = []
+    for im in model.images:
+        c2w = opencv_w2c_to_opengl_c2w(torch.from_numpy(im.world_to_camera)[None])[0].numpy()
+        frame = {"file_path": f"{image_folder}/{im.name}", "transform_matrix": c2w.tolist(),
+                 "colmap_im_id": im.image_id}
+        if len(used) > 1:
+            frame.update(cams[im.camera_id])
+        frames.append(frame)
+    meta.update({"applied_transform": np.eye(4)[:3].tolist(), "ply_file_path": "sparse_pc.ply", "frames": frames})
+    path = scene_dir / "transforms.json"
+    atomic_write_text(path, json.dumps(meta, indent=2))
+    return path
+
+
+def write_points_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:
+    """Binary little-endian PLY with ``x y z`` (float) and ``red green blue`` (uchar)."""
+    rows = np.empty(len(xyz), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                      ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    rows["x"], rows["y"], rows["z"] = (np.asarray(xyz, dtype=np.float32)[:, k] for k in range(3))
+    rows["red"], rows["green"], rows["blue"] = (np.asarray(rgb, dtype=np.uint8)[:, k] for k in range(3))
+    header = ("ply\nformat binary_little_endian 1.0\n"
+              f"element vertex {len(xyz)}\n"
+              "property float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as f:
+            f.write(header.encode("ascii"))
+            f.write(rows.tobytes())
+
+    atomic_write(path, write)
+
+
+def write_downscaled(images: list[Path], scene_dir: Path, factors=DOWNSCALE_FACTORS, *, progress: bool = True) -> None:
+    """Area-downscaled copies ``scene_dir/images_<d>/<name>`` of each image, in its own format.
+
+    The file name is kept so that ``images_<d>/<name>`` mirrors ``images/<name>`` (nerfstudio's
+    rule, which the loaders follow). Sizes: ``round(H / d) x round(W / d)``.
+    """
+    import imageio.v3 as iio
+
+    from .blender import _area_downscale
+
+    for path in tqdm(images, desc="downscaling", unit="img", disable=not progress):
+        image = read_image(path)[..., :3]
+        for d in factors:
+            small = np.clip(_area_downscale(np.ascontiguousarray(image), int(d)) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+            target = scene_dir / f"images_{d}" / path.name
+            atomic_write(target, lambda tmp, a=small, ext=path.suffix.lower(): iio.imwrite(tmp, a, extension=ext))
+
+
+def prepare(source: str | Path, scene_dir: str | Path, *, camera_model: str = "SIMPLE_RADIAL",
+            matcher: str | None = None, num_threads: int = -1, device: str = "auto", fps: float = DEFAULT_VIDEO_FPS,
+            max_frames: int = DEFAULT_MAX_FRAMES, min_registered_fraction: float = DEFAULT_MIN_REGISTERED_FRACTION,
+            downscale_factors=DOWNSCALE_FACTORS, seed: int = 0, progress: bool = True) -> PrepareResult:
+    """Photos folder or video -> posed scene folder (module doc). Returns what was done."""
+    source, scene_dir = Path(source), Path(scene_dir)
+    if not source.exists():
+        raise DatasetError(source, "input does not exist (give a folder of photos or a video file)")
+    if not 0.0 <= min_registered_fraction <= 1.0:
+        raise ValueError(f"min_registered_fraction must be in [0, 1], got {min_registered_fraction}")
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    image_dir = scene_dir / "images"
+    if source.is_file():
+        if source.suffix.lower() not in VIDEO_SUFFIXES:
+            raise DatasetError(source, f"not a video ({'/'.join(VIDEO_SUFFIXES)}) nor a folder of photos")
+        if image_dir.exists() and any(image_dir.iterdir()):
+            raise DatasetError(image_dir, "already holds images: prepare a video into a new folder")
+        images = extract_video_frames(source, image_dir, fps=fps, max_frames=max_frames, progress=progress)
+        timings["frames"] = time.perf_counter() - t_start
+        matcher = matcher or "sequential"
+    else:
+        images = collect_photos(source, image_dir, progress=progress)
+        timings["photos"] = time.perf_counter() - t_start
+        matcher = matcher or "exhaustive"
+    names = [p.name for p in images]
+    if len(names) < MIN_REGISTERED_IMAGES:
+        raise DatasetError(source, f"only {len(names)} images: structure from motion needs at least "
+                           f"{MIN_REGISTERED_IMAGES}, and a radiance field many more")
+    rec, database, sfm_times = run_sfm(image_dir, scene_dir / "colmap", names, camera_model=camera_model,
+                                       matcher=matcher, num_threads=num_threads, device=device, seed=seed,
+                                       progress=progress)
+    timings.update(sfm_times)
+    registered = {rec.images[i].name for i in rec.reg_image_ids()} if rec is not None else set()
+    import pycolmap
+
+    failed = _failure_reasons(database, names, registered,
+                              int(pycolmap.TwoViewGeometryOptions().min_num_inliers))
+    need = max(MIN_REGISTERED_IMAGES, math.ceil(min_registered_fraction * len(names)))
+    if len(registered) < need:
+        listing = "; ".join(f"{n}: {why}" for n, why in failed.items())
+        raise DatasetError(source, f"only {len(registered)} of {len(names)} images registered (need {need}). "
+                           f"Not registered: {listing}")
+    t0 = time.perf_counter()
+    model_dir = scene_dir / "sparse" / "0"
+    if model_dir.exists():
+        shutil.rmtree(model_dir)
+    model_dir.mkdir(parents=True)
+    rec.write(model_dir)
+    shutil.rmtree(scene_dir / "colmap" / "sparse", ignore_errors=True)  # the mapper's own copy
+    model = read_colmap_model(model_dir)
+    write_transforms(model_dir, scene_dir)
+    write_points_ply(scene_dir / "sparse_pc.ply", model.points.xyz, model.points.rgb)
+    write_downscaled([image_dir / im.name for im in model.images], scene_dir, downscale_factors, progress=progress)
+    timings["write"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - t_start
+    camera = next(iter(model.cameras.values()))
+    result = PrepareResult(scene_dir=str(scene_dir), num_images=len(names), num_registered=len(model.images),
+                           num_points=len(model.points), mean_reprojection_error_px=model.mean_reprojection_error,
+                           camera_model=camera.model, failed=failed,
+                           timings_s={k: round(v, 2) for k, v in timings.items()})
+    atomic_write_text(scene_dir / "prepare.json", json.dumps(asdict(result), indent=2))
+    return result
+
+
+# ---------------------------------------------------------------------- CLI
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.description = ("Recover camera poses and intrinsics of a folder of photos or a video with pycolmap and "
+                     "write a scene folder that `stochastic-fields train --data.path` reads (docs/capture.md).")
+    p.add_argument("source", help="A folder of photos (png/jpg, one size) or a video file (mp4, mov, ...).")
+    p.add_argument("--out", required=True, help="Scene folder to write (images/, sparse/0/, transforms.json, ...).")
+    p.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=tuple(CAMERA_MODELS),
+                   help="COLMAP camera model shared by all images (default SIMPLE_RADIAL: one focal length and "
+                        "one radial term; OPENCV for stronger lens distortion, OPENCV_FISHEYE for fisheyes).")
+    p.add_argument("--matcher", default=None, choices=("exhaustive", "sequential"),
+                   help="Feature matching: every pair (default for photos) or neighbours in order (default for video).")
+    p.add_argument("--fps", type=float, default=DEFAULT_VIDEO_FPS,
+                   help="Video only: frames kept per second of footage (the sharpest of each window).")
+    p.add_argument("--max-frames", type=int, default=DEFAULT_MAX_FRAMES, help="Video only: at most this many frames.")
+    p.add_argument("--threads", type=int, default=-1, help="CPU threads for pycolmap (-1: all cores).")
+    p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
+                   help="SIFT extraction/matching device (auto: CUDA when pycolmap is built with it).")
+    p.add_argument("--min-registered", type=float, default=DEFAULT_MIN_REGISTERED_FRACTION,
+                   help="Fail when fewer than this fraction of the images register (default 0.5).")
+    p.add_argument("--seed", type=int, default=0, help="Random seed of COLMAP's RANSAC and mapper.")
+    p.add_argument("--quiet", action="store_true", help="No progress bars.")
+
+
+def run(args: argparse.Namespace) -> None:
+    if args.threads == 0 or args.threads < -1:
+        raise ValueError(f"--threads must be -1 (all cores) or >= 1, got {args.threads}")
+    result = prepare(args.source, args.out, camera_model=args.camera_model, matcher=args.matcher,
+                     num_threads=args.threads, device=args.device, fps=args.fps, max_frames=args.max_frames,
+                     min_registered_fraction=args.min_registered, seed=args.seed, progress=not args.quiet)
+    print(result.summary())
+    print(f"scene: {args.out} (train with: stochastic-fields train --data.path {args.out} --out RUN)")
+
+
+if __name__ == "__main__":  # pragma: no cover - python -m stochastic_fields.data.prepare
+    parser = argparse.ArgumentParser(prog="stochastic-fields prepare")
+    add_arguments(parser)
+    run(parser.parse_args())

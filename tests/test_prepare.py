@@ -1,0 +1,184 @@
+"""``stochastic-fields prepare``: photos or a video -> pycolmap SfM -> a scene folder (issue 17).
+
+The fern test is the reference: its 20 ``images_8`` photos, without their poses, must all
+register, and after a similarity alignment the recovered cameras must agree with LLFF's
+``poses_bounds.npy`` (camera centres within 2% of the capture's extent, rotations within 2 degrees).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+import torch
+
+from stochastic_fields.cameras import camera_centres, camera_to_world
+from stochastic_fields.data import DatasetError, load_dataset
+from stochastic_fields.data.prepare import extract_video_frames, prepare, sharpness
+
+#: Threads for pycolmap in tests (the test machine has 2 cores shared with other work).
+THREADS = 1
+
+
+def similarity_align(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Umeyama (1991): (s, R, t) minimising sum |s R src_i + t - dst_i|^2. Shapes: [N, 3] each."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    U, S, Vt = np.linalg.svd(xd.T @ xs / len(src))
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / (xs ** 2).sum(1).mean())
+    return s, R, mu_d - s * R @ mu_s
+
+
+def test_similarity_align_recovers_a_known_transform():
+    rng = np.random.default_rng(0)
+    src = rng.normal(size=(12, 3))
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    R = q * np.sign(np.linalg.det(q))
+    s, R_hat, t = similarity_align(src, 2.5 * src @ R.T + [1.0, -2.0, 3.0])
+    assert s == pytest.approx(2.5, rel=1e-12)
+    np.testing.assert_allclose(R_hat, R, atol=1e-12)
+    np.testing.assert_allclose(t, [1.0, -2.0, 3.0], atol=1e-12)
+
+
+def test_sharpness_ranks_blur_below_the_original():
+    rng = np.random.default_rng(0)
+    image = rng.uniform(size=(40, 50, 3))
+    blurred = (image + np.roll(image, 1, 0) + np.roll(image, 1, 1) + np.roll(image, (1, 1), (0, 1))) / 4
+    assert sharpness(blurred) < 0.5 * sharpness(image)
+    # a linear ramp has zero Laplacian: variance exactly 0
+    ramp = np.add.outer(np.arange(30.0), np.arange(20.0))
+    assert sharpness(ramp) == pytest.approx(0.0, abs=1e-20)
+
+
+def _pattern(i: int, H: int = 96, W: int = 128) -> np.ndarray:
+    """A textured frame that shifts with i (uint8 RGB)."""
+    rng = np.random.default_rng(100)
+    base = rng.uniform(0, 255, size=(H // 8, W // 8 + 16, 3))
+    big = np.kron(base, np.ones((8, 8, 1)))
+    return np.ascontiguousarray(big[:, 2 * i: 2 * i + W]).astype(np.uint8)
+
+
+def test_video_frames_are_the_sharpest_of_each_window(tmp_path):
+    """20 frames at 10 fps, fps=2 -> windows of 5; in each window one frame is sharp, the rest blurred."""
+    frames = []
+    sharp_index = [1, 8, 12, 19]  # one per window of 5
+    for i in range(20):
+        f = _pattern(i).astype(np.float64)
+        if i not in sharp_index:
+            for _ in range(3):
+                f = (f + np.roll(f, 1, 0) + np.roll(f, 1, 1) + np.roll(f, (1, 1), (0, 1))) / 4
+        frames.append(np.round(f).astype(np.uint8))
+    video = tmp_path / "walk.mp4"
+    iio.imwrite(video, np.stack(frames), plugin="pyav", codec="libx264", fps=10)
+    out = extract_video_frames(video, tmp_path / "frames", fps=2.0, progress=False)
+    assert [p.name for p in out] == [f"frame_{k:05d}.png" for k in range(1, 5)]
+    decoded = list(iio.imiter(video, plugin="pyav"))
+    for path, want in zip(out, sharp_index):
+        got = iio.imread(path).astype(np.float64)
+        errors = [np.abs(got - d.astype(np.float64)).mean() for d in decoded]
+        assert int(np.argmin(errors)) == want and errors[want] == 0.0
+    # a cap on the number of frames widens the windows: 20 frames, at most 2 kept
+    assert len(extract_video_frames(video, tmp_path / "two", fps=10.0, max_frames=2, progress=False)) == 2
+
+
+def test_bad_input_is_named(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DatasetError, match=r"empty: no images .* \(it is empty\)"):
+        prepare(tmp_path / "empty", tmp_path / "s1", progress=False)
+    with pytest.raises(DatasetError, match=r"nothing_here: input does not exist"):
+        prepare(tmp_path / "nothing_here", tmp_path / "s2", progress=False)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for i in range(3):
+        iio.imwrite(photos / f"p{i}.png", _pattern(i))
+    (photos / "p1.png").write_bytes(b"\x89PNG broken")
+    with pytest.raises(DatasetError, match=r"p1\.png: unreadable image"):
+        prepare(photos, tmp_path / "s3", progress=False)
+    iio.imwrite(photos / "p1.png", _pattern(1)[:80])
+    with pytest.raises(DatasetError, match=r"p1\.png: image size 128x80 differs from 128x96 of p0\.png"):
+        prepare(photos, tmp_path / "s4", progress=False)
+    (photos / "p1.png").unlink()
+    with pytest.raises(DatasetError, match=r"photos: only 2 images"):
+        prepare(photos, tmp_path / "s5", progress=False)
+    video = tmp_path / "clip.mp4"
+    video.write_bytes(b"\x00\x00\x00\x18ftypmp42" + bytes(200))
+    with pytest.raises(DatasetError, match=r"clip\.mp4: cannot open the video"):
+        prepare(video, tmp_path / "s6", progress=False)
+    with pytest.raises(DatasetError, match=r"notes\.txt: not a video"):
+        (tmp_path / "notes.txt").write_text("hi")
+        prepare(tmp_path / "notes.txt", tmp_path / "s7", progress=False)
+
+
+def test_unmatchable_photos_fail_with_reasons(tmp_path):
+    """Independent noise images share no geometry: nothing registers, each image gets a reason."""
+    photos = tmp_path / "noise"
+    photos.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(4):
+        iio.imwrite(photos / f"n{i}.png", rng.integers(0, 256, size=(96, 128, 3), dtype=np.uint8))
+    with pytest.raises(DatasetError) as info:
+        prepare(photos, tmp_path / "scene", num_threads=THREADS, progress=False)
+    msg = str(info.value)
+    assert "noise: only 0 of 4 images registered (need 3)" in msg
+    for i in range(4):
+        assert f"n{i}.png: " in msg
+    assert "too few matches" in msg or "SIFT features" in msg
+
+
+@pytest.mark.slow
+def test_fern_photos_without_poses_recover_llff_cameras(shared_data, tmp_path):
+    fern = shared_data / "nerf_llff_data" / "fern"
+    photos = tmp_path / "photos"
+    shutil.copytree(fern / "images_8", photos)  # the photos only: no poses, no COLMAP model
+    # plus one photo of something else (smooth noise: many features, none shared with fern)
+    rng = np.random.default_rng(0)
+    other = np.kron(rng.integers(0, 256, size=(63, 84, 3)), np.ones((6, 6, 1))).astype(np.uint8)
+    iio.imwrite(photos / "zz_other.png", other)
+    result = prepare(photos, tmp_path / "scene", num_threads=THREADS, progress=False)
+    assert result.num_images == 21 and result.num_registered == 20
+    assert list(result.failed) == ["zz_other.png"] and "too few matches" in result.failed["zz_other.png"]
+    assert 0 < result.mean_reprojection_error_px < 1.5
+    scene = tmp_path / "scene"
+    for rel in ("sparse/0/cameras.bin", "sparse/0/images.bin", "sparse/0/points3D.bin", "transforms.json",
+                "sparse_pc.ply", "prepare.json", "images_2/image000.png", "images_8/image019.png"):
+        assert (scene / rel).is_file(), rel
+    assert iio.improps(scene / "images_4" / "image000.png").shape[:2] == (94, 126)  # round(378/4), round(504/4)
+    assert not (scene / "images_2" / "zz_other.png").exists()  # only registered images are kept downscaled
+    meta = json.loads((scene / "transforms.json").read_text())
+    assert len(meta["frames"]) == 20 and meta["camera_model"] == "OPENCV" and meta["w"] == 504
+
+    ours = load_dataset(scene)  # through transforms.json, with the model beside it
+    llff = load_dataset(fern)
+    assert ours.bounds_source == "sfm_points" and ours.forward_facing and ours.points3d_visible is not None
+    ca, cb = camera_centres(ours.cameras).double().numpy(), camera_centres(llff.cameras).double().numpy()
+    s, R, t = similarity_align(ca, cb)
+    extent = max(np.linalg.norm(a - b) for a in cb for b in cb)  # largest distance between two cameras
+    centre_err = np.linalg.norm(s * ca @ R.T + t - cb, axis=1)
+    assert centre_err.max() < 0.02 * extent, (centre_err.max(), extent)
+    Ra = camera_to_world(ours.cameras).double().numpy()[:, :3, :3]
+    Rb = camera_to_world(llff.cameras).double().numpy()[:, :3, :3]
+    cos = [(np.trace((R @ Ra[i]).T @ Rb[i]) - 1) / 2 for i in range(20)]
+    assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 2.0
+    # the bounds follow LLFF's rule: scaled into LLFF's frame, the medians agree within 10%
+    assert float(np.median(ours.near.numpy() * s / llff.near.numpy())) == pytest.approx(1.0, abs=0.1)
+    assert float(np.median(ours.far.numpy() * s / llff.far.numpy())) == pytest.approx(1.0, abs=0.1)
+    # the same folder also loads as a bare COLMAP capture (model + images)
+    (scene / "transforms.json").unlink()
+    bare = load_dataset(scene)
+    torch.testing.assert_close(bare.cameras.extrinsics, ours.cameras.extrinsics, atol=1e-5, rtol=0)
+    torch.testing.assert_close(bare.near, ours.near)
+
+
+def test_prepare_is_a_cli_command(tmp_path, capsys):
+    from stochastic_fields.cli import build_parser, main
+
+    args = build_parser().parse_args(["prepare", str(tmp_path / "in"), "--out", str(tmp_path / "s"), "--threads", "1"])
+    assert args.command == "prepare" and args.threads == 1 and args.camera_model == "SIMPLE_RADIAL"
+    assert main(["prepare", str(tmp_path / "in"), "--out", str(tmp_path / "s"), "--quiet"]) == 2
+    assert f"{tmp_path / 'in'}: input does not exist" in capsys.readouterr().err
