@@ -75,6 +75,61 @@ def _row_numbers(run_dir: Path) -> dict[str, float]:
     }
 
 
+def measure_cost(out: Path, scene: str, data_root: Path, *, rows: tuple[str, ...] = ("depth", "deterministic"),
+                 reference: str = "deterministic", rounds: int = 4, steps: int = 25, render_repeats: int = 3) -> dict:
+    """Training and rendering cost of ``rows`` against ``reference`` on one scene, interleaved in
+    one process (1 thread): ``rounds`` x ``steps`` training steps per row after a warm-up (the
+    trainer's loop time, no set-up or checkpoints), and ``render_repeats`` full renders of the first
+    scored test view by each row's trained model. Medians; ratios to the reference."""
+    import copy
+    import tempfile
+
+    import numpy as np
+    import torch
+
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.eval.tables import (METHOD_SPECS, BenchmarkSettings, base_config, method_config,
+                                               resolve_scene, select_views)
+    from stochastic_fields.trainer import Trainer, load_trained_model
+
+    scene_path = resolve_scene(scene, data_root)
+    dataset = load_dataset(scene_path, images="images_8", split_every=5)
+    view = select_views(list(dataset.test_indices), BenchmarkSettings())[0]
+    specs = {name: (method, dict(overrides)) for name, method, overrides, _ in ROWS}
+    trainers, step_s = {}, {r: [] for r in rows}
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in rows:
+            method, overrides = specs[r]
+            cfg = method_config(METHOD_SPECS[method], base_config(BenchmarkSettings(overrides=tuple(overrides.items())),
+                                                                  dataset), scene_path)
+            cfg.train.checkpoint_every = 0
+            cfg.train.eval_every = 0
+            trainers[r] = Trainer(copy.deepcopy(cfg), Path(tmp) / r, dataset)
+            trainers[r].train(progress=False, max_steps=5)  # warm-up
+        for _ in range(rounds):
+            for r in rows:
+                t = trainers[r]
+                before = t.elapsed
+                t.train(progress=False, max_steps=steps)
+                step_s[r].append((t.elapsed - before) / steps)
+    render_s = {r: [] for r in rows}
+    models = {r: load_trained_model(out / r / dataset.name / specs[r][0], dataset=dataset)[1] for r in rows}
+    rays = dataset.rays(view)
+    for _ in range(render_repeats):
+        for r in rows:
+            gen = torch.Generator().manual_seed(0)
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                models[r].render_view(rays, generator=gen)
+            render_s[r].append(time.perf_counter() - t0)
+    med = lambda v: float(np.median(v))  # noqa: E731
+    return {"scene": dataset.name, "view": int(view), "threads": torch.get_num_threads(),
+            "train_step_s": {r: med(v) for r, v in step_s.items()},
+            "render_s": {r: med(v) for r, v in render_s.items()},
+            "train_ratio": {r: med(step_s[r]) / med(step_s[reference]) for r in rows},
+            "render_ratio": {r: med(render_s[r]) / med(render_s[reference]) for r in rows}}
+
+
 def _fmt(v: float) -> str:
     if v is None or (isinstance(v, float) and math.isnan(v)):
         return "-"
@@ -89,6 +144,12 @@ def main(argv: list[str] | None = None) -> int:
                         "generated into OUT/_scenes).")
     p.add_argument("--rows", nargs="+", default=[r[0] for r in ROWS], choices=[r[0] for r in ROWS])
     p.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
+    p.add_argument("--cost", action="store_true",
+                   help="Only measure the training-step and render cost of the depth row against the deterministic "
+                        "NeRF on fern (interleaved, one process; needs those rows trained) into OUT/cost.json; "
+                        "the table run includes it.")
+    p.add_argument("--collect-only", action="store_true",
+                   help="Train and score nothing: rebuild study.md/json from the finished runs under OUT.")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
 
@@ -99,19 +160,26 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     out = Path(args.out)
+    if args.cost:
+        from stochastic_fields.io_utils import atomic_write_text
+
+        cost = measure_cost(out, "fern", args.data_root)
+        atomic_write_text(out / "cost.json", json.dumps(cost, indent=2))
+        print(json.dumps(cost, indent=2))
+        return 0
     scenes = []
     for scene in args.scenes:
         if scene == "synthetic":
             from stochastic_fields.data.synthetic import make_synthetic_scene
 
             path = out / "_scenes" / "synthetic"
-            if not (path / "transforms.json").exists():
+            if not (path / "transforms.json").exists() and not args.collect_only:
                 make_synthetic_scene(path)
             scenes.append(str(path))
         else:
             scenes.append(scene)
     rows = [r for r in ROWS if r[0] in args.rows]
-    for name, method, overrides, _ in rows:
+    for name, method, overrides, _ in ([] if args.collect_only else rows):
         settings = BenchmarkSettings(timing=False, overrides=overrides)
         for scene in scenes:
             run_scene(scene, [method], out / name, settings, data_root=args.data_root, progress=not args.quiet)
@@ -121,6 +189,7 @@ def main(argv: list[str] | None = None) -> int:
             run_dir = out / name / Path(scene).name / method
             if (run_dir / "metrics.json").exists():
                 results.setdefault(Path(scene).name, {})[name] = _row_numbers(run_dir)
+    cost = json.loads((out / "cost.json").read_text()) if (out / "cost.json").exists() else None
     command = "python benchmarks/uncertainty_study.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
     lines = ["# Uncertainty study: one factor at a time", "", f"Command: `{command}`", "",
              "Rows (fixed before the run):", ""]
@@ -136,11 +205,19 @@ def main(argv: list[str] | None = None) -> int:
         for name, nums in by_row.items():
             lines.append(f"| {name} | " + " | ".join(_fmt(nums[c[0]]) for c in COLUMNS) + " |")
         lines.append("")
+    if cost is not None:
+        lines += [f"## Cost ({cost['scene']}, {cost['threads']} thread, interleaved in one process)", "",
+                  "| row | train s/step | x deterministic | render s (view %d) | x deterministic |" % cost["view"],
+                  "|---|---|---|---|---|"]
+        for r in cost["train_step_s"]:
+            lines.append(f"| {r} | {cost['train_step_s'][r]:.3f} | {cost['train_ratio'][r]:.2f} | "
+                         f"{cost['render_s'][r]:.2f} | {cost['render_ratio'][r]:.2f} |")
+        lines.append("")
     from stochastic_fields.io_utils import atomic_write_text
 
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "study.md", "\n".join(lines))
-    atomic_write_text(out / "study.json", json.dumps({"command": command, "results": results,
+    atomic_write_text(out / "study.json", json.dumps({"command": command, "results": results, "cost": cost,
                                                       "wall_s_this_invocation": time.perf_counter() - t0},
                                                      indent=2, default=float))
     print("\n".join(lines))

@@ -58,6 +58,7 @@ def test_learned_noise_gets_gradient_and_moves_towards_the_residual(dataset, tmp
 def test_predictive_colour_variance_adds_sigma_n_squared(dataset):
     cfg = _tiny_snerf_config()
     cfg.loss.learn_likelihood_std = True
+    cfg.render.colour_variance = "epistemic"
     model = build_model(cfg, dataset).eval()
     with torch.no_grad():
         model.log_likelihood_std.copy_(torch.log(torch.tensor([0.1, 0.2, 0.3])))

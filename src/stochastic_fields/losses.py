@@ -34,8 +34,8 @@ class LossConfig:
 
     likelihood_std: float = 0.05
     """sigma_n: standard deviation of the Gaussian pixel likelihood (colour units, [0, 1]); the starting value when learned. Range: a finite number > 0."""
-    learn_likelihood_std: bool = False
-    """Learn sigma_n (one per colour channel) with the rest of the objective instead of fixing it. Render with render.colour_variance='predictive' to add sigma_n^2 to the colour variance."""
+    learn_likelihood_std: bool = True
+    """Learn sigma_n (one per colour channel) with the rest of the objective instead of fixing it (default: learned; the paper fixes it). Render with render.colour_variance='predictive' to add sigma_n^2 to the colour variance."""
     kl: Literal["none", "fixed_prior", "full"] = "full"
     """KL terms (paper Table 3): none, fixed-prior (random points) only, or full (random + observed-ray priors)."""
     kl_estimator: Literal["closed_form", "monte_carlo"] = "closed_form"
@@ -50,8 +50,8 @@ class LossConfig:
     """Stratified random KL points: n per axis, n^3 points per step. Range: an integer >= 1 and <= 256."""
     observed_kl_samples: int = 4096
     """Training-ray samples per step on which the observed-prior KL is evaluated (a uniform random subset: an unbiased estimate of the mean over all samples at a fraction of the cost; 0 = all). Range: an integer >= 0 and <= 16777216."""
-    lambda_depth: float = 0.0
-    """Weight of the sparse-depth likelihood of the capture's own structure-from-motion points (FIT role of the spatial split, stochastic_fields.capture_points): -mean_k log sum_i w_ik N(t* | t_i, s_i^2) per point ray (termination_depth_nll). 0 = off. Range: a finite number >= 0."""
+    lambda_depth: float = 0.1
+    """Weight of the sparse-depth likelihood of the capture's own structure-from-motion points (FIT role of the spatial split, stochastic_fields.capture_points): -mean_k log sum_i w_ik N(t* | t_i, s_i^2) per point ray (termination_depth_nll). 0 = off (the paper); scenes without capture points train without it. Default 0.1: benchmarks/results/uncertainty_study. Range: a finite number >= 0."""
     depth_rays_per_batch: int = 256
     """Capture-point rays per training step for the depth likelihood (drawn from the training views' FIT points). Range: an integer >= 1 and <= 1048576."""
     depth_relative_std: float = 0.01

@@ -86,8 +86,8 @@ class RenderSettings:
     """Training steps between occupancy-grid updates. Range: an integer >= 1 and <= 1000000000."""
     occupancy_warmup_steps: int = 256
     """Steps during which every occupancy cell is re-evaluated at each update (afterwards a random subset). Range: an integer >= 0 and <= 1000000000."""
-    colour_variance: Literal["epistemic", "predictive"] = "epistemic"
-    """S-NeRF colour variance: 'epistemic' is the variance over the K trajectories (SPEC 3); 'predictive' adds sigma_n^2, the likelihood's pixel noise (the model's predictive variance of an observed pixel; learn sigma_n with loss.learn_likelihood_std)."""
+    colour_variance: Literal["epistemic", "predictive"] = "predictive"
+    """S-NeRF colour variance: 'predictive' (default) adds sigma_n^2 to the variance over the K trajectories; 'epistemic' is that variance alone (SPEC 3, the paper). 'predictive' adds sigma_n^2, the likelihood's pixel noise (the model's predictive variance of an observed pixel; learn sigma_n with loss.learn_likelihood_std)."""
     adaptive_draws: bool = False
     """Render with adaptive K (stochastic_fields.adaptive): trajectories in batches of adaptive_batch_draws until the colour and depth variance estimates change by less than adaptive_rtol, at most adaptive_max_draws. Used when no explicit num_draws is asked for."""
     adaptive_batch_draws: int = 8
