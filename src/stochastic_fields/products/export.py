@@ -332,6 +332,7 @@ class CalibrationAccumulator:
         self.rows: list[np.ndarray] = []
         self.num_gt = 0
         self.num_valid = 0
+        self.band_multiplier = None  # m(p) of a recalibrated run (DepthProducts.band_multiplier), else None
 
     def add(self, products: DepthProducts, gt_depth: np.ndarray | None) -> None:
         if gt_depth is None:
@@ -340,6 +341,7 @@ class CalibrationAccumulator:
         self.num_gt += int(has_gt.sum())
         self.num_valid += int(products.valid.sum())
         m = has_gt & products.valid
+        self.band_multiplier = products.band_multiplier
         if not m.any():
             return
         q = draw_quantiles(torch.from_numpy(products.depth_draws[m]).double(), self.QUANTILE_LEVELS).numpy()  # [4, P]
@@ -363,12 +365,14 @@ class CalibrationAccumulator:
                 "95": float(np.mean((gt >= q025) & (gt <= q975))),
             },
             "convention": "fraction of ground-truth camera-z depths inside the central interval, over pixels with "
-                          "opacity >= min_opacity and a ground truth; gaussian_total_std: |mean - gt| <= z * depth_std "
-                          "(z = 1 for 68.27%, 1.645 for 90% (the exported depth_band90), 1.96 for 95%); draw_quantiles: empirical quantiles of the K draws "
+                          "opacity >= min_opacity and a ground truth; gaussian_total_std: |mean - gt| <= z * m(p) * depth_std "
+                          "(z = 1 for 68.27%, 1.645 for 90% (the exported depth_band90), 1.96 for 95%; m(p) = 1, or "
+                          "s(p)/s(0.683) of a recalibrated run); draw_quantiles: empirical quantiles of the K draws "
                           "(15.87-84.13% and 2.5-97.5%), which cover only the epistemic part",
         }
-        for key, (_, z) in CALIBRATION_LEVELS.items():
-            out["gaussian_total_std"][key] = float(np.mean(err <= z * std))
+        for key, (level, z) in CALIBRATION_LEVELS.items():
+            m = 1.0 if self.band_multiplier is None else float(self.band_multiplier(level))
+            out["gaussian_total_std"][key] = float(np.mean(err <= z * m * std))
         return out
 
 
