@@ -363,3 +363,21 @@ def test_colour_estimator_switch_re_renders(inspector):
     finally:
         inspector.colour_estimator = "draws"
     assert inspector.cached_keys() == []
+
+
+def test_inspector_applies_the_run_calibration_as_eval_does(inspector, view, tmp_path):
+    """A run with calibration.json: the notebook's depth_std is the recalibrated one (raw kept),
+    equal to what a fresh inspector without the file renders times s(0.683)."""
+    import shutil
+
+    from stochastic_fields.calibration import (CALIBRATION_LEVELS, QuantileCalibration, RunCalibration,
+                                               save_run_calibration)
+
+    run = tmp_path / "run"
+    shutil.copytree(inspector.run_dir, run)
+    scales = np.full(CALIBRATION_LEVELS.shape, 3.0)
+    save_run_calibration(run, RunCalibration(depth=QuantileCalibration("depth_std", CALIBRATION_LEVELS, scales, 100)))
+    calibrated = RunInspector(run).render(view)
+    raw = inspector.render(view)
+    np.testing.assert_allclose(calibrated["depth_std_raw"], raw["depth_std"], rtol=1e-6)
+    np.testing.assert_allclose(calibrated["depth_std"], 3.0 * raw["depth_std"], rtol=1e-5)

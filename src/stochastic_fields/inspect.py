@@ -7,7 +7,8 @@ to widgets.
 
 Conventions (SPEC 1, 3, 6):
     * Depth products are camera-z depth in scene units (``evaluate.camera_z_maps``); standard
-      deviations scale the same way. ``depth_std`` is the total std (epistemic + termination
+      deviations scale the same way (``depth_std`` recalibrated by the run's calibration.json as
+      eval does, the raw one as ``depth_std_raw``). ``depth_std`` is the total std (epistemic + termination
       spread, law of total variance).
     * Colour products are in colour units [0, 1]; ``colour_std`` is the per-channel std over the
       K rendered trajectories.
@@ -43,6 +44,7 @@ from .cameras import generate_rays_for_view, image_size, intrinsics_3x3
 from .distributions import RectifiedNormal
 from .eval import metrics as M
 from .eval.plots import calibration_figure
+from .calibration import apply_depth_calibration, load_run_calibration
 from .evaluate import OPACITY_MASK, camera_z_maps, score_view
 from .models.snerf import SNeRF
 from .products.depth_maps import DepthProducts, compute_depth_products
@@ -119,6 +121,7 @@ class RunInspector:
         if not self.run_dir.is_dir():
             raise FileNotFoundError(f"run folder {self.run_dir} does not exist (train a run first, e.g. `make demo`)")
         self.cfg, self.model, self.dataset = load_trained_model(self.run_dir, device=device)
+        self.calibration = load_run_calibration(self.run_dir)  # the run's depth recalibration, as eval applies it
         self.device = next(self.model.parameters()).device
         self.seed = int(seed)
         self.height, self.width = image_size(self.dataset.cameras)
@@ -261,8 +264,8 @@ class RunInspector:
             self._depth_cache[key] = compute_depth_products(
                 raw, intrinsics_3x3(ds.cameras)[view].double().cpu().numpy(),
                 ds.cameras.extrinsics[view].double().cpu().numpy(), near=float(ds.near[view]),
-                far=float(ds.far[view]), min_opacity=OPACITY_MASK)
-            products = camera_z_maps(raw)
+                far=float(ds.far[view]), min_opacity=OPACITY_MASK, calibration=self.calibration)
+            products = apply_depth_calibration(camera_z_maps(raw), self.calibration)
             gt, gt_depth = self.ground_truth(view)
             products["colour_abs_error"] = np.abs(products["colour_mean"] - gt).mean(axis=-1).astype(np.float32)
             if gt_depth is not None:
@@ -433,7 +436,7 @@ class RunInspector:
         gt, gt_depth = self.ground_truth(view)
         mean, std = products["colour_mean"], products["colour_std"]
         out: dict[str, Any] = {
-            "scores": score_view(products, gt, gt_depth),
+            "scores": score_view(products, gt, gt_depth, self.calibration),
             "colour_sparsification": M.colour_sparsification(gt, mean, std.astype(np.float64) ** 2, "rmse"),
             "colour_calibration": M.calibration_curve(gt, mean, std),
             "depth_sparsification": None, "depth_calibration": None, "depth_mask": None,
