@@ -301,6 +301,18 @@ def read_config_file(path: str | Path) -> dict:
     return data
 
 
+def flatten(d: dict, prefix: str = "") -> dict[str, Any]:
+    """A nested config dict -> {"group.name": value}, sequences as tuples, so that a config read
+    back from JSON (lists) compares equal to one from ``to_dict`` (tuples)."""
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = tuple(v) if isinstance(v, list) else v
+    return out
+
+
 def save_config(cfg: ExperimentConfig, path: Path) -> None:
     from .io_utils import atomic_write_text
 

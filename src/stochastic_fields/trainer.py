@@ -19,7 +19,7 @@ from tqdm.auto import tqdm
 
 from .cameras import generate_rays
 from .checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
-from .config import ExperimentConfig, from_dict, save_config, to_dict, validate_experiment
+from .config import ExperimentConfig, flatten, from_dict, save_config, to_dict, validate_experiment
 from .io_utils import atomic_write_text, open_append_no_follow, remove_stale_temporaries
 from .models.base import RadianceModel
 from .models.registry import build_model, resolve_device
@@ -35,16 +35,6 @@ RESUMABLE_OPTIONS: tuple[str, ...] = ("train.iterations", "train.eval_every", "t
 LOG_NAME = "train_log.jsonl"
 
 
-def _flat(d: dict, prefix: str = "") -> dict:
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = tuple(v) if isinstance(v, list) else v
-    return out
-
-
 def _comparable_data_path(value: str) -> str:
     return str(Path(value).expanduser().resolve()) if value else ""
 
@@ -52,7 +42,7 @@ def _comparable_data_path(value: str) -> str:
 def config_differences(saved: ExperimentConfig, new: ExperimentConfig) -> list[tuple[str, object, object]]:
     """(dotted option, saved value, new value) for every option that differs and may not change
     on resume (everything outside ``RESUMABLE_OPTIONS``; data paths compared resolved)."""
-    a, b = _flat(to_dict(saved)), _flat(to_dict(new))
+    a, b = flatten(to_dict(saved)), flatten(to_dict(new))
     diffs = []
     for key in sorted(set(a) | set(b)):
         if key in RESUMABLE_OPTIONS:

@@ -47,7 +47,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from ..config import ExperimentConfig, preset, to_dict
+from ..config import ExperimentConfig, flatten, preset, to_dict
 from ..io_utils import atomic_path, atomic_write_text
 from . import metrics as M
 from .colmap_depth import COVERAGE_LEVELS, paired_depth_scores, sparse_depth_conventions
@@ -244,25 +244,15 @@ CALIBRATION_PROTOCOL = "calibrate-role capture points from views halfway between
 _NON_SEMANTIC = ("train.device", "train.eval_every", "train.checkpoint_every", "render.chunk_rays", "data.path")
 
 
-def _flat(d: dict, prefix: str = "") -> dict[str, Any]:
-    out = {}
-    for k, v in d.items():
-        if isinstance(v, dict):
-            out.update(_flat(v, f"{prefix}{k}."))
-        else:
-            out[f"{prefix}{k}"] = list(v) if isinstance(v, tuple) else v
-    return out
-
-
 def _semantic(flat: dict[str, Any]) -> dict[str, Any]:
     """Entries that change what a run computes, without those equal to the dataclass defaults:
     an option added later with a default that keeps the old behaviour changes no fingerprint."""
-    defaults = _flat(to_dict(ExperimentConfig()))
+    defaults = flatten(to_dict(ExperimentConfig()))
     return {k: v for k, v in flat.items() if k not in _NON_SEMANTIC and not (k in defaults and defaults[k] == v)}
 
 
 def config_fingerprint(cfg: ExperimentConfig, *extra: Any) -> str:
-    flat = _semantic(_flat(to_dict(cfg)))
+    flat = _semantic(flatten(to_dict(cfg)))
     text = json.dumps([flat, list(extra)], sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -273,8 +263,8 @@ def check_compatible(run_dir: Path, cfg: ExperimentConfig) -> None:
     saved = Path(run_dir) / "config.json"
     if not saved.exists():
         return
-    old = _semantic(_flat(json.loads(saved.read_text())))
-    new = _semantic(_flat(to_dict(cfg)))
+    old = _semantic(flatten(json.loads(saved.read_text())))
+    new = _semantic(flatten(to_dict(cfg)))
     differ = sorted(k for k in set(old) | set(new) if k != "train.iterations" and old.get(k) != new.get(k))
     if differ:
         raise ValueError(f"run folder {run_dir} was trained with a different configuration "
