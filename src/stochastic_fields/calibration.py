@@ -131,18 +131,16 @@ def render_at_points(model, cameras, near, far, sparse: dict, *,
     """Render the rays through the pixels of {view: SparseDepth} (continuous uv) of ``cameras``
     (bounds ``near``/``far``: floats or [V]): camera-z depth mean, total std and opacity [N], with
     the points' depths [N] as "gt" (float64)."""
-    from .cameras import generate_rays_at
+    from .capture_points import rays_through_points
 
-    views = [v for v, sd in sparse.items() if len(sd)]
-    if not views:
+    found = rays_through_points(cameras, near, far, sparse)
+    if found is None:
         return {k: np.zeros(0) for k in ("gt", "depth_mean", "depth_std", "opacity")}
-    idx = torch.cat([torch.full((len(sparse[v]),), v, dtype=torch.long) for v in views])
-    uv = torch.cat([torch.from_numpy(sparse[v].uv) for v in views]).float()
-    gt = np.concatenate([sparse[v].depth for v in views])
+    rays, gt = found
     device = next(model.parameters()).device
-    rays = generate_rays_at(cameras, idx, uv, near, far).to(device)
+    rays = rays.to(device)
     with torch.no_grad():
-        maps = model.render_view(rays.reshape(1, len(idx)), generator=generator)
+        maps = model.render_view(rays.reshape(1, len(gt)), generator=generator)
     z = maps["z_scale"].double().cpu().reshape(-1)
     return {"gt": gt,
             "depth_mean": (maps["depth_mean"].double().cpu().reshape(-1) * z).numpy(),
@@ -249,14 +247,12 @@ def save_run_calibration(run_dir: str | Path, calibration: RunCalibration) -> Pa
 
 def load_run_calibration(run_dir: str | Path) -> RunCalibration | None:
     """The run's calibration.json, or None when it has none. ValueError (naming the file) if malformed."""
+    from .io_utils import read_json
+
     path = Path(run_dir) / CALIBRATION_FILE
     if not path.is_file():
         return None
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ValueError(f"cannot read {path}: {exc}") from exc
-    return RunCalibration.from_dict(data, where=str(path))
+    return RunCalibration.from_dict(read_json(path, "calibration"), where=str(path))
 
 
 def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int = 0, model=None,

@@ -206,3 +206,18 @@ def restrict_sparse_depth(sd, keep: np.ndarray):
     keep = np.asarray(keep, dtype=bool)
     return replace(sd, rows=sd.rows[keep], cols=sd.cols[keep], uv=sd.uv[keep], depth=sd.depth[keep],
                    point_index=sd.point_index[keep])
+
+
+def rays_through_points(cameras, near, far, sparse: dict):
+    """Rays through the pixels (continuous uv) of {view: SparseDepth} of ``cameras`` (bounds
+    ``near``/``far``: floats or [V]) and the points' camera-z depths: (RayBundle [N], [N] float64).
+    None when no view holds a point."""
+    from .cameras import generate_rays_at
+
+    views = [v for v, sd in sparse.items() if len(sd)]
+    if not views:
+        return None
+    idx = torch.cat([torch.full((len(sparse[v]),), v, dtype=torch.long) for v in views])
+    uv = torch.cat([torch.from_numpy(sparse[v].uv) for v in views]).float()
+    depth = np.concatenate([sparse[v].depth for v in views])
+    return generate_rays_at(cameras, idx, uv, near, far), depth

@@ -289,13 +289,10 @@ def merge_dict(cfg: ExperimentConfig, data: Any, source: str) -> ExperimentConfi
 
 def read_config_file(path: str | Path) -> dict:
     """The JSON object in ``path`` (ValueError/FileNotFoundError naming the file)."""
+    from .io_utils import read_json
+
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"config file {path} does not exist")
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ValueError(f"cannot read config {path}: {exc}") from exc
+    data = read_json(path, "config file")
     if not isinstance(data, dict):
         raise ValueError(f"config {path}: expected a JSON object, got {type(data).__name__}")
     return data

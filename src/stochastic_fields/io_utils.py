@@ -6,12 +6,13 @@ An interrupted write leaves the previous file (or nothing) in place, never half 
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import re
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Any, Callable, Iterator
 
 
 @contextlib.contextmanager
@@ -144,3 +145,15 @@ def check_no_symlinks(root: str | os.PathLike, *names: str) -> None:
             if p.is_symlink():
                 raise ValueError(f"{p} is a symbolic link; refusing to write through it (remove the link)")
             p = p.parent
+
+
+def read_json(path: str | os.PathLike, what: str) -> Any:
+    """The JSON value in ``path``. FileNotFoundError ("<what> <path> does not exist") when it is not
+    a file; ValueError ("cannot read <what> <path>: <reason>") when it is unreadable or not JSON."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{what} {path} does not exist")
+    try:
+        return json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"cannot read {what} {path}: {exc}") from exc

@@ -121,19 +121,17 @@ class TrainingDepth:
     @staticmethod
     def from_dataset(dataset, device: torch.device) -> "TrainingDepth | None":
         """None when the scene has no capture points or none of the FIT role lies inside a training view's bounds."""
-        from .cameras import generate_rays_at
-        from .capture_points import FIT, load_capture_points, sparse_depth_for_role
+        from .capture_points import FIT, load_capture_points, rays_through_points, sparse_depth_for_role
 
         points = load_capture_points(dataset)
         if points is None:
             return None
         per_view = sparse_depth_for_role(dataset, points, dataset.train_indices, FIT)
-        views = torch.cat([torch.full((len(sd),), v, dtype=torch.long) for v, sd in per_view.items()])
-        uv = torch.cat([torch.from_numpy(sd.uv) for sd in per_view.values()]).float()
-        z = torch.cat([torch.from_numpy(sd.depth) for sd in per_view.values()]).float()
-        if len(z) == 0:
+        found = rays_through_points(dataset.cameras, dataset.near, dataset.far, per_view)
+        if found is None:
             return None
-        rays = generate_rays_at(dataset.cameras, views, uv, dataset.near, dataset.far)
+        rays, depth = found
+        z = torch.from_numpy(depth).float()
         t = z / rays.z_scale
         inside = (t > rays.near) & (t < rays.far)
         if not bool(inside.any()):

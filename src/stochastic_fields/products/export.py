@@ -37,7 +37,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..cameras import generate_rays_for_view, intrinsics_3x3, make_cameras
-from ..io_utils import atomic_folder, atomic_path, atomic_write_text, check_file_name
+from ..io_utils import atomic_folder, atomic_path, atomic_write_text, check_file_name, read_json
 from .depth_maps import (CONVENTIONS, DepthProducts, check_quantile_levels, compute_depth_products,
                          draw_quantiles, quantile_name, write_colourised, write_npz, write_png16, write_tiff)
 from .free_space import free_space_volume
@@ -211,12 +211,7 @@ def load_cameras_json(path: str | Path, *, default_near: float, default_far: flo
     ``height``, optional ``near``/``far`` (camera-z; default: the run's bounds) and ``name``.
     Raises FileNotFoundError / ValueError naming the file, the camera and the bad value."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"cameras file {path} does not exist")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+    data = read_json(path, "cameras file")
     if isinstance(data, dict) and "cameras" in data:
         data = data["cameras"]
     if not isinstance(data, list) or not data:

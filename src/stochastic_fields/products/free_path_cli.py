@@ -15,6 +15,7 @@ from pathlib import Path
 
 import torch
 
+from ..io_utils import read_json
 from .free_path import FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, path_free_probability, segment_free_probability
 
 
@@ -33,12 +34,7 @@ def _points(path: Path, key: str, value, shape_tail: tuple[int, ...]) -> torch.T
 def load_queries(path: str | Path) -> tuple[torch.Tensor | None, torch.Tensor | None]:
     """(segments [B, 2, 3] or None, path [M, 3] or None) from the JSON file (module doc)."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"free-path queries file {path} does not exist")
-    try:
-        data = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+    data = read_json(path, "free-path queries file")
     if not isinstance(data, dict) or not ({"segments", "path"} & set(data)):
         raise ValueError(f"{path}: expected an object with 'segments' and/or 'path'")
     segs = _points(path, "segments", data["segments"], (2, 3)) if "segments" in data else None
