@@ -31,7 +31,7 @@ DEFAULT_DATA_ROOT = REPO_ROOT / ".." / "shared" / "data" / "nerf_llff_data"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from stochastic_fields.eval.tables import DEFAULT_METHODS, DEFAULT_SCENES, METHOD_SPECS
+    from stochastic_fields_bench.tables import DEFAULT_METHODS, DEFAULT_SCENES, METHOD_SPECS
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenes", nargs="+", default=list(DEFAULT_SCENES),
@@ -78,7 +78,7 @@ def parse_override(text: str) -> tuple[str, object]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from stochastic_fields.eval.tables import BenchmarkSettings, format_markdown, run_benchmark
+    from stochastic_fields_bench.tables import BenchmarkSettings, format_markdown, run_benchmark
 
     parser = build_parser()
     args = parser.parse_args(argv)

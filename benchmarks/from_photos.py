@@ -61,7 +61,7 @@ def similarity_align(src: np.ndarray, dst: np.ndarray):
 
 def _sparse_abs_rel(dataset, export_dir: Path, views, scale: float = 1.0) -> float:
     """Mean |d - z| / z of a run's exported depth (times ``scale``) at the dataset's SfM points."""
-    from stochastic_fields.eval.colmap_depth import sparse_depth_for_dataset
+    from stochastic_fields.sparse_depth import sparse_depth_for_dataset
 
     errs = []
     for v, sp in sparse_depth_for_dataset(dataset, views).items():

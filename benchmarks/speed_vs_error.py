@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/speed_vs_error.py --quick --out benchmarks/results
 
-See ``stochastic_fields.bench`` for what is measured; ``--help`` lists the budget flags.
+See ``stochastic_fields_bench.speed`` for what is measured; ``--help`` lists the budget flags.
 """
 
 from __future__ import annotations

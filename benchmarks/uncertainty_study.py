@@ -2,7 +2,7 @@
 
 Each row is S-NeRF with the learned pixel noise (the tables' "S-NeRF + learned noise") with ONE
 change, trained and scored by the same runner as the benchmark tables
-(``stochastic_fields.eval.tables``: CPU budget, 1000 steps, 4 test views, seed 0), plus the deep
+(``stochastic_fields_bench.tables``: CPU budget, 1000 steps, 4 test views, seed 0), plus the deep
 ensemble and the deterministic NeRF as references. Depth is scored on the SCORE capture points
 only (``capture_points``); each S-NeRF row reports its depth intervals raw and recalibrated from
 the CALIBRATE points (``calibration``), so the recalibration factor is measured on every row.
@@ -26,7 +26,7 @@ from pathlib import Path
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA_ROOT = REPO_ROOT / ".." / "shared" / "data" / "nerf_llff_data"
 
-#: (row name, method of eval.tables.METHOD_SPECS, extra config overrides, what the row changes)
+#: (row name, method of stochastic_fields_bench.tables.METHOD_SPECS, extra config overrides, what the row changes)
 ROWS: tuple[tuple[str, str, tuple[tuple[str, object], ...], str], ...] = (
     ("base", "snerf_predictive", (), "S-NeRF + learned pixel noise, independent noise per point (the paper)"),
     ("shared_noise", "snerf_predictive", (("render.shared_noise", True),),
@@ -49,7 +49,7 @@ COLUMNS: tuple[tuple[str, str], ...] = (
 
 
 def _row_numbers(run_dir: Path) -> dict[str, float]:
-    from stochastic_fields.eval.tables import load_method_result
+    from stochastic_fields_bench.tables import load_method_result
 
     r = load_method_result(run_dir)
     m = r["metrics"]
@@ -88,7 +88,7 @@ def measure_cost(out: Path, scene: str, data_root: Path, *, rows: tuple[str, ...
     import torch
 
     from stochastic_fields.data import load_dataset
-    from stochastic_fields.eval.tables import (METHOD_SPECS, BenchmarkSettings, base_config, method_config,
+    from stochastic_fields_bench.tables import (METHOD_SPECS, BenchmarkSettings, base_config, method_config,
                                                resolve_scene, select_views)
     from stochastic_fields.trainer import Trainer, load_trained_model
 
@@ -155,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
 
-    from stochastic_fields.eval.tables import BenchmarkSettings, run_scene
+    from stochastic_fields_bench.tables import BenchmarkSettings, run_scene
 
     torch.set_num_threads(1)
     t0 = time.perf_counter()

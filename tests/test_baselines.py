@@ -15,8 +15,9 @@ import torch
 from stochastic_fields.config import preset
 from stochastic_fields.constants import FIELD_STD_FLOOR, NERFW_BETA_MIN, NLL_VARIANCE_FLOOR
 from stochastic_fields.data import load_dataset
-from stochastic_fields.eval import metrics as M
-from stochastic_fields.evaluate import camera_z_maps, score_view
+from stochastic_fields import metrics as M
+from stochastic_fields.evaluation import score_view
+from stochastic_fields.view_maps import camera_z_maps
 from stochastic_fields.fields.grid import GridField
 from stochastic_fields.losses import gaussian_likelihood_nll
 from stochastic_fields.models import baselines as B
@@ -85,13 +86,16 @@ def test_baselines_are_registered():
 def test_method_trains_and_renders_maps(method, trained, patch_rays, dataset):
     run_dir, model = trained[method]
     assert (run_dir / "checkpoint.pt").is_file()
-    assert model.render_settings.num_draws == EXPECTED_K[method]
-    maps = model.render_view(patch_rays, generator=_gen(), keep_draws=True)
+    assert model.default_render_options().num_draws == EXPECTED_K[method]
+    maps = model.render_view(patch_rays, model.render_options(keep_draws=True), generator=_gen(0))
     H, W = patch_rays.shape
     K = EXPECTED_K[method]
     expected = {name: (H, W, 3) if name.startswith("colour") else (H, W) for name in MAP_NAMES}
-    expected.update(z_scale=(H, W), depth_draws=(H, W, K), colour_draws=(H, W, K, 3))
+    expected.update(z_scale=(H, W), num_draws=(H, W), depth_draws=(H, W, K), colour_draws=(H, W, K, 3))
+    if method != "nerfw":
+        expected["field_evals_per_ray"] = (H, W)
     assert {k: tuple(v.shape) for k, v in maps.items()} == expected
+    assert (maps["num_draws"] == K).all()  # the K each pixel got, as reports state it
     for name, value in maps.items():
         assert torch.isfinite(value).all(), name
     for name in ("colour_var", "depth_var_epistemic", "depth_var_spread", "depth_var_total"):
@@ -228,7 +232,7 @@ def test_mc_dropout_passes_differ_and_are_seeded(backend, dataset, patch_rays):
     model = build_model(cfg, dataset).eval()
     drops = [m for m in model.modules() if isinstance(m, B.SeededDropout)]
     assert drops and all(m.p == B.DEFAULT_DROPOUT_RATE for m in drops)
-    maps = model.render_view(patch_rays, generator=_gen(0), keep_draws=True)
+    maps = model.render_view(patch_rays, model.render_options(keep_draws=True), generator=_gen(0))
     draws = maps["colour_draws"]  # [H, W, P, 3]
     assert draws.shape[2] == B.DEFAULT_MC_DROPOUT_PASSES
     assert not torch.equal(draws[:, :, 0], draws[:, :, 1])
@@ -239,7 +243,7 @@ def test_mc_dropout_passes_differ_and_are_seeded(backend, dataset, patch_rays):
     assert not torch.equal(maps["colour_var"], other["colour_var"])
     # rendering leaves the model in eval mode with dropout off: the field is deterministic again
     assert all(not m.always_on for m in drops)
-    three = model.render_view(patch_rays, num_draws=3, generator=_gen(0), keep_draws=True)
+    three = model.render_view(patch_rays, model.render_options(num_draws=3, keep_draws=True), generator=_gen(0))
     assert three["colour_draws"].shape[2] == 3
 
 
@@ -259,7 +263,7 @@ def test_ensemble_members_differ(trained, patch_rays):
     assert len(model.members) == B.DEFAULT_ENSEMBLE_SIZE
     d0 = model.members[0].levels[0][:, 0]
     assert all(not torch.equal(d0, m.levels[0][:, 0]) for m in model.members[1:])
-    maps = model.render_view(patch_rays, keep_draws=True)
+    maps = model.render_view(patch_rays, model.render_options(keep_draws=True))
     draws = maps["colour_draws"]
     for j in range(1, B.DEFAULT_ENSEMBLE_SIZE):
         assert not torch.allclose(draws[:, :, 0], draws[:, :, j])

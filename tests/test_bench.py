@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from stochastic_fields.bench import curve_marks, evaluate_targets
+from stochastic_fields_bench.speed import curve_marks, evaluate_targets
 
 
 def test_curve_marks_geometric_with_both_ends():

@@ -23,7 +23,7 @@ from stochastic_fields.data import DatasetError, detect_format, load_dataset, re
 from stochastic_fields.data.capture import FAR_PERCENTILE, MIN_TRACK_LENGTH, NEAR_PERCENTILE, is_forward_facing
 from stochastic_fields.data.colmap import ColmapCamera, pycolmap_camera, undistort_image
 from stochastic_fields.data.prepare import CAMERA_MODELS, nerfstudio_intrinsics
-from stochastic_fields.eval.colmap_depth import sparse_depth_for_dataset
+from stochastic_fields.sparse_depth import sparse_depth_for_dataset
 
 POINTS_PER_VIEW = 60
 

@@ -10,11 +10,12 @@ import pytest
 import torch
 from scipy import stats
 
+from stochastic_fields.renderer import RenderOptions
 from stochastic_fields.calibration import (CALIBRATION_LEVELS, ONE_SIGMA_LEVEL, QuantileCalibration, RunCalibration,
                                            apply_depth_calibration, standardised_errors)
 from stochastic_fields.capture_points import (CALIBRATE, FIT, SCORE, SPLIT_BLOCKS_PER_AXIS, split_points_by_blocks)
 from stochastic_fields.constants import DEPTH_MIXTURE_WEIGHT_FLOOR
-from stochastic_fields.eval import metrics as M
+from stochastic_fields import metrics as M
 from stochastic_fields.losses import termination_depth_nll
 
 
@@ -251,7 +252,13 @@ class _MeshDepthModel(torch.nn.Module):
                                  o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
         self.error_factor, self.rel_std = error_factor, rel_std
 
-    def render_view(self, rays, *, generator=None, **_):
+    def default_render_options(self):
+        return RenderOptions(num_draws=1)
+
+    def render_options(self, **changes):
+        return self.default_render_options().with_changes(**changes)
+
+    def render_view(self, rays, options=None, *, generator=None):
         import open3d as o3d
 
         o, d = rays.origins.reshape(-1, 3).numpy(), rays.directions.reshape(-1, 3).numpy()
@@ -262,7 +269,7 @@ class _MeshDepthModel(torch.nn.Module):
         err = np.random.default_rng(0).normal(size=t.shape) * s * self.error_factor
         f = lambda a: torch.from_numpy(np.asarray(a, np.float32)).reshape(rays.shape)  # noqa: E731
         return {"depth_mean": f(t + err), "depth_var_total": f(s ** 2), "opacity": f(hit.astype(np.float64)),
-                "z_scale": rays.z_scale}
+                "z_scale": rays.z_scale, "num_draws": torch.ones(rays.shape)}
 
 
 def test_fit_depth_calibration_recovers_the_error_factor(tmp_path):
@@ -307,8 +314,8 @@ def test_export_applies_the_run_calibration(tmp_path, tiny_scene):
 
 def _with_draws(render):
     """Add the per-draw depths and colour maps that export reads (draws: mean +- std, K = 4)."""
-    def wrapped(rays, *, num_draws=None, generator=None, keep_draws=False, **_):
-        maps = render(rays)
+    def wrapped(rays, options=None, *, generator=None):
+        maps = render(rays, options, generator=generator)
         s = maps["depth_var_total"].sqrt()
         signs = torch.tensor([-1.0, 1.0, -1.0, 1.0])
         maps["depth_draws"] = maps["depth_mean"][..., None] + s[..., None] * signs

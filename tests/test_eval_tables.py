@@ -21,10 +21,10 @@ from stochastic_fields.config import save_config
 from stochastic_fields.constants import DEPTH_NLL_VARIANCE_FLOOR, NLL_VARIANCE_FLOOR
 from stochastic_fields.data import load_dataset
 from stochastic_fields.data.colmap import ColmapPoints, read_points3d_binary
-from stochastic_fields.eval import colmap_depth as CD
-from stochastic_fields.eval import tables as T
+from stochastic_fields import sparse_depth as CD
+from stochastic_fields_bench import tables as T
 from stochastic_fields.models.registry import METHODS
-from stochastic_fields.renderer import MAP_NAMES, RenderSettings
+from stochastic_fields.renderer import MAP_NAMES, RenderOptions, RenderSettings
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -255,10 +255,14 @@ class StubModel(nn.Module):
         super().__init__()
         self.anchor = nn.Parameter(torch.zeros(1))
         self.maps = maps
-        self.render_settings = RenderSettings(num_draws=num_draws)
+        self.num_draws = num_draws
 
-    def render_view(self, rays, *, num_draws=None, generator=None, keep_draws=False, progress=False):
-        return {**self.maps, "z_scale": rays.z_scale}
+    def default_render_options(self):
+        return RenderOptions(num_draws=self.num_draws)
+
+    def render_view(self, rays, options=None, *, generator=None):
+        K = (options or self.default_render_options()).num_draws
+        return {**self.maps, "z_scale": rays.z_scale, "num_draws": torch.full(rays.shape, float(K))}
 
 
 def _stub_maps(ds, view, colour_var, rng):
@@ -316,6 +320,7 @@ def test_evaluate_run_with_a_constant_uncertainty(tiny_scene, tmp_path):
     assert s["pearson_mse_var"]["num_undefined"] == 1 and math.isnan(s["pearson_mse_var"]["mean"])
     assert math.isnan(s["ause_rmse"]["mean"]) and math.isnan(result["pooled"]["ause_rmse"])
     assert result["pooled"]["correlation_undefined_reason"] == "constant uncertainty"
+    assert result["num_draws"] == 1 and s["num_draws"]["mean"] == 1  # the K the render reported
     assert math.isfinite(s["nll"]["mean"]) and s["auce_colour"]["mean"] == pytest.approx(0.5, abs=0.01)
     assert (tmp_path / "views" / f"view_{v:03d}_colour_mean.png").is_file()
 

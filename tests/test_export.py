@@ -17,6 +17,7 @@ import pytest
 import torch
 from torch import nn
 
+from stochastic_fields.renderer import RenderOptions
 from stochastic_fields.products.depth_maps import DepthProducts
 from stochastic_fields.products.export import (
     CalibrationAccumulator, ExportOptions, dataset_view_specs, export_views, load_cameras_json)
@@ -38,10 +39,17 @@ class ExactDepthModel(nn.Module):
                                  o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
         self.rel_range, self.num_draws = rel_range, num_draws
 
-    def render_view(self, rays, *, num_draws=None, generator=None, keep_draws=False, progress=False):
+    def default_render_options(self):
+        return RenderOptions(num_draws=self.num_draws)
+
+    def render_options(self, **changes):
+        return self.default_render_options().with_changes(**changes)
+
+    def render_view(self, rays, options=None, *, generator=None):
         import open3d as o3d
 
-        K = num_draws or self.num_draws
+        options = options or self.default_render_options()
+        K, keep_draws = options.num_draws, options.keep_draws
         H, W = rays.shape
         o, d = rays.origins.double().numpy(), rays.directions.double().numpy()
         t = self.scene.cast_rays(o3d.core.Tensor(np.concatenate([o, d], -1).astype(np.float32)))["t_hit"].numpy()
@@ -55,7 +63,7 @@ class ExactDepthModel(nn.Module):
         maps = {"colour_mean": f(np.full((H, W, 3), 0.5)), "colour_var": f(np.zeros((H, W, 3))),
                 "depth_mean": f(draws.mean(-1)), "depth_var_epistemic": f(draws.var(-1)),
                 "depth_var_spread": f(np.zeros((H, W))), "depth_var_total": f(draws.var(-1)),
-                "opacity": f(hit), "z_scale": rays.z_scale.float()}
+                "opacity": f(hit), "z_scale": rays.z_scale.float(), "num_draws": f(np.full((H, W), K))}
         if keep_draws:
             maps["depth_draws"] = f(draws)
         return maps

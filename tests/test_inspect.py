@@ -14,7 +14,7 @@ from scipy import stats
 
 from stochastic_fields.cameras import generate_rays_for_view, intrinsics_3x3, project_points, select_cameras
 from stochastic_fields.config import preset
-from stochastic_fields.evaluate import OPACITY_MASK
+from stochastic_fields.view_maps import OPACITY_MASK
 from stochastic_fields.inspect import (MAP_SPECS, RunInspector, format_scores, plotly_cloud_figure,
                                        static_cloud_figure)
 from stochastic_fields.samplers import sample_along_rays
@@ -256,7 +256,7 @@ def test_view_metrics_coverage_matches_a_hand_count(inspector, view):
     assert m["depth_sparsification"].num_pixels == int(mask.sum())
     assert m["scores"]["psnr"] == pytest.approx(-10 * math.log10(np.mean((gt - maps["colour_mean"]) ** 2)), rel=1e-4)
     text = format_scores(m["scores"])
-    assert "psnr" in text and "depth_rmse" in text
+    assert "psnr" in text and "depth/rmse" in text
 
 
 def test_metric_figures_plot_the_metric_curves(inspector, view):

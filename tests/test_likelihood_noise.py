@@ -63,9 +63,11 @@ def test_predictive_colour_variance_adds_sigma_n_squared(dataset):
     with torch.no_grad():
         model.log_likelihood_std.copy_(torch.log(torch.tensor([0.1, 0.2, 0.3])))
     rays = dataset.rays(dataset.test_indices[0])[10:14, 10:15]
-    epistemic = model.render_view(rays, num_draws=8, generator=torch.Generator().manual_seed(3))
-    model.render_settings.colour_variance = "predictive"
-    predictive = model.render_view(rays, num_draws=8, generator=torch.Generator().manual_seed(3))
+    epistemic = model.render_view(rays, model.render_options(num_draws=8), generator=torch.Generator().manual_seed(3))
+    cfg.render.colour_variance = "predictive"
+    same = build_model(cfg, dataset).eval()
+    same.load_state_dict(model.state_dict())
+    predictive = same.render_view(rays, same.render_options(num_draws=8), generator=torch.Generator().manual_seed(3))
     torch.testing.assert_close(predictive["colour_mean"], epistemic["colour_mean"])
     torch.testing.assert_close(predictive["colour_var"] - epistemic["colour_var"],
                                torch.tensor([0.01, 0.04, 0.09]).expand_as(epistemic["colour_var"]))
@@ -83,13 +85,9 @@ def test_rebuild_occupancy_skips_more_with_a_looser_criterion(dataset, tmp_path)
     cfg.render.skip_empty_space = True
     cfg.train.iterations = 20
     model = Trainer(cfg, tmp_path, dataset).train(progress=False)
-    settings = model.render_settings
-    fractions = []
-    for num_std, alpha in ((3.0, 1e-4), (1.0, 1e-2), (-3.0, 0.5)):
-        settings.occupancy_num_std, settings.occupancy_alpha_threshold = num_std, alpha
-        fractions.append(model.rebuild_occupancy())
+    fractions = [model.rebuild_occupancy(num_std=num_std, alpha_threshold=alpha)
+                 for num_std, alpha in ((3.0, 1e-4), (1.0, 1e-2), (-3.0, 0.5))]
     assert fractions[0] >= fractions[1] >= fractions[2]
     # relu(mu - 3 s) * delta with opacity above 0.5: a 20-step field is nowhere that sure
     assert fractions[2] == 0.0
-    settings.occupancy_num_std, settings.occupancy_alpha_threshold = 1e3, 1e-4  # everything uncertain enough
-    assert model.rebuild_occupancy() == 1.0
+    assert model.rebuild_occupancy(num_std=1e3, alpha_threshold=1e-4) == 1.0  # everything uncertain enough

@@ -10,8 +10,8 @@ import scipy.stats
 import torch
 
 from stochastic_fields.constants import DEPTH_NLL_VARIANCE_FLOOR, NLL_VARIANCE_FLOOR
-from stochastic_fields.eval import metrics as M
-from stochastic_fields.eval.plots import plot_calibration, plot_sparsification
+from stochastic_fields import metrics as M
+from stochastic_fields.plots import plot_calibration, plot_sparsification
 
 
 @pytest.fixture

@@ -164,11 +164,11 @@ def test_occupancy_and_free_path_commands(tmp_path, run_dir):  # noqa: F811
 
 
 def test_eval_npz_carries_camera_and_units(tmp_path, run_dir, dataset):  # noqa: F811
-    from stochastic_fields.evaluate import evaluate
+    from stochastic_fields.evaluation import evaluate
     from stochastic_fields.trainer import load_trained_model
 
     _, model, ds = load_trained_model(run_dir, device="cpu")
-    evaluate(model, ds, tmp_path, views=[3], num_draws=2, progress=False)
+    evaluate(model, ds, tmp_path, views=[3], options=model.render_options(num_draws=2), progress=False)
     z = np.load(tmp_path / "views" / "view_003.npz")
     np.testing.assert_allclose(z["world_to_camera"], dataset.cameras.extrinsics[3].double().numpy())
     assert z["intrinsics"].shape == (3, 3) and str(z["units"]) == "scene units"

@@ -117,10 +117,11 @@ class PredictiveModel(ExactDepthModel):
     s_e around a centre offset by s_e * b, plus a termination spread s_t = 2 s_e (the true surface
     sits at an offset s_t * c inside each trajectory's blur); b, c ~ N(0, 1) per pixel."""
 
-    def render_view(self, rays, *, num_draws=None, generator=None, keep_draws=False, progress=False):
+    def render_view(self, rays, options=None, *, generator=None):
         import open3d as o3d
 
-        K = num_draws or self.num_draws
+        options = options or self.default_render_options()
+        K, keep_draws = options.num_draws, options.keep_draws
         H, W = rays.shape
         o, d = rays.origins.double().numpy(), rays.directions.double().numpy()
         t = self.scene.cast_rays(o3d.core.Tensor(np.concatenate([o, d], -1).astype(np.float32)))["t_hit"].numpy()

@@ -49,7 +49,8 @@ from torch import Tensor
 from .constants import DEPTH_NLL_VARIANCE_FLOOR, NLL_VARIANCE_FLOOR
 from .fields.base import StochasticField
 from .rays import RayBundle
-from .renderer import MAP_NAMES, OccupiedFn, RenderSettings, colour_moments, render_any_samples, skip_empty
+from .renderer import (ChunkGenerators, ChunkRender, OccupiedFn, RenderSettings, colour_moments, render_any_samples,
+                       render_chunked, skip_empty)
 from .samplers import sample_along_rays
 from .volume_rendering import TrajectoryStatistics, concatenate_draws
 
@@ -161,38 +162,15 @@ def render_rays_adaptive(field: StochasticField, rays: RayBundle, settings: Rend
 @torch.no_grad()
 def render_image_adaptive(field: StochasticField, rays: RayBundle, settings: RenderSettings, *,
                           batch_draws: int | None = None, max_draws: int | None = None, rtol: float | None = None,
-                          generator: torch.Generator | None = None, keep_draws: bool = False,
+                          generator: "torch.Generator | ChunkGenerators | None" = None, keep_draws: bool = False,
                           progress: bool = False, occupied: OccupiedFn | None = None) -> dict[str, Tensor]:
-    """``renderer.render_image`` with adaptive K per chunk of ``settings.chunk_rays`` rays.
+    """``renderer.render_image`` with adaptive K per chunk of ``settings.chunk_rays`` rays
+    (``renderer.render_chunked``: its maps; ``num_draws`` [H, W] is the K of each pixel's chunk,
+    per-draw maps are padded with NaN beyond a chunk's K)."""
+    def chunk(r: RayBundle, gen: torch.Generator | None) -> ChunkRender:
+        stats, K, evals = render_rays_adaptive(field, r, settings, batch_draws=batch_draws, max_draws=max_draws,
+                                               rtol=rtol, generator=gen, occupied=occupied)
+        return ChunkRender(stats, K, evals)
 
-    Returns the maps of ``render_image`` plus ``num_draws`` [H, W] (K of each pixel's chunk).
-    With ``keep_draws``, per-draw maps
-    are padded with NaN beyond each chunk's K to the largest K.
-    """
-    from tqdm.auto import tqdm
-
-    shape = rays.shape
-    flat = rays.flatten()
-    out: dict[str, list[Tensor]] = {name: [] for name in (*MAP_NAMES, "field_evals_per_ray", "num_draws")}
-    draws: dict[str, list[Tensor]] = {"depth_draws": [], "colour_draws": []}
-    for start in tqdm(range(0, len(flat), settings.chunk_rays), desc="render (adaptive K)", disable=not progress,
-                      leave=False):
-        chunk = flat[start:start + settings.chunk_rays]
-        stats, K, evals = render_rays_adaptive(field, chunk, settings, batch_draws=batch_draws, max_draws=max_draws,
-                                               rtol=rtol, generator=generator, occupied=occupied)
-        for name in MAP_NAMES:
-            out[name].append(getattr(stats, name))
-        out["field_evals_per_ray"].append(evals.to(stats.opacity.dtype))
-        out["num_draws"].append(torch.full_like(stats.opacity, float(K)))
-        if keep_draws:
-            draws["depth_draws"].append(stats.depth_draws)
-            draws["colour_draws"].append(stats.colour_draws)
-    maps = {name: torch.cat(v).reshape(*shape, *torch.cat(v).shape[1:]) for name, v in out.items()}
-    if keep_draws:
-        k_max = max(d.shape[1] for d in draws["depth_draws"])
-        for name, parts in draws.items():
-            padded = [torch.nn.functional.pad(d, (0, 0) * (d.dim() - 2) + (0, k_max - d.shape[1]), value=float("nan"))
-                      for d in parts]
-            maps[name] = torch.cat(padded).reshape(*shape, *padded[0].shape[1:])
-    maps["z_scale"] = rays.z_scale
-    return maps
+    return render_chunked(chunk, rays, settings.chunk_rays, generator=generator, keep_draws=keep_draws,
+                          progress=progress, desc="render (adaptive K)")

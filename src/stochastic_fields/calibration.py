@@ -193,8 +193,8 @@ def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float 
     views of the pair observed it), at pixels with rendered opacity above ``opacity_mask`` (as
     the depth scores). ValueError when the scene has no capture points or too few of that role."""
     from .capture_points import CALIBRATE, load_capture_points
-    from .eval.colmap_depth import project_sparse_depth
-    from .evaluate import OPACITY_MASK
+    from .sparse_depth import project_sparse_depth
+    from .view_maps import OPACITY_MASK
 
     mask = OPACITY_MASK if opacity_mask is None else opacity_mask
     points = load_capture_points(dataset)

@@ -157,7 +157,7 @@ def load_capture_points(dataset) -> CapturePoints | None:
     the loader's points without tracks (z-buffer); stand-in points of a dense-depth scene.
     Roles from ``split_points_by_blocks``."""
     from .data.colmap import read_points3d_binary
-    from .eval.colmap_depth import points_file, track_visibility
+    from .sparse_depth import points_file, track_visibility
 
     own = getattr(dataset, "points3d", None)
     own_visible = getattr(dataset, "points3d_visible", None)
@@ -186,9 +186,9 @@ def sparse_depth_for_role(dataset, points: CapturePoints, views: Sequence[int], 
     """{view: SparseDepth} of the points of one ``role`` in ``views`` (nearest point per pixel).
 
     COLMAP points use their tracks when the image-id match checks out for these views
-    (``eval.colmap_depth.sparse_depth_for_dataset``), stand-in points the view they came from;
+    (``sparse_depth.sparse_depth_for_dataset``), stand-in points the view they came from;
     otherwise a z-buffer."""
-    from .eval.colmap_depth import project_sparse_depth, sparse_depth_for_dataset
+    from .sparse_depth import project_sparse_depth, sparse_depth_for_dataset
 
     views = [int(v) for v in views]
     if points.colmap is not None:

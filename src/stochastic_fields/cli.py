@@ -120,15 +120,13 @@ def _run_calibration(args: argparse.Namespace):
     return None if args.raw_uncertainty else load_run_calibration(Path(args.run))
 
 
-def _apply_render_overrides(model, args: argparse.Namespace) -> None:
-    """Render options a trained run can change without retraining (``--colour-estimator``)."""
-    settings = getattr(model, "render_settings", None)
-    if args.colour_estimator is not None and settings is not None:
-        settings.colour_estimator = args.colour_estimator
+def _render_options(model, args: argparse.Namespace):
+    """This command's render options: the run's, with ``--num-draws`` and ``--colour-estimator``."""
+    return model.render_options(num_draws=args.num_draws, colour_estimator=args.colour_estimator)
 
 
 def cmd_render(args: argparse.Namespace) -> None:
-    from .evaluate import evaluate
+    from .evaluation import evaluate
     from .trainer import load_trained_model
 
     from .io_utils import check_no_symlinks, check_output_folder
@@ -136,16 +134,14 @@ def cmd_render(args: argparse.Namespace) -> None:
     out = check_output_folder(args.out if args.out is not None else Path(args.run) / "renders", "--out")
     check_no_symlinks(out, "views", "metrics.json")
     cfg, model, dataset = load_trained_model(Path(args.run), device=args.device)
-    _apply_render_overrides(model, args)
     views = _parse_views(args.views, dataset)
-    evaluate(model, dataset, out, views=views, num_draws=args.num_draws, progress=not args.quiet,
+    evaluate(model, dataset, out, views=views, options=_render_options(model, args), progress=not args.quiet,
              calibration=_run_calibration(args))
     print(f"rendered {len(views)} views into {out / 'views'}")
 
 
 def cmd_eval(args: argparse.Namespace) -> None:
-    from .eval.metrics import MetricReport
-    from .evaluate import evaluate
+    from .evaluation import evaluate
     from .trainer import load_trained_model
 
     from .io_utils import check_no_symlinks, check_output_folder
@@ -153,10 +149,10 @@ def cmd_eval(args: argparse.Namespace) -> None:
     out = check_output_folder(args.out if args.out is not None else Path(args.run), "--out")
     check_no_symlinks(out, "views", "metrics.json")
     cfg, model, dataset = load_trained_model(Path(args.run), device=args.device)
-    _apply_render_overrides(model, args)
     views = _parse_views(args.views, dataset)
-    result = evaluate(model, dataset, out, views=views, num_draws=args.num_draws, progress=not args.quiet,
-                      write_products=not args.no_products, calibration=_run_calibration(args))
+    result = evaluate(model, dataset, out, views=views, options=_render_options(model, args),
+                      progress=not args.quiet, product_views=0 if args.no_products else None,
+                      calibration=_run_calibration(args))
     _print_summary(result, f"{cfg.method} on {dataset.name}: {len(views)} views, K={result['num_draws']}")
     print(f"metrics: {out / 'metrics.json'}")
 
@@ -165,14 +161,15 @@ def _print_summary(result: dict, title: str) -> None:
     print(title)
     for name, s in result["summary"].items():
         print(f"  {name:<26s} {s['mean']:>10.4f}" + (f"  ({s['num_undefined']} undefined)" if s["num_undefined"] else ""))
-    if "pooled_depth" in result:
-        p = result["pooled_depth"]
-        print(f"  pooled depth |err| vs std: Pearson {p['err_std_pearson']:.3f}, Spearman {p['err_std_spearman']:.3f} over {p['num_pixels']} px")
+    depth = result.get("pooled", {}).get("depth")
+    if depth:
+        print(f"  pooled depth |err| vs std: Pearson {depth['pearson']:.3f}, Spearman {depth['spearman']:.3f} over "
+              f"{depth['num_used']} px; coverage 68% {depth['coverage_68']:.3f}, 95% {depth['coverage_95']:.3f}")
 
 
 def cmd_demo(args: argparse.Namespace) -> None:
     """Generate the embedded scene, train S-NeRF, render and score the held-out views."""
-    from .evaluate import evaluate
+    from .evaluation import evaluate
     from .models.registry import resolve_device
     from .scenes import load_run_dataset
     from .trainer import Trainer
@@ -200,10 +197,11 @@ def cmd_demo(args: argparse.Namespace) -> None:
     print(f"run folder: {run_dir} (checkpoint.pt, metrics.json, views/)")
 
 
-#: extra commands registered by other modules: name -> (module, help)
+#: extra commands of the library's own modules: name -> (module, help). Packages above the library
+#: (the benchmarks' ``bench``) add theirs through the ``stochastic_fields.commands`` entry-point group
+#: (pyproject.toml), so that the library never imports them.
 EXTRA_COMMANDS = {
     "export": ("stochastic_fields.products.cli", "Export depth maps, uncertainty maps and point clouds of a trained run."),
-    "bench": ("stochastic_fields.bench", "Speed-against-error benchmark (see benchmarks/)."),
     "calibrate": ("stochastic_fields.calibration",
                   "Fit a run's depth-uncertainty recalibration from its capture points (calibration.json)."),
     "occupancy": ("stochastic_fields.products.planner_cli", "Occupancy probabilities of a run (npz + OctoMap .ot)."),
@@ -212,6 +210,10 @@ EXTRA_COMMANDS = {
     "rerun": ("stochastic_fields.products.rerun_log", "rerun recording (.rrd) of an export."),
     "prepare": ("stochastic_fields.data.prepare", "Photos or a video -> camera poses with pycolmap (SfM) -> a scene folder to train on."),
 }
+
+
+#: entry-point group through which installed packages add commands (module with add_arguments and run)
+COMMAND_ENTRY_POINTS = "stochastic_fields.commands"
 
 
 class _Parser(argparse.ArgumentParser):
@@ -269,6 +271,15 @@ def build_parser() -> argparse.ArgumentParser:
                 continue
             raise
         p = sub.add_parser(name, help=helptext)
+        mod.add_arguments(p)
+        p.set_defaults(func=mod.run)
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group=COMMAND_ENTRY_POINTS):
+        if ep.name in EXTRA_COMMANDS:
+            continue
+        mod = ep.load()
+        p = sub.add_parser(ep.name, help=(mod.__doc__ or "").strip().split("\n")[0])
         mod.add_arguments(p)
         p.set_defaults(func=mod.run)
     return parser

@@ -159,6 +159,9 @@ TRAIN_CHECKS: dict[str, V.Checker] = {
     "device": V.text(pattern_rule="'auto', 'cpu', 'cuda' or 'cuda:N'", accept=_device_name),
 }
 
+#: Every method's name (``models.registry.METHODS`` builds each): S-NeRF and the baselines (SPEC 5).
+METHOD_NAMES: tuple[str, ...] = ("snerf", "deterministic", "mc_dropout", "ensemble", "nerfw")
+
 #: Methods whose renders report a variance over K trajectories: they need render.num_draws >= 2.
 STOCHASTIC_METHODS: tuple[str, ...] = ("snerf",)
 
@@ -166,10 +169,8 @@ STOCHASTIC_METHODS: tuple[str, ...] = ("snerf",)
 def validate_experiment(cfg: "ExperimentConfig") -> None:
     """Check every field of ``cfg`` against its declared range (ConfigError naming the dotted
     option and the value), and the rules that join fields."""
-    from .models.registry import METHODS
-
-    if not isinstance(cfg.method, str) or cfg.method not in METHODS:
-        raise V.ConfigError("method", "one of " + ", ".join(sorted(METHODS)), cfg.method)
+    if not isinstance(cfg.method, str) or cfg.method not in METHOD_NAMES:
+        raise V.ConfigError("method", "one of " + ", ".join(sorted(METHOD_NAMES)), cfg.method)
     for f in dataclasses.fields(cfg):
         group = getattr(cfg, f.name)
         if dataclasses.is_dataclass(group):

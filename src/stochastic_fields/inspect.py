@@ -6,33 +6,35 @@ display calls), plus a plotly figure for the interactive 3D view; the notebook o
 to widgets.
 
 Conventions (SPEC 1, 3, 6):
-    * Depth products are camera-z depth in scene units (``evaluate.camera_z_maps``); standard
+    * Depth products are camera-z depth in scene units (``view_maps.camera_z_maps``); standard
       deviations scale the same way (``depth_std`` recalibrated by the run's calibration.json as
       eval does, the raw one as ``depth_std_raw``). ``depth_std`` is the total std (epistemic + termination
       spread, law of total variance).
     * Colour products are in colour units [0, 1]; ``colour_std`` is the per-channel std over the
       K rendered trajectories.
     * Depth maps are meaningful where a surface was hit: figures grey out pixels with opacity
-      <= ``evaluate.OPACITY_MASK`` (those rays report ``depth = far`` per draw), and depth scores
+      <= ``view_maps.OPACITY_MASK`` (those rays report ``depth = far`` per draw), and depth scores
       use the same mask with valid ground truth.
     * Pixel ``(u, v)`` is column ``u`` and row ``v`` (integer indices; the ray goes through the
       pixel centre ``(u + 0.5, v + 0.5)``).
     * Point clouds are ``products.pointcloud.CloudArrays`` (per-point ``depth_std``, ``opacity``
       and ``confidence = exp(-(depth_std / depth) / 0.05)``, see that module).
 
-Noise: an S-NeRF view is rendered in chunks of ``render_settings.chunk_rays`` rays, each chunk
-with its own generator seeded from ``(seed, view, chunk)``. The maps of one (view, K,
-quadrature) are therefore one fixed Monte-Carlo estimate, and ``probe_pixel`` re-renders the
-pixel's chunk with the same generator, so its K depth draws are exactly the ones behind the
-maps. S-NeRF views are rendered densely (every sample of every ray, a fixed K: no empty-space
-skipping or adaptive K), so the probe sees the whole ray. Other methods (baselines) render
-through their own ``render_view`` with one seeded generator per view (and their own K where they
-fix it); the pixel probe needs a stochastic field and is S-NeRF only.
+Rendering: every view goes through the model's own ``render_view`` with the run's render
+options (empty-space skipping included), so the maps are the ones ``eval`` scores; only K, the
+quadrature and the colour estimator are chosen here, per call (a fixed K: no adaptive K). Noise:
+the view is rendered in chunks of ``chunk_rays`` rays, each chunk with its own generator seeded
+from ``(seed, view, chunk)``. The maps of one (view, K, quadrature) are therefore one fixed
+Monte-Carlo estimate, and ``probe_pixel`` re-renders the pixel's chunk (``SNeRF.render_chunk``)
+with the same generator, so its K depth draws are exactly the ones behind the maps. The probe
+shows every sample of the ray (the field evaluated at all of them); the draws' weights are 0 at
+the samples the occupancy grid skipped. The pixel probe needs a stochastic field and is S-NeRF only;
+baselines render with their own K where they fix it.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Sequence
 
@@ -42,15 +44,17 @@ from matplotlib.figure import Figure
 
 from .cameras import generate_rays_for_view, image_size, intrinsics_3x3
 from .distributions import RectifiedNormal
-from .eval import metrics as M
-from .eval.plots import calibration_figure
+from . import metrics as M
+from .plots import calibration_figure
 from .calibration import apply_depth_calibration, load_run_calibration
-from .evaluate import OPACITY_MASK, camera_z_maps, score_view
+from .evaluation import depth_samples, interval_scale_of, score_view
+from .view_maps import OPACITY_MASK, camera_z_maps
 from .models.snerf import SNeRF
 from .products.depth_maps import DepthProducts, compute_depth_products
 from .products.pointcloud import UNCERTAINTY_CMAP, CloudArrays, cloud_from_products, uncertainty_range
-from .rays import RayBundle
-from .renderer import MAP_NAMES, RenderSettings, check_colour_estimator, render_rays
+from .rays import PackedRaySamples, RayBundle
+from .renderer import RenderOptions, check_colour_estimator
+from .samplers import sample_along_rays
 from .trainer import load_trained_model
 
 Quadrature = Literal["alpha", "trapezoid"]
@@ -124,6 +128,7 @@ class RunInspector:
         self.calibration = load_run_calibration(self.run_dir)  # the run's depth recalibration, as eval applies it
         self.device = next(self.model.parameters()).device
         self.seed = int(seed)
+        self._colour_estimator = self.model.default_render_options().colour_estimator
         self.height, self.width = image_size(self.dataset.cameras)
         self._cache: dict[tuple[int, int, str], dict[str, np.ndarray]] = {}
         self._depth_cache: dict[tuple[int, int, str], DepthProducts] = {}
@@ -136,7 +141,7 @@ class RunInspector:
 
     @property
     def default_num_draws(self) -> int:
-        return int(self.model.render_settings.num_draws)
+        return int(self.model.default_render_options().num_draws)
 
     @property
     def default_quadrature(self) -> str:
@@ -146,12 +151,12 @@ class RunInspector:
     def colour_estimator(self) -> str:
         """Colour statistics of the renders: 'draws' (SPEC 3) or 'rao_blackwell' (density draws only,
         colour noise integrated exactly; see ``RenderSettings.colour_estimator``)."""
-        return str(self.model.render_settings.colour_estimator)
+        return self._colour_estimator
 
     @colour_estimator.setter
     def colour_estimator(self, value: str) -> None:
         if check_colour_estimator(value) != self.colour_estimator:  # the cached renders were made with the other one
-            self.model.render_settings.colour_estimator = value
+            self._colour_estimator = value
             self.clear_cache()
 
     def views(self) -> list[ViewInfo]:
@@ -174,7 +179,7 @@ class RunInspector:
             f"views:      {len(ds.train_indices)} train, {len(ds.test_indices)} test, {self.width}x{self.height} px, "
             f"ground-truth depth: {depth}",
             f"rendering:  K={rs.num_draws} draws, S={rs.num_samples} samples/ray, quadrature={rs.quadrature}, "
-            f"spacing={rs.spacing}, colour estimator={rs.colour_estimator}",
+            f"spacing={rs.spacing}, colour estimator={self.colour_estimator}",
             f"device:     {self.device}",
         ])
 
@@ -192,8 +197,10 @@ class RunInspector:
             raise ValueError(f"quadrature must be 'alpha' or 'trapezoid', got {quadrature!r}")
         return K, q
 
-    def _settings(self, quadrature: str) -> RenderSettings:
-        return replace(self.model.render_settings, quadrature=quadrature)
+    def _options(self, num_draws: int, quadrature: str) -> RenderOptions:
+        """The render options of (K, quadrature) with this inspector's colour estimator, draws kept."""
+        return self.model.render_options(num_draws=num_draws, quadrature=quadrature,
+                                         colour_estimator=self._colour_estimator, keep_draws=True)
 
     def _rays(self, view: int) -> RayBundle:
         """[H, W] rays of ``view`` on the model's device."""
@@ -212,37 +219,10 @@ class RunInspector:
 
     # ------------------------------------------------------------------ rendering
     @torch.no_grad()
-    def _render_chunk(self, flat: RayBundle, view: int, chunk: int, num_draws: int, quadrature: str):
-        settings = self._settings(quadrature)
-        start = chunk * settings.chunk_rays
-        return render_rays(self.model.field, flat[start:start + settings.chunk_rays], settings, num_draws=num_draws,
-                           generator=self._generator(view, chunk))
-
-    @torch.no_grad()
     def _render_maps(self, view: int, num_draws: int, quadrature: str) -> dict[str, torch.Tensor]:
-        """Renderer maps of ``view`` (ray distance, as ``renderer.render_image`` returns them)."""
-        rays = self._rays(view)
-        if not self.is_stochastic_field:
-            saved = self.model.render_settings
-            self.model.render_settings = self._settings(quadrature)
-            try:
-                return self.model.render_view(rays, num_draws=num_draws, generator=self._generator(view, 0),
-                                              keep_draws=True)
-            finally:
-                self.model.render_settings = saved
-        flat = rays.flatten()
-        num_chunks = -(-len(flat) // self.model.render_settings.chunk_rays)
-        parts: dict[str, list[torch.Tensor]] = {name: [] for name in (*MAP_NAMES, "depth_draws")}
-        for c in range(num_chunks):
-            stats = self._render_chunk(flat, view, c, num_draws, quadrature).stats
-            for name in parts:
-                parts[name].append(getattr(stats, name))
-        maps = {}
-        for name, chunks in parts.items():
-            t = torch.cat(chunks)
-            maps[name] = t.reshape(self.height, self.width, *t.shape[1:])
-        maps["z_scale"] = rays.z_scale
-        return maps
+        """Renderer maps of ``view`` (ray distance, ``RadianceModel.render_view``), chunk-seeded."""
+        return self.model.render_view(self._rays(view), self._options(num_draws, quadrature),
+                                      generator=lambda chunk: self._generator(view, chunk))
 
     def render(self, view: int, num_draws: int | None = None, quadrature: Quadrature | None = None
                ) -> dict[str, np.ndarray]:
@@ -348,7 +328,8 @@ class RunInspector:
             t [S]: ray distance of the sample midpoints; z [S]: their camera-z depth.
             density_mean [S]: E[relu(Y)], Y ~ N(mu_a, s_a^2) (``RectifiedNormal.mean``),
                 per unit ray distance; density_std [S]: its standard deviation.
-            weights [K, S]: quadrature weights w_ik of each trajectory.
+            weights [K, S]: quadrature weights w_ik of each trajectory (0 at samples the
+                occupancy grid skipped as empty space).
             colour_draws [K, 3]; depth_mean, depth_std (total, camera z), opacity: floats.
             gt_depth: float or None (None also where the scene has no surface at the pixel);
             gt_colour [3]; view, u, v: ints.
@@ -362,15 +343,18 @@ class RunInspector:
         u, v = int(u), int(v)
         K, q = self._args(num_draws, quadrature)
         rays = self._rays(view)
-        flat = rays.flatten()
-        chunk_rays = self.model.render_settings.chunk_rays
-        p = v * self.width + u
-        chunk, i = divmod(p, chunk_rays)
-        out = self._render_chunk(flat, view, chunk, K, q)
+        options = self._options(K, q)
+        chunk, i = divmod(v * self.width + u, options.chunk_rays)
+        start = chunk * options.chunk_rays
+        flat_chunk = rays.flatten()[start:start + options.chunk_rays]
+        out = self.model.render_chunk(flat_chunk, options, generator=self._generator(view, chunk))
         z = rays.z_scale[v, u].double()
-        params = out.params.map(lambda t: t[i])  # [S]
+        if isinstance(out.samples, PackedRaySamples):
+            params, t, weights = self._dense_ray(out, flat_chunk[i:i + 1], i, options)
+        else:
+            params = out.params.map(lambda t: t[i])  # [S]
+            t, weights = out.samples.t_mids[i], out.extras["weights"][i]
         dist = RectifiedNormal(params.density_loc, params.density_scale)
-        t = out.samples.t_mids[i]
         stats = out.stats
         depth_var = stats.depth_var_total[i].double().clamp_min(0)
         gt, gt_depth = self.ground_truth(view)
@@ -382,7 +366,7 @@ class RunInspector:
             "z": f32(t.double() * z),
             "density_mean": f32(dist.mean),
             "density_std": f32(dist.stddev),
-            "weights": f32(out.extras["weights"][i]),
+            "weights": f32(weights),
             "colour_draws": f32(stats.colour_draws[i]),
             "depth_mean": float(stats.depth_mean[i].double() * z),
             "depth_std": float(depth_var.sqrt() * z),
@@ -390,6 +374,23 @@ class RunInspector:
             "gt_colour": gt[v, u],
             "gt_depth": None if gt_depth is None or not gt_depth[v, u] > 0 else float(gt_depth[v, u]),
         }
+
+    @torch.no_grad()
+    def _dense_ray(self, out, ray: RayBundle, i: int, options: RenderOptions):
+        """Every sample of ray ``i`` of a chunk rendered with skipped empty space: its field
+        parameters [S] and midpoints [S], and the weights [K, S] of ``out``'s draws (zero at the
+        samples the occupancy grid skipped, which were not evaluated)."""
+        settings = options.settings_for(self.model.render_settings)
+        dense = sample_along_rays(ray, settings.num_samples, spacing=settings.spacing)
+        params = self.model.field(dense.positions, dense.directions).map(lambda t: t[0])
+        keep = self.model.occupied(dense.positions)[0]
+        mine = out.samples.ray_indices == i
+        if int(keep.sum()) != int(mine.sum()):
+            raise RuntimeError(f"pixel's ray: {int(mine.sum())} rendered samples but {int(keep.sum())} occupied")
+        packed = out.extras["weights"][:, mine]
+        weights = packed.new_zeros(packed.shape[0], settings.num_samples)
+        weights[:, keep] = packed
+        return params, dense.t_mids[0], weights
 
     def probe_figure(self, view: int, u: int, v: int, num_draws: int | None = None,
                      quadrature: Quadrature | None = None, *, bins: int | None = None) -> Figure:
@@ -425,7 +426,7 @@ class RunInspector:
         """Sparsification and calibration curves of one view, and its scores.
 
         Returns:
-            scores: ``evaluate.score_view`` (PSNR, SSIM, NLL, correlations, AUSE, depth scores).
+            scores: ``evaluation.score_view`` (PSNR, SSIM, NLL, correlations, AUSE, depth scores).
             colour_sparsification: RMSE curve (``metrics.colour_sparsification``).
             colour_calibration: pooled over pixels and channels (``metrics.calibration_curve``).
             depth_sparsification, depth_calibration: on pixels with ground-truth depth and
@@ -441,13 +442,13 @@ class RunInspector:
             "colour_calibration": M.calibration_curve(gt, mean, std),
             "depth_sparsification": None, "depth_calibration": None, "depth_mask": None,
         }
-        if gt_depth is not None:
-            mask = (gt_depth > 0) & (products["opacity"] > OPACITY_MASK)
-            if mask.sum() >= 2:
-                d, s = products["depth_mean"], products["depth_std"]
-                out["depth_mask"] = mask
-                out["depth_sparsification"] = M.depth_sparsification(d, gt_depth, s.astype(np.float64) ** 2, mask)
-                out["depth_calibration"] = M.calibration_curve(gt_depth, d, s, mask=mask)
+        samples = depth_samples(products, gt_depth)
+        if samples is not None and samples.gt.size >= 2:
+            mask = (gt_depth > 0) & (products["opacity"] > OPACITY_MASK)  # where depth_samples took its pixels
+            out["depth_mask"] = mask
+            out["depth_sparsification"] = M.depth_sparsification(samples.pred, samples.gt, samples.std.astype(np.float64) ** 2)
+            out["depth_calibration"] = M.calibration_curve(samples.gt, samples.pred, samples.std,
+                                                           interval_scale=interval_scale_of(self.calibration))
         return out
 
     def sparsification_figure(self, view: int, num_draws: int | None = None,
@@ -546,7 +547,7 @@ def probe_figure(probe: dict[str, Any], colour_mean: np.ndarray, *, bins: int | 
 
 def sparsification_figure(curves: dict[str, M.SparsificationResult], title: str = "sparsification") -> Figure:
     """One panel per curve: normalised model curve (solid) and oracle (dashed), the layout of
-    ``eval.plots.plot_sparsification`` (which writes files; this returns the Figure)."""
+    ``plots.plot_sparsification`` (which writes files; this returns the Figure)."""
     fig = Figure(figsize=(5.2 * len(curves), 4.0))
     for i, (name, r) in enumerate(curves.items()):
         ax = fig.add_subplot(1, len(curves), i + 1)
@@ -563,7 +564,7 @@ def sparsification_figure(curves: dict[str, M.SparsificationResult], title: str 
 
 
 def format_scores(scores: dict[str, Any]) -> str:
-    """Printable lines of ``evaluate.score_view`` scores (correlations show NaN and why when
+    """Printable lines of ``evaluation.score_view`` scores (correlations show NaN and why when
     undefined)."""
     lines = []
     for name, value in scores.items():

@@ -392,17 +392,21 @@ def skip_empty(samples: RaySamples, occupied: OccupiedFn | None) -> RaySamples |
     return pack_samples(samples, keep)
 
 
-def render_any_samples(params: FieldParams, samples: RaySamples | PackedRaySamples, settings: RenderSettings,
-                       **kwargs) -> RayRender:
+def render_any_samples(params: FieldParams, samples: RaySamples | PackedRaySamples, settings: RenderSettings, *,
+                       num_draws: int, deterministic: bool = False, generator: torch.Generator | None = None,
+                       noise: tuple[Tensor, Tensor] | None = None, colour_estimator: str | None = None,
+                       colour_moments: tuple[Tensor, Tensor] | None = None) -> RayRender:
     """``render_samples`` or ``render_samples_packed``, whichever layout ``samples`` has."""
     render = render_samples_packed if isinstance(samples, PackedRaySamples) else render_samples
-    return render(params, samples, settings, **kwargs)
+    return render(params, samples, settings, num_draws=num_draws, deterministic=deterministic, generator=generator,
+                  noise=noise, colour_estimator=colour_estimator, colour_moments=colour_moments)
 
 
 def render_rays(field: StochasticField, rays: RayBundle, settings: RenderSettings, *, num_draws: int | None = None,
                 stratified: bool = False, deterministic: bool = False,
                 generator: torch.Generator | None = None, occupied: OccupiedFn | None = None) -> RayRender:
-    """Render rays [R] with K trajectories each; with ``occupied`` only at samples it keeps (packed)."""
+    """Render rays [R] with K trajectories each (K = ``num_draws``, or ``settings.num_draws`` when
+    None); with ``occupied`` only at samples it keeps (packed)."""
     K = settings.num_draws if num_draws is None else num_draws
     samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing,
                                 stratified=stratified, generator=generator)
@@ -415,33 +419,152 @@ MAP_NAMES = ("colour_mean", "colour_var", "depth_mean", "depth_var_epistemic", "
              "depth_var_total", "opacity")
 
 
+# ----------------------------------------------------------------------------- per-call options
+#: The RenderSettings fields a single render may choose (RenderOptions); the others (samples,
+#: spacing, noise layout, background, the occupancy grid) are fixed when the model is trained.
+PER_RENDER_FIELDS: tuple[str, ...] = ("num_draws", "quadrature", "chunk_rays", "colour_estimator", "adaptive_draws",
+                                      "adaptive_batch_draws", "adaptive_max_draws", "adaptive_rtol", "adaptive_rule")
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """Choices of one render call, validated on construction (the ranges of ``RENDER_CHECKS``).
+
+    Every caller (CLI, evaluation, export, notebook, benchmarks) passes one to
+    ``RadianceModel.render_view``; nothing changes the model's own ``render_settings``.
+    ``num_draws`` is the fixed K when ``adaptive_draws`` is False; with ``adaptive_draws`` K is
+    chosen per chunk (``stochastic_fields.adaptive``) and ``num_draws`` is not used. Either way the
+    rendered maps hold ``num_draws`` [H, W], the K each pixel actually got. Build them with
+    ``model.render_options(**changes)`` (the model's defaults plus the changes) or
+    :meth:`from_settings`.
+    """
+
+    num_draws: int = 16
+    quadrature: Literal["alpha", "trapezoid"] = "alpha"
+    chunk_rays: int = 2048
+    colour_estimator: Literal["draws", "rao_blackwell"] = "draws"
+    adaptive_draws: bool = False
+    adaptive_batch_draws: int = 8
+    adaptive_max_draws: int = 128
+    adaptive_rtol: float = 0.05
+    adaptive_rule: Literal["precision", "change"] = "precision"
+    keep_draws: bool = False
+    """Also return the per-draw maps ``depth_draws`` [H, W, K] and ``colour_draws`` [H, W, K, 3]."""
+    progress: bool = False
+    """A progress bar over the chunks."""
+
+    def __post_init__(self) -> None:
+        check_fields(self, RENDER_OPTION_CHECKS)
+
+    @classmethod
+    def from_settings(cls, settings: RenderSettings, **changes) -> "RenderOptions":
+        """``settings``' per-render fields, then :meth:`with_changes`."""
+        return cls(**{name: getattr(settings, name) for name in PER_RENDER_FIELDS}).with_changes(**changes)
+
+    def with_changes(self, **changes) -> "RenderOptions":
+        """A copy with ``changes`` (validated; None values leave a field as it is). An explicit
+        ``num_draws`` asks for that fixed K: it turns adaptive K off unless ``adaptive_draws`` is
+        also given."""
+        names = [f.name for f in dataclasses.fields(self)]
+        unknown = sorted(set(changes) - set(names))
+        if unknown:
+            raise ValueError(f"unknown render option(s) {unknown}; choose from {names}")
+        changes = {k: v for k, v in changes.items() if v is not None}
+        if "num_draws" in changes and "adaptive_draws" not in changes:
+            changes["adaptive_draws"] = False
+        return dataclasses.replace(self, **changes)
+
+    def settings_for(self, settings: RenderSettings) -> RenderSettings:
+        """A copy of ``settings`` with this call's choices (``settings`` itself is not changed)."""
+        return dataclasses.replace(settings, **{name: getattr(self, name) for name in PER_RENDER_FIELDS})
+
+
+#: Declared range of every RenderOptions field.
+RENDER_OPTION_CHECKS: dict[str, Checker] = {**{name: RENDER_CHECKS[name] for name in PER_RENDER_FIELDS},
+                                            "keep_draws": boolean(), "progress": boolean()}
+
+
+# ----------------------------------------------------------------------------- images in chunks
+@dataclass
+class ChunkRender:
+    """What a per-chunk renderer returns to :func:`render_chunked` for rays [R]."""
+
+    stats: TrajectoryStatistics
+    num_draws: int
+    """K of this chunk's statistics."""
+    field_evals: Tensor | None = None
+    """[R] field evaluations per ray, or None."""
+
+
+#: A generator for the whole image, or one per chunk: ``chunk index -> generator``.
+ChunkGenerators = Callable[[int], "torch.Generator | None"]
+
+
 @torch.no_grad()
-def render_image(field: StochasticField, rays: RayBundle, settings: RenderSettings, *, num_draws: int | None = None,
-                 deterministic: bool = False, generator: torch.Generator | None = None, keep_draws: bool = False,
-                 progress: bool = False, occupied: OccupiedFn | None = None) -> dict[str, Tensor]:
-    """Render rays [H, W] in chunks. Returns maps [H, W] / [H, W, 3] in ray distance units
-    (``depth_*``), plus ``z_scale`` [H, W] to convert to camera-z depth, ``field_evals_per_ray``
-    [H, W] (samples at which the field was evaluated), and per-draw depths ``depth_draws``
-    [H, W, K] when ``keep_draws``. ``occupied``: empty-space skipping (see ``render_rays``)."""
+def render_chunked(render_chunk: Callable[[RayBundle, "torch.Generator | None"], ChunkRender], rays: RayBundle,
+                   chunk_rays: int, *, generator: "torch.Generator | ChunkGenerators | None" = None,
+                   keep_draws: bool = False, progress: bool = False, desc: str = "render") -> dict[str, Tensor]:
+    """The one loop that renders an image in chunks, for every model and every caller.
+
+    ``render_chunk(rays [R], generator) -> ChunkRender`` renders ``chunk_rays`` rays at a time of
+    ``rays`` [H, W]; ``generator`` is one generator for all chunks or a function of the chunk
+    index (the notebook seeds each chunk on its own so that any chunk can be rendered again).
+
+    Returns maps [H, W] / [H, W, 3] (``MAP_NAMES``, ray-distance units), ``z_scale`` [H, W],
+    ``num_draws`` [H, W] (the K each pixel got), ``field_evals_per_ray`` [H, W] when the chunks
+    report it, and with ``keep_draws`` ``depth_draws`` [H, W, K] and ``colour_draws``
+    [H, W, K, 3], padded with NaN beyond a chunk's K to the largest K.
+    """
     from tqdm.auto import tqdm
 
     shape = rays.shape
     flat = rays.flatten()
-    chunks = range(0, len(flat), settings.chunk_rays)
-    out: dict[str, list[Tensor]] = {name: [] for name in MAP_NAMES}
-    out["field_evals_per_ray"] = []
-    if keep_draws:
-        out["depth_draws"] = []
-        out["colour_draws"] = []
-    for start in tqdm(chunks, desc="render", disable=not progress, leave=False):
-        r = render_rays(field, flat[start:start + settings.chunk_rays], settings, num_draws=num_draws,
-                        deterministic=deterministic, generator=generator, occupied=occupied)
+    out: dict[str, list[Tensor]] = {name: [] for name in (*MAP_NAMES, "num_draws", "field_evals_per_ray")}
+    draws: dict[str, list[Tensor]] = {"depth_draws": [], "colour_draws": []}
+    starts = range(0, len(flat), chunk_rays)
+    for index, start in enumerate(tqdm(starts, desc=desc, disable=not progress, leave=False)):
+        gen = generator(index) if callable(generator) else generator
+        chunk = render_chunk(flat[start:start + chunk_rays], gen)
+        stats = chunk.stats
         for name in MAP_NAMES:
-            out[name].append(getattr(r.stats, name))
-        out["field_evals_per_ray"].append(r.extras["field_evals"].to(r.stats.opacity.dtype))
+            out[name].append(getattr(stats, name))
+        out["num_draws"].append(torch.full_like(stats.opacity, float(chunk.num_draws)))
+        if chunk.field_evals is not None:
+            out["field_evals_per_ray"].append(chunk.field_evals.to(stats.opacity.dtype))
         if keep_draws:
-            out["depth_draws"].append(r.stats.depth_draws)
-            out["colour_draws"].append(r.stats.colour_draws)
-    maps = {name: torch.cat(v).reshape(*shape, *torch.cat(v).shape[1:]) for name, v in out.items()}
+            draws["depth_draws"].append(stats.depth_draws)
+            draws["colour_draws"].append(stats.colour_draws)
+    if len(out["field_evals_per_ray"]) != len(out["opacity"]):
+        del out["field_evals_per_ray"]
+    maps = {}
+    for name, parts in out.items():
+        flat_map = torch.cat(parts)
+        maps[name] = flat_map.reshape(*shape, *flat_map.shape[1:])
+    if keep_draws:
+        k_max = max(d.shape[1] for d in draws["depth_draws"])
+        for name, parts in draws.items():
+            padded = [torch.nn.functional.pad(d, (0, 0) * (d.dim() - 2) + (0, k_max - d.shape[1]), value=float("nan"))
+                      for d in parts]
+            flat_map = torch.cat(padded)
+            maps[name] = flat_map.reshape(*shape, *flat_map.shape[1:])
     maps["z_scale"] = rays.z_scale
     return maps
+
+
+@torch.no_grad()
+def render_image(field: StochasticField, rays: RayBundle, settings: RenderSettings, *, num_draws: int | None = None,
+                 deterministic: bool = False, generator: "torch.Generator | ChunkGenerators | None" = None,
+                 keep_draws: bool = False, progress: bool = False, occupied: OccupiedFn | None = None
+                 ) -> dict[str, Tensor]:
+    """Render rays [H, W] with a fixed K (``num_draws``, or ``settings.num_draws`` when None) in
+    chunks of ``settings.chunk_rays`` (:func:`render_chunked`; its maps, with
+    ``field_evals_per_ray``). ``occupied``: empty-space skipping (see ``render_rays``)."""
+    K = settings.num_draws if num_draws is None else num_draws
+
+    def chunk(r: RayBundle, gen: torch.Generator | None) -> ChunkRender:
+        out = render_rays(field, r, settings, num_draws=K, deterministic=deterministic, generator=gen,
+                          occupied=occupied)
+        return ChunkRender(out.stats, K, out.extras["field_evals"])
+
+    return render_chunked(chunk, rays, settings.chunk_rays, generator=generator, keep_draws=keep_draws,
+                          progress=progress)

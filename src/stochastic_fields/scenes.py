@@ -16,7 +16,7 @@ def scene_path(cfg: ExperimentConfig, run_dir: Path) -> Path:
 
 def load_run_dataset(cfg: ExperimentConfig, run_dir: Path, *, generate: bool = True):
     """Load the run's dataset; generate the embedded synthetic scene first if needed."""
-    from .data.dataset import detect_format, load_dataset
+    from .data import detect_format, load_dataset
 
     path = scene_path(cfg, run_dir)
     if not cfg.data.path:

@@ -148,14 +148,18 @@ def make_optimizer(model: RadianceModel, cfg: ExperimentConfig) -> FieldOptimize
                           final_factor=cfg.train.lr_final_factor)
 
 
+#: K of the progress signal's render (cheap; the report's own K comes from the run's settings).
+QUICK_EVAL_DRAWS = 4
+
+
 def quick_eval(model: RadianceModel, dataset, view: int, device: torch.device) -> dict[str, float]:
     """PSNR of the mean colour on one test view (a cheap progress signal)."""
     from .cameras import generate_rays_for_view
-    from .eval.metrics import psnr
+    from .metrics import psnr
 
     model.eval()
     rays = generate_rays_for_view(dataset.cameras, view, dataset.near, dataset.far).to(device)
-    maps = model.render_view(rays, num_draws=4)
+    maps = model.render_view(rays, model.default_render_options().with_changes(num_draws=QUICK_EVAL_DRAWS))
     model.train()
     return {"eval_view": view, "eval_psnr": psnr(maps["colour_mean"].cpu(), dataset.images[view])}
 

@@ -16,7 +16,8 @@ from .colmap import (
     read_points3d_binary,
 )
 from .colmap_scene import load_colmap
-from .dataset import SceneDataset, detect_format, fit_scene_aabb, load_dataset
+from .dataset import SceneDataset, fit_scene_aabb
+from .loading import detect_format, load_dataset
 from .errors import DatasetError
 from .llff import load_llff
 from .synthetic import make_synthetic_scene

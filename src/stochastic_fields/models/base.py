@@ -10,7 +10,7 @@ import torch
 from torch import Tensor, nn
 
 from ..rays import RayBundle
-from ..renderer import RenderSettings
+from ..renderer import ChunkGenerators, RenderOptions, RenderSettings
 
 
 #: Learning-rate multiplier of grid cells relative to network weights and priors.
@@ -28,10 +28,21 @@ class RadianceModel(nn.Module, abc.ABC):
         """rays [R], target colours [R, 3] -> (scalar loss, logged scalars)."""
 
     @abc.abstractmethod
-    def render_view(self, rays: RayBundle, *, num_draws: int | None = None,
-                    generator: torch.Generator | None = None, keep_draws: bool = False,
-                    progress: bool = False) -> dict[str, Tensor]:
-        """rays [H, W] -> maps (see renderer.MAP_NAMES) in ray-distance units plus ``z_scale``."""
+    def render_view(self, rays: RayBundle, options: RenderOptions | None = None, *,
+                    generator: "torch.Generator | ChunkGenerators | None" = None) -> dict[str, Tensor]:
+        """rays [H, W] -> maps in ray-distance units (``renderer.render_chunked``: ``MAP_NAMES``,
+        ``z_scale``, ``num_draws`` [H, W] = the K each pixel got, per-draw maps with
+        ``options.keep_draws``). ``options``: this call's choices (default
+        :meth:`default_render_options`); the model's ``render_settings`` are never changed."""
+
+    def default_render_options(self) -> RenderOptions:
+        """The options of a render that asks for nothing: the run's ``render`` settings."""
+        return RenderOptions.from_settings(self.render_settings)
+
+    def render_options(self, **changes) -> RenderOptions:
+        """:meth:`default_render_options` with ``changes`` (``RenderOptions.with_changes``: names
+        checked, values validated, None ignored)."""
+        return self.default_render_options().with_changes(**changes)
 
     def after_step(self, step: int) -> None:
         """Hook after each optimiser step (occupancy updates and similar)."""

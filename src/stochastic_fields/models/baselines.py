@@ -59,9 +59,10 @@ from ..fields.base import FieldParams, StochasticField
 from ..fields.grid import GridField
 from ..losses import LossConfig, gaussian_likelihood_nll
 from ..rays import RayBundle
-from ..renderer import MAP_NAMES, RenderSettings, RayRender, render_rays
+from ..renderer import ChunkGenerators, ChunkRender, RenderOptions, RenderSettings, RayRender, render_chunked, render_rays
 from ..volume_rendering import TrajectoryStatistics, accumulate, statistics_from_draws
 from .base import RadianceModel
+from .field_builder import build_field
 
 #: Dropout rate of ``mc_dropout`` when ``field.dropout`` is 0 (the common MC-Dropout choice).
 DEFAULT_DROPOUT_RATE: float = 0.2
@@ -180,34 +181,6 @@ def stack_draws(parts: list[TrajectoryStatistics]) -> TrajectoryStatistics:
                                  torch.cat([p.opacity_draws for p in parts], dim=1))
 
 
-@torch.no_grad()
-def render_chunked(render_chunk: Callable[[RayBundle], TrajectoryStatistics], rays: RayBundle, chunk_rays: int, *,
-                   keep_draws: bool = False, progress: bool = False) -> dict[str, Tensor]:
-    """``renderer.render_image`` for any per-chunk renderer: rays [H, W] -> maps [H, W] /
-    [H, W, 3] (``MAP_NAMES``, ray-distance units), ``z_scale`` [H, W], and with ``keep_draws``
-    ``depth_draws`` [H, W, K] and ``colour_draws`` [H, W, K, 3]."""
-    from tqdm.auto import tqdm
-
-    shape = rays.shape
-    flat = rays.flatten()
-    out: dict[str, list[Tensor]] = {name: [] for name in MAP_NAMES}
-    if keep_draws:
-        out["depth_draws"], out["colour_draws"] = [], []
-    for start in tqdm(range(0, len(flat), chunk_rays), desc="render", disable=not progress, leave=False):
-        stats = render_chunk(flat[start:start + chunk_rays])
-        for name in MAP_NAMES:
-            out[name].append(getattr(stats, name))
-        if keep_draws:
-            out["depth_draws"].append(stats.depth_draws)
-            out["colour_draws"].append(stats.colour_draws)
-    maps = {}
-    for name, parts in out.items():
-        flat_map = torch.cat(parts)
-        maps[name] = flat_map.reshape(*shape, *flat_map.shape[1:])
-    maps["z_scale"] = rays.z_scale
-    return maps
-
-
 def grid_total_variation(module: nn.Module, generator: torch.Generator | None) -> Tensor | None:
     """Sum of ``GridField.total_variation`` over every grid inside ``module`` (None: no grid)."""
     grids = [m for m in module.modules() if isinstance(m, GridField)]
@@ -219,13 +192,46 @@ def grid_total_variation(module: nn.Module, generator: torch.Generator | None) -
 class _MeanFieldModel(RadianceModel):
     """Shared parts: settings, the grid TV term and the grid learning rates (as S-NeRF)."""
 
-    def __init__(self, render_settings: RenderSettings, loss: LossConfig, *, num_draws: int, tv_weight: float):
+    def __init__(self, render_settings: RenderSettings, loss: LossConfig, *, tv_weight: float):
         super().__init__()
-        # num_draws here is what a render produces (passes, members or 1), so reports that read
-        # render_settings.num_draws state the right K.
-        self.render_settings = replace(render_settings, num_draws=num_draws)
+        self.render_settings = render_settings
         self.loss_config = loss
         self.tv_weight = tv_weight
+
+    @property
+    def trajectories(self) -> int | None:
+        """K of every render (1, or the ensemble's M), or None where a render may choose it
+        (MC-Dropout's passes)."""
+        return 1
+
+    def default_num_draws(self) -> int:
+        """K of a render that asks for nothing."""
+        return int(self.trajectories)
+
+    def default_render_options(self) -> RenderOptions:
+        """The run's render settings with this method's K and no adaptive K (one field pass per draw)."""
+        return RenderOptions.from_settings(self.render_settings, num_draws=self.default_num_draws(),
+                                           adaptive_draws=False)
+
+    def render_options(self, **changes) -> RenderOptions:
+        """As ``RadianceModel.render_options``; a K other than a fixed-K method's own, or adaptive K,
+        is a ValueError naming the method."""
+        name = type(self).__name__
+        k = changes.get("num_draws")
+        if k is not None and self.trajectories is not None and int(k) != self.trajectories:
+            raise ValueError(f"{name} renders {self.trajectories} trajectory(ies) per ray; num_draws={k} cannot apply")
+        if changes.get("adaptive_draws"):
+            raise ValueError(f"{name} has no adaptive K (adaptive_draws applies to S-NeRF)")
+        return super().render_options(**changes)
+
+    def _render_chunks(self, chunk, rays: RayBundle, options: RenderOptions | None,
+                       generator: "torch.Generator | ChunkGenerators | None") -> dict[str, Tensor]:
+        """``renderer.render_chunked`` with this model's chunk renderer ``chunk(rays, generator, K)``."""
+        options = options or self.default_render_options()
+        K = self.trajectories or options.num_draws
+        settings = options.settings_for(self.render_settings)
+        return render_chunked(lambda r, g: chunk(r, g, K, settings), rays, options.chunk_rays, generator=generator,
+                              keep_draws=options.keep_draws, progress=options.progress)
 
     def _regularise(self, loss: Tensor, logs: dict[str, float], generator: torch.Generator | None) -> Tensor:
         if self.tv_weight > 0:
@@ -253,7 +259,7 @@ class DeterministicNeRF(_MeanFieldModel):
 
     def __init__(self, field: StochasticField, render_settings: RenderSettings, loss: LossConfig, *,
                  tv_weight: float = 0.0):
-        super().__init__(render_settings, loss, num_draws=1, tv_weight=tv_weight)
+        super().__init__(render_settings, loss, tv_weight=tv_weight)
         self.field = field
 
     def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
@@ -261,14 +267,14 @@ class DeterministicNeRF(_MeanFieldModel):
         out = render_mean_field(self.field, rays, self.render_settings, stratified=True, generator=generator)
         return self._likelihood_loss(out.stats, target, generator)
 
-    def render_view(self, rays: RayBundle, *, num_draws: int | None = None,
-                    generator: torch.Generator | None = None, keep_draws: bool = False,
-                    progress: bool = False) -> dict[str, Tensor]:
-        """``num_draws`` is ignored (one trajectory)."""
-        def chunk(r: RayBundle) -> TrajectoryStatistics:
-            return render_mean_field(self.field, r, self.render_settings, generator=generator).stats
+    def render_view(self, rays: RayBundle, options: RenderOptions | None = None, *,
+                    generator: "torch.Generator | ChunkGenerators | None" = None) -> dict[str, Tensor]:
+        """One trajectory of the mean field per ray (K = 1)."""
+        def chunk(r: RayBundle, gen, K: int, settings: RenderSettings) -> ChunkRender:
+            out = render_mean_field(self.field, r, settings, generator=gen)
+            return ChunkRender(out.stats, 1, out.extras["field_evals"])
 
-        return render_chunked(chunk, rays, self.render_settings.chunk_rays, keep_draws=keep_draws, progress=progress)
+        return self._render_chunks(chunk, rays, options, generator)
 
 
 class MCDropoutNeRF(_MeanFieldModel):
@@ -276,7 +282,7 @@ class MCDropoutNeRF(_MeanFieldModel):
 
     def __init__(self, field: StochasticField, render_settings: RenderSettings, loss: LossConfig, *,
                  passes: int = DEFAULT_MC_DROPOUT_PASSES, tv_weight: float = 0.0):
-        super().__init__(render_settings, loss, num_draws=passes, tv_weight=tv_weight)
+        super().__init__(render_settings, loss, tv_weight=tv_weight)
         if not any(isinstance(m, SeededDropout) for m in field.modules()):
             raise ValueError("MCDropoutNeRF needs a field with SeededDropout layers (see build_mc_dropout)")
         if passes < 1:
@@ -290,21 +296,22 @@ class MCDropoutNeRF(_MeanFieldModel):
             out = render_mean_field(self.field, rays, self.render_settings, stratified=True, generator=generator)
         return self._likelihood_loss(out.stats, target, generator)
 
-    def render_view(self, rays: RayBundle, *, num_draws: int | None = None,
-                    generator: torch.Generator | None = None, keep_draws: bool = False,
-                    progress: bool = False) -> dict[str, Tensor]:
-        """``num_draws``: number of dropout passes P (default ``self.passes``)."""
-        passes = self.passes if num_draws is None else int(num_draws)
-        if passes < 1:
-            raise ValueError(f"MC-Dropout needs at least one pass, got num_draws={num_draws}")
+    @property
+    def trajectories(self) -> int | None:
+        return None  # the passes P are a render option (num_draws)
 
-        def chunk(r: RayBundle) -> TrajectoryStatistics:
-            return stack_draws([render_mean_field(self.field, r, self.render_settings, generator=generator).stats
-                                for _ in range(passes)])
+    def default_num_draws(self) -> int:
+        return self.passes
 
-        with dropout_control(self, generator, always_on=True):
-            return render_chunked(chunk, rays, self.render_settings.chunk_rays, keep_draws=keep_draws,
-                                  progress=progress)
+    def render_view(self, rays: RayBundle, options: RenderOptions | None = None, *,
+                    generator: "torch.Generator | ChunkGenerators | None" = None) -> dict[str, Tensor]:
+        """``options.num_draws`` dropout passes P per ray (default ``self.passes``)."""
+        def chunk(r: RayBundle, gen, K: int, settings: RenderSettings) -> ChunkRender:
+            with dropout_control(self, gen, always_on=True):  # the dropout masks draw from the chunk's generator
+                outs = [render_mean_field(self.field, r, settings, generator=gen) for _ in range(K)]
+            return ChunkRender(stack_draws([o.stats for o in outs]), K, sum(o.extras["field_evals"] for o in outs))
+
+        return self._render_chunks(chunk, rays, options, generator)
 
 
 class DeepEnsemble(_MeanFieldModel):
@@ -314,7 +321,7 @@ class DeepEnsemble(_MeanFieldModel):
                  tv_weight: float = 0.0):
         if len(fields) < 1:
             raise ValueError("an ensemble needs at least one member")
-        super().__init__(render_settings, loss, num_draws=len(fields), tv_weight=tv_weight)
+        super().__init__(render_settings, loss, tv_weight=tv_weight)
         self.members = nn.ModuleList(fields)
 
     def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
@@ -330,15 +337,18 @@ class DeepEnsemble(_MeanFieldModel):
         logs = {"nll": float(loss.detach()) / len(nlls), "mse": sum(mses) / len(mses)}
         return self._regularise(loss, logs, generator), logs
 
-    def render_view(self, rays: RayBundle, *, num_draws: int | None = None,
-                    generator: torch.Generator | None = None, keep_draws: bool = False,
-                    progress: bool = False) -> dict[str, Tensor]:
-        """``num_draws`` is ignored: the draws are the M members."""
-        def chunk(r: RayBundle) -> TrajectoryStatistics:
-            return stack_draws([render_mean_field(f, r, self.render_settings, generator=generator).stats
-                                for f in self.members])
+    @property
+    def trajectories(self) -> int | None:
+        return len(self.members)
 
-        return render_chunked(chunk, rays, self.render_settings.chunk_rays, keep_draws=keep_draws, progress=progress)
+    def render_view(self, rays: RayBundle, options: RenderOptions | None = None, *,
+                    generator: "torch.Generator | ChunkGenerators | None" = None) -> dict[str, Tensor]:
+        """The draws are the M members' mean-field renders (K = M)."""
+        def chunk(r: RayBundle, gen, K: int, settings: RenderSettings) -> ChunkRender:
+            outs = [render_mean_field(f, r, settings, generator=gen) for f in self.members]
+            return ChunkRender(stack_draws([o.stats for o in outs]), K, sum(o.extras["field_evals"] for o in outs))
+
+        return self._render_chunks(chunk, rays, options, generator)
 
 
 def nerfw_point_variance(params: FieldParams) -> Tensor:
@@ -374,16 +384,17 @@ class NeRFWUncertainty(_MeanFieldModel):
 
     def __init__(self, field: StochasticField, render_settings: RenderSettings, loss: LossConfig, *,
                  beta_min: float = NERFW_BETA_MIN, tv_weight: float = 0.0):
-        super().__init__(render_settings, loss, num_draws=1, tv_weight=tv_weight)
+        super().__init__(render_settings, loss, tv_weight=tv_weight)
         if not beta_min > 0:
             raise ValueError(f"beta_min must be > 0, got {beta_min}")
         self.field = field
         self.beta_min = float(beta_min)
 
-    def _render(self, rays: RayBundle, *, stratified: bool,
-                generator: torch.Generator | None) -> tuple[TrajectoryStatistics, Tensor]:
-        """(stats with K = 1, rendered variance [R, 3])."""
-        out = render_mean_field(self.field, rays, self.render_settings, stratified=stratified, generator=generator)
+    def _render(self, rays: RayBundle, *, stratified: bool, generator: torch.Generator | None,
+                settings: RenderSettings | None = None) -> tuple[TrajectoryStatistics, Tensor]:
+        """(stats with K = 1, rendered variance [R, 3]); ``settings`` default: the model's."""
+        out = render_mean_field(self.field, rays, settings or self.render_settings, stratified=stratified,
+                                generator=generator)
         weights = out.extras["weights"][:, 0]  # [R, S]
         var = nerfw_ray_variance(weights, nerfw_point_variance(out.params), self.beta_min)
         return out.stats, var
@@ -396,15 +407,14 @@ class NeRFWUncertainty(_MeanFieldModel):
                 "beta_rms": float(var.detach().mean().sqrt())}
         return self._regularise(nll, logs, generator), logs
 
-    def render_view(self, rays: RayBundle, *, num_draws: int | None = None,
-                    generator: torch.Generator | None = None, keep_draws: bool = False,
-                    progress: bool = False) -> dict[str, Tensor]:
-        """``num_draws`` is ignored (one trajectory); ``colour_var`` is the rendered variance."""
-        def chunk(r: RayBundle) -> TrajectoryStatistics:
-            stats, var = self._render(r, stratified=False, generator=generator)
-            return replace(stats, colour_var=var)
+    def render_view(self, rays: RayBundle, options: RenderOptions | None = None, *,
+                    generator: "torch.Generator | ChunkGenerators | None" = None) -> dict[str, Tensor]:
+        """One trajectory (K = 1); ``colour_var`` is the rendered variance."""
+        def chunk(r: RayBundle, gen, K: int, settings: RenderSettings) -> ChunkRender:
+            stats, var = self._render(r, stratified=False, generator=gen, settings=settings)
+            return ChunkRender(replace(stats, colour_var=var), 1)
 
-        return render_chunked(chunk, rays, self.render_settings.chunk_rays, keep_draws=keep_draws, progress=progress)
+        return self._render_chunks(chunk, rays, options, generator)
 
 
 # --------------------------------------------------------------------------------------------
@@ -429,8 +439,6 @@ def deterministic_density_init(cfg):
 
 
 def _build_field(cfg, dataset, region):
-    from .registry import build_field  # late import: registry imports this module at its end
-
     return build_field(cfg, region, dataset)
 
 

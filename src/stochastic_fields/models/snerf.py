@@ -24,13 +24,15 @@ import math
 import torch
 from torch import Tensor, nn
 
+from ..adaptive import render_image_adaptive
 from ..distortion import distortion_loss, distortion_loss_packed, normalised_coordinate
 from ..fields.base import StochasticField
 from ..fields.grid import GridField
 from ..losses import LossConfig, Priors, field_kl, gaussian_likelihood_nll, termination_depth_nll
 from ..occupancy import OccupancyGrid, density_threshold, density_upper_estimate
 from ..rays import PackedRaySamples, RayBundle, RaySamples
-from ..renderer import RayRender, RenderSettings, render_any_samples, render_image, skip_empty
+from ..renderer import (ChunkGenerators, ChunkRender, RayRender, RenderOptions, RenderSettings, render_any_samples,
+                        render_chunked, render_rays, skip_empty)
 from ..samplers import sample_along_rays
 from ..scene_region import SceneRegion, random_unit_directions
 from .base import RadianceModel
@@ -108,28 +110,33 @@ class SNeRF(RadianceModel):
             return c * z ** 2 * (1.0 + tan_x ** 2 + tan_y ** 2)
         return (c * t_max ** 2).expand(unit.shape[:-1])
 
-    def optical_depth_upper(self, unit: Tensor) -> Tensor:
+    def optical_depth_upper(self, unit: Tensor, num_std: float | None = None) -> Tensor:
         """[P] upper estimate relu(mu_a + n s_a) * delta of one interval's optical depth at unit points [P, 3]
-        (n = ``render_settings.occupancy_num_std``)."""
-        upper = density_upper_estimate(self.field, self.render_settings.occupancy_num_std)
+        (n = ``num_std``, default ``render_settings.occupancy_num_std``)."""
+        n = self.render_settings.occupancy_num_std if num_std is None else num_std
+        upper = density_upper_estimate(self.field, n)
         return upper(self.region.from_unit(unit)) * self.interval_length(unit)
 
-    def _occupancy_threshold(self) -> float:
+    def _occupancy_threshold(self, alpha_threshold: float | None = None) -> float:
         # optical depth of one interval (step 1: optical_depth_upper already multiplies by delta)
-        return density_threshold(1.0, self.render_settings.occupancy_alpha_threshold)
+        alpha = self.render_settings.occupancy_alpha_threshold if alpha_threshold is None else alpha_threshold
+        return density_threshold(1.0, alpha)
 
     @torch.no_grad()
-    def rebuild_occupancy(self, passes: int = 4, seed: int = 0) -> float:
-        """Recompute the occupancy grid from the trained field with the current render settings
-        (``occupancy_num_std``, ``occupancy_alpha_threshold``): every cell evaluated at ``passes``
-        jittered points, the maximum kept. Returns the occupied fraction."""
+    def rebuild_occupancy(self, passes: int = 4, seed: int = 0, *, num_std: float | None = None,
+                          alpha_threshold: float | None = None) -> float:
+        """Recompute the occupancy grid from the trained field: every cell evaluated at ``passes``
+        jittered points, the maximum kept, occupied where the upper estimate with ``num_std`` gives
+        an interval an opacity above ``alpha_threshold`` (defaults: the run's
+        ``occupancy_num_std``, ``occupancy_alpha_threshold``). Returns the occupied fraction."""
         if self.occupancy is None or not bool(self.interval_scale[0] > 0):
             raise ValueError("rebuild_occupancy needs a model trained with render.skip_empty_space")
         self.occupancy.density_ema.zero_()
         gen = torch.Generator(device=self.occupancy.occupancy.device).manual_seed(seed)
         for _ in range(passes):
-            self.occupancy.update(self.optical_depth_upper, 0, decay=1.0, threshold=self._occupancy_threshold(),
-                                  warmup_steps=1, update_every_n_steps=1, generator=gen)
+            self.occupancy.update(lambda unit: self.optical_depth_upper(unit, num_std), 0, decay=1.0,
+                                  threshold=self._occupancy_threshold(alpha_threshold), warmup_steps=1,
+                                  update_every_n_steps=1, generator=gen)
         return self.occupancy.occupied_fraction
 
     def after_step(self, step: int) -> None:
@@ -236,21 +243,39 @@ class SNeRF(RadianceModel):
         s1 = normalised_coordinate(samples.t_ends, near, far, spacing)[:, None, :]
         return distortion_loss(out.extras["weights"], s0, s1).mean()
 
-    def render_view(self, rays: RayBundle, *, num_draws: int | None = None,
-                    generator: torch.Generator | None = None, keep_draws: bool = False,
-                    progress: bool = False) -> dict[str, Tensor]:
-        """Maps of ``rays`` [H, W]; adaptive K when ``render_settings.adaptive_draws`` and no ``num_draws``
-        is given (then maps hold ``num_draws`` [H, W], the K each chunk of pixels needed)."""
-        occupied = self.occupied if self.occupancy is not None else None
-        settings = self.render_settings
-        if settings.adaptive_draws and num_draws is None:
-            from ..adaptive import render_image_adaptive
+    def _occupied_for(self, settings: RenderSettings):
+        """The occupancy test of a render with ``settings``: the grid where one is kept and the
+        quadrature is alpha (a trapezoid render evaluates every sample), else None."""
+        return self.occupied if self.occupancy is not None and settings.quadrature == "alpha" else None
 
-            maps = render_image_adaptive(self.field, rays, settings, generator=generator, keep_draws=keep_draws,
-                                         progress=progress, occupied=occupied)
+    @torch.no_grad()
+    def render_chunk(self, rays: RayBundle, options: RenderOptions, *,
+                     generator: torch.Generator | None = None) -> RayRender:
+        """One chunk of rays [R] with ``options.num_draws`` trajectories, as ``render_view`` renders
+        it (same samples, skipping and noise for the same generator): the notebook's pixel probe
+        reads the samples, parameters and weights behind a pixel from it."""
+        settings = options.settings_for(self.render_settings)
+        return render_rays(self.field, rays, settings, num_draws=options.num_draws, generator=generator,
+                           occupied=self._occupied_for(settings))
+
+    def render_view(self, rays: RayBundle, options: RenderOptions | None = None, *,
+                    generator: "torch.Generator | ChunkGenerators | None" = None) -> dict[str, Tensor]:
+        """Maps of ``rays`` [H, W] (``RadianceModel.render_view``): a fixed K, or adaptive K per chunk
+        with ``options.adaptive_draws``. Empty space is skipped with the occupancy grid (alpha
+        quadrature only: a trapezoid render evaluates every sample). With ``colour_variance =
+        'predictive'`` the colour variance adds sigma_n^2 (law of total variance)."""
+        options = options or self.default_render_options()
+        settings = options.settings_for(self.render_settings)
+        if options.adaptive_draws:
+            maps = render_image_adaptive(self.field, rays, settings, generator=generator, keep_draws=options.keep_draws,
+                                         progress=options.progress, occupied=self._occupied_for(settings))
         else:
-            maps = render_image(self.field, rays, settings, num_draws=num_draws, generator=generator,
-                                keep_draws=keep_draws, progress=progress, occupied=occupied)
+            def chunk(r: RayBundle, gen: torch.Generator | None) -> ChunkRender:
+                out = self.render_chunk(r, options, generator=gen)
+                return ChunkRender(out.stats, options.num_draws, out.extras["field_evals"])
+
+            maps = render_chunked(chunk, rays, options.chunk_rays, generator=generator, keep_draws=options.keep_draws,
+                                  progress=options.progress)
         if settings.colour_variance == "predictive":
             # Var[c] = E_k Var[c | C_k] + Var_k C_k = sigma_n^2 + epistemic (law of total variance)
             maps["colour_var"] = maps["colour_var"] + self.likelihood_std().detach().to(maps["colour_var"]) ** 2

@@ -1,7 +1,7 @@
 """Per-view depth products from K depth trajectories, and the files they are written to.
 
 Every product is **camera-z depth in scene units** (SPEC 1): the renderer's ray distances are
-multiplied by ``z_scale`` (:func:`stochastic_fields.evaluate.camera_z_maps`). Per pixel, with
+multiplied by ``z_scale`` (:func:`stochastic_fields.view_maps.camera_z_maps`). Per pixel, with
 ``D_k`` the camera-z termination depth of draw k (k = 1..K):
 
     depth_mean          = mean_k D_k
@@ -49,7 +49,7 @@ import numpy as np
 import torch
 
 from ..calibration import apply_depth_calibration
-from ..evaluate import camera_z_maps
+from ..view_maps import camera_z_maps
 from ..io_utils import atomic_path, atomic_write_text
 
 #: Colour range (relative) given to a constant map so matplotlib can draw it.

@@ -274,7 +274,7 @@ def render_products(model, spec: ViewSpec, opts: ExportOptions, generator: torch
     cams = make_cameras(torch.from_numpy(spec.intrinsics).float()[None],
                         torch.from_numpy(spec.world_to_camera).float()[None], spec.height, spec.width)
     rays = generate_rays_for_view(cams, 0, spec.near, spec.far).to(device)
-    maps = model.render_view(rays, num_draws=opts.num_draws, generator=generator, keep_draws=True)
+    maps = model.render_view(rays, model.render_options(num_draws=opts.num_draws, keep_draws=True), generator=generator)
     return compute_depth_products(maps, intrinsics_3x3(cams)[0].double().numpy(), cams.extrinsics[0].double().numpy(),
                                   near=spec.near, far=spec.far, quantiles=opts.quantiles,
                                   min_opacity=opts.min_opacity, units=opts.units, keep_draws=True,

@@ -30,7 +30,6 @@ import multiprocessing as mp
 import platform
 import resource
 import time
-from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 
@@ -74,7 +73,7 @@ def _budget(args) -> dict:
 
 # ----------------------------------------------------------------------------------- scenes
 def _scene_config(scene: str, backend: str, budget: dict, scene_path: Path):
-    from .config import preset
+    from stochastic_fields.config import preset
 
     cfg = preset("llff" if scene == "fern" else "demo")
     cfg.data.path = str(scene_path)
@@ -93,15 +92,15 @@ def _scene_config(scene: str, backend: str, budget: dict, scene_path: Path):
 
 
 def _load(cfg):
-    from .scenes import load_run_dataset
+    from stochastic_fields.scenes import load_run_dataset
 
     return load_run_dataset(cfg, Path(cfg.data.path))
 
 
 def _eval_pixels(dataset, count: int, seed: int = 0):
     """A fixed random subset of test pixels: rays [P] and colours [P, 3]."""
-    from .cameras import generate_rays_for_view
-    from .rays import RayBundle
+    from stochastic_fields.cameras import generate_rays_for_view
+    from stochastic_fields.rays import RayBundle
 
     rays, colours = [], []
     for v in dataset.test_indices:
@@ -113,9 +112,9 @@ def _eval_pixels(dataset, count: int, seed: int = 0):
 
 
 def _score_pixels(model, rays, colours, num_draws: int = 16) -> dict:
-    from .eval import metrics as M
+    from stochastic_fields import metrics as M
 
-    maps = model.render_view(rays, num_draws=num_draws, generator=torch.Generator().manual_seed(0))
+    maps = model.render_view(rays, model.render_options(num_draws=num_draws), generator=torch.Generator().manual_seed(0))
     mean, var = maps["colour_mean"].double(), maps["colour_var"].double()
     return {"psnr": M.psnr(mean, colours.double()), "nll": M.gaussian_nll(colours.double(), mean, var),
             "field_evals_per_ray": float(maps["field_evals_per_ray"].mean())}
@@ -137,8 +136,8 @@ def _rss_mb() -> float:
 
 def _train_child(cfg_dict: dict, run_dir: str, budget: dict, queue) -> None:
     """Train one backend in a fresh process (its peak memory is its own) and evaluate along the way."""
-    from .config import ExperimentConfig, from_dict
-    from .trainer import Trainer
+    from stochastic_fields.config import ExperimentConfig, from_dict
+    from stochastic_fields.trainer import Trainer
 
     try:
         torch.set_num_threads(torch.get_num_threads())
@@ -169,7 +168,7 @@ def _train_child(cfg_dict: dict, run_dir: str, budget: dict, queue) -> None:
 
 
 def train_backend(cfg, run_dir: Path, budget: dict) -> dict:
-    from .config import to_dict
+    from stochastic_fields.config import to_dict
 
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
@@ -212,13 +211,16 @@ def _timed_pair(fn_a, fn_b, repeats: int | None = None):
 
 
 def _view_scores(maps, gt, gt_depth, sparse, stride: int) -> dict:
-    from .evaluate import camera_z_maps, score_view
+    from stochastic_fields.evaluation import score_view
+    from stochastic_fields.view_maps import camera_z_maps
 
     products = camera_z_maps(maps)
     s = score_view(products, gt, gt_depth)
     out = {k: (v.value if hasattr(v, "value") else v) for k, v in s.items() if not isinstance(v, dict)}
+    if gt_depth is not None:
+        out["depth_abs_rel"], out["depth_rmse"] = out["depth/abs_rel"], out["depth/rmse"]
     if sparse is not None:
-        from .eval.colmap_depth import paired_depth_scores
+        from stochastic_fields.sparse_depth import paired_depth_scores
 
         rows, cols = sparse.rows // stride, sparse.cols // stride
         ok = (rows < gt.shape[0]) & (cols < gt.shape[1])
@@ -234,20 +236,10 @@ def _view_scores(maps, gt, gt_depth, sparse, stride: int) -> dict:
     return out
 
 
-@contextmanager
-def _colour_estimator(settings, estimator: str):
-    """Render with ``settings.colour_estimator = estimator`` inside the block, restored after."""
-    saved, settings.colour_estimator = settings.colour_estimator, estimator
-    try:
-        yield
-    finally:
-        settings.colour_estimator = saved
-
-
 def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> dict:
     """K sweep, adaptive K, skipping on/off, deterministic ratio on one test view of a trained model."""
-    from .cameras import generate_rays_for_view
-    from .renderer import render_image
+    from stochastic_fields.cameras import generate_rays_for_view
+    from stochastic_fields.renderer import render_image
 
     view = int(dataset.test_indices[0])
     rays = generate_rays_for_view(dataset.cameras, view, dataset.near, dataset.far)[::stride, ::stride]
@@ -257,18 +249,18 @@ def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> 
     sparse = None
     if gt_depth is None:
         try:
-            from .eval.colmap_depth import sparse_depth_for_dataset
+            from stochastic_fields.sparse_depth import sparse_depth_for_dataset
 
             sparse = sparse_depth_for_dataset(dataset, [view])[view]
         except (ImportError, FileNotFoundError, ValueError) as exc:
             print(f"  (no sparse depth for view {view}: {exc})")
-    settings = model.render_settings
+    settings = model.render_settings  # read only: every render passes its own options
     out: dict = {"view": view, "stride": stride, "pixels": int(rays.shape[0] * rays.shape[1])}
 
-    def render(k=None, estimator="draws", seed=0, **kw):
+    def render(k=None, estimator="draws", seed=0, **changes):
         gen = torch.Generator().manual_seed(seed)
-        with _colour_estimator(settings, estimator):
-            return _timed(lambda: model.render_view(rays, num_draws=k, generator=gen, **kw))
+        options = model.render_options(num_draws=k, colour_estimator=estimator, **changes)
+        return _timed(lambda: model.render_view(rays, options, generator=gen))
 
     with torch.no_grad():
         render(4)  # warm-up
@@ -285,14 +277,12 @@ def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> 
                                          for seed in K128_EXTRA_SEEDS]
             out[f"{key}_k128_seed_nll"] = {"nll": nlls, "relative_sd": float(np.std(nlls, ddof=1) / abs(np.mean(nlls)))}
             print(f"  {estimator:13s} K= 128 NLL over seeds {', '.join(f'{x:.3f}' for x in nlls)}")
-        settings.adaptive_draws = True
         default_rule, default_rtol = settings.adaptive_rule, settings.adaptive_rtol
         out["adaptive_by_rtol"] = []
         runs = [("draws", rule, rtol) for rule, rtol in dict.fromkeys(((default_rule, default_rtol), *ADAPTIVE_RULES))]
         runs += [("rao_blackwell", rule, rtol) for rule, rtol in ADAPTIVE_RULES_RAO_BLACKWELL]
         for estimator, rule, rtol in runs:
-            settings.adaptive_rule, settings.adaptive_rtol = rule, rtol
-            maps, secs = render(None, estimator)
+            maps, secs = render(None, estimator, adaptive_draws=True, adaptive_rule=rule, adaptive_rtol=rtol)
             k_map = maps["num_draws"]
             entry = {"time_s": secs, "K_mean": float(k_map.mean()), "K_max": float(k_map.max()),
                      "K_min": float(k_map.min()), "rule": rule, "rtol": rtol, "colour_estimator": estimator,
@@ -303,20 +293,18 @@ def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> 
                 out["adaptive"] = entry
             print(f"  adaptive K {estimator} {rule} rtol {rtol} (mean K {entry['K_mean']:.1f}): {secs:.2f} s  "
                   f"NLL {entry['nll']:.3f}")
-        settings.adaptive_rule, settings.adaptive_rtol = default_rule, default_rtol
-        settings.adaptive_draws = False
 
         k_def = settings.num_draws
         occupied = model.occupied if model.occupancy is not None else None
         gen = torch.Generator().manual_seed(0)
         stochastic_maps = {}
         for estimator, key in (("draws", "deterministic_ratio"), ("rao_blackwell", "deterministic_ratio_rao_blackwell")):
-            with _colour_estimator(settings, estimator):
-                (_, t_det), (stochastic_maps[estimator], t_sto) = _timed_pair(
-                    lambda: render_image(model.field, rays, settings, num_draws=1, deterministic=True,
-                                         occupied=occupied, generator=torch.Generator().manual_seed(0)),
-                    lambda: render_image(model.field, rays, settings, num_draws=k_def, occupied=occupied,
-                                         generator=torch.Generator().manual_seed(0)))
+            st = replace(settings, colour_estimator=estimator)
+            (_, t_det), (stochastic_maps[estimator], t_sto) = _timed_pair(
+                lambda: render_image(model.field, rays, st, num_draws=1, deterministic=True,
+                                     occupied=occupied, generator=torch.Generator().manual_seed(0)),
+                lambda: render_image(model.field, rays, st, num_draws=k_def, occupied=occupied,
+                                     generator=torch.Generator().manual_seed(0)))
             evals = float(stochastic_maps[estimator]["field_evals_per_ray"].sum())
             out[key] = {"K": k_def, "colour_estimator": estimator, "snerf_time_s": t_sto,
                         "deterministic_time_s": t_det, "ratio": t_sto / t_det, "field_evals": evals,
@@ -360,15 +348,13 @@ SKIPPING_CRITERIA = ((3.0, 1e-4), (2.0, 1e-3), (1.0, 1e-2), (0.0, 1e-2))
 def skipping_sweep(model, rays, settings, num_draws: int, score) -> list[dict]:
     """Occupancy rebuilt from the trained field at each of SKIPPING_CRITERIA; one render each:
     field evaluations per ray, time and scores (the trained occupancy is restored afterwards)."""
-    from .renderer import render_image
+    from stochastic_fields.renderer import render_image
 
     saved = {k: v.clone() for k, v in model.occupancy.state_dict().items()}
-    saved_criteria = (settings.occupancy_num_std, settings.occupancy_alpha_threshold)
     rows = []
     try:
         for num_std, alpha in SKIPPING_CRITERIA:
-            settings.occupancy_num_std, settings.occupancy_alpha_threshold = num_std, alpha
-            fraction = model.rebuild_occupancy()
+            fraction = model.rebuild_occupancy(num_std=num_std, alpha_threshold=alpha)
             gen = torch.Generator().manual_seed(0)
             maps, secs = _timed(lambda: render_image(model.field, rays, settings, num_draws=num_draws,
                                                       occupied=model.occupied, generator=gen))
@@ -377,14 +363,13 @@ def skipping_sweep(model, rays, settings, num_draws: int, score) -> list[dict]:
             print(f"  skipping at mu + {num_std:g} s, alpha > {alpha:g}: occupied {fraction:.3f}, "
                   f"{rows[-1]['field_evals_per_ray']:.1f} evals/ray, PSNR {rows[-1]['psnr']:.2f}, NLL {rows[-1]['nll']:.3f}")
     finally:
-        settings.occupancy_num_std, settings.occupancy_alpha_threshold = saved_criteria
         model.occupancy.load_state_dict(saved)
     return rows
 
 
 def training_step_times(model, dataset, steps: int, rays_per_batch: int) -> dict:
     """Forward + backward time of S-NeRF's training loss with and without empty-space skipping."""
-    from .trainer import TrainingRays
+    from stochastic_fields.trainer import TrainingRays
 
     data = TrainingRays.from_dataset(dataset, torch.device("cpu"))
     model.train()
@@ -604,7 +589,7 @@ def machine_description() -> dict:
 
 
 def run(args: argparse.Namespace) -> None:
-    from .trainer import load_trained_model
+    from stochastic_fields.trainer import load_trained_model
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -623,7 +608,7 @@ def run(args: argparse.Namespace) -> None:
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
     for scene in scenes:
         if scene == "synthetic":
-            from .data.synthetic import make_synthetic_scene
+            from stochastic_fields.data.synthetic import make_synthetic_scene
 
             path = work / "scene_synthetic"
             if not (path / "transforms.json").exists():
@@ -666,7 +651,7 @@ def run(args: argparse.Namespace) -> None:
             res["throughput"][name] = tp
         # deterministic ratio of the MLP backbone on the curve pixels (a full view is too slow on CPU)
         rays, _ = _eval_pixels(dataset, min(budget["eval_pixels"], 2048))
-        from .renderer import render_image
+        from stochastic_fields.renderer import render_image
 
         occ = mlp_model.occupied if mlp_model.occupancy is not None else None
         with torch.no_grad():
@@ -686,7 +671,7 @@ def run(args: argparse.Namespace) -> None:
 
 
 def _write(out: Path, results: dict) -> None:
-    from .io_utils import atomic_write_text
+    from stochastic_fields.io_utils import atomic_write_text
 
     atomic_write_text(out / "bench.json", json.dumps(results, indent=2, default=float))
 

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..constants import DEPTH_NLL_VARIANCE_FLOOR, NLL_VARIANCE_FLOOR
+from .constants import DEPTH_NLL_VARIANCE_FLOOR, NLL_VARIANCE_FLOOR
 
 ErrorMetric = Literal["rmse", "mae"]
 

@@ -47,10 +47,10 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from ..config import ExperimentConfig, flatten, preset, to_dict
-from ..io_utils import atomic_path, atomic_write_text
-from . import metrics as M
-from .colmap_depth import COVERAGE_LEVELS, paired_depth_scores, sparse_depth_conventions
+from stochastic_fields.config import ExperimentConfig, flatten, preset, to_dict
+from stochastic_fields.io_utils import atomic_path, atomic_write_text
+from stochastic_fields import metrics as M
+from stochastic_fields.view_maps import draws_summary
 
 # --------------------------------------------------------------------------------------------
 # methods and the paper's figures
@@ -315,10 +315,6 @@ def _sync(device: torch.device) -> None:
 # --------------------------------------------------------------------------------------------
 
 
-def _pack(prefix: str, result) -> dict[str, np.ndarray]:
-    return {f"{prefix}.{f.name}": np.asarray(getattr(result, f.name)) for f in dataclasses.fields(result)}
-
-
 def _unpack(data, prefix: str, cls):
     kwargs = {}
     for f in dataclasses.fields(cls):
@@ -327,162 +323,26 @@ def _unpack(data, prefix: str, cls):
     return cls(**kwargs)
 
 
-def _nan_if_constant(scores: dict, constant: bool) -> None:
-    if constant:
-        for key in ("ause_rmse", "ause_rmse_normalised", "ause_mae", "ause_mae_normalised"):
-            scores[key] = math.nan
-
-
-def _depth_block(prefix: str, scores: dict) -> dict[str, Any]:
-    keys = ("abs_rel", "rmse", "nll", "ause_rmse", "ause_rmse_normalised", "pearson", "spearman", "coverage_68",
-            "coverage_95", "auce", "num_used")
-    return {f"{prefix}{k}": scores[k] for k in keys}
-
-
-def _plain_scores(scores: dict) -> dict[str, Any]:
-    """Depth scores as JSON-ready numbers (correlations by value, no curves)."""
-    return {k: (v.value if isinstance(v, M.CorrelationResult) else v)
-            for k, v in scores.items() if k not in ("calibration", "sparsification")}
+#: What the tables' depth numbers mean, beside the conventions of ``evaluation.evaluate``.
+TABLE_CONVENTIONS: dict[str, str] = {
+    "scored_points": ("depth is scored only on the capture points of the SCORE role (capture_points: blocks of "
+                      "space disjoint from the points that train the depth likelihood and fit the recalibration)"),
+    "depth_calibration": ("methods marked calibrated report depth_std recalibrated on the CALIBRATE capture points "
+                          "seen from training views, intervals at level p scaled by s(p)/s(0.683); raw scores under "
+                          "depth_raw/"),
+}
 
 
 def evaluate_run(model, dataset, out_dir: Path, *, views: Sequence[int] | None = None, seed: int = 0,
                  sparse_depth: dict | None = None, product_views: int = 1, progress: bool = True,
                  calibration=None) -> dict:
-    """Render and score ``views`` (default: the test split) of one trained model.
+    """``evaluation.evaluate`` of one trained model with the tables' conventions (the model's own
+    render options; products of the first ``product_views`` views)."""
+    from stochastic_fields.evaluation import evaluate
 
-    Writes ``metrics.json`` (per-view values, means, pooled scores, conventions) and
-    ``curves.npz`` (pooled sparsification and calibration curves) into ``out_dir``; returns the
-    metrics dict. ``sparse_depth``: {view: SparseDepth} (LLFF); otherwise the dataset's depth
-    maps (if any) are the depth ground truth.
-    """
-    from tqdm.auto import tqdm
-
-    from ..calibration import apply_depth_calibration
-    from ..evaluate import OPACITY_MASK, camera_z_maps, score_view, view_camera_arrays, write_view_products
-
-    out_dir = Path(out_dir)
-    views = list(dataset.test_indices) if views is None else [int(v) for v in views]
-    device = next(model.parameters()).device
-    generator = torch.Generator(device=device).manual_seed(seed)
-    report = M.MetricReport()
-    report.conventions.update(sparse_depth_conventions())
-    report.conventions["scored_points"] = ("depth is scored only on the capture points of the SCORE role "
-                                           "(capture_points: blocks of space disjoint from the points that train "
-                                           "the depth likelihood and fit the recalibration)")
-    report.conventions["depth_calibration"] = ("methods marked calibrated report depth_std recalibrated on the "
-                                               "CALIBRATE capture points seen from training views, intervals at "
-                                               "level p scaled by s(p)/s(0.683); raw scores under depth_raw/")
-    report.conventions["constant_uncertainty"] = ("a constant uncertainty map (deterministic NeRF) has undefined "
-                                                   "correlations and AUSE; its NLL uses the variance floor")
-    pooled = {"err_rmse": [], "err_mae": [], "unc": [], "nll_sum": 0.0, "n_pix": 0}
-    colour_cov = np.zeros_like(M.DEFAULT_CALIBRATION_LEVELS)
-    colour_cov_n = 0
-    depth_pool = {"gt": [], "pred": [], "std": [], "std_raw": []}
-    depth_source = "colmap" if sparse_depth is not None else ("dense" if getattr(dataset, "depths", None) is not None
-                                                               else None)
-    render_s = []
-    interval_scale = None if calibration is None or calibration.depth is None else calibration.depth.relative_scale
-    for i, v in enumerate(tqdm(views, desc="evaluate", disable=not progress)):
-        rays = dataset.rays(v).to(device)
-        _sync(device)
-        t0 = time.perf_counter()
-        maps = model.render_view(rays, generator=generator)
-        _sync(device)
-        render_s.append(time.perf_counter() - t0)
-        products = apply_depth_calibration(camera_z_maps(maps), calibration)
-        gt = dataset.images[v].numpy()
-        gt_depth = dataset.depths[v].numpy() if getattr(dataset, "depths", None) is not None else None
-        if i < product_views:
-            write_view_products(out_dir / "views", f"view_{v:03d}", products, gt, gt_depth,
-                                camera=view_camera_arrays(dataset, v))
-        mean = products["colour_mean"].astype(np.float64)
-        var = products["colour_std"].astype(np.float64) ** 2
-        scores = score_view(products, gt, None)  # depth is scored below, the same way for every source
-        unc = M.pixel_uncertainty(var).numpy()
-        constant = bool(np.ptp(unc) == 0)
-        sp_rmse = M.colour_sparsification(gt, mean, var, "rmse")
-        sp_mae = M.colour_sparsification(gt, mean, var, "mae")
-        cal = M.calibration_curve(gt, mean, np.sqrt(var))
-        scores.update(ause_rmse_normalised=sp_rmse.ause_normalised, ause_mae=sp_mae.ause,
-                      ause_mae_normalised=sp_mae.ause_normalised, auce_colour=cal.auce,
-                      calibration_gap_colour=cal.signed_gap, render_s=render_s[-1])
-        _nan_if_constant(scores, constant)
-        pooled["err_rmse"].append(M.pixel_errors(gt, mean, "rmse").numpy().reshape(-1).astype(np.float32))
-        pooled["err_mae"].append(M.pixel_errors(gt, mean, "mae").numpy().reshape(-1).astype(np.float32))
-        pooled["unc"].append(unc.reshape(-1).astype(np.float32))
-        per_pixel_nll = M.gaussian_nll(gt, mean, var, reduce=False).numpy()
-        pooled["nll_sum"] += float(per_pixel_nll.sum())
-        pooled["n_pix"] += per_pixel_nll.size
-        colour_cov += cal.coverage * cal.num_values
-        colour_cov_n += cal.num_values
-        # depth against ground truth samples
-        if depth_source is not None:
-            d, op = products["depth_mean"], products["opacity"]
-            s, s_raw = products["depth_std"], products.get("depth_std_raw", products["depth_std"])
-            if depth_source == "colmap":
-                sd = sparse_depth[v]
-                keep = sd.sample(op) > OPACITY_MASK
-                g_s, d_s, s_s, s_r = sd.depth[keep], sd.sample(d)[keep], sd.sample(s)[keep], sd.sample(s_raw)[keep]
-            else:
-                mask = (gt_depth > 0) & (op > OPACITY_MASK)
-                g_s, d_s, s_s, s_r = gt_depth[mask], d[mask], s[mask], s_raw[mask]
-            scores.update(_depth_block("depth/", paired_depth_scores(g_s, d_s, s_s, interval_scale=interval_scale)))
-            if calibration is not None:
-                scores.update(_depth_block("depth_raw/", paired_depth_scores(g_s, d_s, s_r)))
-            for key, value in (("gt", g_s), ("pred", d_s), ("std", s_s), ("std_raw", s_r)):
-                depth_pool[key].append(np.asarray(value, np.float64))
-        report.add(f"view_{v:03d}", **scores)
-
-    result = report.to_dict()
-    result["num_draws"] = int(model.render_settings.num_draws)
-    result["opacity_mask"] = OPACITY_MASK
-    result["depth_source"] = depth_source
-    result["depth_calibration"] = None if calibration is None else calibration.to_dict()
-    curves: dict[str, np.ndarray] = {}
-    # pooled colour scores: every test pixel of the scene at once
-    err_rmse, err_mae, unc = (np.concatenate(pooled[k]).astype(np.float64) for k in ("err_rmse", "err_mae", "unc"))
-    constant = bool(np.ptp(unc) == 0)
-    pear = M.pearson(err_rmse ** 2, unc, "error", "uncertainty")
-    spear = M.spearman(err_rmse ** 2, unc, "error", "uncertainty")
-    pooled_out: dict[str, Any] = {
-        "num_pixels": int(err_rmse.size), "nll": pooled["nll_sum"] / max(1, pooled["n_pix"]),
-        "pearson_mse_var": pear.value, "spearman_mse_var": spear.value,
-        "correlation_undefined_reason": pear.reason,
-    }
-    cal_levels = M.DEFAULT_CALIBRATION_LEVELS
-    coverage = colour_cov / max(1, colour_cov_n)
-    colour_cal = M.CalibrationResult(levels=cal_levels, coverage=coverage, auce=float(np.abs(coverage - cal_levels).mean()),
-                                     signed_gap=float((coverage - cal_levels).mean()), num_values=int(colour_cov_n))
-    pooled_out.update(auce_colour=colour_cal.auce, calibration_gap_colour=colour_cal.signed_gap)
-    curves.update(_pack("colour_calibration", colour_cal))
-    if not constant:
-        for metric, err in (("rmse", err_rmse), ("mae", err_mae)):
-            sp = M.sparsification_curve(err, unc, metric=metric)
-            pooled_out[f"ause_{metric}"] = sp.ause
-            pooled_out[f"ause_{metric}_normalised"] = sp.ause_normalised
-            curves.update(_pack(f"colour_sparsification_{metric}", sp))
-    else:
-        for metric in ("rmse", "mae"):
-            pooled_out[f"ause_{metric}"] = pooled_out[f"ause_{metric}_normalised"] = math.nan
-    if depth_source is not None:
-        g, d, s, s_raw = (np.concatenate(depth_pool[k]) if depth_pool[k] else np.zeros(0)
-                          for k in ("gt", "pred", "std", "std_raw"))
-        ds = paired_depth_scores(g, d, s, interval_scale=interval_scale)
-        pooled_out["depth"] = _plain_scores(ds)
-        if calibration is not None:
-            pooled_out["depth_raw"] = _plain_scores(paired_depth_scores(g, d, s_raw))
-        if ds["calibration"] is not None:
-            curves.update(_pack("depth_calibration", ds["calibration"]))
-        if ds["sparsification"] is not None:
-            curves.update(_pack("depth_sparsification_rmse", ds["sparsification"]))
-    result["pooled"] = pooled_out
-    result["render_s_per_view"] = float(np.mean(render_s)) if render_s else math.nan
-    out_dir.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out_dir / "curves.npz") as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **curves)
-    atomic_write_text(out_dir / "metrics.json", json.dumps(result, indent=2, default=float))
-    return result
+    return evaluate(model, dataset, out_dir, views=views, seed=seed, sparse_depth=sparse_depth,
+                    product_views=product_views, calibration=calibration, conventions=TABLE_CONVENTIONS,
+                    progress=progress)
 
 
 def time_render(model, dataset, view: int, *, seed: int = 0, repeats: int = 3) -> dict[str, Any]:
@@ -494,20 +354,21 @@ def time_render(model, dataset, view: int, *, seed: int = 0, repeats: int = 3) -
     rays = dataset.rays(view).to(device)
     gen = torch.Generator(device=device).manual_seed(seed)
     H, W = rays.shape
-    warm = rays.flatten()[: model.render_settings.chunk_rays].reshape(1, -1)
-    model.render_view(warm, generator=gen)
+    options = model.default_render_options()
+    warm = rays.flatten()[: options.chunk_rays].reshape(1, -1)
+    model.render_view(warm, options, generator=gen)
     _reset_cuda_peak()
     times = []
     for _ in range(repeats):
         _sync(device)
         t0 = time.perf_counter()
-        model.render_view(rays, generator=gen)
+        maps = model.render_view(rays, options, generator=gen)
         _sync(device)
         times.append(time.perf_counter() - t0)
     seconds = float(np.median(times))
     return {"view": int(view), "height": H, "width": W, "render_s": seconds, "render_s_min": min(times),
             "render_s_max": max(times), "repeats": repeats, "rays_per_s": H * W / seconds,
-            "num_draws": int(model.render_settings.num_draws), "device": str(device),
+            **draws_summary(maps["num_draws"]), "device": str(device),
             "torch_threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
             **_peak_memory()}
 
@@ -531,7 +392,7 @@ def run_method(spec: MethodSpec, dataset, scene_path: Path, run_dir: Path, setti
                views: Sequence[int], sparse_depth: dict | None, progress: bool = True,
                log: Callable[[str], None] = print) -> dict[str, Any]:
     """Train (or resume), evaluate and time one method on one scene; skips finished stages."""
-    from ..trainer import Trainer, load_trained_model
+    from stochastic_fields.trainer import Trainer, load_trained_model
 
     run_dir = Path(run_dir)
     cfg = method_config(spec, base_config(settings, dataset), scene_path)
@@ -566,7 +427,7 @@ def run_method(spec: MethodSpec, dataset, scene_path: Path, run_dir: Path, setti
 
     calibration = None
     if spec.calibrate:
-        from ..calibration import calibrate_run, describe, load_run_calibration
+        from stochastic_fields.calibration import calibrate_run, describe, load_run_calibration
 
         calibration = load_run_calibration(run_dir)
         if stages.get("calibrate", {}).get("fingerprint") != fp_cal:
@@ -623,8 +484,8 @@ def run_scene(scene: str, methods: Sequence[str], out_root: Path, settings: Benc
               data_root: Path | None = None, progress: bool = True,
               log: Callable[[str], None] = print) -> dict[str, dict]:
     """Every method on one scene: {method: load_method_result(...)}."""
-    from ..data import load_dataset
-    from ..data.dataset import detect_format
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.data import detect_format
 
     scene_path = resolve_scene(scene, data_root)
     kind = detect_format(scene_path)
@@ -635,7 +496,7 @@ def run_scene(scene: str, methods: Sequence[str], out_root: Path, settings: Benc
     views = select_views(list(dataset.test_indices), settings)
     sparse = None
     if getattr(dataset, "depths", None) is None:
-        from ..capture_points import SCORE, load_capture_points, sparse_depth_for_role
+        from stochastic_fields.capture_points import SCORE, load_capture_points, sparse_depth_for_role
 
         points = load_capture_points(dataset)
         if points is None:
@@ -897,7 +758,7 @@ def format_markdown(tables: dict[str, Any]) -> str:
 def write_plots(results: dict[str, dict[str, dict]], plot_dir: Path) -> list[Path]:
     """Per scene: colour sparsification (RMSE, normalised) and calibration plots for the Table-1
     methods and for the ablation, plus depth plots where depth ground truth exists."""
-    from .plots import plot_calibration, plot_sparsification
+    from stochastic_fields.plots import plot_calibration, plot_sparsification
 
     written = []
     groups = {"": TABLE1_METHODS, "ablation_": TABLE3_METHODS}

@@ -1,0 +1,297 @@
+"""The one evaluation loop: render views of a trained model, write their products, score them
+(docs/definitions.md §6). The CLI (``render``, ``eval``, ``demo``), the benchmark tables, the
+speed benchmark and the notebook all score through this module.
+
+For each view: ``views/view_XXX.npz`` (float32 maps, camera-z metric depth, the camera: see
+``view_maps``) and viewable PNGs for the first ``product_views`` views; per-view scores
+(:func:`score_view`); and, pooled over every scored pixel of all views, the colour and depth
+scores with their sparsification and calibration curves (``curves.npz``). ``metrics.json``
+holds the per-view values, their means (undefined values counted, not averaged), the pooled
+scores, the K each view was rendered with and the conventions behind every number.
+
+Depth is scored against the dataset's depth maps (pixels with ground truth and opacity >
+``OPACITY_MASK``) or, when ``sparse_depth`` is given, against projected SfM points (LLFF,
+``sparse_depth``), the same way for every source. A model whose uncertainty map is constant
+(the deterministic NeRF) has undefined correlations and AUSE: a ranking by a constant is
+arbitrary.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+from . import metrics as M
+from .calibration import apply_depth_calibration
+from .io_utils import atomic_path, atomic_write_text
+from .renderer import RenderOptions
+from .sparse_depth import paired_depth_scores
+from .view_maps import OPACITY_MASK, camera_z_maps, draws_summary, view_camera_arrays
+from .visualize import colourise, to_uint8_rgb
+
+#: The per-view depth scores kept under ``depth/`` (and ``depth_raw/``) in metrics.json.
+DEPTH_SCORE_KEYS: tuple[str, ...] = ("abs_rel", "rmse", "nll", "ause_rmse", "ause_rmse_normalised", "pearson",
+                                     "spearman", "coverage_68", "coverage_95", "auce", "num_used")
+
+
+# ----------------------------------------------------------------------------- files of a view
+def _save_png(path: Path, rgb: np.ndarray) -> None:
+    import imageio.v3 as iio
+
+    with atomic_path(path) as tmp:
+        iio.imwrite(tmp, rgb)
+
+
+def write_view_products(out_dir: Path, name: str, products: dict[str, np.ndarray], gt_colour: np.ndarray | None,
+                        gt_depth: np.ndarray | None, camera: dict[str, np.ndarray] | None = None) -> None:
+    """``name.npz`` (the maps, plus ``camera``'s arrays: see ``view_maps.view_camera_arrays``) and PNGs."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out_dir / f"{name}.npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **products, **(camera or {}))
+    mask = products["opacity"] > OPACITY_MASK
+    _save_png(out_dir / f"{name}_colour_mean.png", to_uint8_rgb(products["colour_mean"]))
+    std = products["colour_std"].mean(-1)
+    _save_png(out_dir / f"{name}_colour_std.png", colourise(std, cmap="magma", vmin=0.0)[0])
+    depth_img, lo, hi = colourise(products["depth_mean"], cmap="turbo", mask=mask)
+    _save_png(out_dir / f"{name}_depth_mean.png", depth_img)
+    _save_png(out_dir / f"{name}_depth_std.png", colourise(products["depth_std"], cmap="magma", mask=mask, vmin=0.0)[0])
+    if gt_colour is not None:
+        _save_png(out_dir / f"{name}_gt_colour.png", to_uint8_rgb(gt_colour))
+    if gt_depth is not None:
+        _save_png(out_dir / f"{name}_gt_depth.png", colourise(gt_depth, cmap="turbo", mask=gt_depth > 0, vmin=lo, vmax=hi)[0])
+
+
+# ----------------------------------------------------------------------------- scores of a view
+@dataclasses.dataclass
+class DepthSamples:
+    """Rendered depth at the ground-truth samples of one view (camera z, scene units), [M] each."""
+
+    gt: np.ndarray
+    pred: np.ndarray
+    std: np.ndarray
+    std_raw: np.ndarray
+    """The std before recalibration (equal to ``std`` without a calibration)."""
+
+
+def depth_samples(products: dict[str, np.ndarray], gt_depth: np.ndarray | None = None,
+                  sparse=None) -> DepthSamples | None:
+    """The view's depth ground truth and the rendered depth there: the ``sparse`` points
+    (``sparse_depth.SparseDepth``) or the pixels of ``gt_depth`` [H, W] (> 0 where a surface is),
+    in both cases only where the rendered opacity exceeds ``OPACITY_MASK``; None without either."""
+    d, op, s = products["depth_mean"], products["opacity"], products["depth_std"]
+    s_raw = products.get("depth_std_raw", s)
+    if sparse is not None:
+        keep = sparse.sample(op) > OPACITY_MASK
+        return DepthSamples(sparse.depth[keep], sparse.sample(d)[keep], sparse.sample(s)[keep],
+                            sparse.sample(s_raw)[keep])
+    if gt_depth is None:
+        return None
+    mask = (gt_depth > 0) & (op > OPACITY_MASK)
+    return DepthSamples(gt_depth[mask], d[mask], s[mask], s_raw[mask])
+
+
+def interval_scale_of(calibration):
+    """The level-dependent interval multiplier of a recalibrated depth std, or None (Gaussian)."""
+    return None if calibration is None or calibration.depth is None else calibration.depth.relative_scale
+
+
+def score_depth(samples: DepthSamples, calibration=None) -> dict[str, Any]:
+    """``depth/<score>`` (and, with a calibration, the raw std's ``depth_raw/<score>``) of
+    ``sparse_depth.paired_depth_scores``, ``DEPTH_SCORE_KEYS`` only."""
+    scores = paired_depth_scores(samples.gt, samples.pred, samples.std, interval_scale=interval_scale_of(calibration))
+    out = {f"depth/{k}": scores[k] for k in DEPTH_SCORE_KEYS}
+    if calibration is not None:
+        raw = paired_depth_scores(samples.gt, samples.pred, samples.std_raw)
+        out.update({f"depth_raw/{k}": raw[k] for k in DEPTH_SCORE_KEYS})
+    return out
+
+
+def score_colour(products: dict[str, np.ndarray], gt_colour: np.ndarray) -> dict[str, Any]:
+    """Colour scores of one view: PSNR, SSIM, NLL (variance floor), Pearson/Spearman of per-pixel
+    MSE vs variance, AUSE (RMSE, MAE; raw and normalised), AUCE and signed calibration gap. A
+    constant uncertainty map has NaN AUSEs (and undefined correlations)."""
+    mean = products["colour_mean"].astype(np.float64)
+    var = products["colour_std"].astype(np.float64) ** 2
+    corr = M.mse_uncertainty_correlation(gt_colour, mean, var)
+    sp_rmse = M.colour_sparsification(gt_colour, mean, var, "rmse")
+    sp_mae = M.colour_sparsification(gt_colour, mean, var, "mae")
+    cal = M.calibration_curve(gt_colour, mean, np.sqrt(var))
+    scores = {
+        "psnr": M.psnr(mean, gt_colour), "ssim": M.ssim(mean, gt_colour), "nll": M.gaussian_nll(gt_colour, mean, var),
+        "pearson_mse_var": corr["pearson"], "spearman_mse_var": corr["spearman"],
+        "ause_rmse": sp_rmse.ause, "ause_rmse_normalised": sp_rmse.ause_normalised,
+        "ause_mae": sp_mae.ause, "ause_mae_normalised": sp_mae.ause_normalised,
+        "auce_colour": cal.auce, "calibration_gap_colour": cal.signed_gap,
+    }
+    if np.ptp(M.pixel_uncertainty(var).numpy()) == 0:
+        for key in ("ause_rmse", "ause_rmse_normalised", "ause_mae", "ause_mae_normalised"):
+            scores[key] = math.nan
+    return scores
+
+
+def score_view(products: dict[str, np.ndarray], gt_colour: np.ndarray, gt_depth: np.ndarray | None = None,
+               calibration=None, sparse=None) -> dict[str, Any]:
+    """:func:`score_colour` plus :func:`score_depth` where the view has depth ground truth
+    (``gt_depth`` [H, W] or ``sparse`` points)."""
+    scores = score_colour(products, gt_colour)
+    samples = depth_samples(products, gt_depth, sparse)
+    if samples is not None:
+        scores.update(score_depth(samples, calibration))
+    return scores
+
+
+# ----------------------------------------------------------------------------- the loop
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def _pack(prefix: str, result) -> dict[str, np.ndarray]:
+    return {f"{prefix}.{f.name}": np.asarray(getattr(result, f.name)) for f in dataclasses.fields(result)}
+
+
+def _plain_scores(scores: dict) -> dict[str, Any]:
+    """Depth scores as JSON-ready numbers (correlations by value, no curves)."""
+    return {k: (v.value if isinstance(v, M.CorrelationResult) else v)
+            for k, v in scores.items() if k not in ("calibration", "sparsification")}
+
+
+def _conventions(depth_source: str | None, calibration) -> dict[str, str]:
+    out = {"opacity_mask": f"depth is scored and drawn where the rendered opacity > {OPACITY_MASK}",
+           "constant_uncertainty": "a constant uncertainty map (deterministic NeRF) has undefined correlations and "
+                                   "AUSE; its NLL uses the variance floor",
+           "num_draws": "K actually rendered per view (adaptive K: mean over pixels, with min/max)"}
+    if depth_source == "sparse":
+        from .sparse_depth import sparse_depth_conventions
+
+        out.update(sparse_depth_conventions())
+    if calibration is not None:
+        out["depth_calibration"] = ("depth_std recalibrated (calibration.json), intervals at level p scaled by "
+                                    "s(p)/s(0.683); raw scores under depth_raw/")
+    return out
+
+
+def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = None,
+             options: RenderOptions | None = None, seed: int = 0, sparse_depth: dict | None = None,
+             product_views: int | None = None, calibration=None, conventions: dict[str, str] | None = None,
+             progress: bool = True) -> dict:
+    """Render and score ``views`` (default: the test split) of a trained model; returns the
+    metrics dict it writes to ``out_dir/metrics.json`` (and ``curves.npz``).
+
+    Args:
+        options: this evaluation's render options (default: the model's).
+        seed: seed of the one generator every view's rendering noise draws from, in order.
+        sparse_depth: {view: ``sparse_depth.SparseDepth``}: score depth at these points instead of
+            the dataset's depth maps.
+        product_views: write the npz/PNG products of the first N views (default: all; 0: none).
+        calibration: a ``calibration.RunCalibration`` applied to the depth std (raw kept as
+            ``depth_std_raw``) and to the intervals.
+        conventions: extra lines for ``metrics.json``'s conventions (what the caller's numbers mean).
+    """
+    out_dir = Path(out_dir)
+    views = list(dataset.test_indices) if views is None else [int(v) for v in views]
+    product_views = len(views) if product_views is None else int(product_views)
+    options = options or model.default_render_options()
+    device = next(model.parameters()).device
+    generator = torch.Generator(device=device).manual_seed(seed)
+    gt_depths = getattr(dataset, "depths", None)
+    depth_source = "sparse" if sparse_depth is not None else ("dense" if gt_depths is not None else None)
+    report = M.MetricReport()
+    report.conventions.update(_conventions(depth_source, calibration))
+    report.conventions.update(conventions or {})
+    pooled = {"err_rmse": [], "err_mae": [], "unc": [], "nll_sum": 0.0, "n_pix": 0}
+    colour_cov, colour_cov_n = np.zeros_like(M.DEFAULT_CALIBRATION_LEVELS), 0
+    depth_pool: list[DepthSamples] = []
+    render_s, draws = [], []
+    for i, v in enumerate(tqdm(views, desc="evaluate", disable=not progress)):
+        rays = dataset.rays(v).to(device)
+        _sync(device)
+        t0 = time.perf_counter()
+        maps = model.render_view(rays, options, generator=generator)
+        _sync(device)
+        render_s.append(time.perf_counter() - t0)
+        draws.append(maps["num_draws"].reshape(-1).cpu())
+        products = apply_depth_calibration(camera_z_maps(maps), calibration)
+        gt = dataset.images[v].numpy()
+        gt_depth = gt_depths[v].numpy() if gt_depths is not None else None
+        if i < product_views:
+            write_view_products(out_dir / "views", f"view_{v:03d}", products, gt, gt_depth,
+                                camera=view_camera_arrays(dataset, v))
+        scores = score_colour(products, gt)
+        samples = depth_samples(products, gt_depth, None if sparse_depth is None else sparse_depth[v])
+        if samples is not None:
+            scores.update(score_depth(samples, calibration))
+            depth_pool.append(samples)
+        scores.update(render_s=render_s[-1], **draws_summary(maps["num_draws"]))
+        report.add(f"view_{v:03d}", **scores)
+        mean = products["colour_mean"].astype(np.float64)
+        var = products["colour_std"].astype(np.float64) ** 2
+        pooled["err_rmse"].append(M.pixel_errors(gt, mean, "rmse").numpy().reshape(-1).astype(np.float32))
+        pooled["err_mae"].append(M.pixel_errors(gt, mean, "mae").numpy().reshape(-1).astype(np.float32))
+        pooled["unc"].append(M.pixel_uncertainty(var).numpy().reshape(-1).astype(np.float32))
+        per_pixel_nll = M.gaussian_nll(gt, mean, var, reduce=False).numpy()
+        pooled["nll_sum"] += float(per_pixel_nll.sum())
+        pooled["n_pix"] += per_pixel_nll.size
+        cal = M.calibration_curve(gt, mean, np.sqrt(var))
+        colour_cov += cal.coverage * cal.num_values
+        colour_cov_n += cal.num_values
+
+    result = report.to_dict()
+    result.update(draws_summary(torch.cat(draws)) if draws else {"num_draws": options.num_draws})
+    result["render_options"] = {k: v for k, v in dataclasses.asdict(options).items() if k not in ("progress",)}
+    result["opacity_mask"] = OPACITY_MASK
+    result["depth_source"] = depth_source
+    result["depth_calibration"] = None if calibration is None else calibration.to_dict()
+    curves: dict[str, np.ndarray] = {}
+    err_rmse, err_mae, unc = (np.concatenate(pooled[k]).astype(np.float64) if pooled[k] else np.zeros(0)
+                              for k in ("err_rmse", "err_mae", "unc"))
+    constant = unc.size == 0 or bool(np.ptp(unc) == 0)
+    pear = M.pearson(err_rmse ** 2, unc, "error", "uncertainty")
+    spear = M.spearman(err_rmse ** 2, unc, "error", "uncertainty")
+    pooled_out: dict[str, Any] = {
+        "num_pixels": int(err_rmse.size), "nll": pooled["nll_sum"] / max(1, pooled["n_pix"]),
+        "pearson_mse_var": pear.value, "spearman_mse_var": spear.value,
+        "correlation_undefined_reason": pear.reason,
+    }
+    levels = M.DEFAULT_CALIBRATION_LEVELS
+    coverage = colour_cov / max(1, colour_cov_n)
+    colour_cal = M.CalibrationResult(levels=levels, coverage=coverage, auce=float(np.abs(coverage - levels).mean()),
+                                     signed_gap=float((coverage - levels).mean()), num_values=int(colour_cov_n))
+    pooled_out.update(auce_colour=colour_cal.auce, calibration_gap_colour=colour_cal.signed_gap)
+    curves.update(_pack("colour_calibration", colour_cal))
+    for metric, err in (("rmse", err_rmse), ("mae", err_mae)):
+        if constant:
+            pooled_out[f"ause_{metric}"] = pooled_out[f"ause_{metric}_normalised"] = math.nan
+            continue
+        sp = M.sparsification_curve(err, unc, metric=metric)
+        pooled_out[f"ause_{metric}"] = sp.ause
+        pooled_out[f"ause_{metric}_normalised"] = sp.ause_normalised
+        curves.update(_pack(f"colour_sparsification_{metric}", sp))
+    if depth_source is not None:
+        g, d, s, s_raw = (np.concatenate([getattr(p, k) for p in depth_pool]).astype(np.float64) if depth_pool
+                          else np.zeros(0) for k in ("gt", "pred", "std", "std_raw"))
+        ds = paired_depth_scores(g, d, s, interval_scale=interval_scale_of(calibration))
+        pooled_out["depth"] = _plain_scores(ds)
+        if calibration is not None:
+            pooled_out["depth_raw"] = _plain_scores(paired_depth_scores(g, d, s_raw))
+        if ds["calibration"] is not None:
+            curves.update(_pack("depth_calibration", ds["calibration"]))
+        if ds["sparsification"] is not None:
+            curves.update(_pack("depth_sparsification_rmse", ds["sparsification"]))
+    result["pooled"] = pooled_out
+    result["render_s_per_view"] = float(np.mean(render_s)) if render_s else math.nan
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out_dir / "curves.npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez_compressed(fh, **curves)
+    atomic_write_text(out_dir / "metrics.json", json.dumps(result, indent=2, default=float))
+    return result
