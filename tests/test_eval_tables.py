@@ -17,12 +17,13 @@ import torch
 from torch import nn
 
 from stochastic_fields.cameras import make_cameras
-from stochastic_fields.config import save_config
+from stochastic_fields.config import save_config, set_dotted
 from stochastic_fields.constants import DEPTH_NLL_VARIANCE_FLOOR, NLL_VARIANCE_FLOOR
 from stochastic_fields.data import load_dataset
 from stochastic_fields.data.colmap import ColmapPoints, read_points3d_binary
 from stochastic_fields import sparse_depth as CD
 from stochastic_fields_bench import tables as T
+from stochastic_fields_bench.tables import json_default
 from stochastic_fields.models.registry import METHODS
 from stochastic_fields.renderer import MAP_NAMES, RenderOptions, RenderSettings
 
@@ -182,8 +183,8 @@ def test_method_specs_build_valid_configs(tmp_path):
         assert cfg.train.iterations == base.train.iterations and cfg.train.seed == base.train.seed
         kls[name] = cfg.loss.kl
     assert (kls["snerf"], kls["snerf_kl_none"], kls["snerf_kl_fixed_prior"]) == ("full", "none", "fixed_prior")
-    with pytest.raises(ValueError, match="unknown config path 'loss.nope'"):
-        T.set_dotted(base, "loss.nope", 1)
+    with pytest.raises(ValueError, match="unknown option 'loss.nope'"):
+        set_dotted(base, "loss.nope", 1)
 
 
 def test_resuming_needs_the_same_config(tmp_path):
@@ -242,7 +243,7 @@ def test_tables_from_results():
     for text in ("Table 1", "Table 2", "Table 3", "1.000 [2.01]", "undef.", "S-NeRF w/o KL", "test convention",
                  "--tiny", "iterations=10"):
         assert text in md, text
-    json.dumps(tables, default=T._json_default)
+    json.dumps(tables, default=json_default)
 
 
 # ------------------------------------------------------------------------------ evaluate_run
@@ -372,7 +373,7 @@ def test_benchmark_script_on_fern_images_16(shared_data, tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "Table 1" in printed and "[2.01]" in printed
     tables = json.loads((tmp_path / "tables.json").read_text())
-    assert tables["scenes"] == ["fern"] and tables["depth_sources"] == ["colmap"]
+    assert tables["scenes"] == ["fern"] and tables["depth_sources"] == ["sparse"]
     assert tables["budget"]["images"] == "images_16" and tables["budget"]["num_samples"] == 8
     assert math.isnan(tables["table2"]["snerf"]["render_s"]["fern"])  # --no-timing: Table 2 has no render time
     assert tables["per_scene"]["fern"]["snerf"]["depth"]["num_used"] > 100

@@ -43,24 +43,9 @@ def experiment_from_args(args: argparse.Namespace, run_dir: Path) -> C.Experimen
 
 
 def _parse_views(spec: str | None, dataset) -> list[int]:
-    if spec is None or spec == "test":
-        return list(dataset.test_indices)
-    if spec == "train":
-        return list(dataset.train_indices)
-    if spec == "all":
-        return list(range(dataset.num_views))
-    try:
-        views = [int(v) for v in spec.split(",") if v.strip()]
-    except ValueError as exc:
-        raise ValueError(f"--views must be 'test', 'train', 'all' or comma-separated indices, got {spec!r}") from exc
-    if not views:
-        raise ValueError(f"--views {spec!r} names no view")
-    if len(set(views)) != len(views):
-        raise ValueError(f"--views {spec!r} names a view more than once")
-    bad = [v for v in views if not 0 <= v < dataset.num_views]
-    if bad:
-        raise ValueError(f"--views {bad} out of range: the scene has {dataset.num_views} views (0..{dataset.num_views - 1})")
-    return views
+    from .data.dataset import parse_views
+
+    return parse_views(spec, dataset.num_views, dataset.train_indices, dataset.test_indices)
 
 
 #: Upper bound of --num-draws (and of render.num_draws): K draws cost K times one render.

@@ -150,7 +150,8 @@ def score_view(products: dict[str, np.ndarray], gt_colour: np.ndarray, gt_depth:
 
 
 # ----------------------------------------------------------------------------- the loop
-def _sync(device: torch.device) -> None:
+def synchronize(device: torch.device) -> None:
+    """Wait for the device's queued work (CUDA) so that a wall-clock time covers it."""
     if device.type == "cuda":
         torch.cuda.synchronize(device)
 
@@ -214,10 +215,10 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
     render_s, draws = [], []
     for i, v in enumerate(tqdm(views, desc="evaluate", disable=not progress)):
         rays = dataset.rays(v).to(device)
-        _sync(device)
+        synchronize(device)
         t0 = time.perf_counter()
         maps = model.render_view(rays, options, generator=generator)
-        _sync(device)
+        synchronize(device)
         render_s.append(time.perf_counter() - t0)
         draws.append(maps["num_draws"].reshape(-1).cpu())
         products = apply_depth_calibration(camera_z_maps(maps), calibration)

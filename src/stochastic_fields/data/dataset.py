@@ -141,6 +141,29 @@ class SceneDataset:
         return replace(self, train_indices=train, test_indices=test)
 
 
+def parse_views(spec: str, num_views: int, train: Sequence[int], test: Sequence[int]) -> list[int]:
+    """'test' | 'train' | 'all' | '1,2,3' -> indices; ValueError for bad tokens or out of range."""
+    spec = (spec or "test").strip()
+    if spec == "test":
+        return list(test)
+    if spec == "train":
+        return list(train)
+    if spec == "all":
+        return list(range(num_views))
+    try:
+        views = [int(v) for v in spec.split(",") if v.strip()]
+    except ValueError as exc:
+        raise ValueError(f"--views must be 'test', 'train', 'all' or comma-separated indices, got {spec!r}") from exc
+    if not views:
+        raise ValueError(f"--views {spec!r} names no view")
+    if len(set(views)) != len(views):
+        raise ValueError(f"--views {spec!r} names a view more than once")
+    bad = [v for v in views if not 0 <= v < num_views]
+    if bad:
+        raise ValueError(f"--views {bad} out of range: the scene has {num_views} views (0..{num_views - 1})")
+    return views
+
+
 def split_every_indices(num_views: int, n: int, path: str | Path) -> tuple[list[int], list[int]]:
     """(train, test) indices with train = ``index % n == 0``; DatasetError if either is empty."""
     if int(n) < 1:

@@ -37,6 +37,7 @@ import torch
 from tqdm.auto import tqdm
 
 from ..cameras import generate_rays_for_view, intrinsics_3x3, make_cameras
+from ..data.dataset import parse_views
 from ..io_utils import atomic_folder, atomic_path, atomic_write_text, check_file_name, read_json
 from .depth_maps import (CONVENTIONS, DepthProducts, check_quantile_levels, compute_depth_products,
                          draw_quantiles, quantile_name, write_colourised, write_npz, write_png16, write_tiff)
@@ -168,29 +169,6 @@ class ViewSpec:
 
 
 # ------------------------------------------------------------------------------- inputs
-def parse_views(spec: str, num_views: int, train: Sequence[int], test: Sequence[int]) -> list[int]:
-    """'test' | 'train' | 'all' | '1,2,3' -> indices; ValueError for bad tokens or out of range."""
-    spec = (spec or "test").strip()
-    if spec == "test":
-        return list(test)
-    if spec == "train":
-        return list(train)
-    if spec == "all":
-        return list(range(num_views))
-    try:
-        views = [int(v) for v in spec.split(",") if v.strip()]
-    except ValueError as exc:
-        raise ValueError(f"--views must be 'test', 'train', 'all' or comma-separated indices, got {spec!r}") from exc
-    if not views:
-        raise ValueError(f"--views {spec!r} names no view")
-    if len(set(views)) != len(views):
-        raise ValueError(f"--views {spec!r} names a view more than once")
-    bad = [v for v in views if not 0 <= v < num_views]
-    if bad:
-        raise ValueError(f"--views {bad} out of range: the scene has {num_views} views (0..{num_views - 1})")
-    return views
-
-
 def _matrix(path: Path, i: int, cam: dict, key: str, shape: tuple[int, int]) -> np.ndarray:
     if key not in cam:
         raise ValueError(f"{path}: camera {i} has no {key!r} (need K, world_to_camera, width, height)")

@@ -1,0 +1,106 @@
+"""What every method of the tables is trained and scored with: the shared configuration, the
+CPU and full budgets, the test views."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from stochastic_fields.config import ExperimentConfig, preset, set_dotted
+
+
+#: The documented budget on a CPU (``budget="cpu"``, the default): every method trains 1000 steps
+#: of 1024 rays on a grid capped at 250k cells and is scored on 4 test views spread over each
+#: scene's test set (0.76M pixels per scene; MC-Dropout and the ensemble render each view 5
+#: times). Fern and flower, all 8 methods: about 1.5 hours on 2 CPU cores. The grid's three
+#: levels then hold 2.9M values (250k cells x 10 channels x 1.14), about as many as the
+#: training pixels' colour values (fern: 4 views of 504x378 = 2.3M; flower: 7 views = 4.0M).
+#: ``budget="full"`` is the llff preset (3000 steps, 2M cells, every test view): about 8x the
+#: cost, for a GPU.
+CPU_BUDGET_OVERRIDES: tuple[tuple[str, Any], ...] = (("train.iterations", 1000), ("field.grid_max_cells", 250_000))
+
+
+CPU_BUDGET_VIEWS: int = 4
+
+
+@dataclass
+class BenchmarkSettings:
+    """What a benchmark run does besides the per-method configs."""
+
+    budget: str = "cpu"
+    """'cpu': the documented CPU budget (CPU_BUDGET_OVERRIDES, CPU_BUDGET_VIEWS test views); 'full': the llff preset, every test view."""
+    images: str = "images_8"
+    """LLFF image folder (SPEC 7: images_8, 504x378)."""
+    iterations: int | None = None
+    """Training steps for every method (None: the llff preset's)."""
+    seed: int = 0
+    """Seed of initialisation, batches, draws and evaluation renders."""
+    device: str = "auto"
+    """'auto', 'cpu' or 'cuda'."""
+    max_views: int | None = None
+    """Score N test views spread evenly over the test set (first and last included; None: the budget's)."""
+    product_views: int = 1
+    """Write view products (npz + PNG) for the first N test views."""
+    timing: bool = True
+    """Time one full-view render per method (Table 2)."""
+    timing_repeats: int = 3
+    """Timed renders of the view; the median is reported (shared machines are noisy), min and max kept."""
+    tiny: bool = False
+    """CI configuration: small grid, few samples and iterations (checks the pipeline, not the numbers)."""
+    overrides: tuple[tuple[str, Any], ...] = ()
+    """Extra (dotted config path, value) pairs applied to every method, after ``tiny``."""
+
+
+def base_config(settings: BenchmarkSettings, dataset=None) -> ExperimentConfig:
+    """The shared configuration: the ``llff`` preset (disparity spacing, 64 samples, K = 16) or,
+    with ``tiny``, a configuration that runs in seconds. Scenes that are not forward-facing
+    (``dataset.forward_facing`` False) sample linearly in distance and composite the dataset's
+    background colour. ``settings.overrides`` apply last."""
+    cfg = preset("llff")
+    if dataset is not None and not getattr(dataset, "forward_facing", True):
+        cfg.render.spacing = "linear"
+        background = getattr(dataset, "background", None)
+        cfg.render.background = None if background is None else tuple(float(c) for c in background)
+    # Every method renders the same dense samples with a fixed K: empty-space skipping and adaptive
+    # K exist for S-NeRF only, so they are off here unless an override turns them on.
+    for key in ("skip_empty_space", "adaptive_draws"):
+        if hasattr(cfg.render, key):
+            setattr(cfg.render, key, False)
+    cfg.data.images = settings.images
+    cfg.data.split_every = 5
+    cfg.train.seed = settings.seed
+    cfg.train.device = settings.device
+    if settings.tiny:
+        cfg.train.iterations = 20
+        cfg.train.rays_per_batch = 256
+        cfg.train.eval_every = 0
+        cfg.train.checkpoint_every = 0
+        cfg.render.num_samples = 24
+        cfg.render.num_draws = 8
+        cfg.field.grid_max_cells = 24 ** 3
+        cfg.field.grid_levels = 2
+    if settings.budget not in ("cpu", "full"):
+        raise ValueError(f"budget must be 'cpu' or 'full', got {settings.budget!r}")
+    if settings.budget == "cpu" and not settings.tiny:
+        for key, value in CPU_BUDGET_OVERRIDES:
+            set_dotted(cfg, key, value)
+    if settings.iterations is not None:
+        cfg.train.iterations = int(settings.iterations)
+    for key, value in settings.overrides:
+        set_dotted(cfg, key, value)
+    return cfg
+
+
+def select_views(test_views: list[int], settings: BenchmarkSettings) -> list[int]:
+    """The scored test views: ``max_views`` (or the budget's count) spread evenly, ends included."""
+    n = settings.max_views
+    if n is None and settings.budget == "cpu" and not settings.tiny:
+        n = CPU_BUDGET_VIEWS
+    if n is None or n >= len(test_views):
+        return list(test_views)
+    if n <= 0:
+        raise ValueError(f"max_views must be positive, got {n}")
+    picks = np.unique(np.linspace(0, len(test_views) - 1, n).round().astype(int))
+    return [test_views[i] for i in picks]

@@ -1,0 +1,316 @@
+"""Resumable stages of the tables (train -> calibrate -> eval -> timing per method and scene),
+each skipped when the fingerprint of its inputs matches, and the whole run (``run_benchmark``)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import platform
+import resource
+import time
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import torch
+
+from stochastic_fields.config import ExperimentConfig, flatten, to_dict
+from stochastic_fields.io_utils import atomic_write_text
+from stochastic_fields.evaluation import synchronize
+from stochastic_fields.view_maps import draws_summary
+
+from .methods import MethodSpec, METHOD_SPECS, method_config
+from .budget import BenchmarkSettings, base_config, select_views
+from .report import build_tables, format_markdown, write_plots
+
+
+#: Which capture points score depth (capture_points: the SCORE role of the spatial split); part of
+#: the eval fingerprint so that runs scored on every point are re-scored.
+SCORED_POINTS = "score-role blocks"
+
+
+#: How the depth recalibration is fitted (part of the calibrate fingerprint: a new protocol refits).
+CALIBRATION_PROTOCOL = "calibrate-role capture points from views halfway between neighbouring training views"
+
+
+#: Config entries that do not change what a run computes (left out of fingerprints).
+_NON_SEMANTIC = ("train.device", "train.eval_every", "train.checkpoint_every", "render.chunk_rays", "data.path")
+
+
+def _semantic(flat: dict[str, Any]) -> dict[str, Any]:
+    """Entries that change what a run computes, without those equal to the dataclass defaults:
+    an option added later with a default that keeps the old behaviour changes no fingerprint."""
+    defaults = flatten(to_dict(ExperimentConfig()))
+    return {k: v for k, v in flat.items() if k not in _NON_SEMANTIC and not (k in defaults and defaults[k] == v)}
+
+
+def config_fingerprint(cfg: ExperimentConfig, *extra: Any) -> str:
+    flat = _semantic(flatten(to_dict(cfg)))
+    text = json.dumps([flat, list(extra)], sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def check_compatible(run_dir: Path, cfg: ExperimentConfig) -> None:
+    """A run folder may only be resumed with the same config (more iterations are allowed).
+    Options missing from the saved config count as their defaults."""
+    saved = Path(run_dir) / "config.json"
+    if not saved.exists():
+        return
+    old = _semantic(flatten(json.loads(saved.read_text())))
+    new = _semantic(flatten(to_dict(cfg)))
+    differ = sorted(k for k in set(old) | set(new) if k != "train.iterations" and old.get(k) != new.get(k))
+    if differ:
+        raise ValueError(f"run folder {run_dir} was trained with a different configuration "
+                         f"(differs in {differ}); use another --out or remove the folder")
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"cannot read {path}: {exc}") from exc
+
+
+def load_stages(run_dir: Path) -> dict:
+    path = Path(run_dir) / "stages.json"
+    return _read_json(path) if path.exists() else {}
+
+
+def save_stages(run_dir: Path, stages: dict) -> None:
+    atomic_write_text(Path(run_dir) / "stages.json", json.dumps(stages, indent=2, default=float))
+
+
+def _peak_memory() -> dict[str, float]:
+    """Process peak resident memory (MiB, since the process started) and CUDA peak allocation."""
+    out = {"process_peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0}
+    if torch.cuda.is_available():
+        out["cuda_peak_allocated_mib"] = torch.cuda.max_memory_allocated() / 2 ** 20
+    return out
+
+
+def _reset_cuda_peak() -> None:
+    if torch.cuda.is_available():
+        torch.cuda.reset_peak_memory_stats()
+
+
+#: What the tables' depth numbers mean, beside the conventions of ``evaluation.evaluate``.
+TABLE_CONVENTIONS: dict[str, str] = {
+    "scored_points": ("depth is scored only on the capture points of the SCORE role (capture_points: blocks of "
+                      "space disjoint from the points that train the depth likelihood and fit the recalibration)"),
+    "depth_calibration": ("methods marked calibrated report depth_std recalibrated on the CALIBRATE capture points "
+                          "seen from training views, intervals at level p scaled by s(p)/s(0.683); raw scores under "
+                          "depth_raw/"),
+}
+
+
+def evaluate_run(model, dataset, out_dir: Path, *, views: Sequence[int] | None = None, seed: int = 0,
+                 sparse_depth: dict | None = None, product_views: int = 1, progress: bool = True,
+                 calibration=None) -> dict:
+    """``evaluation.evaluate`` of one trained model with the tables' conventions (the model's own
+    render options; products of the first ``product_views`` views)."""
+    from stochastic_fields.evaluation import evaluate
+
+    return evaluate(model, dataset, out_dir, views=views, seed=seed, sparse_depth=sparse_depth,
+                    product_views=product_views, calibration=calibration, conventions=TABLE_CONVENTIONS,
+                    progress=progress)
+
+
+def time_render(model, dataset, view: int, *, seed: int = 0, repeats: int = 3) -> dict[str, Any]:
+    """Wall time of rendering one full view: median of ``repeats`` renders after an untimed
+    warm-up chunk, with min/max, rays/s and memory."""
+    if repeats < 1:
+        raise ValueError(f"timing repeats must be >= 1, got {repeats}")
+    device = next(model.parameters()).device
+    rays = dataset.rays(view).to(device)
+    gen = torch.Generator(device=device).manual_seed(seed)
+    H, W = rays.shape
+    options = model.default_render_options()
+    warm = rays.flatten()[: options.chunk_rays].reshape(1, -1)
+    model.render_view(warm, options, generator=gen)
+    _reset_cuda_peak()
+    times = []
+    for _ in range(repeats):
+        synchronize(device)
+        t0 = time.perf_counter()
+        maps = model.render_view(rays, options, generator=gen)
+        synchronize(device)
+        times.append(time.perf_counter() - t0)
+    seconds = float(np.median(times))
+    return {"view": int(view), "height": H, "width": W, "render_s": seconds, "render_s_min": min(times),
+            "render_s_max": max(times), "repeats": repeats, "rays_per_s": H * W / seconds,
+            **draws_summary(maps["num_draws"]), "device": str(device),
+            "torch_threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
+            **_peak_memory()}
+
+
+def resolve_scene(scene: str, data_root: Path | None) -> Path:
+    """A scene name under ``data_root`` or a path to a scene folder; FileNotFoundError if neither."""
+    p = Path(scene)
+    if p.is_dir():
+        return p
+    if data_root is not None and (Path(data_root) / scene).is_dir():
+        return Path(data_root) / scene
+    raise FileNotFoundError(f"scene {scene!r} is neither a folder nor under {data_root}")
+
+
+def run_method(spec: MethodSpec, dataset, scene_path: Path, run_dir: Path, settings: BenchmarkSettings, *,
+               views: Sequence[int], sparse_depth: dict | None, progress: bool = True,
+               log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Train (or resume), evaluate and time one method on one scene; skips finished stages."""
+    from stochastic_fields.trainer import Trainer, load_trained_model
+
+    run_dir = Path(run_dir)
+    cfg = method_config(spec, base_config(settings, dataset), scene_path)
+    check_compatible(run_dir, cfg)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    stages = load_stages(run_dir)
+    fp_train = config_fingerprint(cfg)
+    fp_cal = config_fingerprint(cfg, "calibrate", settings.seed, CALIBRATION_PROTOCOL)
+    fp_eval = config_fingerprint(cfg, "eval", list(views), settings.seed, sparse_depth is not None, SCORED_POINTS,
+                                 spec.calibrate)
+    fp_time = config_fingerprint(cfg, "timing", settings.seed, settings.timing_repeats)
+    tag = f"{dataset.name}/{spec.name}"
+    model = None
+    if stages.get("train", {}).get("fingerprint") != fp_train:
+        log(f"[{tag}] train: {cfg.train.iterations} iterations ({cfg.field.backend} backend)")
+        _reset_cuda_peak()
+        trainer = Trainer(cfg, run_dir, dataset)
+        model = trainer.train(progress=progress)
+        stages["train"] = {"fingerprint": fp_train, "steps": trainer.step, "train_s": trainer.elapsed,
+                           "num_parameters": sum(p.numel() for p in model.parameters()), **_peak_memory()}
+        stages.pop("eval", None)
+        stages.pop("timing", None)
+        save_stages(run_dir, stages)
+    else:
+        log(f"[{tag}] train: done ({stages['train']['steps']} steps), skipped")
+
+    def loaded():
+        nonlocal model
+        if model is None:
+            model = load_trained_model(run_dir, dataset=dataset, device=settings.device)[1]
+        return model
+
+    calibration = None
+    if spec.calibrate:
+        from stochastic_fields.calibration import calibrate_run, describe, load_run_calibration
+
+        calibration = load_run_calibration(run_dir)
+        if stages.get("calibrate", {}).get("fingerprint") != fp_cal:
+            t0 = time.perf_counter()
+            try:
+                calibration = calibrate_run(run_dir, model=loaded(), dataset=dataset, seed=settings.seed)
+                stages["calibrate"] = {"fingerprint": fp_cal, "calibrate_s": time.perf_counter() - t0}
+                log(f"[{tag}] calibrate: {describe(calibration)}")
+            except ValueError as exc:  # too few capture points: scored raw, and the reason kept
+                (run_dir / "calibration.json").unlink(missing_ok=True)
+                calibration = None
+                stages["calibrate"] = {"fingerprint": fp_cal, "failed": str(exc)}
+                log(f"[{tag}] calibrate: not fitted ({exc})")
+            stages.pop("eval", None)
+            save_stages(run_dir, stages)
+        else:
+            log(f"[{tag}] calibrate: done, skipped")
+    if stages.get("eval", {}).get("fingerprint") != fp_eval or not (run_dir / "metrics.json").exists():
+        log(f"[{tag}] eval: {len(views)} test views")
+        t0 = time.perf_counter()
+        evaluate_run(loaded(), dataset, run_dir, views=views, seed=settings.seed, sparse_depth=sparse_depth,
+                     product_views=settings.product_views, progress=progress, calibration=calibration)
+        stages["eval"] = {"fingerprint": fp_eval, "eval_s": time.perf_counter() - t0}
+        save_stages(run_dir, stages)
+    else:
+        log(f"[{tag}] eval: done, skipped")
+    if settings.timing:
+        if stages.get("timing", {}).get("fingerprint") != fp_time or not (run_dir / "timing.json").exists():
+            log(f"[{tag}] timing: one full view")
+            timing = time_render(loaded(), dataset, views[0], seed=settings.seed, repeats=settings.timing_repeats)
+            atomic_write_text(run_dir / "timing.json", json.dumps(timing, indent=2))
+            stages["timing"] = {"fingerprint": fp_time}
+            save_stages(run_dir, stages)
+        else:
+            log(f"[{tag}] timing: done, skipped")
+    return load_method_result(run_dir)
+
+
+def load_method_result(run_dir: Path) -> dict[str, Any]:
+    """{"metrics", "stages", "timing" (or None), "config", "curves" (dict of arrays)} of a run folder."""
+    run_dir = Path(run_dir)
+    curves_path = run_dir / "curves.npz"
+    curves = {}
+    if curves_path.exists():
+        with np.load(curves_path) as data:
+            curves = {k: data[k] for k in data.files}
+    timing_path = run_dir / "timing.json"
+    return {"metrics": _read_json(run_dir / "metrics.json"), "stages": load_stages(run_dir),
+            "timing": _read_json(timing_path) if timing_path.exists() else None,
+            "config": _read_json(run_dir / "config.json"), "curves": curves}
+
+
+def run_scene(scene: str, methods: Sequence[str], out_root: Path, settings: BenchmarkSettings, *,
+              data_root: Path | None = None, progress: bool = True,
+              log: Callable[[str], None] = print) -> dict[str, dict]:
+    """Every method on one scene: {method: load_method_result(...)}."""
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.data import detect_format
+
+    scene_path = resolve_scene(scene, data_root)
+    kind = detect_format(scene_path)
+    if kind == "llff":
+        dataset = load_dataset(scene_path, images=settings.images, split_every=5)
+    else:
+        dataset = load_dataset(scene_path, split_every=5)
+    views = select_views(list(dataset.test_indices), settings)
+    sparse = None
+    if getattr(dataset, "depths", None) is None:
+        from stochastic_fields.capture_points import SCORE, load_capture_points, sparse_depth_for_role
+
+        points = load_capture_points(dataset)
+        if points is None:
+            log(f"[{dataset.name}] no sparse depth ground truth: the scene has no COLMAP points")
+        else:
+            sparse = sparse_depth_for_role(dataset, points, views, SCORE)
+    name = dataset.name
+    results = {}
+    for m in methods:
+        if m not in METHOD_SPECS:
+            raise ValueError(f"unknown method {m!r}; choose from {sorted(METHOD_SPECS)}")
+        results[m] = run_method(METHOD_SPECS[m], dataset, scene_path, Path(out_root) / name / m, settings,
+                                views=views, sparse_depth=sparse, progress=progress, log=log)
+    return results
+
+
+def collect_results(out_root: Path, scenes: Sequence[str], methods: Sequence[str]) -> dict[str, dict[str, dict]]:
+    """Results of finished runs from disk: {scene: {method: load_method_result}} (missing ones skipped)."""
+    out: dict[str, dict[str, dict]] = {}
+    for scene in scenes:
+        for m in methods:
+            run_dir = Path(out_root) / Path(scene).name / m
+            if (run_dir / "metrics.json").exists():
+                out.setdefault(Path(scene).name, {})[m] = load_method_result(run_dir)
+    return out
+
+
+def run_benchmark(scenes: Sequence[str], methods: Sequence[str], out_root: Path, settings: BenchmarkSettings, *,
+                  data_root: Path | None = None, progress: bool = True, command: str | None = None,
+                  log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Run (or resume) every method on every scene, then write tables.json, tables.md and plots."""
+    out_root = Path(out_root)
+    t0 = time.perf_counter()
+    for scene in scenes:
+        run_scene(scene, methods, out_root, settings, data_root=data_root, progress=progress, log=log)
+    results = collect_results(out_root, scenes, methods)
+    tables = build_tables(results, methods=methods, settings=settings, command=command)
+    tables["wall_s_this_invocation"] = time.perf_counter() - t0
+    plots = write_plots(results, out_root / "plots")
+    tables["plots"] = [str(p.relative_to(out_root)) for p in plots]
+    atomic_write_text(out_root / "tables.json", json.dumps(tables, indent=2, default=json_default))
+    atomic_write_text(out_root / "tables.md", format_markdown(tables))
+    return tables
+
+
+def json_default(o: Any) -> Any:
+    """``json.dumps(default=...)`` for numpy scalars and arrays (anything else as its string)."""
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
