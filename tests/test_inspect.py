@@ -381,3 +381,19 @@ def test_inspector_applies_the_run_calibration_as_eval_does(inspector, view, tmp
     raw = inspector.render(view)
     np.testing.assert_allclose(calibrated["depth_std_raw"], raw["depth_std"], rtol=1e-6)
     np.testing.assert_allclose(calibrated["depth_std"], 3.0 * raw["depth_std"], rtol=1e-5)
+
+
+def test_notebook_maps_are_the_models_own_render(inspector, view):
+    """The notebook renders through ``render_view`` (empty-space skipping and all), chunk-seeded:
+    the same maps as the model renders for eval with those generators."""
+    from stochastic_fields.view_maps import camera_z_maps
+
+    model = inspector.model
+    assert model.occupancy is not None  # the run skips empty space, so a loop of its own would differ
+    K = inspector.default_num_draws
+    options = model.render_options(num_draws=K, quadrature=inspector.default_quadrature, keep_draws=True)
+    maps = model.render_view(inspector._rays(view), options, generator=lambda c: inspector._generator(view, c))
+    assert float(maps["field_evals_per_ray"].mean()) < model.render_settings.num_samples
+    mine, theirs = inspector.render(view), camera_z_maps(maps)
+    for name in ("colour_mean", "depth_mean", "depth_draws", "opacity"):
+        np.testing.assert_array_equal(mine[name], theirs[name], err_msg=name)
