@@ -22,7 +22,7 @@ interrupted training resumes from its checkpoint, and a finished table can be re
 files alone (``collect_results``).
 
 Scores (per test view, then mean over views; undefined values are counted, not averaged):
-``evaluate.score_view`` (PSNR, SSIM, NLL at the variance floor, Pearson/Spearman of per-pixel
+``evaluation.score_view`` (PSNR, SSIM, NLL at the variance floor, Pearson/Spearman of per-pixel
 MSE vs variance, AUSE-RMSE) plus AUSE-MAE, normalised AUSEs, colour AUCE, and depth scores
 against COLMAP points (LLFF) or the dataset's depth maps (synthetic). Pooled values (every test
 pixel of the scene at once) are kept beside them. A method whose uncertainty map is constant
