@@ -14,7 +14,8 @@ from stochastic_fields.config import preset
 from stochastic_fields.data import load_dataset
 from stochastic_fields.evaluation import evaluate
 from stochastic_fields.models.registry import build_model
-from stochastic_fields.renderer import (MAP_NAMES, ChunkRender, RenderOptions, RenderSettings, render_chunked)
+from stochastic_fields.renderer import (MAP_NAMES, ChunkRender, RenderOptions, RenderSettings, render_chunked,
+                                        seeded_chunks)
 from stochastic_fields.trainer import Trainer
 from stochastic_fields.validation import ConfigError
 from stochastic_fields.volume_rendering import statistics_from_draws
@@ -147,10 +148,9 @@ def test_evaluation_reports_the_k_it_rendered(snerf, dataset, tmp_path):
     options = snerf.render_options(adaptive_draws=True, adaptive_batch_draws=2, adaptive_max_draws=8,
                                    adaptive_rtol=0.5)
     result = evaluate(snerf, dataset, tmp_path, views=views, options=options, product_views=0, progress=False)
-    # the same renders by hand: one generator in view order, as the loop draws them
-    gen = _gen(0)
-    ks = np.concatenate([snerf.render_view(dataset.rays(v), options, generator=gen)["num_draws"].reshape(-1).numpy()
-                         for v in views])
+    # the same renders by hand, each view's chunks seeded from (seed, view, chunk) as the loop seeds them
+    ks = np.concatenate([snerf.render_view(dataset.rays(v), options, generator=seeded_chunks(0, v))["num_draws"]
+                         .reshape(-1).numpy() for v in views])
     assert result["num_draws_min"] == int(ks.min()) and result["num_draws_max"] == int(ks.max())
     assert result["num_draws"] == (int(ks[0]) if ks.min() == ks.max() else pytest.approx(ks.mean()))
     assert 2 <= ks.min() <= ks.max() <= 8
@@ -159,3 +159,16 @@ def test_evaluation_reports_the_k_it_rendered(snerf, dataset, tmp_path):
                      product_views=0, progress=False)
     assert (fixed["num_draws"], fixed["num_draws_min"], fixed["num_draws_max"]) == (3, 3, 3)
     assert fixed["summary"]["num_draws"]["mean"] == 3
+
+
+def test_a_views_maps_do_not_depend_on_the_other_views(snerf, dataset, tmp_path):
+    """Per-(view, chunk) seeds: a view scored alone or after others gets the same draws."""
+    a, b = list(dataset.test_indices)[:2]
+    both = evaluate(snerf, dataset, tmp_path / "both", views=[a, b], product_views=2, progress=False)
+    alone = evaluate(snerf, dataset, tmp_path / "alone", views=[b], product_views=1, progress=False)
+    for name, values in alone["per_view"].items():
+        if name != "render_s":
+            np.testing.assert_equal(values[0], both["per_view"][name][1], err_msg=name)
+    with np.load(tmp_path / "both" / "views" / f"view_{b:03d}.npz") as x, \
+            np.load(tmp_path / "alone" / "views" / f"view_{b:03d}.npz") as y:
+        np.testing.assert_array_equal(x["depth_std"], y["depth_std"])

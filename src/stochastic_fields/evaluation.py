@@ -32,7 +32,7 @@ from tqdm.auto import tqdm
 from . import metrics as M
 from .calibration import apply_depth_calibration
 from .io_utils import atomic_path, atomic_write_text
-from .renderer import RenderOptions
+from .renderer import RenderOptions, seeded_chunks
 from .sparse_depth import paired_depth_scores
 from .view_maps import OPACITY_MASK, camera_z_maps, draws_summary, view_camera_arrays
 from .visualize import colourise, to_uint8_rgb
@@ -190,7 +190,9 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
 
     Args:
         options: this evaluation's render options (default: the model's).
-        seed: seed of the one generator every view's rendering noise draws from, in order.
+        seed: seed of the rendering noise; each chunk of each view draws from its own generator
+            (``renderer.seeded_chunks(seed, view)``), so a view's maps do not depend on the others
+            and equal the notebook's for the same options and seed.
         sparse_depth: {view: ``sparse_depth.SparseDepth``}: score depth at these points instead of
             the dataset's depth maps.
         product_views: write the npz/PNG products of the first N views (default: all; 0: none).
@@ -203,7 +205,6 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
     product_views = len(views) if product_views is None else int(product_views)
     options = options or model.default_render_options()
     device = next(model.parameters()).device
-    generator = torch.Generator(device=device).manual_seed(seed)
     gt_depths = getattr(dataset, "depths", None)
     depth_source = "sparse" if sparse_depth is not None else ("dense" if gt_depths is not None else None)
     report = M.MetricReport()
@@ -217,7 +218,7 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
         rays = dataset.rays(v).to(device)
         synchronize(device)
         t0 = time.perf_counter()
-        maps = model.render_view(rays, options, generator=generator)
+        maps = model.render_view(rays, options, generator=seeded_chunks(seed, v, device))
         synchronize(device)
         render_s.append(time.perf_counter() - t0)
         draws.append(maps["num_draws"].reshape(-1).cpu())

@@ -53,7 +53,7 @@ from .models.snerf import SNeRF
 from .products.depth_maps import DepthProducts, compute_depth_products
 from .products.pointcloud import UNCERTAINTY_CMAP, CloudArrays, cloud_from_products, uncertainty_range
 from .rays import PackedRaySamples, RayBundle
-from .renderer import RenderOptions, check_colour_estimator
+from .renderer import RenderOptions, check_colour_estimator, seeded_chunks
 from .samplers import sample_along_rays
 from .trainer import load_trained_model
 
@@ -104,11 +104,6 @@ class ViewInfo:
     @property
     def label(self) -> str:
         return f"{self.split} {self.index:03d} ({self.name})"
-
-
-def _chunk_seed(seed: int, view: int, chunk: int) -> int:
-    """A 63-bit seed mixed from (seed, view, chunk) (numpy SeedSequence hashing)."""
-    return int(np.random.SeedSequence((seed, view, chunk)).generate_state(1, dtype=np.uint64)[0] >> 1)
 
 
 class RunInspector:
@@ -208,7 +203,7 @@ class RunInspector:
         return generate_rays_for_view(ds.cameras, view, ds.near, ds.far).to(self.device)
 
     def _generator(self, view: int, chunk: int) -> torch.Generator:
-        return torch.Generator(device=self.device).manual_seed(_chunk_seed(self.seed, view, chunk))
+        return seeded_chunks(self.seed, view, self.device)(chunk)
 
     def ground_truth(self, view: int) -> tuple[np.ndarray, np.ndarray | None]:
         """(colour [H, W, 3] in [0, 1], camera-z depth [H, W] with 0 where no surface, or None)."""
@@ -222,7 +217,7 @@ class RunInspector:
     def _render_maps(self, view: int, num_draws: int, quadrature: str) -> dict[str, torch.Tensor]:
         """Renderer maps of ``view`` (ray distance, ``RadianceModel.render_view``), chunk-seeded."""
         return self.model.render_view(self._rays(view), self._options(num_draws, quadrature),
-                                      generator=lambda chunk: self._generator(view, chunk))
+                                      generator=seeded_chunks(self.seed, view, self.device))
 
     def render(self, view: int, num_draws: int | None = None, quadrature: Quadrature | None = None
                ) -> dict[str, np.ndarray]:

@@ -500,6 +500,21 @@ class ChunkRender:
 ChunkGenerators = Callable[[int], "torch.Generator | None"]
 
 
+def chunk_seed(seed: int, view: int, chunk: int) -> int:
+    """A 63-bit seed mixed from (seed, view, chunk) (numpy SeedSequence hashing)."""
+    import numpy as np
+
+    return int(np.random.SeedSequence((seed, view, chunk)).generate_state(1, dtype=np.uint64)[0] >> 1)
+
+
+def seeded_chunks(seed: int, view: int, device: torch.device | str = "cpu") -> ChunkGenerators:
+    """One generator per chunk of ``view``, seeded from (seed, view, chunk): a view's noise does not
+    depend on which other views are rendered, in which order or on which process, and any chunk
+    can be rendered again alone (the notebook's pixel probe). Every caller that renders dataset
+    views (evaluation, export, notebook) seeds them this way."""
+    return lambda chunk: torch.Generator(device=device).manual_seed(chunk_seed(seed, view, chunk))
+
+
 @torch.no_grad()
 def render_chunked(render_chunk: Callable[[RayBundle, "torch.Generator | None"], ChunkRender], rays: RayBundle,
                    chunk_rays: int, *, generator: "torch.Generator | ChunkGenerators | None" = None,

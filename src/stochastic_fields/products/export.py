@@ -38,6 +38,7 @@ from tqdm.auto import tqdm
 
 from ..cameras import generate_rays_for_view, intrinsics_3x3, make_cameras
 from ..data.dataset import parse_views
+from ..renderer import seeded_chunks
 from ..io_utils import atomic_folder, atomic_path, atomic_write_text, check_file_name, read_json
 from .depth_maps import (CONVENTIONS, DepthProducts, check_quantile_levels, compute_depth_products,
                          draw_quantiles, quantile_name, write_colourised, write_npz, write_png16, write_tiff)
@@ -166,6 +167,8 @@ class ViewSpec:
     near: float
     far: float
     gt_depth: np.ndarray | None = field(default=None, repr=False)
+    index: int = 0
+    """The view's index in its source (dataset view, or entry of the cameras file): seeds its noise."""
 
 
 # ------------------------------------------------------------------------------- inputs
@@ -224,7 +227,7 @@ def load_cameras_json(path: str | Path, *, default_near: float, default_far: flo
             raise ValueError(f"{path}: camera {i}: need 0 < near < far, got near={near} far={far}")
         name = cam.get("name", f"cam_{i:03d}")
         check_file_name(name, f"{path}: camera {i}: 'name'")
-        specs.append(ViewSpec(name, K, w2c, size["height"], size["width"], near, far))
+        specs.append(ViewSpec(name, K, w2c, size["height"], size["width"], near, far, index=i))
     names = [s.name for s in specs]
     if len(set(names)) != len(names):
         raise ValueError(f"{path}: camera names must be unique, got {names}")
@@ -239,20 +242,21 @@ def dataset_view_specs(dataset, views: Sequence[int]) -> list[ViewSpec]:
     for v in views:
         gt = dataset.depths[v].numpy() if getattr(dataset, "depths", None) is not None else None
         specs.append(ViewSpec(f"view_{v:03d}", K[v], w2c[v], dataset.height, dataset.width, float(dataset.near[v]),
-                              float(dataset.far[v]), gt))
+                              float(dataset.far[v]), gt, index=int(v)))
     return specs
 
 
 # ------------------------------------------------------------------------------- rendering
-def render_products(model, spec: ViewSpec, opts: ExportOptions, generator: torch.Generator,
-                    calibration=None) -> DepthProducts:
+def render_products(model, spec: ViewSpec, opts: ExportOptions, calibration=None) -> DepthProducts:
     """Render one camera with K draws and return its depth products (draws kept; ``calibration``:
-    the run's depth recalibration, see ``compute_depth_products``)."""
+    the run's depth recalibration, see ``compute_depth_products``). Noise: ``seeded_chunks(opts.seed,
+    spec.index)``, as evaluation and the notebook seed a dataset view."""
     device = next(model.parameters()).device
     cams = make_cameras(torch.from_numpy(spec.intrinsics).float()[None],
                         torch.from_numpy(spec.world_to_camera).float()[None], spec.height, spec.width)
     rays = generate_rays_for_view(cams, 0, spec.near, spec.far).to(device)
-    maps = model.render_view(rays, model.render_options(num_draws=opts.num_draws, keep_draws=True), generator=generator)
+    maps = model.render_view(rays, model.render_options(num_draws=opts.num_draws, keep_draws=True),
+                             generator=seeded_chunks(opts.seed, spec.index, device))
     return compute_depth_products(maps, intrinsics_3x3(cams)[0].double().numpy(), cams.extrinsics[0].double().numpy(),
                                   near=spec.near, far=spec.far, quantiles=opts.quantiles,
                                   min_opacity=opts.min_opacity, units=opts.units, keep_draws=True,
@@ -467,8 +471,6 @@ def export_views(model, specs: Sequence[ViewSpec], out: Path, opts: ExportOption
 def _export_views_into(model, specs: Sequence[ViewSpec], out: Path, opts: ExportOptions, *,
                        mesh_path: Path | None, run_name: str, calibration=None) -> dict:
     out = Path(out)
-    device = next(model.parameters()).device
-    generator = torch.Generator(device=device).manual_seed(opts.seed)
     flt = opts.point_filter()
     calib = CalibrationAccumulator()
     clouds: list[CloudArrays] = []
@@ -476,7 +478,7 @@ def _export_views_into(model, specs: Sequence[ViewSpec], out: Path, opts: Export
     files: list[Path] = []
     num_draws = None
     for index, spec in enumerate(tqdm(specs, desc="export", disable=not opts.progress, dynamic_ncols=True)):
-        products = render_products(model, spec, opts, generator, calibration)
+        products = render_products(model, spec, opts, calibration)
         num_draws = products.num_draws
         files += write_view_files(out, spec.name, products, opts)
         calib.add(products, spec.gt_depth)
