@@ -1,6 +1,6 @@
 """Reproduce the paper's Tables 1-3 (and the depth / calibration tables) on LLFF scenes.
 
-Trains every method on every scene with the SPEC protocol (LLFF images_8, every 5th view
+Trains every method on every scene with the protocol of docs/definitions.md §7 (LLFF images_8, every 5th view
 trains, same budget and seed for all), scores the test views, times one full-view render per
 method, and writes ``tables.json``, ``tables.md`` and ``plots/*.png`` into ``--out``. Every stage
 is resumable: run the same command again after an interruption and finished stages are skipped.

@@ -1,4 +1,4 @@
-"""Baselines (SPEC 5): every method trains and renders through the shared pipeline; their
+"""Baselines (docs/definitions.md §5): every method trains and renders through the shared pipeline; their
 uncertainties are checked against independent computations (numpy moments over the draws,
 float64 loops over samples, torch.distributions, scipy quadrature)."""
 

@@ -123,7 +123,8 @@ def _colour_errors(ds: SceneDataset, cams, shift=(0, 0)):
 
 
 def test_fern_conventions_with_colmap_points(fern):
-    """SPEC 1's real check: COLMAP points land in frame, in front, between near/far, on the right pixels."""
+    """The real check of docs/definitions.md §1: COLMAP points land in frame, in front, between
+    near/far, on the right pixels."""
     uv, z = project_points(fern.cameras, fern.points3d)
     assert float((z > 0).float().mean()) > 0.9
     assert float(in_image(fern.cameras, uv, z).float().mean(1).min()) > 0.9

@@ -1,4 +1,4 @@
-"""Cameras and rays (SPEC 1).
+"""Cameras and rays (docs/definitions.md §1).
 
 Every camera in the package is a kornia :class:`~kornia.geometry.camera.PinholeCamera` holding V
 views: ``intrinsics`` [V, 4, 4] (top-left 3x3 block is ``K``), ``extrinsics`` [V, 4, 4]

@@ -230,7 +230,8 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--out", default=None, help="Output folder (default: inside the run folder).")
         p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
         p.add_argument("--colour-estimator", choices=COLOUR_ESTIMATORS, default=None,
-                       help="S-NeRF colour statistics: 'draws' (SPEC 3) or 'rao_blackwell' (density draws "
+                       help="S-NeRF colour statistics: 'draws' (docs/definitions.md §3) or 'rao_blackwell' "
+                            "(density draws "
                             "only, colour noise integrated exactly; default: the run's render.colour_estimator).")
         p.add_argument("--raw-uncertainty", action="store_true",
                        help="Ignore the run's calibration.json: depth_std is the raw rendered std (by default the "

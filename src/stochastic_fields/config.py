@@ -31,7 +31,7 @@ class DataConfig:
     images: str = "images_8"
     """LLFF image folder to read (images_8 is 504x378 for fern): a folder name inside the scene, no path separators. Range: a folder name (no '/', not '.' or '..')."""
     split_every: int = 5
-    """Training views are those with index % split_every == 0 (SPEC 7); the rest are test views. Range: an integer >= 1 and <= 1000000."""
+    """Training views are those with index % split_every == 0 (docs/definitions.md §7); the rest are test views. Range: an integer >= 1 and <= 1000000."""
     downscale: int = 1
     """Integer downscale of Blender images (lego: 8 gives 100x100). LLFF scenes refuse values other than 1: choose data.images instead. Range: an integer >= 1 and <= 1024."""
 
@@ -159,7 +159,7 @@ TRAIN_CHECKS: dict[str, V.Checker] = {
     "device": V.text(pattern_rule="'auto', 'cpu', 'cuda' or 'cuda:N'", accept=_device_name),
 }
 
-#: Every method's name (``models.registry.METHODS`` builds each): S-NeRF and the baselines (SPEC 5).
+#: Every method's name (``models.registry.METHODS`` builds each): S-NeRF and the baselines (docs/definitions.md §5).
 METHOD_NAMES: tuple[str, ...] = ("snerf", "deterministic", "mc_dropout", "ensemble", "nerfw")
 
 #: Methods whose renders report a variance over K trajectories: they need render.num_draws >= 2.

@@ -33,7 +33,7 @@ OPAQUE_TRANSMITTANCE: float = math.exp(-MAX_OPTICAL_DEPTH_FOR_SKIP)
 #: Relative to opacity in [0, 1]; an opacity below this is a ray that hit nothing.
 OPACITY_EPS: float = 1e-6
 
-#: Minimum variance used by the Gaussian NLL metric (SPEC 6): colours are 8-bit, so a variance
+#: Minimum variance used by the Gaussian NLL metric (docs/definitions.md §6): colours are 8-bit, so a variance
 #: below (1/255)^2 / 12 (uniform quantisation noise) claims more than the data can hold.
 NLL_VARIANCE_FLOOR: float = (1.0 / 255.0) ** 2 / 12.0
 
@@ -44,7 +44,7 @@ COLOUR_PROB_CLAMP: float = 0.5 / 255.0
 #: Stand-in for an unbounded last interval in alpha compositing when no far plane is given.
 FAR_INTERVAL: float = 1e10
 
-#: Minimum depth variance (scene units squared) used by the depth NLL metric (SPEC 6). Same
+#: Minimum depth variance (scene units squared) used by the depth NLL metric (docs/definitions.md §6). Same
 #: reasoning as NLL_VARIANCE_FLOOR: a renderer cannot resolve depth finer than its sample spacing
 #: delta, whose uniform quantisation variance is delta^2 / 12. The finest plausible sampling in our
 #: data (Blender lego, depth range [2, 6], 1024 samples per ray) has delta ~ 4e-3, i.e.

@@ -1,4 +1,4 @@
-"""The two S-NeRF distributions and their KL divergences (SPEC 4; paper appendix "Distributions"
+"""The two S-NeRF distributions and their KL divergences (docs/definitions.md §4; paper appendix "Distributions"
 and "The posterior-prior KL divergence").
 
     density   X = max(0, Y),  Y ~ N(loc, scale^2)      rectified normal, support {0} U (0, inf)

@@ -5,7 +5,7 @@ small dataclasses) or matplotlib ``Figure`` objects built without pyplot (no glo
 display calls), plus a plotly figure for the interactive 3D view; the notebook only wires them
 to widgets.
 
-Conventions (SPEC 1, 3, 6):
+Conventions (docs/definitions.md §1, §3, §6):
     * Depth products are camera-z depth in scene units (``view_maps.camera_z_maps``); standard
       deviations scale the same way (``depth_std`` recalibrated by the run's calibration.json as
       eval does, the raw one as ``depth_std_raw``). ``depth_std`` is the total std (epistemic + termination
@@ -144,7 +144,7 @@ class RunInspector:
 
     @property
     def colour_estimator(self) -> str:
-        """Colour statistics of the renders: 'draws' (SPEC 3) or 'rao_blackwell' (density draws only,
+        """Colour statistics of the renders: 'draws' (docs/definitions.md §3) or 'rao_blackwell' (density draws only,
         colour noise integrated exactly; see ``RenderSettings.colour_estimator``)."""
         return self._colour_estimator
 

@@ -1,4 +1,4 @@
-"""The variational objective (SPEC 4, paper Eq. var_snerf):
+"""The variational objective (docs/definitions.md §4, paper Eq. var_snerf):
 
     L = -1/(R K) sum_{r,k} log N(c_r | C_rk, sigma_n^2 I)                  (MC likelihood)
         + lambda_rand * mean_{x ~ region, d ~ sphere} KL(q(.|x,d) || p_rand)

@@ -1,4 +1,4 @@
-"""Evaluation metrics for predictive colour and depth distributions (SPEC 6).
+"""Evaluation metrics for predictive colour and depth distributions (docs/definitions.md §6).
 
 Pure functions over tensors. Every input may be a ``torch.Tensor`` (any device) or anything
 ``numpy.asarray`` accepts; computation is in float64 on the input's device, results are Python
@@ -27,7 +27,7 @@ ErrorMetric = Literal["rmse", "mae"]
 #: 0.5 * log(2 pi): the constant of the Gaussian NLL, included in every NLL reported here.
 HALF_LOG_2PI: float = 0.5 * math.log(2.0 * math.pi)
 
-#: Number of removal fractions of the sparsification curves (SPEC 6): f = i / 100, i = 0..99.
+#: Number of removal fractions of the sparsification curves (docs/definitions.md §6): f = i / 100, i = 0..99.
 DEFAULT_NUM_FRACTIONS: int = 100
 
 #: Nominal levels of the calibration curve: 0.01, 0.02, ..., 0.99.
@@ -118,7 +118,7 @@ def gaussian_nll_per_pixel(gt: Any, mean: Any, var: Any, var_floor: float = NLL_
 
 
 def gaussian_nll(gt: Any, mean: Any, var: Any, var_floor: float = NLL_VARIANCE_FLOOR, reduce: bool = True):
-    """Gaussian NLL of the ground truth under the predicted per-channel Gaussians (SPEC 6).
+    """Gaussian NLL of the ground truth under the predicted per-channel Gaussians (docs/definitions.md §6).
 
     Convention: -log N(gt | mean, max(var, var_floor)) per channel value, including the
     0.5 log(2 pi) term, averaged over channels and pixels (nats per channel value; multiply by C
@@ -485,7 +485,7 @@ def _coverage(abs_res: Tensor, std: Tensor, levels: Tensor, interval_scale: Any 
 
 def calibration_curve(gt: Any, mean: Any, std: Any, levels: Any = None, mask: Any = None,
                       interval_scale: Any = None) -> CalibrationResult:
-    """Calibration of Gaussian predictions: empirical coverage of central intervals (SPEC 6).
+    """Calibration of Gaussian predictions: empirical coverage of central intervals (docs/definitions.md §6).
 
     Convention: for each nominal level p the central interval is mean +- z_p std with
     z_p = Phi^-1((1 + p) / 2), times ``interval_scale(p)`` when given (a recalibrated

@@ -5,7 +5,7 @@
     r_ikc = sigmoid(mu_c,i + s_c,i eps_ikc)                                [R, K, S, 3]
     w_ik = quadrature(alpha_k, t)                   alpha compositing or trapezoid
     C_k = sum_i w_ik r_ik,  D_k = sum_i w_ik t_i / sum_i w_ik
-    colour mean/var, depth mean / epistemic var / termination spread over k (SPEC 3)
+    colour mean/var, depth mean / epistemic var / termination spread over k (docs/definitions.md §3)
 
 Noise: independent eps per point and draw (the paper), or shared along the ray per draw
 (``shared_noise=True``: every trajectory is one consistent field realisation along the ray).
@@ -49,7 +49,7 @@ from .validation import Checker, boolean, check_fields, choice, colour_or_none, 
 from .volume_rendering import (TrajectoryStatistics, concatenate_draws, render_weights, render_weights_packed,
                                trajectory_statistics, trajectory_statistics_packed, weights_alpha_from_optical_depth)
 
-#: RenderSettings.colour_estimator values: drawn colours (SPEC 3) or Rao-Blackwellised colours.
+#: RenderSettings.colour_estimator values: drawn colours (docs/definitions.md §3) or Rao-Blackwellised colours.
 COLOUR_ESTIMATORS: tuple[str, ...] = ("draws", "rao_blackwell")
 
 #: ``occupied(positions [R, S, 3]) -> [R, S] bool``: which dense samples to keep (empty-space skipping).
@@ -87,7 +87,7 @@ class RenderSettings:
     occupancy_warmup_steps: int = 256
     """Steps during which every occupancy cell is re-evaluated at each update (afterwards a random subset). Range: an integer >= 0 and <= 1000000000."""
     colour_variance: Literal["epistemic", "predictive"] = "predictive"
-    """S-NeRF colour variance: 'predictive' (default) adds sigma_n^2 to the variance over the K trajectories; 'epistemic' is that variance alone (SPEC 3, the paper). 'predictive' adds sigma_n^2, the likelihood's pixel noise (the model's predictive variance of an observed pixel; learn sigma_n with loss.learn_likelihood_std)."""
+    """S-NeRF colour variance: 'predictive' (default) adds sigma_n^2 to the variance over the K trajectories; 'epistemic' is that variance alone (docs/definitions.md §3, the paper). 'predictive' adds sigma_n^2, the likelihood's pixel noise (the model's predictive variance of an observed pixel; learn sigma_n with loss.learn_likelihood_std)."""
     adaptive_draws: bool = False
     """Render with adaptive K (stochastic_fields.adaptive): trajectories in batches of adaptive_batch_draws until the colour and depth variance estimates change by less than adaptive_rtol, at most adaptive_max_draws. Used when no explicit num_draws is asked for."""
     adaptive_batch_draws: int = 8
@@ -97,7 +97,7 @@ class RenderSettings:
     adaptive_rtol: float = 0.05
     """Adaptive K: tolerance of adaptive_rule ('precision': predicted relative change of the mean precision 1/var between the current K and the cap; 'change': relative L1 change of the per-pixel colour and depth variances from one batch to the next). Measured (benchmarks/results): with colour_estimator='rao_blackwell', precision at 0.01 ends within 2% of the cap's NLL in about 0.7x its time. Range: a finite number > 0."""
     colour_estimator: Literal["draws", "rao_blackwell"] = "draws"
-    """Rendering colour statistics: 'draws' samples every colour (SPEC 3: C_k = sum_i w_ik r_ik, variance over k); 'rao_blackwell' draws only densities and integrates each trajectory's colour noise exactly given its weights (E[C_k|w_k] = sum_i w_ik E[r_i], Var[C_k|w_k] = sum_i w_ik^2 Var[r_i], tabulated logistic-normal moments), estimating the same mean and variance with less Monte-Carlo noise and no colour draws (benchmarks/results). Training always draws colours."""
+    """Rendering colour statistics: 'draws' samples every colour (docs/definitions.md §3: C_k = sum_i w_ik r_ik, variance over k); 'rao_blackwell' draws only densities and integrates each trajectory's colour noise exactly given its weights (E[C_k|w_k] = sum_i w_ik E[r_i], Var[C_k|w_k] = sum_i w_ik^2 Var[r_i], tabulated logistic-normal moments), estimating the same mean and variance with less Monte-Carlo noise and no colour draws (benchmarks/results). Training always draws colours."""
     adaptive_rule: Literal["precision", "change"] = "precision"
     """Adaptive K stopping rule: 'precision' stops when the small-K bias of 1/var left before the cap, predicted from the draws' kurtosis, is below adaptive_rtol (aims at the NLL of K = adaptive_max_draws); 'change' when the variances change by less than adaptive_rtol between batches (stops earlier, NLL measured 4% above K = 128's at rtol 0.05). See stochastic_fields.adaptive."""
 

@@ -1,4 +1,4 @@
-"""Sparse depth ground truth from SfM (COLMAP) points, and depth scores against it (SPEC 6).
+"""Sparse depth ground truth from SfM (COLMAP) points, and depth scores against it (docs/definitions.md §6).
 
 Real captures have no depth maps, but their COLMAP model holds the triangulated points in the
 poses' world frame: LLFF ships ``sparse/0/points3D.bin``; COLMAP captures, prepared scenes and

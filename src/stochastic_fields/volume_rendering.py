@@ -5,7 +5,7 @@ batch dimensions, so the draws axis K is just another batch axis: dense densitie
 ``[..., S]`` (e.g. ``[R, K, S]``) and interval starts/ends only need to broadcast to them
 (e.g. ``[R, 1, S]``: all K draws share the sample positions).
 
-Notation (SPEC 3). ``density`` is the paper's alpha (NeRF's sigma), a non-negative volume
+Notation (docs/definitions.md §3). ``density`` is the paper's alpha (NeRF's sigma), a non-negative volume
 density; sample i covers the interval ``[t_starts_i, t_ends_i]`` of ray distance and the field
 is evaluated at its midpoint ``t_mids_i``. ``delta_i = t_ends_i - t_starts_i``.
 
@@ -297,7 +297,7 @@ def composite_background(colour: Tensor, acc: Tensor, background: Tensor | float
 
 
 # ---------------------------------------------------------------------------------------------
-# Statistics over K trajectories (SPEC 3)
+# Statistics over K trajectories (docs/definitions.md §3)
 # ---------------------------------------------------------------------------------------------
 
 
@@ -411,7 +411,7 @@ def trajectory_statistics(
     background: Tensor | float | None = None,
     rgb_var: Tensor | None = None,
 ) -> TrajectoryStatistics:
-    """Render K trajectories per ray and summarise them (SPEC 3), dense layout.
+    """Render K trajectories per ray and summarise them (docs/definitions.md §3), dense layout.
 
     Per draw k: ``C_k = sum_i w_ik r_ik (+ (1 - acc_k) bg)``, ``D_k = sum_i w_ik t_i / acc_k``
     (``far`` if ``acc_k < OPACITY_EPS``), ``V_k = sum_i w_ik (t_i - D_k)^2 / acc_k``. Then

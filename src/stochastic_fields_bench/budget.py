@@ -32,7 +32,7 @@ class BenchmarkSettings:
     budget: str = "cpu"
     """'cpu': the documented CPU budget (CPU_BUDGET_OVERRIDES, CPU_BUDGET_VIEWS test views); 'full': the llff preset, every test view."""
     images: str = "images_8"
-    """LLFF image folder (SPEC 7: images_8, 504x378)."""
+    """LLFF image folder (docs/definitions.md §7: images_8, 504x378)."""
     iterations: int | None = None
     """Training steps for every method (None: the llff preset's)."""
     seed: int = 0

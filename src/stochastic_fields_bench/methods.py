@@ -23,7 +23,7 @@ class MethodSpec:
     training and score with it (raw scores kept as ``depth_raw/``)."""
 
 
-#: The paper's S-NeRF objective and colour variance (SPEC 3, 4): fixed pixel noise, the variance over
+#: The paper's S-NeRF objective and colour variance (docs/definitions.md §3, §4): fixed pixel noise, the variance over
 #: the K trajectories, no depth likelihood (explicit, since the package defaults differ).
 PAPER_SNERF: tuple[tuple[str, Any], ...] = (("loss.learn_likelihood_std", False),
                                             ("render.colour_variance", "epistemic"), ("loss.lambda_depth", 0.0))

@@ -1,6 +1,6 @@
 """``stochastic-fields bench``: the speed-against-error benchmark of issue 5 (not part of the tests).
 
-One run, one machine, every comparison as a ratio measured in the same run (SPEC 8). For each
+One run, one machine, every comparison as a ratio measured in the same run (docs/definitions.md §8). For each
 scene (the synthetic default scene, generated into the output folder; fern at ``images_8``
 with the every-5th split when ``--data`` holds it):
 

@@ -1,6 +1,7 @@
-"""The paper's Tables 1-3 on real scenes, side by side, plus the stronger metrics (issue 4, SPEC 5-8).
+"""The paper's Tables 1-3 on real scenes, side by side, plus the stronger metrics (issue 4,
+docs/definitions.md §5-§8).
 
-Protocol (SPEC 7): every method is trained on the same scene, split (``index % 5 == 0`` trains),
+Protocol (docs/definitions.md §7): every method is trained on the same scene, split (``index % 5 == 0`` trains),
 budget (iterations, rays per batch, samples per ray, field backend and resolution) and seed,
 then scored on every test view. One configuration per method for every scene: no per-scene
 tuning.

@@ -1,6 +1,6 @@
 """Datasets: LLFF, Blender/nerfstudio and COLMAP loaders, COLMAP readers and the embedded synthetic scene.
 
-Every loader returns a :class:`SceneDataset` with OpenCV cameras (SPEC 1) and raises
+Every loader returns a :class:`SceneDataset` with OpenCV cameras (docs/definitions.md §1) and raises
 :class:`DatasetError` (naming the file) on bad input.
 """
 

@@ -50,7 +50,7 @@ def load_colmap(
         root: scene folder (holding ``images/`` and a model under ``sparse/0`` or similar).
         downscale: image downscale factor: reads ``images_<downscale>/`` if present, else
             area-averages ``images/``. Intrinsics follow the loaded size.
-        split_every: views with ``index % split_every == 0`` train (SPEC 7).
+        split_every: views with ``index % split_every == 0`` train (docs/definitions.md §7).
         model: the model folder, if not one of the usual places under ``root``.
         progress: a progress bar over the images.
     """

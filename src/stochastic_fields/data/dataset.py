@@ -1,6 +1,6 @@
 """The in-memory multi-view scene every loader returns, its scene box, and format autodetection.
 
-Conventions (SPEC 1): cameras are OpenCV (x right, y down, z forward), pixel centres at +0.5,
+Conventions (docs/definitions.md §1): cameras are OpenCV (x right, y down, z forward), pixel centres at +0.5,
 ``near``/``far``/``depths`` are camera-z depths in the scene's own units.
 """
 
@@ -27,7 +27,7 @@ from ..cameras import (
 from ..rays import RayBundle
 from .errors import DatasetError
 
-#: Default training split (SPEC 7): views with ``index % 5 == 0`` train, the rest test.
+#: Default training split (docs/definitions.md §7): views with ``index % 5 == 0`` train, the rest test.
 DEFAULT_SPLIT_EVERY: int = 5
 #: Views processed together when counting covisibility in :func:`fit_scene_aabb`.
 _VIEWS_PER_CHUNK: int = 16
@@ -136,7 +136,7 @@ class SceneDataset:
         return self.subset(self.test_indices)
 
     def split_every(self, n: int) -> "SceneDataset":
-        """Re-split: views with ``index % n == 0`` train, the rest test (SPEC 7 uses n = 5)."""
+        """Re-split: views with ``index % n == 0`` train, the rest test (docs/definitions.md §7 uses n = 5)."""
         train, test = split_every_indices(self.num_views, n, self.root)
         return replace(self, train_indices=train, test_indices=test)
 

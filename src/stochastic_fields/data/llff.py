@@ -101,7 +101,7 @@ def load_llff(
         root: scene folder holding ``poses_bounds.npy``.
         images: image folder name (``"images_8"``) or downsampling factor (8 -> ``images_8``,
             1 -> ``images``).
-        split_every: SPEC 7 split, train = ``index % split_every == 0``, test = the rest.
+        split_every: docs/definitions.md §7 split, train = ``index % split_every == 0``, test = the rest.
         load_points: read ``sparse/0/points3D.bin`` (if present) into ``points3d``; the points
             also bound the scene box.
 

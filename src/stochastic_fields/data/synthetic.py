@@ -48,7 +48,7 @@ LIGHT_DIRECTION: tuple[float, float, float] = (0.45, -0.35, 0.82)
 BACKGROUND: tuple[float, float, float] = (1.0, 1.0, 1.0)
 #: Scene centre the cameras look at.
 LOOK_AT: tuple[float, float, float] = (0.0, 0.0, 0.3)
-#: Recommended training split: every 5th view (SPEC 7, about 20% of the views).
+#: Recommended training split: every 5th view (docs/definitions.md §7, about 20% of the views).
 SPLIT_EVERY: int = 5
 #: Relative margin of the near/far hints around the observed depth range.
 _DEPTH_MARGIN: float = 0.1

@@ -1,7 +1,7 @@
 """The narrow field interface every backend implements.
 
 A stochastic field maps points and view directions to the parameters of two distributions
-(SPEC 2):
+(docs/definitions.md §2):
 
     density  alpha = relu(density_loc + density_scale * eps)          (rectified normal)
     radiance r_c   = sigmoid(rgb_loc_c + rgb_scale_c * eps_c)          (logistic normal)

@@ -1,4 +1,4 @@
-"""The paper's baselines (Table 1, SPEC 5) as real ``RadianceModel``s.
+"""The paper's baselines (Table 1, docs/definitions.md §5) as real ``RadianceModel``s.
 
 Every baseline uses the configured field backend (``field.backend``: the same backbone as
 S-NeRF), the same samplers, quadrature, background and chunked rendering, and trains through

@@ -1,4 +1,4 @@
-"""S-NeRF: a stochastic field trained by variational inference (SPEC 2-4).
+"""S-NeRF: a stochastic field trained by variational inference (docs/definitions.md §2-§4).
 
 Empty-space skipping (``render_settings.skip_empty_space``): an ``OccupancyGrid`` over the scene
 region's unit cube [-1, 1]^3 (``SceneRegion.to_unit``), so the same code serves box (aabb) and

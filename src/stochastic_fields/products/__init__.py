@@ -23,6 +23,6 @@ For robots (each read back in the tests with the consumer's own library):
     rerun_log      rerun .rrd recording of an export
     planner_cli, free_path_cli   the ``occupancy`` and ``free-path`` commands
 
-Conventions: every depth is camera-z depth in scene units (SPEC 1); cameras are OpenCV with
+Conventions: every depth is camera-z depth in scene units (docs/definitions.md §1); cameras are OpenCV with
 pixel centres at +0.5; see ``depth_maps.CONVENTIONS`` (also written into every file).
 """

@@ -1,6 +1,6 @@
 """Per-view depth products from K depth trajectories, and the files they are written to.
 
-Every product is **camera-z depth in scene units** (SPEC 1): the renderer's ray distances are
+Every product is **camera-z depth in scene units** (docs/definitions.md §1): the renderer's ray distances are
 multiplied by ``z_scale`` (:func:`stochastic_fields.view_maps.camera_z_maps`). Per pixel, with
 ``D_k`` the camera-z termination depth of draw k (k = 1..K):
 
