@@ -101,3 +101,16 @@ def test_presets_are_data_and_listed_in_help(capsys):
     assert "[range: true or false]" in text  # fields whose docstring has no range get it appended
     with pytest.raises(ValueError, match="unknown preset 'fast'"):
         C.preset("fast")
+
+
+def test_a_command_imports_only_its_own_module():
+    """`train` does not pay for export's trimesh/Open3D or prepare's pycolmap imports; `export` does load its own."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from stochastic_fields.cli import build_parser; build_parser({!r}); "
+            "print(' '.join(m for m in ('stochastic_fields.products.export', 'stochastic_fields.data.prepare') "
+            "if m in sys.modules))")
+    loaded = {cmd: subprocess.run([sys.executable, "-c", code.format(cmd)], capture_output=True, text=True,
+                                  check=True).stdout.split() for cmd in ("train", "export")}
+    assert loaded == {"train": [], "export": ["stochastic_fields.products.export"]}

@@ -209,7 +209,10 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n(see '{self.prog} --help')\n")
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The CLI's parser. The modules of the extra commands (export, prepare, ... and those of
+    installed packages) are imported only for ``command`` (None: all of them; "": none), so that a command
+    does not pay for the imports of the others (trimesh, Open3D, pycolmap)."""
     parser = _Parser(prog="stochastic-fields", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -248,24 +251,23 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     import importlib
+    from importlib.metadata import entry_points
 
-    for name, (module, helptext) in EXTRA_COMMANDS.items():
+    commands = {name: (lambda module=module: importlib.import_module(module), helptext)
+                for name, (module, helptext) in EXTRA_COMMANDS.items()}
+    for ep in entry_points(group=COMMAND_ENTRY_POINTS):
+        commands.setdefault(ep.name, (ep.load, None))
+    for name, (load, helptext) in commands.items():
+        if command is not None and name != command:
+            sub.add_parser(name, help=helptext or f"(see 'stochastic-fields {name} --help')")
+            continue
         try:
-            mod = importlib.import_module(module)
+            mod = load()
         except ModuleNotFoundError as exc:
             if exc.name and exc.name.startswith("stochastic_fields"):
                 continue
             raise
-        p = sub.add_parser(name, help=helptext)
-        mod.add_arguments(p)
-        p.set_defaults(func=mod.run)
-    from importlib.metadata import entry_points
-
-    for ep in entry_points(group=COMMAND_ENTRY_POINTS):
-        if ep.name in EXTRA_COMMANDS:
-            continue
-        mod = ep.load()
-        p = sub.add_parser(ep.name, help=(mod.__doc__ or "").strip().split("\n")[0])
+        p = sub.add_parser(name, help=helptext or (mod.__doc__ or "").strip().split("\n")[0])
         mod.add_arguments(p)
         p.set_defaults(func=mod.run)
     return parser
@@ -288,7 +290,9 @@ def _describe_os_error(exc: OSError) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = next((a for a in argv if not a.startswith("-")), "")  # "": no command yet (top-level help)
+    args = build_parser(command).parse_args(argv)
     try:
         args.func(args)
     except (ValueError, FileNotFoundError, FloatingPointError) as exc:
