@@ -48,6 +48,21 @@ class RowGradient:
         touched[rows] = False
         return rows, grad
 
+    def touched_rows(self, table: Tensor) -> Tensor:
+        """[N] bool: the rows accumulated into since the last take (a copy)."""
+        return self._buffers(table)[1].clone()
+
+    def rows(self, table: Tensor, rows: Tensor) -> Tensor:
+        """[U, C] the accumulated gradient of ``rows`` [U] (zero where untouched); nothing is reset."""
+        return self._buffers(table)[0][rows]
+
+    def assign(self, table: Tensor, rows: Tensor, values: Tensor) -> None:
+        """Set the gradient of ``rows`` [U] to ``values`` [U, C] and mark them touched (the
+        distributed reduction writes the ranks' average back this way); other rows are kept."""
+        acc, touched = self._buffers(table)
+        acc[rows] = values.to(acc.dtype)
+        touched[rows] = True
+
     def zero(self) -> None:
         if self._acc is not None:
             self._acc.zero_()
