@@ -367,3 +367,68 @@ def test_a_failing_rank_stops_the_other_with_a_clear_error_and_no_partial_checkp
     state = load_checkpoint(run / "checkpoint.pt")
     assert state["step"] == 3 and state["world_size"] == 2
     assert sorted(p.name for p in run.iterdir()) == ["checkpoint.pt", "config.json", "train_log.jsonl"]
+
+
+def test_row_gradient_replace_is_what_the_optimiser_takes():
+    """``RowGradient.replace`` (the reduction's result) steps RowSparseAdam exactly as the same
+    rows accumulated by ``add``; an ``add`` after it accumulates on top; ``zero`` drops it."""
+    from stochastic_fields.fields.row_gather import row_gradient
+    from stochastic_fields.optim import RowSparseAdam
+
+    g = torch.Generator().manual_seed(0)
+    rows = torch.tensor([1, 4, 6])
+    values = torch.randn(3, 2, generator=g)
+    tables = [torch.nn.Parameter(torch.randn(8, 2, generator=torch.Generator().manual_seed(1))) for _ in range(2)]
+    opts = [RowSparseAdam([t], lr=0.1) for t in tables]
+    row_gradient(tables[0]).add(tables[0], torch.tensor([6, 1, 4, 1]), torch.cat([values[[2, 0, 1]], torch.zeros(1, 2)]))
+    row_gradient(tables[1]).add(tables[1], torch.tensor([0]), torch.ones(1, 2))  # dropped by replace
+    row_gradient(tables[1]).replace(tables[1], rows, values)
+    assert torch.equal(row_gradient(tables[1]).dense(tables[1]), row_gradient(tables[0]).dense(tables[0]))
+    for opt in opts:
+        opt.step()
+    torch.testing.assert_close(tables[0].data, tables[1].data, rtol=0, atol=0)
+    moved = (tables[1].data != torch.randn(8, 2, generator=torch.Generator().manual_seed(1))).any(dim=1)
+    assert moved.nonzero().squeeze(1).tolist() == [1, 4, 6]
+    acc = row_gradient(tables[1])
+    acc.replace(tables[1], rows, values)
+    acc.add(tables[1], torch.tensor([4]), torch.ones(1, 2))
+    expected = torch.zeros(8, 2)
+    expected[rows] = values
+    expected[4] += 1
+    assert torch.equal(acc.dense(tables[1]), expected)
+    acc.replace(tables[1], rows, values)
+    acc.zero()
+    assert not acc.dense(tables[1]).any() and acc.take(tables[1])[0].numel() == 0
+
+
+@pytest.mark.slow
+def test_torchrun_cli_trains_two_ranks_and_one_process_resumes(tiny_scene, tmp_path):
+    """``torchrun --nproc_per_node 2 -m stochastic_fields.cli train``: one run folder written by
+    rank 0 (each log record once), then ``train`` in one process continues it."""
+    import json
+    import subprocess
+    import sys
+
+    from stochastic_fields.checkpoint import load_checkpoint
+
+    run = tmp_path / "run"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).resolve().parents[1] / "src")}
+    options = ["--out", str(run), "--preset", "tiny", "--data.path", str(tiny_scene), "--train.checkpoint_every", "5",
+               "--train.rays_per_batch", "128", "--render.num_samples", "16", "--quiet"]
+    done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
+                           "--master_port", str(_free_port()), "-m", "stochastic_fields.cli", "train",
+                           "--train.iterations", "20", *options],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stdout.count("trained on 2 processes (gloo)") == 1
+    state = load_checkpoint(run / "checkpoint.pt")
+    assert state["step"] == 20 and state["world_size"] == 2
+    steps = [json.loads(line)["step"] for line in (run / "train_log.jsonl").read_text().splitlines()]
+    assert steps == [10, 20]
+    done = subprocess.run([sys.executable, "-m", "stochastic_fields.cli", "train", "--train.iterations", "30", *options],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "written by 2 process(es) and resumes in 1" in done.stderr
+    assert load_checkpoint(run / "checkpoint.pt")["step"] == 30 and "world_size" not in load_checkpoint(run / "checkpoint.pt")
+    steps = [json.loads(line)["step"] for line in (run / "train_log.jsonl").read_text().splitlines()]
+    assert steps == [10, 20, 30]
