@@ -111,6 +111,8 @@ def _train_distributed(args: argparse.Namespace, run_dir: Path, cfg: C.Experimen
     from .trainer import Trainer, check_resume
 
     with process_group(cfg.train.device, timeout_s=args.dist_timeout) as ctx:
+        # rank 0's config everywhere (on another host the run folder's config.json may be absent)
+        cfg = C.from_dict(C.ExperimentConfig, ctx.broadcast_object(C.to_dict(cfg), what="the run's config from rank 0"))
         check_resume(run_dir, cfg)  # every rank, before anything is written or generated
         with ctx.main_first("rank 0 loads or generates the scene"):
             dataset = load_run_dataset(cfg, run_dir)
