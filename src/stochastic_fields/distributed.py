@@ -38,7 +38,7 @@ Gradient reduction (:class:`GradientReducer`), per step:
   the occupancy grid, refreshed from the parameters with a step-seeded generator, agrees too.
 
 A ring all-reduce sends and receives about ``2 (W - 1) / W`` times each buffer per rank. At
-W = 2 on the tiny preset's grid this is a few MB per step (``benchmarks/distributed.py``
+W = 2 on fern's default grid this is 26 MB per step and rank (``benchmarks/distributed.py``
 measures the share of a step spent in these calls).
 
 Random streams: rank r of W draws its rays and trajectories from generators seeded by
