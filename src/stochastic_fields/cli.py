@@ -8,11 +8,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
 
 from . import config as C
+from .constants import DISTRIBUTED_TIMEOUT_S
+from .distributed import DistributedError, requested_by_environment
 from .renderer import COLOUR_ESTIMATORS
 
 
@@ -74,12 +77,34 @@ def cmd_train(args: argparse.Namespace) -> None:
 
     run_dir = check_output_folder(args.out, "--out")
     cfg = experiment_from_args(args, run_dir)
+    if args.distributed or requested_by_environment():
+        _train_distributed(args, run_dir, cfg)
+        return
     check_resume(run_dir, cfg)  # before anything is written or generated
     resolve_device(cfg.train.device)  # an absent CUDA device is refused before the scene is generated
     dataset = load_run_dataset(cfg, run_dir)
     model = Trainer(cfg, run_dir, dataset).train(progress=not args.quiet)
     print(f"trained: {run_dir / 'checkpoint.pt'}")
     _calibrate_after_training(run_dir, model, dataset)
+
+
+def _train_distributed(args: argparse.Namespace, run_dir: Path, cfg: C.ExperimentConfig) -> None:
+    """``train`` as one rank of a data-parallel run (torchrun's environment; see
+    stochastic_fields.distributed). Rank 0 writes the run folder and fits the calibration."""
+    from .distributed import process_group
+    from .scenes import load_run_dataset
+    from .trainer import Trainer, check_resume
+
+    with process_group(cfg.train.device, timeout_s=args.dist_timeout) as ctx:
+        # rank 0's config everywhere (on another host the run folder's config.json may be absent)
+        cfg = C.from_dict(C.ExperimentConfig, ctx.broadcast_object(C.to_dict(cfg), what="the run's config from rank 0"))
+        check_resume(run_dir, cfg)  # every rank, before anything is written or generated
+        with ctx.main_first("rank 0 loads or generates the scene"):
+            dataset = load_run_dataset(cfg, run_dir)
+        model = Trainer(cfg, run_dir, dataset, distributed=ctx).train(progress=not args.quiet)
+    if ctx.is_main:  # the other ranks are done; the calibration is rank 0's alone
+        print(f"trained on {ctx.world_size} processes ({ctx.backend}): {run_dir / 'checkpoint.pt'}")
+        _calibrate_after_training(run_dir, model, dataset)
 
 
 def _calibrate_after_training(run_dir: Path, model, dataset):
@@ -220,6 +245,13 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     p = sub.add_parser("train", help="Train a method on a scene (resumes from the run folder's checkpoint).")
     p.add_argument("--out", required=True, help="Run folder (created; an existing checkpoint is resumed).")
     p.add_argument("--quiet", action="store_true", help="No progress bars.")
+    p.add_argument("--distributed", action="store_true",
+                   help="Data-parallel training as one rank of a torchrun launch (implied when torchrun's RANK and "
+                        "WORLD_SIZE are set): 'torchrun --nproc_per_node N -m stochastic_fields.cli train ...'. "
+                        "Each rank draws train.rays_per_batch / N rays per step; gradients are averaged.")
+    p.add_argument("--dist-timeout", type=float, default=DISTRIBUTED_TIMEOUT_S, metavar="SECONDS",
+                   help="Distributed: seconds a rank waits for the others in a collective before it stops with an "
+                        "error (default %(default)g).")
     _add_experiment_options(p)
     p.set_defaults(func=cmd_train)
 
@@ -294,8 +326,11 @@ def main(argv: list[str] | None = None) -> int:
     command = next((a for a in argv if not a.startswith("-")), "")  # "": no command yet (top-level help)
     args = build_parser(command).parse_args(argv)
     try:
+        if args.command != "train" and requested_by_environment() and int(os.environ.get("WORLD_SIZE", "1")) > 1:
+            raise ValueError(f"'{args.command}' does not run distributed yet: only 'train' does; run it in one process "
+                             "(without torchrun)")
         args.func(args)
-    except (ValueError, FileNotFoundError, FloatingPointError) as exc:
+    except (ValueError, FileNotFoundError, FloatingPointError, DistributedError) as exc:
         print(f"stochastic-fields {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # permissions, full disk, a file where a folder should be

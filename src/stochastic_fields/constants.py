@@ -140,3 +140,10 @@ LOGISTIC_TABLE_A_MAX: float = 16.0
 LOGISTIC_TABLE_A_STEP: float = 0.01
 LOGISTIC_TABLE_LOG_SCALE_RANGE: tuple[float, float] = (-6.0, 12.0)
 LOGISTIC_TABLE_LOG_SCALE_STEP: float = 0.05
+
+#: Seconds a rank of a data-parallel run (stochastic_fields.distributed) waits in a collective
+#: (all-reduce, barrier, rendezvous) before it fails with a DistributedError instead of hanging.
+#: A rank that dies is noticed at once (its connections close); the timeout is for a rank that
+#: stops answering. 30 minutes covers what rank 0 does alone while the others wait: generating
+#: the embedded scene, a quick evaluation, writing a checkpoint. ``train --dist-timeout`` sets it.
+DISTRIBUTED_TIMEOUT_S: float = 1800.0

@@ -8,7 +8,9 @@ nothing already on disk.
 
 from __future__ import annotations
 
+import contextlib
 import json
+import math
 import time
 import warnings
 from dataclasses import dataclass
@@ -20,6 +22,7 @@ from tqdm.auto import tqdm
 from .cameras import generate_rays
 from .checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
 from .config import ExperimentConfig, flatten, from_dict, save_config, to_dict, validate_experiment
+from .distributed import DistContext, GradientReducer, rank_seeds, shard_size
 from .io_utils import atomic_write_text, open_append_no_follow, remove_stale_temporaries
 from .models.base import RadianceModel
 from .models.registry import build_model, resolve_device
@@ -165,19 +168,45 @@ def quick_eval(model: RadianceModel, dataset, view: int, device: torch.device) -
 
 
 class Trainer:
-    def __init__(self, cfg: ExperimentConfig, run_dir: Path, dataset):
+    """Trains ``cfg``'s model on ``dataset`` into ``run_dir``.
+
+    ``distributed``: this rank's process group (``distributed.init_process_group``) for
+    data-parallel training (module doc of ``stochastic_fields.distributed``): each rank draws its
+    share of ``train.rays_per_batch`` from its own generators, the gradients are averaged before
+    every optimiser step, and rank 0 alone writes the run folder (config, log, checkpoints) while
+    the others wait at a barrier after each checkpoint. None: one process, as before.
+    """
+
+    def __init__(self, cfg: ExperimentConfig, run_dir: Path, dataset, *, distributed: DistContext | None = None):
         validate_experiment(cfg)  # fields set by attribute after construction are checked here
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         self.dataset = dataset
-        self.device = resolve_device(cfg.train.device)
+        self.dist = distributed
+        self.device = distributed.device if distributed is not None else resolve_device(cfg.train.device)
+        rank, world = (distributed.rank, distributed.world_size) if distributed is not None else (0, 1)
+        if cfg.train.rays_per_batch < world:
+            raise ValueError(f"train.rays_per_batch = {cfg.train.rays_per_batch} is smaller than the {world} ranks: "
+                             "every rank needs at least one ray per step")
         torch.manual_seed(cfg.train.seed)
         self.model = build_model(cfg, dataset).to(self.device)
         self.optimizer = make_optimizer(self.model, cfg)
-        self.generator = torch.Generator().manual_seed(cfg.train.seed)
-        self.draw_generator = torch.Generator(device=self.device).manual_seed(cfg.train.seed + 1)
+        if (distributed is not None and cfg.loss.lambda_depth > 0 and getattr(self.model, "accepts_depth", False)
+                and cfg.loss.depth_rays_per_batch < world):
+            raise ValueError(f"loss.depth_rays_per_batch = {cfg.loss.depth_rays_per_batch} is smaller than the {world} "
+                             "ranks: every rank needs at least one depth ray per step")
+        batch_seed, draw_seed = rank_seeds(cfg.train.seed, rank, world)
+        self.generator = torch.Generator().manual_seed(batch_seed)
+        self.draw_generator = torch.Generator(device=self.device).manual_seed(draw_seed)
+        self.reducer = (GradientReducer(self.model, self.model.param_groups(cfg.train.lr), distributed)
+                        if distributed is not None else None)
         self.step = 0
         self.elapsed = 0.0
+
+    @property
+    def is_main(self) -> bool:
+        """True in the process that writes the run folder (rank 0, or the only process)."""
+        return self.dist is None or self.dist.is_main
 
     # ------------------------------------------------------------------ checkpoints
     @property
@@ -196,13 +225,70 @@ class Trainer:
         }
 
     def save(self) -> None:
-        save_checkpoint(self.checkpoint_path, self.state())
+        """Write the checkpoint atomically. Distributed: every rank calls this (each rank's
+        generator states are gathered into the checkpoint's ``rank_rngs``, with ``world_size``),
+        rank 0 writes, and all wait at a barrier until the file is in place."""
+        if self.dist is None:
+            save_checkpoint(self.checkpoint_path, self.state())
+            return
+        rngs = self._gather_rng_states()
+        if self.dist.is_main:
+            save_checkpoint(self.checkpoint_path, {**self.state(), "world_size": self.dist.world_size,
+                                                   "rank_rngs": rngs})
+        self.dist.barrier("checkpoint written by rank 0")
+
+    def _gather_rng_states(self) -> list[dict]:
+        """[{batch_rng, draw_rng}] of every rank, in rank order (a collective)."""
+        batch, draw = self.generator.get_state(), self.draw_generator.get_state().cpu()
+        parts = self.dist.all_gather_bytes(torch.cat([batch, draw]), what="generator states for the checkpoint")
+        return [{"batch_rng": p[:len(batch)].clone(), "draw_rng": p[len(batch):].clone()} for p in parts]
+
+    def _resume_state(self) -> dict | None:
+        """The run folder's checkpoint, validated against the config (``check_resume``), or None.
+        Distributed: rank 0 reads it and broadcasts it, or its refusal, to every rank."""
+        def read() -> dict | None:
+            if not self.checkpoint_path.exists():
+                return None
+            state = load_checkpoint(self.checkpoint_path, map_location="cpu" if self.dist is not None else self.device)
+            check_resume(self.run_dir, self.cfg, state)
+            return state
+
+        if self.dist is None:
+            return read()
+        payload = None
+        if self.dist.is_main:
+            try:
+                payload = ("state", read())
+            except (ValueError, FileNotFoundError) as exc:
+                payload = ("error", str(exc))
+        kind, value = self.dist.broadcast_object(payload, what="resume state from rank 0")
+        if kind == "error":
+            raise ValueError(value if self.dist.is_main else f"rank 0 refused to resume: {value}")
+        return value
+
+    def _restore_rngs(self, state: dict) -> None:
+        """The generators as saved when the checkpoint was written by as many processes as run
+        now; otherwise restarted from ``rank_seeds(seed, rank, world_size, step)`` (said in a warning)."""
+        rank, world = (self.dist.rank, self.dist.world_size) if self.dist is not None else (0, 1)
+        saved_world = int(state.get("world_size", 1))
+        if saved_world == world:
+            rng = state if world == 1 else state["rank_rngs"][rank]
+            self.generator.set_state(rng["batch_rng"])
+            self.draw_generator.set_state(rng["draw_rng"].to(self.draw_generator.device) if self.device.type == "cuda"
+                                          else rng["draw_rng"])
+            return
+        batch_seed, draw_seed = rank_seeds(self.cfg.train.seed, rank, world, self.step)
+        self.generator.manual_seed(batch_seed)
+        self.draw_generator.manual_seed(draw_seed)
+        if self.is_main:
+            warnings.warn(f"{self.checkpoint_path} was written by {saved_world} process(es) and resumes in {world}: "
+                          "the model, optimiser and step continue; the ray and draw streams restart from "
+                          "(seed, rank, step)", stacklevel=3)
 
     def try_resume(self) -> bool:
-        if not self.checkpoint_path.exists():
+        state = self._resume_state()
+        if state is None:
             return False
-        state = load_checkpoint(self.checkpoint_path, map_location=self.device)
-        check_resume(self.run_dir, self.cfg, state)
         try:
             self.model.load_state_dict(state["model"])
         except RuntimeError as exc:  # shapes or names differ from the config's model
@@ -215,8 +301,7 @@ class Trainer:
                           "and Adam's moments restart from zero", stacklevel=2)
         self.step = int(state["step"])
         self.elapsed = float(state.get("elapsed_s", 0.0))
-        self.generator.set_state(state["batch_rng"])
-        self.draw_generator.set_state(state["draw_rng"].to(self.draw_generator.device) if self.device.type == "cuda" else state["draw_rng"])
+        self._restore_rngs(state)
         return True
 
     def _truncate_log(self) -> None:
@@ -242,15 +327,19 @@ class Trainer:
         if self.run_dir.exists() and not self.run_dir.is_dir():
             raise ValueError(f"--out {self.run_dir} exists and is not a folder")
         resumed = self.try_resume()  # validates the checkpoint against the config before any write
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        remove_stale_temporaries(self.run_dir)
-        save_config(self.cfg, self.run_dir / "config.json")
-        self._truncate_log()
+        main = self.is_main
+        if main:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            remove_stale_temporaries(self.run_dir)
+            save_config(self.cfg, self.run_dir / "config.json")
+            self._truncate_log()
+        if self.dist is not None:  # identical starting point on every rank, whatever happened before
+            self.dist.broadcast_tensors(list(self.model.state_dict().values()), what="parameters from rank 0")
         data = TrainingRays.from_dataset(self.dataset, self.device)
         depth_data = None
         if self.cfg.loss.lambda_depth > 0 and getattr(self.model, "accepts_depth", False):
             depth_data = TrainingDepth.from_dataset(self.dataset, self.device)
-            if depth_data is None:
+            if depth_data is None and main:
                 warnings.warn(f"loss.lambda_depth = {self.cfg.loss.lambda_depth} but {self.dataset.root} has no "
                               "capture points in its training views: training without the depth term", stacklevel=2)
         total = self.cfg.train.iterations
@@ -258,21 +347,12 @@ class Trainer:
         log_path = self.run_dir / LOG_NAME
         eval_view = self.dataset.test_indices[0] if len(self.dataset.test_indices) else None
         bar = tqdm(total=total, initial=self.step, desc="train" + (" (resumed)" if resumed else ""),
-                   disable=not progress, dynamic_ncols=True)
+                   disable=not (progress and main), dynamic_ncols=True)
         self.model.train()
         t_last = time.perf_counter()
-        with open_append_no_follow(log_path) as log:
+        with open_append_no_follow(log_path) if main else contextlib.nullcontext() as log:
             while self.step < stop_at:
-                rays, target = data.batch(self.cfg.train.rays_per_batch, self.generator)
-                extra = {}
-                if depth_data is not None:
-                    extra["depth"] = depth_data.batch(self.cfg.loss.depth_rays_per_batch, self.generator)
-                loss, logs = self.model.training_loss(rays, target, step=self.step, generator=self.draw_generator,
-                                                      **extra)
-                if not torch.isfinite(loss):
-                    raise FloatingPointError(f"loss is {float(loss)} at step {self.step}: {logs}")
-                self.optimizer.zero_grad(set_to_none=True)
-                loss.backward()
+                loss, logs = self.compute_gradients(data, depth_data)
                 self.optimizer.set_step(self.step)
                 self.optimizer.step()
                 self.model.after_step(self.step)
@@ -280,11 +360,12 @@ class Trainer:
                 now = time.perf_counter()
                 self.elapsed += now - t_last
                 t_last = now
-                record = {"step": self.step, "loss": loss.item(), "elapsed_s": round(self.elapsed, 3), **logs}
-                if self.cfg.train.eval_every and eval_view is not None and self.step % self.cfg.train.eval_every == 0:
+                record = {"step": self.step, "loss": loss, "elapsed_s": round(self.elapsed, 3), **logs}
+                if main and self.cfg.train.eval_every and eval_view is not None \
+                        and self.step % self.cfg.train.eval_every == 0:
                     record.update(quick_eval(self.model, self.dataset, eval_view, self.device))
                     t_last = time.perf_counter()
-                if self.step % 10 == 0 or "eval_psnr" in record:
+                if main and (self.step % 10 == 0 or "eval_psnr" in record):
                     log.write(json.dumps(record) + "\n")
                     log.flush()
                     bar.set_postfix({k: f"{v:.4g}" for k, v in record.items() if k in ("loss", "mse", "eval_psnr")})
@@ -295,6 +376,45 @@ class Trainer:
         self.save()
         self.model.eval()
         return self.model
+
+    def compute_gradients(self, data: TrainingRays, depth_data: TrainingDepth | None) -> tuple[float, dict[str, float]]:
+        """Draw this step's batch, compute the loss and leave its gradients in the parameters
+        (``.grad`` and the grid tables' ``RowGradient``). Returns (loss, logged scalars).
+
+        Distributed: this rank draws ``shard_size(rays_per_batch, rank, W)`` rays (and its share
+        of the depth rays), back-propagates its loss scaled by ``n_r W / B``, and the gradients are
+        averaged over the ranks (``distributed.GradientReducer``); the returned loss and logs are
+        the weighted averages ``sum_r (n_r / B) x_r`` over the ranks, i.e. over the union batch.
+        A non-finite loss on any rank raises FloatingPointError on every rank."""
+        cfg = self.cfg
+        if self.dist is None:
+            rays, target = data.batch(cfg.train.rays_per_batch, self.generator)
+            extra = {}
+            if depth_data is not None:
+                extra["depth"] = depth_data.batch(cfg.loss.depth_rays_per_batch, self.generator)
+            loss, logs = self.model.training_loss(rays, target, step=self.step, generator=self.draw_generator, **extra)
+            if not torch.isfinite(loss):
+                raise FloatingPointError(f"loss is {float(loss)} at step {self.step}: {logs}")
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            return loss.item(), logs
+        rank, world, total = self.dist.rank, self.dist.world_size, cfg.train.rays_per_batch
+        n = shard_size(total, rank, world)
+        rays, target = data.batch(n, self.generator)
+        extra = {}
+        if depth_data is not None:
+            extra["depth"] = depth_data.batch(shard_size(cfg.loss.depth_rays_per_batch, rank, world), self.generator)
+        loss, logs = self.model.training_loss(rays, target, step=self.step, generator=self.draw_generator, **extra)
+        self.optimizer.zero_grad(set_to_none=True)
+        (loss * (n * world / total)).backward()
+        keys = sorted(logs)
+        local = torch.tensor([loss.item()] + [float(logs[k]) for k in keys], dtype=torch.float64) * (n / total)
+        reduced = self.reducer.reduce(local).tolist()
+        loss_all, logs_all = reduced[0], dict(zip(keys, reduced[1:]))
+        if not math.isfinite(loss_all):
+            raise FloatingPointError(f"loss is {loss_all} at step {self.step} (averaged over {world} ranks; this "
+                                     f"rank's: {loss.item()}): {logs_all}")
+        return loss_all, logs_all
 
 
 def load_trained_model(run_dir: Path, dataset=None, device: str | None = None):

@@ -20,11 +20,16 @@ from torch import Tensor
 
 
 class RowGradient:
-    """Summed gradient rows of a table [N, C]: a scratch table and a touched-row bitmap."""
+    """Summed gradient rows of a table [N, C]: a scratch table and a touched-row bitmap.
+
+    ``replace`` sets the whole gradient to given (rows, values) at once (the distributed
+    reduction's result), kept as they are until ``take`` hands them to the optimiser.
+    """
 
     def __init__(self) -> None:
         self._acc: Tensor | None = None
         self._touched: Tensor | None = None
+        self._replaced: tuple[Tensor, Tensor] | None = None
 
     def _buffers(self, like: Tensor) -> tuple[Tensor, Tensor]:
         if self._acc is None or self._acc.shape != like.shape or self._acc.device != like.device \
@@ -33,30 +38,64 @@ class RowGradient:
             self._touched = torch.zeros(like.shape[0], dtype=torch.bool, device=like.device)
         return self._acc, self._touched
 
+    def _unreplace(self, table: Tensor) -> tuple[Tensor, Tensor]:
+        """The buffers, with a pending ``replace`` written into them."""
+        acc, touched = self._buffers(table)
+        if self._replaced is not None:
+            rows, values = self._replaced
+            self._replaced = None
+            acc.index_add_(0, rows, values.to(acc.dtype))
+            touched[rows] = True
+        return acc, touched
+
     def add(self, table: Tensor, rows: Tensor, values: Tensor) -> None:
         """Accumulate values [M, C] into rows [M] (duplicates summed)."""
-        acc, touched = self._buffers(table)
+        acc, touched = self._unreplace(table)
         acc.index_add_(0, rows, values.to(acc.dtype))
         touched[rows] = True
 
     def take(self, table: Tensor) -> tuple[Tensor, Tensor]:
         """(rows [U] ascending, gradient [U, C]) accumulated since the last take; resets to zero."""
-        acc, touched = self._buffers(table)
+        if self._replaced is not None and self._acc is not None and self._acc.shape == table.shape:
+            rows, grad = self._replaced
+            self._replaced = None
+            return rows, grad.to(table.dtype)
+        acc, touched = self._unreplace(table)
         rows = touched.nonzero().squeeze(1)
         grad = acc[rows]
         acc[rows] = 0.0
         touched[rows] = False
         return rows, grad
 
+    def touched_rows(self, table: Tensor) -> Tensor:
+        """[N] bool: the rows accumulated into since the last take (a copy)."""
+        return self._unreplace(table)[1].clone()
+
+    def rows(self, table: Tensor, rows: Tensor) -> Tensor:
+        """[U, C] the accumulated gradient of ``rows`` [U] (zero where untouched); nothing is reset."""
+        return self._unreplace(table)[0].index_select(0, rows)
+
+    def replace(self, table: Tensor, rows: Tensor, values: Tensor) -> None:
+        """Make rows [U] (ascending, unique) with gradient values [U, C] the whole accumulated
+        gradient (the distributed reduction's average over the ranks); what was accumulated is
+        dropped. ``take`` returns them as given (no second gather)."""
+        acc, touched = self._buffers(table)
+        acc.zero_()
+        touched.zero_()
+        self._replaced = (rows, values)
+
     def zero(self) -> None:
+        self._replaced = None
         if self._acc is not None:
             self._acc.zero_()
             self._touched.zero_()
 
     def dense(self, table: Tensor) -> Tensor:
         """[N, C] the accumulated gradient as a dense table (for tests and inspection)."""
-        acc, _ = self._buffers(table)
-        return acc.clone()
+        out = self._buffers(table)[0].clone()
+        if self._replaced is not None:
+            out.index_add_(0, self._replaced[0], self._replaced[1].to(out.dtype))
+        return out
 
 
 def row_gradient(table: Tensor) -> RowGradient:

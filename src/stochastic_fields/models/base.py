@@ -21,6 +21,9 @@ class RadianceModel(nn.Module, abc.ABC):
     """A method that learns from pixels and renders colour/depth means and variances."""
 
     render_settings: RenderSettings
+    #: Buffers that ``training_loss`` keeps as running maxima over the batches it saw; a
+    #: data-parallel step takes their maximum over the ranks (``distributed.GradientReducer``).
+    running_max_buffers: tuple[str, ...] = ()
 
     @abc.abstractmethod
     def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,

@@ -49,6 +49,8 @@ def _allow_missing_occupancy(module, incompatible_keys) -> None:
 
 
 class SNeRF(RadianceModel):
+    running_max_buffers = ("interval_scale",)  # the occupancy refresh reads it (absent without skipping)
+
     def __init__(self, field: StochasticField, region: SceneRegion, render_settings: RenderSettings,
                  loss: LossConfig, *, train_draws: int = 8, tv_weight: float = 0.0):
         super().__init__()
