@@ -159,7 +159,7 @@ CASES = (("snerf", "grid"), ("snerf", "mlp"), ("deterministic", "grid"), ("deter
 
 
 def _one_step_worker(ctx, scene: str, run_root: str) -> dict:
-    from stochastic_fields.data.dataset import load_dataset
+    from stochastic_fields.data import load_dataset
     from stochastic_fields.trainer import Trainer
 
     ds = load_dataset(scene, split_every=4)
@@ -224,7 +224,7 @@ def _close(a: torch.Tensor, b: torch.Tensor) -> bool:
 
 
 def test_one_distributed_step_equals_one_single_process_step_on_the_union_batch(tiny_scene, tmp_path):
-    from stochastic_fields.data.dataset import load_dataset
+    from stochastic_fields.data import load_dataset
 
     torch.set_num_threads(1)
     ranks = [_value(r) for r in _launch("_one_step_worker", (str(tiny_scene), str(tmp_path / "dist")), tmp_path)]
@@ -259,7 +259,7 @@ def test_one_distributed_step_equals_one_single_process_step_on_the_union_batch(
 
 
 def _steps_and_resume_worker(ctx, scene: str, root: str, single_run: str) -> dict:
-    from stochastic_fields.data.dataset import load_dataset
+    from stochastic_fields.data import load_dataset
     from stochastic_fields.trainer import Trainer
 
     ds = load_dataset(scene, split_every=4)
@@ -286,7 +286,7 @@ def _steps_and_resume_worker(ctx, scene: str, root: str, single_run: str) -> dic
 
 def test_ranks_agree_after_steps_and_resume_works_across_process_counts(tiny_scene, tmp_path):
     from stochastic_fields.checkpoint import load_checkpoint
-    from stochastic_fields.data.dataset import load_dataset
+    from stochastic_fields.data import load_dataset
     from stochastic_fields.trainer import Trainer
 
     torch.set_num_threads(1)
@@ -328,7 +328,7 @@ def test_ranks_agree_after_steps_and_resume_works_across_process_counts(tiny_sce
 
 
 def _failing_worker(ctx, scene: str, run: str, mode: str) -> dict:
-    from stochastic_fields.data.dataset import load_dataset
+    from stochastic_fields.data import load_dataset
     from stochastic_fields.trainer import Trainer
 
     ds = load_dataset(scene, split_every=4)
