@@ -34,6 +34,8 @@ class DataConfig:
     """Training views are those with index % split_every == 0 (docs/definitions.md §7); the rest are test views. Range: an integer >= 1 and <= 1000000."""
     downscale: int = 1
     """Integer downscale of Blender images (lego: 8 gives 100x100). LLFF scenes refuse values other than 1: choose data.images instead. Range: an integer >= 1 and <= 1024."""
+    undistort: bool = True
+    """LLFF scenes whose COLMAP model (sparse/0/cameras.bin) has lens distortion (fern, flower): resample the images to the pinhole camera of poses_bounds.npy (docs/capture.md). false leaves them distorted, as LLFF, NeRF and this package before it did (to reproduce those numbers). COLMAP and transforms.json captures are always undistorted and refuse false. Range: true or false."""
 
     def __post_init__(self) -> None:
         V.check_fields(self, DATA_CHECKS)
@@ -132,6 +134,7 @@ DATA_CHECKS: dict[str, V.Checker] = {
     "images": V.text(pattern_rule="a folder name (no '/', not '.' or '..')", accept=_folder_name),
     "split_every": V.integer(1, 10**6),
     "downscale": V.integer(1, 1024),
+    "undistort": V.boolean(),
 }
 FIELD_CHECKS: dict[str, V.Checker] = {
     "backend": V.choice("grid", "mlp"),

@@ -33,5 +33,9 @@ def load_run_dataset(cfg: ExperimentConfig, run_dir: Path, *, generate: bool = T
         if cfg.data.downscale != 1:
             raise ValueError(f"option data.downscale={cfg.data.downscale} applies to Blender/nerfstudio scenes; "
                              f"{path} is an LLFF scene: choose its resolution with data.images (images_4, images_8)")
-        return load_dataset(path, images=cfg.data.images, split_every=cfg.data.split_every)
+        return load_dataset(path, images=cfg.data.images, split_every=cfg.data.split_every,
+                            undistort=cfg.data.undistort)
+    if not cfg.data.undistort:
+        raise ValueError(f"option data.undistort=false applies to LLFF scenes; {path} is a "
+                         f"{detect_format(path)} capture, whose distorted cameras are always undistorted")
     return load_dataset(path, split_every=cfg.data.split_every, downscale=cfg.data.downscale)

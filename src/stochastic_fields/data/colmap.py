@@ -350,8 +350,14 @@ def undistort_image(image: np.ndarray, camera: ColmapCamera) -> tuple[np.ndarray
     The pinhole camera keeps the image size and ``K = pinhole_intrinsics(camera)``. Each of its
     pixel centres ``(u, v)`` (at +0.5) is a ray ``((u - cx) / fx, (v - cy) / fy, 1)``; pycolmap's
     ``img_from_cam`` gives where the distorted camera sees that ray, and the photo is sampled
-    there bilinearly. Rays that leave the distorted image take the nearest border pixel (a few
-    pixels at the corners for typical phone lenses).
+    there bicubically (Keys' cubic convolution, a = -0.75, as ``torch.nn.functional.grid_sample``
+    and OpenCV's INTER_CUBIC; taps outside the photo take the nearest border pixel), the result
+    clipped to the photo's value range. Bicubic rather than bilinear: the picture is resampled
+    once more when a ray's colour is read at a continuous pixel position, and two bilinear steps
+    blur it (fern, ``images_8``: the mean colour difference between the SfM points and the
+    undistorted images at their projections is 0.108 bilinear, 0.097 bicubic; the distorted
+    photos read at the distorted positions, no resampling at all, 0.091). Rays that leave the
+    distorted image take its edge (a few pixels at the corners for typical phone lenses).
 
     Shapes: image [H, W, C] float32 -> ([H, W, C] float32, [3, 3] float64).
     """
@@ -363,7 +369,8 @@ def undistort_image(image: np.ndarray, camera: ColmapCamera) -> tuple[np.ndarray
         return image, K
     grid = _undistortion_grid(camera.model, int(W), int(H), tuple(float(x) for x in camera.params))
     src = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32)).permute(2, 0, 1)[None]
-    out = F.grid_sample(src, grid[None], mode="bilinear", padding_mode="border", align_corners=False)
+    out = F.grid_sample(src, grid[None], mode="bicubic", padding_mode="border", align_corners=False)
+    out = out.clamp(float(src.min()), float(src.max()))
     return out[0].permute(1, 2, 0).contiguous().numpy(), K
 
 
@@ -379,3 +386,21 @@ def _undistortion_grid(model: str, W: int, H: int, params: tuple[float, ...]) ->
     uv = uv.reshape(H, W, 2)
     grid = np.stack([uv[..., 0] / W * 2.0 - 1.0, uv[..., 1] / H * 2.0 - 1.0], axis=-1)
     return torch.from_numpy(grid).float()
+
+
+def undistortion_shift(camera: ColmapCamera) -> tuple[float, float]:
+    """How far :func:`undistort_image` moves the picture of a camera.
+
+    Returns (largest distance in pixels between a pinhole pixel centre and the distorted pixel it
+    samples, fraction of pinhole pixels whose sample lies outside the distorted image and so takes
+    the nearest border pixel). (0, 0) for pinhole models.
+    """
+    if camera.model in PINHOLE_MODELS:
+        return 0.0, 0.0
+    W, H = int(camera.width), int(camera.height)
+    grid = _undistortion_grid(camera.model, W, H, tuple(float(x) for x in camera.params)).double().numpy()
+    src_u, src_v = (grid[..., 0] + 1.0) * W / 2.0, (grid[..., 1] + 1.0) * H / 2.0
+    v, u = np.meshgrid(np.arange(H) + 0.5, np.arange(W) + 0.5, indexing="ij")
+    shift = float(np.hypot(src_u - u, src_v - v).max())
+    outside = (src_u < 0) | (src_u > W) | (src_v < 0) | (src_v > H)
+    return shift, float(outside.mean())

@@ -58,6 +58,9 @@ class SceneDataset:
             (the capture's SfM points) or "default" (Blender's near 2 / far 6, guessed).
         image_paths: source file of each view.
         forward_facing: True for LLFF-style captures (all cameras look the same way).
+        lens: LLFF only: the lens distortion of the capture's COLMAP camera at the loaded size
+            ({"model", "params", "width", "height", "max_shift_px", "border_fraction",
+            "undistorted", "source"}), or None when it has none (``data.llff``).
     """
 
     name: str
@@ -78,6 +81,7 @@ class SceneDataset:
     forward_facing: bool = False
     points3d_visible: list[np.ndarray] | None = None
     bounds_source: str = "file"
+    lens: dict | None = None
 
     # ------------------------------------------------------------------ sizes
     @property

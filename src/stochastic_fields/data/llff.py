@@ -7,20 +7,46 @@ in sorted order. Poses are converted to OpenCV at this boundary
 (:func:`~stochastic_fields.cameras.llff_poses_to_opencv_w2c`).
 
 Intrinsics: ``fx = fy = f * W / w`` (focal scaled by the image downsampling factor), principal
-point at the image centre ``(W / 2, H / 2)`` with pixel centres at +0.5. The originals' small
-COLMAP radial distortion is ignored, as LLFF and NeRF do (fern: about 3 pixels at the corners of
-``images_8``).
+point at the image centre ``(W / 2, H / 2)`` with pixel centres at +0.5.
+
+Lens distortion: ``poses_bounds.npy`` carries none, but the capture's COLMAP model
+(``sparse/0/cameras.bin``) does (fern and flower: SIMPLE_RADIAL, k1 = 0.020 and 0.025, up to 3.7
+and 3.9 pixels at the corners of ``images_8``). LLFF and NeRF ignore it; this loader (with
+``undistort=True``, the default) resamples every image to the pinhole camera above with
+:func:`~stochastic_fields.data.colmap.undistort_image` (the COLMAP loaders' implementation), the
+COLMAP camera rescaled to the loaded size (:func:`~stochastic_fields.data.colmap.rescale_camera`).
+The COLMAP focal length and principal point, so rescaled, must agree with LLFF's (within
+``LLFF_COLMAP_FOCAL_RTOL`` and ``LLFF_COLMAP_CENTRE_TOL_PX``; fern and flower: to 1e-12, LLFF's
+focal is COLMAP's), else a DatasetError names ``cameras.bin``. The image size and the intrinsics
+stay as they are, so the SfM points (sparse depth, capture points), which are projected through
+the dataset's pinhole cameras, land where the undistorted images show them. The price is a thin
+band at the border whose rays leave the distorted photo and take its border pixel (fern: 0.5 to
+3.7 pixels wide, 1.5% of the pixels); cropping it away would change the image size and the
+principal point every LLFF number is measured with. The undistortion is computed in memory on
+every load (nothing is written into the scene folder) and reported in ``SceneDataset.lens`` and a
+warning. A model with several different cameras, which ``poses_bounds.npy``'s renamed images
+cannot be matched to, is left distorted with a warning.
 """
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from ..cameras import llff_poses_to_opencv_w2c, make_cameras
-from .colmap import read_points3d_binary
+from .colmap import (
+    PINHOLE_MODELS,
+    ColmapCamera,
+    pinhole_intrinsics,
+    read_cameras_binary,
+    read_points3d_binary,
+    rescale_camera,
+    undistort_image,
+    undistortion_shift,
+)
 from .dataset import (
     IMAGE_SUFFIXES,
     SceneDataset,
@@ -38,6 +64,11 @@ _ASPECT_TOLERANCE: float = 0.01
 #: Tolerance on R^T R = I for the rotation block of a poses_bounds.npy row (float32 files from
 #: COLMAP pass; a singular, scaled or sheared block does not).
 LLFF_ROTATION_TOLERANCE: float = 1e-3
+#: Relative disagreement allowed between poses_bounds.npy's focal and the COLMAP camera's, both
+#: scaled to the loaded images (LLFF writes COLMAP's focal: fern and flower agree to 1e-12).
+LLFF_COLMAP_FOCAL_RTOL: float = 1e-3
+#: Disagreement (loaded-image pixels) allowed between the COLMAP principal point and LLFF's image centre.
+LLFF_COLMAP_CENTRE_TOL_PX: float = 0.5
 
 def read_poses_bounds(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """(poses [V, 3, 5], bounds [V, 2]) from ``poses_bounds.npy``, validated.
@@ -94,6 +125,7 @@ def load_llff(
     images: str | int = 8,
     split_every: int = 5,
     load_points: bool = True,
+    undistort: bool = True,
 ) -> SceneDataset:
     """Load an LLFF scene.
 
@@ -104,10 +136,13 @@ def load_llff(
         split_every: docs/definitions.md §7 split, train = ``index % split_every == 0``, test = the rest.
         load_points: read ``sparse/0/points3D.bin`` (if present) into ``points3d``; the points
             also bound the scene box.
+        undistort: resample the images to the pinhole camera when ``sparse/0/cameras.bin``
+            holds a distorted camera (module doc); False keeps them as they are (the numbers
+            measured before this existed), still reporting the distortion.
 
     Returns:
         SceneDataset with OpenCV cameras, near/far from the file (camera-z), no depth maps,
-        ``forward_facing=True``.
+        ``forward_facing=True``, ``lens`` describing the COLMAP lens distortion (None without one).
     """
     root = Path(root)
     poses_file = root / "poses_bounds.npy"
@@ -134,6 +169,25 @@ def load_llff(
     K[:, 0, 2] = W / 2.0
     K[:, 1, 2] = H / 2.0
     K[:, 2, 2] = 1.0
+    lens = None
+    camera = llff_colmap_camera(root, W, H)
+    if camera is not None:
+        if undistort:
+            check_colmap_intrinsics(camera, K, root / "sparse" / "0" / "cameras.bin")
+        shift, border = undistortion_shift(camera)
+        lens = {"model": camera.model, "params": camera.params.tolist(), "width": W, "height": H,
+                "max_shift_px": shift, "border_fraction": border, "undistorted": bool(undistort),
+                "source": str(root / "sparse" / "0" / "cameras.bin")}
+        what = (f"{lens['source']}: {camera.model} lens distortion (params at {W}x{H}: "
+                f"{', '.join(f'{x:.6g}' for x in camera.params)}), up to {shift:.1f} px")
+        if undistort:
+            imgs = torch.stack([torch.from_numpy(undistort_image(im.numpy(), camera)[0]) for im in imgs])
+            warnings.warn(f"{what}: images undistorted to the pinhole camera of poses_bounds.npy "
+                          f"(same size; {border:.1%} of the pixels, at the border, see past the photo and "
+                          "take its edge)", stacklevel=2)
+        else:
+            warnings.warn(f"{what}: images left distorted (undistort=False): pixels and the SfM points' "
+                          "projections disagree by up to that much", stacklevel=2)
     w2c = llff_poses_to_opencv_w2c(torch.from_numpy(poses))
     cameras = make_cameras(torch.from_numpy(K).float(), w2c.float(), H, W)
     near = torch.from_numpy(bounds[:, 0]).float()
@@ -161,4 +215,43 @@ def load_llff(
         points3d_rgb=rgb,
         image_paths=files,
         forward_facing=True,
+        lens=lens,
     )
+
+
+def llff_colmap_camera(root: str | Path, width: int, height: int) -> ColmapCamera | None:
+    """The distorted COLMAP camera of an LLFF capture rescaled to ``width`` x ``height``, or None.
+
+    None when ``<root>/sparse/0/cameras.bin`` is absent, holds no camera or a pinhole one, or holds
+    several different cameras (warned: ``poses_bounds.npy``'s renamed images cannot be matched to
+    them).
+    """
+    path = Path(root) / "sparse" / "0" / "cameras.bin"
+    if not path.is_file():
+        return None
+    cameras = list(read_cameras_binary(path).values())
+    distinct = {(c.model, c.width, c.height, tuple(c.params.tolist())) for c in cameras}
+    if len(distinct) > 1:
+        warnings.warn(f"{path}: {len(distinct)} different cameras; the images of poses_bounds.npy cannot be "
+                      "matched to them, so any lens distortion is left in the images", stacklevel=3)
+        return None
+    if not cameras or cameras[0].model in PINHOLE_MODELS:
+        return None
+    return rescale_camera(cameras[0], width, height)
+
+
+def check_colmap_intrinsics(camera: ColmapCamera, K: np.ndarray, path: Path) -> None:
+    """DatasetError naming ``path`` when the (rescaled) COLMAP camera's focal lengths or principal
+    point disagree with the loader's pinhole ``K`` [V, 3, 3] in any view (module doc)."""
+    Kc = pinhole_intrinsics(camera)
+    K = np.asarray(K, dtype=np.float64).reshape(-1, 3, 3)
+    focal_err = max(np.abs(Kc[0, 0] / K[:, 0, 0] - 1.0).max(), np.abs(Kc[1, 1] / K[:, 1, 1] - 1.0).max())
+    centre_err = max(np.abs(Kc[0, 2] - K[:, 0, 2]).max(), np.abs(Kc[1, 2] - K[:, 1, 2]).max())
+    if focal_err > LLFF_COLMAP_FOCAL_RTOL or centre_err > LLFF_COLMAP_CENTRE_TOL_PX:
+        raise DatasetError(path, f"the COLMAP camera at {camera.width}x{camera.height} (fx={Kc[0, 0]:.6g}, "
+                           f"fy={Kc[1, 1]:.6g}, cx={Kc[0, 2]:.6g}, cy={Kc[1, 2]:.6g}) disagrees with "
+                           f"poses_bounds.npy's (f={K[0, 0, 0]:.6g}, centre {K[0, 0, 2]:.6g}, {K[0, 1, 2]:.6g}) by "
+                           f"{focal_err:.2g} in focal (tolerance {LLFF_COLMAP_FOCAL_RTOL:g}) and {centre_err:.2g} px "
+                           f"in principal point (tolerance {LLFF_COLMAP_CENTRE_TOL_PX:g}): not this capture's "
+                           "model? Load with undistort=False (option data.undistort false) to leave the images "
+                           "distorted")
