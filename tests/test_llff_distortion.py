@@ -23,7 +23,7 @@ import torch.nn.functional as F
 
 from stochastic_fields.cameras import project_points, select_cameras
 from stochastic_fields.data import DatasetError, load_llff, read_points3d_binary
-from stochastic_fields.eval.colmap_depth import track_visibility
+from stochastic_fields.sparse_depth import track_visibility
 
 # full-resolution camera of the synthetic capture; images_2 holds the photos at half size
 FULL_W, FULL_H, FULL_F, K1 = 96, 72, 80.0, 0.08
