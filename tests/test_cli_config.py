@@ -114,3 +114,16 @@ def test_a_command_imports_only_its_own_module():
     loaded = {cmd: subprocess.run([sys.executable, "-c", code.format(cmd)], capture_output=True, text=True,
                                   check=True).stdout.split() for cmd in ("train", "export")}
     assert loaded == {"train": [], "export": ["stochastic_fields.products.export"]}
+
+
+@pytest.mark.parametrize("command", ["render", "eval", "export"])
+def test_render_time_options_have_the_config_spelling_and_the_old_one(command):
+    """K (and the colour estimator) are spelled as in the run's config, --render.num_draws, as on
+    train; the short spellings of earlier versions keep working."""
+    base = [command, "--run", "r"]
+    for spelling in ("--render.num_draws", "--render.num-draws", "--num-draws"):
+        assert build_parser(command).parse_args([*base, spelling, "8"]).num_draws == 8
+    if command != "export":
+        for spelling in ("--render.colour_estimator", "--colour-estimator"):
+            args = build_parser(command).parse_args([*base, spelling, "rao_blackwell"])
+            assert args.colour_estimator == "rao_blackwell"

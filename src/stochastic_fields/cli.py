@@ -260,14 +260,15 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         p = sub.add_parser(name, help=helptext)
         p.add_argument("--run", required=True, help="Trained run folder.")
         p.add_argument("--views", default=None, help="'test' (default), 'train', 'all' or indices like 1,2,3.")
-        p.add_argument("--num-draws", type=_num_draws, default=None,
-                       help="K trajectories per ray, >= 2 (default: the run's render.num_draws).")
+        p.add_argument("--render.num_draws", "--render.num-draws", "--num-draws", dest="num_draws", type=_num_draws,
+                       default=None, help="K trajectories per ray, >= 2: a fixed K for this render (default: the "
+                                          "run's render.num_draws, or its adaptive K).")
         p.add_argument("--out", default=None, help="Output folder (default: inside the run folder).")
         p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
-        p.add_argument("--colour-estimator", choices=COLOUR_ESTIMATORS, default=None,
-                       help="S-NeRF colour statistics: 'draws' (docs/definitions.md §3) or 'rao_blackwell' "
-                            "(density draws "
-                            "only, colour noise integrated exactly; default: the run's render.colour_estimator).")
+        p.add_argument("--render.colour_estimator", "--render.colour-estimator", "--colour-estimator",
+                       dest="colour_estimator", choices=COLOUR_ESTIMATORS, default=None,
+                       help="S-NeRF colour statistics: 'draws' (docs/definitions.md §3) or 'rao_blackwell' (density "
+                            "draws only, colour noise integrated exactly; default: the run's render.colour_estimator).")
         p.add_argument("--raw-uncertainty", action="store_true",
                        help="Ignore the run's calibration.json: depth_std is the raw rendered std (by default the "
                             "recalibrated std, with the raw one kept as depth_std_raw).")

@@ -48,7 +48,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                      help='JSON list of {"K": 3x3, "world_to_camera": 4x4, "width", "height"} (OpenCV; optional '
                           '"near", "far" camera-z and "name").')
     p.add_argument("--out", type=Path, default=None, help="Output folder (default: RUN/export).")
-    p.add_argument("--num-draws", type=int, default=None, help="K depth trajectories per pixel (default: the run's).")
+    p.add_argument("--render.num_draws", "--render.num-draws", "--num-draws", dest="num_draws", type=int, default=None,
+                   help="K depth trajectories per pixel (default: the run's render.num_draws).")
     p.add_argument("--formats", type=_formats, default=d.formats,
                    help=f"Per-view map formats, comma-separated subset of {','.join(FORMATS)} (default: "
                         f"{','.join(d.formats)}; 'ros' = REP 118 metres/millimetres + CameraInfo, needs a scale).")
