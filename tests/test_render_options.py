@@ -172,3 +172,12 @@ def test_a_views_maps_do_not_depend_on_the_other_views(snerf, dataset, tmp_path)
     with np.load(tmp_path / "both" / "views" / f"view_{b:03d}.npz") as x, \
             np.load(tmp_path / "alone" / "views" / f"view_{b:03d}.npz") as y:
         np.testing.assert_array_equal(x["depth_std"], y["depth_std"])
+
+
+def test_options_default_to_the_settings_defaults():
+    """RenderOptions mirrors RenderSettings' per-render fields: same defaults (same ranges by construction)."""
+    from stochastic_fields.renderer import PER_RENDER_FIELDS, RENDER_CHECKS, RENDER_OPTION_CHECKS
+
+    assert RenderOptions() == RenderOptions.from_settings(RenderSettings())
+    assert {f.name for f in dataclasses.fields(RenderOptions)} == set(PER_RENDER_FIELDS) | {"keep_draws", "progress"}
+    assert all(RENDER_OPTION_CHECKS[n] is RENDER_CHECKS[n] for n in PER_RENDER_FIELDS)
