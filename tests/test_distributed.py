@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
 import socket
 import time
@@ -485,11 +486,11 @@ def _eval_worker(ctx, scene: str, run: str, out: str, fail_view) -> dict:
     return {"rendered": rendered, "nll": result["pooled"]["nll"]}
 
 
-def _without_timings(obj):
+def _without_timings(obj, drop: tuple[str, ...] = TIMING_KEYS):
     if isinstance(obj, dict):
-        return {k: _without_timings(v) for k, v in obj.items() if k not in TIMING_KEYS}
+        return {k: _without_timings(v, drop) for k, v in obj.items() if k not in drop}
     if isinstance(obj, list):
-        return [_without_timings(v) for v in obj]
+        return [_without_timings(v, drop) for v in obj]
     return obj
 
 
@@ -500,9 +501,10 @@ def _assert_same_npz(a: Path, b: Path) -> None:
             assert x[k].dtype == y[k].dtype and np.array_equal(x[k], y[k], equal_nan=x[k].dtype.kind == "f"), (a.name, k)
 
 
-def _assert_same_folders(single: Path, sharded: Path, json_without_timings: tuple[str, ...] = ()) -> list[str]:
-    """Every file of ``single`` equals ``sharded``'s (npz: arrays; json named: without timings;
-    others: bytes) and neither has a file the other lacks. Returns the relative paths."""
+def _assert_same_folders(single: Path, sharded: Path, json_without_timings: tuple[str, ...] = (),
+                         drop: tuple[str, ...] = TIMING_KEYS) -> list[str]:
+    """Every file of ``single`` equals ``sharded``'s (npz: arrays; json named: without the
+    entries ``drop``; others: bytes) and neither has a file the other lacks. Returns the relative paths."""
     import json
 
     names = sorted(str(p.relative_to(single)) for p in single.rglob("*") if p.is_file())
@@ -512,7 +514,7 @@ def _assert_same_folders(single: Path, sharded: Path, json_without_timings: tupl
         if name.endswith(".npz"):
             _assert_same_npz(a, b)
         elif name in json_without_timings:
-            x, y = (_without_timings(json.loads(p.read_text())) for p in (a, b))
+            x, y = (_without_timings(json.loads(p.read_text()), drop) for p in (a, b))
             assert json.dumps(x, sort_keys=True) == json.dumps(y, sort_keys=True), name
         else:
             assert a.read_bytes() == b.read_bytes(), name
@@ -623,3 +625,105 @@ def test_stage_assignment_covers_every_stage_once():
                                                             [("a", "y"), ("b", "x"), ("b", "z")]]
     with pytest.raises(ValueError, match="world size"):
         assign_stages(scenes, methods, 0)
+
+
+def _tables_worker(ctx, scene: str, out: str) -> dict:
+    from stochastic_fields_bench.tables import run_benchmark
+
+    logs: list[str] = []
+    tables = run_benchmark([scene], TABLE_METHODS, Path(out), _table_settings(), progress=False, log=logs.append,
+                           distributed=ctx)
+    return {"logs": logs, "tables": tables}
+
+
+#: the 2-rank tables run: 3 stages on one scene (rank 0 runs 2, rank 1 one)
+TABLE_METHODS = ("deterministic", "snerf", "mc_dropout")
+
+
+def _table_settings():
+    from stochastic_fields_bench.tables import BenchmarkSettings
+
+    return BenchmarkSettings(iterations=2, max_views=1, timing=False, tiny=True, device="cpu", product_views=1,
+                             overrides=(("render.num_samples", 8), ("render.num_draws", 4),
+                                        ("field.grid_max_cells", 12 ** 3), ("train.rays_per_batch", 64),
+                                        ("loss.random_points_per_axis", 4)))
+
+
+def _tables_without_timings(tables: dict) -> dict:
+    """The tables without wall-clock entries (training and invocation times and their ratios)."""
+    drop = {"wall_s_this_invocation", "train_s", "train_ratio", "render_s", "render_ratio", "eval_s", "command"}
+
+    def strip(o):
+        if isinstance(o, dict):
+            return {k: strip(v) for k, v in o.items() if k not in drop}
+        return [strip(v) for v in o] if isinstance(o, list) else o
+    return strip(tables)
+
+
+def test_tables_stages_run_on_two_ranks_and_rank_0_writes_the_same_tables(tiny_scene, tmp_path):
+    import json
+
+    from stochastic_fields_bench.tables import run_benchmark
+
+    torch.set_num_threads(1)
+    r0, r1 = (_value(r) for r in _launch("_tables_worker", (str(tiny_scene), str(tmp_path / "sharded")), tmp_path))
+    assert r1["tables"] is None and r0["tables"] is not None
+    trained = lambda logs: [m.group(1) for m in map(re.compile(r"\[[^\]]+/([^\]/]+)\] train:").search, logs) if m]  # noqa: E731
+    assert trained(r0["logs"]) == ["deterministic", "mc_dropout"] and trained(r1["logs"]) == ["snerf"]
+    assert all(line.startswith("[rank 1/2] ") for line in r1["logs"])
+    single = run_benchmark([str(tiny_scene)], TABLE_METHODS, tmp_path / "single", _table_settings(), progress=False,
+                           log=lambda line: None)
+    a, b = (_tables_without_timings(json.loads((tmp_path / d / "tables.json").read_text())) for d in ("single", "sharded"))
+    assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+    assert set(single["table2"]) == set(TABLE_METHODS)
+    assert (tmp_path / "sharded" / "tables.md").is_file()
+    assert sorted(p.name for p in (tmp_path / "sharded" / "plots").iterdir()) == \
+        sorted(p.name for p in (tmp_path / "single" / "plots").iterdir())
+    scene = Path(tiny_scene).name
+    for m in TABLE_METHODS:
+        x, y = (json.loads((tmp_path / d / scene / m / "metrics.json").read_text()) for d in ("single", "sharded"))
+        assert json.dumps(_without_timings(x), sort_keys=True) == json.dumps(_without_timings(y), sort_keys=True), m
+
+
+@pytest.mark.parametrize("command", [["calibrate", "--run", "RUN"], ["demo", "--out", "RUN"]])
+def test_commands_that_cannot_shard_refuse_a_multi_rank_launch(monkeypatch, tmp_path, capsys, command):
+    from stochastic_fields.cli import DISTRIBUTED_COMMANDS, main
+
+    monkeypatch.setenv("RANK", "0")
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    assert main([a.replace("RUN", str(tmp_path / "run")) for a in command]) == 2
+    err = capsys.readouterr().err
+    assert f"'{command[0]}' does not run distributed: only train, render, eval, export do under torchrun" in err
+    assert DISTRIBUTED_COMMANDS == ("train", "render", "eval", "export")
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow
+def test_torchrun_cli_eval_and_export_equal_one_process(tiny_scene, tmp_path):
+    """``torchrun --nproc_per_node 2 -m stochastic_fields.cli eval`` / ``export`` on a CLI-trained
+    run: the same files as the commands in one process (metrics.json but for timings)."""
+    import subprocess
+    import sys
+
+    run = tmp_path / "run"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).resolve().parents[1] / "src")}
+    cli = [sys.executable, "-m", "stochastic_fields.cli"]
+    torchrun = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
+                str(_free_port()), "-m", "--", "stochastic_fields.cli"]  # "--": torchrun would take --run for --run-path
+    done = subprocess.run(cli + ["train", "--out", str(run), "--preset", "tiny", "--data.path", str(tiny_scene),
+                                 "--train.iterations", "10", "--render.num_samples", "16", "--quiet"],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    for name, base in (("eval", ["eval", "--run", str(run), "--views", "1,2,3", "--num-draws", "4", "--quiet"]),
+                       ("export", ["export", "--run", str(run), "--views", "1,2,3", "--num-draws", "4", "--fuse",
+                                   "--quiet"])):
+        outs = {}
+        for how, launcher in (("single", cli), ("sharded", torchrun)):
+            outs[how] = tmp_path / f"{name}_{how}"
+            done = subprocess.run(launcher + base + ["--out", str(outs[how])], env=env, capture_output=True, text=True,
+                                  timeout=300)
+            assert done.returncode == 0, (name, how, done.stderr[-3000:])
+            if how == "sharded" and name == "eval":
+                assert done.stdout.count("(sharded over 2 processes, gloo)") == 1  # rank 0 prints, once
+        # (the export's summary.json records its --out among the options: the one difference)
+        _assert_same_folders(outs["single"], outs["sharded"], ("metrics.json", "summary.json"), TIMING_KEYS + ("out",))
