@@ -1,4 +1,8 @@
-"""Data-parallel training on ``torch.distributed`` (launched by ``torchrun``).
+"""Data-parallel training on ``torch.distributed`` (launched by ``torchrun``), and the process
+group of the commands that shard views over the ranks (``render``, ``eval``, ``export``: rank r
+renders positions r, r + W, ... of the view list, ``shard_indices``; the per-view results are
+gathered to rank 0 with ``DistContext.gather_object``; see ``evaluation.evaluate`` and
+``products.export.export_views``) and of the benchmark tables (``stochastic_fields_bench.runner``).
 
 Every rank holds the whole model and draws its own share of each step's ray batch; after the
 backward pass the ranks' gradients are averaged, so every rank takes the same optimiser step and
