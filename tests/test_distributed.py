@@ -483,7 +483,8 @@ def _eval_worker(ctx, scene: str, run: str, out: str, fail_view) -> dict:
     _recording(evaluation, "_evaluate_view", rendered, fail_view if ctx.rank == 1 else None)
     result = evaluation.evaluate(model, ds, Path(out), views=SHARDED_VIEWS, product_views=4, seed=3, progress=False,
                                  distributed=ctx)
-    return {"rendered": rendered, "nll": result["pooled"]["nll"]}
+    return {"rendered": rendered, "nll": result["pooled"]["nll"],
+            "all_gathered": ctx.all_gather_object({"rank": ctx.rank}, what="test") if fail_view is None else None}
 
 
 def _without_timings(obj, drop: tuple[str, ...] = TIMING_KEYS):
@@ -530,6 +531,7 @@ def test_sharded_eval_equals_one_process_file_by_file(tiny_scene, tiny_run, tmp_
     r0, r1 = (_value(r) for r in _launch("_eval_worker", (str(tiny_scene), str(tiny_run), str(tmp_path / "sharded"),
                                                           None), tmp_path))
     assert r0["rendered"] == [1, 3, 6] and r1["rendered"] == [2, 5]  # views[r::2]
+    assert r0["all_gathered"] == r1["all_gathered"] == [{"rank": 0}, {"rank": 1}]
     ds, model = _load_run(str(tiny_scene), str(tiny_run))
     single = evaluate(model, ds, tmp_path / "single", views=SHARDED_VIEWS, product_views=4, seed=3, progress=False)
     assert r0["nll"] == r1["nll"] == single["pooled"]["nll"]  # every rank returns rank 0's result
