@@ -16,11 +16,16 @@ Examples::
     # the CI configuration: images_16 fern, 20 iterations, 2 methods, 2 test views (about a minute)
     python benchmarks/eval_tables.py --tiny --scenes fern --methods deterministic snerf --max-views 2 \\
         --out /tmp/eval_tables_tiny
+
+    # the stages (method x scene) dealt over 2 processes (or hosts: --nnodes, --rdzv-endpoint, and
+    # --out on a file system every host shares); rank 0 writes the tables once all are done
+    torchrun --nproc_per_node 2 benchmarks/eval_tables.py --scenes fern flower --out results/eval_tables
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shlex
 import sys
@@ -31,7 +36,7 @@ DEFAULT_DATA_ROOT = REPO_ROOT / ".." / "shared" / "data" / "nerf_llff_data"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from stochastic_fields_bench.tables import DEFAULT_METHODS, DEFAULT_SCENES, METHOD_SPECS
+    from stochastic_fields_bench.tables import DEFAULT_METHODS, DEFAULT_SCENES, METHOD_SPECS, TABLES_DIST_TIMEOUT_S
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenes", nargs="+", default=list(DEFAULT_SCENES),
@@ -62,6 +67,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Config override for every method, e.g. --set render.num_samples=32 (JSON values; repeatable). "
                    "A method's own settings (loss.kl of the ablations, field.dropout of mc_dropout) take precedence.")
     p.add_argument("--quiet", action="store_true", help="No progress bars.")
+    p.add_argument("--distributed", action="store_true",
+                   help="Run as one rank of a torchrun launch (implied when torchrun's RANK and WORLD_SIZE are set): "
+                        "the (scene, method) stages are dealt round-robin over the ranks; rank 0 writes the tables.")
+    p.add_argument("--dist-timeout", type=float, default=TABLES_DIST_TIMEOUT_S, metavar="SECONDS",
+                   help="Distributed: seconds a rank waits at the final barrier for the others' stages "
+                        "(default %(default)g).")
     return p
 
 
@@ -92,10 +103,21 @@ def main(argv: list[str] | None = None) -> int:
                                  timing=not args.no_timing, timing_repeats=args.timing_repeats or (1 if args.tiny else 3),
                                  tiny=args.tiny, overrides=overrides)
     command = "python benchmarks/eval_tables.py " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
+    from stochastic_fields.distributed import DistributedError, process_group, requested_by_environment
+
     try:
-        tables = run_benchmark(args.scenes, args.methods, args.out, settings, data_root=args.data_root,
-                               progress=not args.quiet, command=command)
-    except (ValueError, FileNotFoundError) as exc:
+        if args.distributed or requested_by_environment():
+            with process_group(args.device, timeout_s=args.dist_timeout) as ctx:
+                if ctx.device.type == "cuda":  # one GPU per rank
+                    settings = dataclasses.replace(settings, device=str(ctx.device))
+                tables = run_benchmark(args.scenes, args.methods, args.out, settings, data_root=args.data_root,
+                                       progress=not args.quiet, command=command, distributed=ctx)
+            if not ctx.is_main:
+                return 0
+        else:
+            tables = run_benchmark(args.scenes, args.methods, args.out, settings, data_root=args.data_root,
+                                   progress=not args.quiet, command=command)
+    except (ValueError, FileNotFoundError, DistributedError) as exc:
         print(f"eval_tables: error: {exc}", file=sys.stderr)
         return 2
     print(format_markdown(tables))

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
 import socket
 import time
@@ -432,3 +433,299 @@ def test_torchrun_cli_trains_two_ranks_and_one_process_resumes(tiny_scene, tmp_p
     assert load_checkpoint(run / "checkpoint.pt")["step"] == 30 and "world_size" not in load_checkpoint(run / "checkpoint.pt")
     steps = [json.loads(line)["step"] for line in (run / "train_log.jsonl").read_text().splitlines()]
     assert steps == [10, 20, 30]
+
+
+# ----------------------------------------------------------------------------- sharded render / eval / export
+#: views evaluated and exported: 5 (odd), so rank 0 renders positions 0, 2, 4 and rank 1 positions 1, 3
+SHARDED_VIEWS = [1, 2, 3, 5, 6]
+#: timing entries of metrics.json (wall clock, the only values allowed to differ between runs)
+TIMING_KEYS = ("render_s", "render_s_per_view")
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tiny_scene, tmp_path_factory) -> Path:
+    """A run folder trained for 3 single-process steps on the tiny scene (S-NeRF, grid)."""
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.trainer import Trainer
+
+    torch.set_num_threads(1)
+    run = tmp_path_factory.mktemp("tiny_run") / "run"
+    Trainer(_tiny_cfg("snerf", "grid", iterations=3), run, load_dataset(tiny_scene, split_every=4)).train(progress=False)
+    return run
+
+
+def _load_run(scene: str, run: str):
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.trainer import load_trained_model
+
+    ds = load_dataset(scene, split_every=4)
+    return ds, load_trained_model(Path(run), dataset=ds, device="cpu")[1]
+
+
+def _recording(module, name: str, seen: list, fail_at=None):
+    """Wrap ``module.name(model, dataset_or_spec, key, ...)``: record the keys it is called with, raise at ``fail_at``."""
+    original = getattr(module, name)
+
+    def wrapper(model, item, key, *a, **k):
+        seen.append(key)
+        if key == fail_at:
+            raise RuntimeError(f"injected failure on rank 1 at {key}")
+        return original(model, item, key, *a, **k)
+
+    setattr(module, name, wrapper)
+
+
+def _eval_worker(ctx, scene: str, run: str, out: str, fail_view) -> dict:
+    from stochastic_fields import evaluation
+
+    ds, model = _load_run(scene, run)
+    rendered: list[int] = []
+    _recording(evaluation, "_evaluate_view", rendered, fail_view if ctx.rank == 1 else None)
+    result = evaluation.evaluate(model, ds, Path(out), views=SHARDED_VIEWS, product_views=4, seed=3, progress=False,
+                                 distributed=ctx)
+    return {"rendered": rendered, "nll": result["pooled"]["nll"],
+            "all_gathered": ctx.all_gather_object({"rank": ctx.rank}, what="test") if fail_view is None else None}
+
+
+def _without_timings(obj, drop: tuple[str, ...] = TIMING_KEYS):
+    if isinstance(obj, dict):
+        return {k: _without_timings(v, drop) for k, v in obj.items() if k not in drop}
+    if isinstance(obj, list):
+        return [_without_timings(v, drop) for v in obj]
+    return obj
+
+
+def _assert_same_npz(a: Path, b: Path) -> None:
+    with np.load(a) as x, np.load(b) as y:
+        assert sorted(x.files) == sorted(y.files), a.name
+        for k in x.files:
+            assert x[k].dtype == y[k].dtype and np.array_equal(x[k], y[k], equal_nan=x[k].dtype.kind == "f"), (a.name, k)
+
+
+def _assert_same_folders(single: Path, sharded: Path, json_without_timings: tuple[str, ...] = (),
+                         drop: tuple[str, ...] = TIMING_KEYS) -> list[str]:
+    """Every file of ``single`` equals ``sharded``'s (npz: arrays; json named: without the
+    entries ``drop``; others: bytes) and neither has a file the other lacks. Returns the relative paths."""
+    import json
+
+    names = sorted(str(p.relative_to(single)) for p in single.rglob("*") if p.is_file())
+    assert names == sorted(str(p.relative_to(sharded)) for p in sharded.rglob("*") if p.is_file())
+    for name in names:
+        a, b = single / name, sharded / name
+        if name.endswith(".npz"):
+            _assert_same_npz(a, b)
+        elif name in json_without_timings:
+            x, y = (_without_timings(json.loads(p.read_text()), drop) for p in (a, b))
+            assert json.dumps(x, sort_keys=True) == json.dumps(y, sort_keys=True), name
+        else:
+            assert a.read_bytes() == b.read_bytes(), name
+    return names
+
+
+def test_sharded_eval_equals_one_process_file_by_file(tiny_scene, tiny_run, tmp_path):
+    import json
+
+    from stochastic_fields.evaluation import evaluate
+
+    torch.set_num_threads(1)
+    r0, r1 = (_value(r) for r in _launch("_eval_worker", (str(tiny_scene), str(tiny_run), str(tmp_path / "sharded"),
+                                                          None), tmp_path))
+    assert r0["rendered"] == [1, 3, 6] and r1["rendered"] == [2, 5]  # views[r::2]
+    assert r0["all_gathered"] == r1["all_gathered"] == [{"rank": 0}, {"rank": 1}]
+    ds, model = _load_run(str(tiny_scene), str(tiny_run))
+    single = evaluate(model, ds, tmp_path / "single", views=SHARDED_VIEWS, product_views=4, seed=3, progress=False)
+    assert r0["nll"] == r1["nll"] == single["pooled"]["nll"]  # every rank returns rank 0's result
+    names = _assert_same_folders(tmp_path / "single", tmp_path / "sharded", ("metrics.json",))
+    # products of the first 4 views in the list, whichever rank rendered them (view 6 is 5th: none)
+    assert {n.split("/")[1][:8] for n in names if n.startswith("views/")} == {"view_001", "view_002", "view_003",
+                                                                               "view_005"}
+    assert {"metrics.json", "curves.npz", "views/view_005.npz", "views/view_002_depth_std.png"} <= set(names)
+    metrics = json.loads((tmp_path / "sharded" / "metrics.json").read_text())
+    assert metrics["views"] == [f"view_{v:03d}" for v in SHARDED_VIEWS]  # the list's order
+    assert metrics["pooled"]["num_pixels"] == len(SHARDED_VIEWS) * 64 * 48
+    assert len(metrics["per_view"]["render_s"]) == 5 and min(metrics["per_view"]["render_s"]) > 0  # kept, not compared
+
+
+def test_a_failing_rank_during_eval_stops_the_other_and_no_metrics_are_written(tiny_scene, tiny_run, tmp_path):
+    out = tmp_path / "sharded"
+    r0, r1 = _launch("_eval_worker", (str(tiny_scene), str(tiny_run), str(out), 5), tmp_path, timeout_s=5.0)
+    assert r1["error"] == "RuntimeError" and "injected failure on rank 1 at 5" in r1["message"], r1
+    assert r0.get("error") == "DistributedError", r0
+    assert "rank 0 of 2" in r0["message"] and "gather (evaluation's per-view results" in r0["message"]
+    assert not (out / "metrics.json").exists() and not (out / "curves.npz").exists()
+    assert not list(out.glob("*.tmp*")) and not list(out.glob(".*"))  # no temporary file left either
+
+
+def _export_worker(ctx, scene: str, run: str, out: str, foreign: str, fail_position) -> dict:
+    from stochastic_fields.products import export
+    from stochastic_fields.products.export import ExportOptions, dataset_view_specs, export_views
+
+    ds, model = _load_run(scene, run)
+    specs = dataset_view_specs(ds, SHARDED_VIEWS)
+    opts = ExportOptions(formats=("npz", "png16", "tiff"), fuse=True, covariance=True, num_draws=4, seed=1,
+                         progress=False)
+    try:  # a folder the export did not write: refused by rank 0, raised on every rank
+        export_views(model, specs, Path(foreign), opts, distributed=ctx)
+        refused = None
+    except ValueError as exc:
+        refused = str(exc)
+    rendered: list[int] = []
+    _recording(export, "_export_view", rendered, fail_position if ctx.rank == 1 else None)  # position 3: view 5
+    summary = export_views(model, specs, Path(out), opts, mesh_path=Path(scene) / "scene.ply", distributed=ctx)
+    return {"refused": refused, "rendered": [specs[i].name for i in rendered], "summary": summary}
+
+
+def test_sharded_export_equals_one_process_export(tiny_scene, tiny_run, tmp_path):
+    from stochastic_fields.products.export import ExportOptions, dataset_view_specs, export_views
+
+    torch.set_num_threads(1)
+    foreign = tmp_path / "mine"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    r0, r1 = (_value(r) for r in _launch("_export_worker", (str(tiny_scene), str(tiny_run), str(tmp_path / "sharded"),
+                                                            str(foreign), None), tmp_path))
+    assert r0["refused"] and r1["refused"] and "non-empty folder that this command did not write" in r1["refused"]
+    assert sorted(p.name for p in foreign.iterdir()) == ["notes.txt"]
+    assert r0["rendered"] == ["view_001", "view_003", "view_006"] and r1["rendered"] == ["view_002", "view_005"]
+    ds, model = _load_run(str(tiny_scene), str(tiny_run))
+    opts = ExportOptions(formats=("npz", "png16", "tiff"), fuse=True, covariance=True, num_draws=4, seed=1,
+                         progress=False)
+    single = export_views(model, dataset_view_specs(ds, SHARDED_VIEWS), tmp_path / "single", opts,
+                          mesh_path=Path(tiny_scene) / "scene.ply")
+    assert r0["summary"] == r1["summary"] == single
+    names = _assert_same_folders(tmp_path / "single", tmp_path / "sharded")
+    assert {"fused.ply", "summary.json", "clouds/view_002.ply", "views/view_005.npz", "views/view_006.tiff"} <= set(names)
+    assert single["counts"]["after_filters"] > 0 and "surface_distance" in single["ground_truth"]
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".sharded")]  # the temporary folder was swapped in
+
+
+def test_a_failing_rank_during_export_leaves_the_previous_export(tiny_scene, tiny_run, tmp_path):
+    out = tmp_path / "sharded"
+    out.mkdir()
+    (out / "summary.json").write_text("{}")  # a previous export (replaceable), kept as it is
+    r0, r1 = _launch("_export_worker", (str(tiny_scene), str(tiny_run), str(out), str(out / "summary.json"), 3),
+                     tmp_path, timeout_s=5.0)
+    assert r1.get("error") == "RuntimeError" and "injected failure" in r1["message"], (r0, r1)
+    assert r0.get("error") == "DistributedError" and "gather (export's per-view" in r0["message"], r0
+    assert sorted(p.name for p in out.iterdir()) == ["summary.json"] and (out / "summary.json").read_text() == "{}"
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".sharded.partial")]
+
+
+def test_stage_assignment_covers_every_stage_once():
+    from stochastic_fields_bench.tables import assign_stages
+
+    scenes, methods = ["fern", "flower", "horns"], ["deterministic", "snerf", "mc_dropout", "ensemble"]
+    every = [(s, m) for s in scenes for m in methods]
+    for world in (1, 2, 3, 5, 12, 13):
+        parts = assign_stages(scenes, methods, world)
+        assert len(parts) == world
+        flat = [st for part in parts for st in part]
+        assert sorted(flat) == sorted(every) and len(set(flat)) == len(every), world
+        assert max(map(len, parts)) - min(map(len, parts)) <= 1, world
+    # by hand: round-robin over the scene-major list
+    assert assign_stages(["a", "b"], ["x", "y", "z"], 2) == [[("a", "x"), ("a", "z"), ("b", "y")],
+                                                            [("a", "y"), ("b", "x"), ("b", "z")]]
+    with pytest.raises(ValueError, match="world size"):
+        assign_stages(scenes, methods, 0)
+
+
+def _tables_worker(ctx, scene: str, out: str) -> dict:
+    from stochastic_fields_bench.tables import run_benchmark
+
+    logs: list[str] = []
+    tables = run_benchmark([scene], TABLE_METHODS, Path(out), _table_settings(), progress=False, log=logs.append,
+                           distributed=ctx)
+    return {"logs": logs, "tables": tables}
+
+
+#: the 2-rank tables run: 3 stages on one scene (rank 0 runs 2, rank 1 one)
+TABLE_METHODS = ("deterministic", "snerf", "mc_dropout")
+
+
+def _table_settings():
+    from stochastic_fields_bench.tables import BenchmarkSettings
+
+    return BenchmarkSettings(iterations=2, max_views=1, timing=False, tiny=True, device="cpu", product_views=1,
+                             overrides=(("render.num_samples", 8), ("render.num_draws", 4),
+                                        ("field.grid_max_cells", 12 ** 3), ("train.rays_per_batch", 64),
+                                        ("loss.random_points_per_axis", 4)))
+
+
+def _tables_without_timings(tables: dict) -> dict:
+    """The tables without wall-clock entries (training and invocation times and their ratios)."""
+    drop = {"wall_s_this_invocation", "train_s", "train_ratio", "render_s", "render_ratio", "eval_s", "command"}
+
+    def strip(o):
+        if isinstance(o, dict):
+            return {k: strip(v) for k, v in o.items() if k not in drop}
+        return [strip(v) for v in o] if isinstance(o, list) else o
+    return strip(tables)
+
+
+def test_tables_stages_run_on_two_ranks_and_rank_0_writes_the_same_tables(tiny_scene, tmp_path):
+    import json
+
+    from stochastic_fields_bench.tables import run_benchmark
+
+    torch.set_num_threads(1)
+    r0, r1 = (_value(r) for r in _launch("_tables_worker", (str(tiny_scene), str(tmp_path / "sharded")), tmp_path))
+    assert r1["tables"] is None and r0["tables"] is not None
+    trained = lambda logs: [m.group(1) for m in map(re.compile(r"\[[^\]]+/([^\]/]+)\] train:").search, logs) if m]  # noqa: E731
+    assert trained(r0["logs"]) == ["deterministic", "mc_dropout"] and trained(r1["logs"]) == ["snerf"]
+    assert all(line.startswith("[rank 1/2] ") for line in r1["logs"])
+    single = run_benchmark([str(tiny_scene)], TABLE_METHODS, tmp_path / "single", _table_settings(), progress=False,
+                           log=lambda line: None)
+    a, b = (_tables_without_timings(json.loads((tmp_path / d / "tables.json").read_text())) for d in ("single", "sharded"))
+    assert json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+    assert set(single["table2"]) == set(TABLE_METHODS)
+    assert (tmp_path / "sharded" / "tables.md").is_file()
+    assert sorted(p.name for p in (tmp_path / "sharded" / "plots").iterdir()) == \
+        sorted(p.name for p in (tmp_path / "single" / "plots").iterdir())
+    scene = Path(tiny_scene).name
+    for m in TABLE_METHODS:
+        x, y = (json.loads((tmp_path / d / scene / m / "metrics.json").read_text()) for d in ("single", "sharded"))
+        assert json.dumps(_without_timings(x), sort_keys=True) == json.dumps(_without_timings(y), sort_keys=True), m
+
+
+@pytest.mark.parametrize("command", [["calibrate", "--run", "RUN"], ["demo", "--out", "RUN"]])
+def test_commands_that_cannot_shard_refuse_a_multi_rank_launch(monkeypatch, tmp_path, capsys, command):
+    from stochastic_fields.cli import DISTRIBUTED_COMMANDS, main
+
+    monkeypatch.setenv("RANK", "0")
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    assert main([a.replace("RUN", str(tmp_path / "run")) for a in command]) == 2
+    err = capsys.readouterr().err
+    assert f"'{command[0]}' does not run distributed: only train, render, eval, export do under torchrun" in err
+    assert DISTRIBUTED_COMMANDS == ("train", "render", "eval", "export")
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.slow
+def test_torchrun_cli_eval_and_export_equal_one_process(tiny_scene, tmp_path):
+    """``torchrun --nproc_per_node 2 -m stochastic_fields.cli eval`` / ``export`` on a CLI-trained
+    run: the same files as the commands in one process (metrics.json but for timings)."""
+    import subprocess
+    import sys
+
+    run = tmp_path / "run"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).resolve().parents[1] / "src")}
+    cli = [sys.executable, "-m", "stochastic_fields.cli"]
+    torchrun = [sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_port",
+                str(_free_port()), "-m", "--", "stochastic_fields.cli"]  # "--": torchrun would take --run for --run-path
+    done = subprocess.run(cli + ["train", "--out", str(run), "--preset", "tiny", "--data.path", str(tiny_scene),
+                                 "--train.iterations", "10", "--render.num_samples", "16", "--quiet"],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    for name, base in (("eval", ["eval", "--run", str(run), "--views", "1,2,3", "--num-draws", "4", "--quiet"]),
+                       ("export", ["export", "--run", str(run), "--views", "1,2,3", "--num-draws", "4", "--fuse",
+                                   "--quiet"])):
+        outs = {}
+        for how, launcher in (("single", cli), ("sharded", torchrun)):
+            outs[how] = tmp_path / f"{name}_{how}"
+            done = subprocess.run(launcher + base + ["--out", str(outs[how])], env=env, capture_output=True, text=True,
+                                  timeout=300)
+            assert done.returncode == 0, (name, how, done.stderr[-3000:])
+            if how == "sharded" and name == "eval":
+                assert done.stdout.count("(sharded over 2 processes, gloo)") == 1  # rank 0 prints, once
+        # (the export's summary.json records its --out among the options: the one difference)
+        _assert_same_folders(outs["single"], outs["sharded"], ("metrics.json", "summary.json"), TIMING_KEYS + ("out",))

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from . import config as C
 from .constants import DISTRIBUTED_TIMEOUT_S
-from .distributed import DistributedError, requested_by_environment
+from .distributed import DistributedError, requested_by_environment, sharding_from_environment
 from .renderer import COLOUR_ESTIMATORS
 
 
@@ -65,6 +65,13 @@ def _num_draws(text: str) -> int:
         raise argparse.ArgumentTypeError(f"must be in [2, {MAX_CLI_DRAWS}] (the uncertainty is a variance over K "
                                          f"draws), got {k}")
     return k
+
+
+def add_dist_timeout_argument(p: argparse.ArgumentParser) -> None:
+    """--dist-timeout of the commands that run under torchrun (train, render, eval, export)."""
+    p.add_argument("--dist-timeout", type=float, default=DISTRIBUTED_TIMEOUT_S, metavar="SECONDS",
+                   help="Distributed (under torchrun): seconds a rank waits for the others in a collective before it "
+                        "stops with an error (default %(default)g).")
 
 
 def cmd_train(args: argparse.Namespace) -> None:
@@ -143,11 +150,14 @@ def cmd_render(args: argparse.Namespace) -> None:
 
     out = check_output_folder(args.out if args.out is not None else Path(args.run) / "renders", "--out")
     check_no_symlinks(out, "views", "metrics.json")
-    cfg, model, dataset = load_trained_model(Path(args.run), device=args.device)
-    views = _parse_views(args.views, dataset)
-    evaluate(model, dataset, out, views=views, options=_render_options(model, args), progress=not args.quiet,
-             calibration=_run_calibration(args))
-    print(f"rendered {len(views)} views into {out / 'views'}")
+    with sharding_from_environment(args.run, args.device, timeout_s=args.dist_timeout) as ctx:
+        device = args.device if ctx is None else str(ctx.device)
+        cfg, model, dataset = load_trained_model(Path(args.run), device=device)
+        views = _parse_views(args.views, dataset)
+        evaluate(model, dataset, out, views=views, options=_render_options(model, args), progress=not args.quiet,
+                 calibration=_run_calibration(args), distributed=ctx)
+    if ctx is None or ctx.is_main:
+        print(f"rendered {len(views)} views into {out / 'views'}" + _on_ranks(ctx))
 
 
 def cmd_eval(args: argparse.Namespace) -> None:
@@ -158,13 +168,21 @@ def cmd_eval(args: argparse.Namespace) -> None:
 
     out = check_output_folder(args.out if args.out is not None else Path(args.run), "--out")
     check_no_symlinks(out, "views", "metrics.json")
-    cfg, model, dataset = load_trained_model(Path(args.run), device=args.device)
-    views = _parse_views(args.views, dataset)
-    result = evaluate(model, dataset, out, views=views, options=_render_options(model, args),
-                      progress=not args.quiet, product_views=0 if args.no_products else None,
-                      calibration=_run_calibration(args))
-    _print_summary(result, f"{cfg.method} on {dataset.name}: {len(views)} views, K={result['num_draws']}")
-    print(f"metrics: {out / 'metrics.json'}")
+    with sharding_from_environment(args.run, args.device, timeout_s=args.dist_timeout) as ctx:
+        device = args.device if ctx is None else str(ctx.device)
+        cfg, model, dataset = load_trained_model(Path(args.run), device=device)
+        views = _parse_views(args.views, dataset)
+        result = evaluate(model, dataset, out, views=views, options=_render_options(model, args),
+                          progress=not args.quiet, product_views=0 if args.no_products else None,
+                          calibration=_run_calibration(args), distributed=ctx)
+    if ctx is None or ctx.is_main:
+        _print_summary(result, f"{cfg.method} on {dataset.name}: {len(views)} views, K={result['num_draws']}"
+                       + _on_ranks(ctx))
+        print(f"metrics: {out / 'metrics.json'}")
+
+
+def _on_ranks(ctx) -> str:
+    return "" if ctx is None else f" (sharded over {ctx.world_size} processes, {ctx.backend})"
 
 
 def _print_summary(result: dict, title: str) -> None:
@@ -206,6 +224,12 @@ def cmd_demo(args: argparse.Namespace) -> None:
     print(f"  wall time: {wall:.0f} s (training incl. data {t_train:.0f} s)")
     print(f"run folder: {run_dir} (checkpoint.pt, metrics.json, views/)")
 
+
+#: Commands that run as ranks of a torchrun launch: train (data-parallel), render/eval/export
+#: (views sharded over the ranks). The others refuse a multi-rank launch: demo (train with
+#: torchrun, then eval), calibrate (one fit over every capture point), occupancy and free-path
+#: (one volume or path), rosbag/rerun (one stream written in order), prepare (one SfM solve).
+DISTRIBUTED_COMMANDS: tuple[str, ...] = ("train", "render", "eval", "export")
 
 #: extra commands of the library's own modules: name -> (module, help). Packages above the library
 #: (the benchmarks' ``bench``) add theirs through the ``stochastic_fields.commands`` entry-point group
@@ -249,9 +273,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
                    help="Data-parallel training as one rank of a torchrun launch (implied when torchrun's RANK and "
                         "WORLD_SIZE are set): 'torchrun --nproc_per_node N -m stochastic_fields.cli train ...'. "
                         "Each rank draws train.rays_per_batch / N rays per step; gradients are averaged.")
-    p.add_argument("--dist-timeout", type=float, default=DISTRIBUTED_TIMEOUT_S, metavar="SECONDS",
-                   help="Distributed: seconds a rank waits for the others in a collective before it stops with an "
-                        "error (default %(default)g).")
+    add_dist_timeout_argument(p)
     _add_experiment_options(p)
     p.set_defaults(func=cmd_train)
 
@@ -273,6 +295,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
                        help="Ignore the run's calibration.json: depth_std is the raw rendered std (by default the "
                             "recalibrated std, with the raw one kept as depth_std_raw).")
         p.add_argument("--quiet", action="store_true", help="No progress bars.")
+        add_dist_timeout_argument(p)
         if name == "eval":
             p.add_argument("--no-products", action="store_true", help="Only metrics, no per-view files.")
         p.set_defaults(func=func)
@@ -327,9 +350,10 @@ def main(argv: list[str] | None = None) -> int:
     command = next((a for a in argv if not a.startswith("-")), "")  # "": no command yet (top-level help)
     args = build_parser(command).parse_args(argv)
     try:
-        if args.command != "train" and requested_by_environment() and int(os.environ.get("WORLD_SIZE", "1")) > 1:
-            raise ValueError(f"'{args.command}' does not run distributed yet: only 'train' does; run it in one process "
-                             "(without torchrun)")
+        if (args.command not in DISTRIBUTED_COMMANDS and requested_by_environment()
+                and int(os.environ.get("WORLD_SIZE", "1")) > 1):
+            raise ValueError(f"'{args.command}' does not run distributed: only {', '.join(DISTRIBUTED_COMMANDS)} do "
+                             "under torchrun; run it in one process (without torchrun)")
         args.func(args)
     except (ValueError, FileNotFoundError, FloatingPointError, DistributedError) as exc:
         print(f"stochastic-fields {args.command}: error: {exc}", file=sys.stderr)

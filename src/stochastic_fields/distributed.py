@@ -1,4 +1,8 @@
-"""Data-parallel training on ``torch.distributed`` (launched by ``torchrun``).
+"""Data-parallel training on ``torch.distributed`` (launched by ``torchrun``), and the process
+group of the commands that shard views over the ranks (``render``, ``eval``, ``export``: rank r
+renders positions r, r + W, ... of the view list, ``shard_indices``; the per-view results are
+gathered to rank 0 with ``DistContext.gather_object``; see ``evaluation.evaluate`` and
+``products.export.export_views``) and of the benchmark tables (``stochastic_fields_bench.runner``).
 
 Every rank holds the whole model and draws its own share of each step's ray batch; after the
 backward pass the ranks' gradients are averaged, so every rank takes the same optimiser step and
@@ -108,6 +112,12 @@ def rank_seeds(seed: int, rank: int, world_size: int, step: int = 0) -> tuple[in
     return int(state[0]), int(state[1])
 
 
+def shard_indices(total: int, rank: int, world_size: int) -> list[int]:
+    """Positions ``rank, rank + W, rank + 2 W, ...`` of ``total`` items: rank r renders views[r::W]
+    (round-robin, so that the ranks' shares of a view list differ by at most one view)."""
+    return list(range(int(rank), int(total), int(world_size)))
+
+
 def shard_size(total: int, rank: int, world_size: int) -> int:
     """Rank ``rank``'s share of ``total`` items: ``total // W``, one more for the first ``total % W`` ranks."""
     return total // world_size + (1 if rank < total % world_size else 0)
@@ -146,8 +156,8 @@ class DistContext:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         return DistributedError(f"rank {self.rank} of {self.world_size}: {what} failed: another rank stopped, raised "
                                 f"or did not answer within {self.timeout_s:g} s (the run's timeout); see that rank's "
-                                f"error above. Nothing partial was written: the run folder keeps its last complete "
-                                f"checkpoint. ({type(exc).__name__}: {first})")
+                                f"error above. Nothing partial was written (training keeps its last complete checkpoint; "
+                                f"render/eval do not write metrics.json, export leaves --out as it was). ({type(exc).__name__}: {first})")
 
     @contextlib.contextmanager
     def collective(self, what: str) -> Iterator[None]:
@@ -188,6 +198,22 @@ class DistContext:
         with self.collective(f"all-gather ({what})"):
             dist.all_gather(out, local)
         return [t.cpu() for t in out]
+
+    def gather_object(self, obj: object, *, what: str) -> list[object] | None:
+        """Every rank's ``obj`` (pickled) in rank order on rank 0; None on the other ranks.
+        For per-view results (scores, pooled arrays, point clouds): what a rank sends is held in
+        memory on rank 0 (NCCL: staged through this rank's GPU)."""
+        box = [None] * self.world_size if self.is_main else None
+        with self.collective(f"gather ({what})"):
+            dist.gather_object(obj, box, dst=0)
+        return box
+
+    def all_gather_object(self, obj: object, *, what: str) -> list[object]:
+        """Every rank's ``obj`` (pickled) in rank order, on every rank."""
+        box: list[object] = [None] * self.world_size
+        with self.collective(f"all-gather ({what})"):
+            dist.all_gather_object(box, obj)
+        return box
 
     @contextlib.contextmanager
     def main_first(self, what: str) -> Iterator[None]:
@@ -251,6 +277,24 @@ def process_group(device: str = "auto", *, timeout_s: float = DISTRIBUTED_TIMEOU
         yield ctx
     finally:
         destroy_process_group()
+
+
+@contextlib.contextmanager
+def sharding_from_environment(run_dir, device: str | None, *,
+                              timeout_s: float = DISTRIBUTED_TIMEOUT_S) -> Iterator[DistContext | None]:
+    """For render/eval/export: a process group (``process_group``) when torchrun started this
+    process, else None (one process). ``device``: the command's ``--device``, by default the
+    run's ``train.device`` (its config.json), which picks gloo or NCCL."""
+    if not requested_by_environment():
+        yield None
+        return
+    if device is None:
+        from .config import load_config
+
+        saved = os.path.join(os.fspath(run_dir), "config.json")
+        device = load_config(saved).train.device if os.path.isfile(saved) else "auto"
+    with process_group(device, timeout_s=timeout_s) as ctx:
+        yield ctx
 
 
 # ----------------------------------------------------------------------------- gradients

@@ -31,6 +31,7 @@ from tqdm.auto import tqdm
 
 from . import metrics as M
 from .calibration import apply_depth_calibration
+from .distributed import shard_indices
 from .io_utils import atomic_path, atomic_write_text
 from .renderer import RenderOptions, seeded_chunks
 from .sparse_depth import paired_depth_scores
@@ -181,10 +182,46 @@ def _conventions(depth_source: str | None, calibration) -> dict[str, str]:
     return out
 
 
+def _evaluate_view(model, dataset, v: int, position: int, out_dir: Path, *, options: RenderOptions, seed: int,
+                   device: torch.device, write_products: bool, sparse, calibration) -> dict[str, Any]:
+    """Render, write and score dataset view ``v`` (``position`` in the evaluated list): its scores
+    and what the pooled scores need (per-pixel errors and uncertainty [H W] float32, NLL sum,
+    calibration coverage counts, depth samples), CPU/numpy only (sent between ranks as is)."""
+    gt_depths = getattr(dataset, "depths", None)
+    rays = dataset.rays(v).to(device)
+    synchronize(device)
+    t0 = time.perf_counter()
+    maps = model.render_view(rays, options, generator=seeded_chunks(seed, v, device))
+    synchronize(device)
+    render_s = time.perf_counter() - t0
+    products = apply_depth_calibration(camera_z_maps(maps), calibration)
+    gt = dataset.images[v].numpy()
+    gt_depth = gt_depths[v].numpy() if gt_depths is not None else None
+    if write_products:
+        write_view_products(out_dir / "views", f"view_{v:03d}", products, gt, gt_depth,
+                            camera=view_camera_arrays(dataset, v))
+    scores = score_colour(products, gt)
+    samples = depth_samples(products, gt_depth, sparse)
+    if samples is not None:
+        scores.update(score_depth(samples, calibration))
+    scores.update(render_s=render_s, **draws_summary(maps["num_draws"]))
+    mean = products["colour_mean"].astype(np.float64)
+    var = products["colour_std"].astype(np.float64) ** 2
+    per_pixel_nll = M.gaussian_nll(gt, mean, var, reduce=False).numpy()
+    cal = M.calibration_curve(gt, mean, np.sqrt(var))
+    return {"position": position, "view": v, "scores": scores, "render_s": render_s, "depth": samples,
+            "draws": maps["num_draws"].reshape(-1).cpu(),
+            "err_rmse": M.pixel_errors(gt, mean, "rmse").numpy().reshape(-1).astype(np.float32),
+            "err_mae": M.pixel_errors(gt, mean, "mae").numpy().reshape(-1).astype(np.float32),
+            "unc": M.pixel_uncertainty(var).numpy().reshape(-1).astype(np.float32),
+            "nll_sum": float(per_pixel_nll.sum()), "n_pix": per_pixel_nll.size,
+            "coverage_count": cal.coverage * cal.num_values, "num_values": cal.num_values}
+
+
 def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = None,
              options: RenderOptions | None = None, seed: int = 0, sparse_depth: dict | None = None,
              product_views: int | None = None, calibration=None, conventions: dict[str, str] | None = None,
-             progress: bool = True) -> dict:
+             progress: bool = True, distributed=None) -> dict:
     """Render and score ``views`` (default: the test split) of a trained model; returns the
     metrics dict it writes to ``out_dir/metrics.json`` (and ``curves.npz``).
 
@@ -199,6 +236,13 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
         calibration: a ``calibration.RunCalibration`` applied to the depth std (raw kept as
             ``depth_std_raw``) and to the intervals.
         conventions: extra lines for ``metrics.json``'s conventions (what the caller's numbers mean).
+        distributed: a ``distributed.DistContext`` (one rank of a torchrun launch): rank r of W
+            renders and scores positions r, r + W, ... of ``views`` and writes their per-view files
+            itself (``out_dir`` must be one folder for all ranks: a shared file system across
+            hosts); the per-view results are gathered to rank 0, which pools them in the order of
+            ``views`` and writes metrics.json and curves.npz, equal to one process's (but for
+            the render_s timings). Every rank returns rank 0's result. A rank that fails makes the
+            others raise ``DistributedError`` and no metrics.json is written.
     """
     out_dir = Path(out_dir)
     views = list(dataset.test_indices) if views is None else [int(v) for v in views]
@@ -207,6 +251,18 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
     device = next(model.parameters()).device
     gt_depths = getattr(dataset, "depths", None)
     depth_source = "sparse" if sparse_depth is not None else ("dense" if gt_depths is not None else None)
+    ctx = distributed
+    positions = range(len(views)) if ctx is None else shard_indices(len(views), ctx.rank, ctx.world_size)
+    records = [_evaluate_view(model, dataset, views[i], i, out_dir, options=options, seed=seed, device=device,
+                              write_products=i < product_views, calibration=calibration,
+                              sparse=None if sparse_depth is None else sparse_depth[views[i]])
+               for i in tqdm(positions, desc="evaluate", disable=not progress or (ctx is not None and not ctx.is_main))]
+    if ctx is not None:
+        parts = ctx.gather_object(records, what="evaluation's per-view results to rank 0")
+        if not ctx.is_main:  # rank 0 pools and writes; its result (or its failure) ends every rank's call
+            return ctx.broadcast_object(None, what="evaluation's metrics from rank 0")
+        records = sorted((r for part in parts for r in part), key=lambda r: r["position"])
+        assert [r["view"] for r in records] == views, "gathered views do not cover the evaluated list"
     report = M.MetricReport()
     report.conventions.update(_conventions(depth_source, calibration))
     report.conventions.update(conventions or {})
@@ -214,38 +270,18 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
     colour_cov, colour_cov_n = np.zeros_like(M.DEFAULT_CALIBRATION_LEVELS), 0
     depth_pool: list[DepthSamples] = []
     render_s, draws = [], []
-    for i, v in enumerate(tqdm(views, desc="evaluate", disable=not progress)):
-        rays = dataset.rays(v).to(device)
-        synchronize(device)
-        t0 = time.perf_counter()
-        maps = model.render_view(rays, options, generator=seeded_chunks(seed, v, device))
-        synchronize(device)
-        render_s.append(time.perf_counter() - t0)
-        draws.append(maps["num_draws"].reshape(-1).cpu())
-        products = apply_depth_calibration(camera_z_maps(maps), calibration)
-        gt = dataset.images[v].numpy()
-        gt_depth = gt_depths[v].numpy() if gt_depths is not None else None
-        if i < product_views:
-            write_view_products(out_dir / "views", f"view_{v:03d}", products, gt, gt_depth,
-                                camera=view_camera_arrays(dataset, v))
-        scores = score_colour(products, gt)
-        samples = depth_samples(products, gt_depth, None if sparse_depth is None else sparse_depth[v])
-        if samples is not None:
-            scores.update(score_depth(samples, calibration))
-            depth_pool.append(samples)
-        scores.update(render_s=render_s[-1], **draws_summary(maps["num_draws"]))
-        report.add(f"view_{v:03d}", **scores)
-        mean = products["colour_mean"].astype(np.float64)
-        var = products["colour_std"].astype(np.float64) ** 2
-        pooled["err_rmse"].append(M.pixel_errors(gt, mean, "rmse").numpy().reshape(-1).astype(np.float32))
-        pooled["err_mae"].append(M.pixel_errors(gt, mean, "mae").numpy().reshape(-1).astype(np.float32))
-        pooled["unc"].append(M.pixel_uncertainty(var).numpy().reshape(-1).astype(np.float32))
-        per_pixel_nll = M.gaussian_nll(gt, mean, var, reduce=False).numpy()
-        pooled["nll_sum"] += float(per_pixel_nll.sum())
-        pooled["n_pix"] += per_pixel_nll.size
-        cal = M.calibration_curve(gt, mean, np.sqrt(var))
-        colour_cov += cal.coverage * cal.num_values
-        colour_cov_n += cal.num_values
+    for rec in records:  # in the order of ``views``, whichever rank rendered them
+        render_s.append(rec["render_s"])
+        draws.append(rec["draws"])
+        if rec["depth"] is not None:
+            depth_pool.append(rec["depth"])
+        report.add(f"view_{rec['view']:03d}", **rec["scores"])
+        for key in ("err_rmse", "err_mae", "unc"):
+            pooled[key].append(rec[key])
+        pooled["nll_sum"] += rec["nll_sum"]
+        pooled["n_pix"] += rec["n_pix"]
+        colour_cov += rec["coverage_count"]
+        colour_cov_n += rec["num_values"]
 
     result = report.to_dict()
     result.update(draws_summary(torch.cat(draws)) if draws else {"num_draws": options.num_draws})
@@ -296,4 +332,6 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
         with open(tmp, "wb") as fh:
             np.savez_compressed(fh, **curves)
     atomic_write_text(out_dir / "metrics.json", json.dumps(result, indent=2, default=float))
+    if ctx is not None:
+        ctx.broadcast_object(result, what="evaluation's metrics from rank 0")
     return result

@@ -289,14 +289,47 @@ def collect_results(out_root: Path, scenes: Sequence[str], methods: Sequence[str
     return out
 
 
+#: Seconds a rank of a distributed benchmark waits at the final barrier for the others' stages
+#: (``--dist-timeout`` of eval_tables.py): the slowest rank's training, evaluation and timing.
+TABLES_DIST_TIMEOUT_S: float = 24 * 3600.0
+
+
+def assign_stages(scenes: Sequence[str], methods: Sequence[str], world_size: int) -> list[list[tuple[str, str]]]:
+    """The (scene, method) stages of each rank: the scene-major list of every stage dealt
+    round-robin, rank r taking stages r, r + W, ... (each exactly once; counts differ by at most one)."""
+    if world_size < 1:
+        raise ValueError(f"world size must be >= 1, got {world_size}")
+    stages = [(scene, m) for scene in scenes for m in methods]
+    return [stages[r::world_size] for r in range(world_size)]
+
+
 def run_benchmark(scenes: Sequence[str], methods: Sequence[str], out_root: Path, settings: BenchmarkSettings, *,
                   data_root: Path | None = None, progress: bool = True, command: str | None = None,
-                  log: Callable[[str], None] = print) -> dict[str, Any]:
-    """Run (or resume) every method on every scene, then write tables.json, tables.md and plots."""
+                  log: Callable[[str], None] = print, distributed=None) -> dict[str, Any] | None:
+    """Run (or resume) every method on every scene, then write tables.json, tables.md and plots.
+
+    ``distributed``: a ``stochastic_fields.distributed.DistContext`` (one rank of a torchrun
+    launch): rank r runs its stages of ``assign_stages`` (each writes its own run folder, so
+    ``out_root`` must be one folder for all ranks: a shared file system across hosts), waits at a
+    barrier for the others, and rank 0 collects every run folder from disk and writes the tables,
+    the same as one process's (but for the wall times). Returns the tables on rank 0, None on
+    the others."""
     out_root = Path(out_root)
     t0 = time.perf_counter()
-    for scene in scenes:
-        run_scene(scene, methods, out_root, settings, data_root=data_root, progress=progress, log=log)
+    ctx = distributed
+    if ctx is None:
+        for scene in scenes:
+            run_scene(scene, methods, out_root, settings, data_root=data_root, progress=progress, log=log)
+    else:
+        mine = assign_stages(scenes, methods, ctx.world_size)[ctx.rank]
+        rank_log = lambda line: log(f"[rank {ctx.rank}/{ctx.world_size}] {line}")  # noqa: E731
+        for scene in dict.fromkeys(scenes):
+            own = [m for s, m in mine if s == scene]
+            if own:
+                run_scene(scene, own, out_root, settings, data_root=data_root, progress=progress, log=rank_log)
+        ctx.barrier("every rank's benchmark stages")
+        if not ctx.is_main:
+            return None
     results = collect_results(out_root, scenes, methods)
     tables = build_tables(results, methods=methods, settings=settings, command=command)
     tables["wall_s_this_invocation"] = time.perf_counter() - t0

@@ -85,6 +85,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="Ignore the run's calibration.json: depth_std and the bands use the raw total std.")
     p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
     p.add_argument("--quiet", action="store_true", help="No progress bars.")
+    from ..cli import add_dist_timeout_argument
+
+    add_dist_timeout_argument(p)
 
 
 def options_from_args(args: argparse.Namespace) -> ExportOptions:
@@ -99,8 +102,13 @@ def options_from_args(args: argparse.Namespace) -> ExportOptions:
 
 
 def run(args: argparse.Namespace) -> None:
+    from ..distributed import sharding_from_environment
+
     opts = options_from_args(args)
-    summary = export_run(args.run, opts)
+    with sharding_from_environment(args.run, args.device, timeout_s=args.dist_timeout) as ctx:
+        summary = export_run(args.run, opts, distributed=ctx)
+    if ctx is not None and not ctx.is_main:
+        return
     out = Path(args.out) if args.out else Path(args.run) / "export"
     c = summary["counts"]
     line = f"exported {len(summary['views'])} views (K={summary['num_draws']}) into {out}: " \

@@ -26,6 +26,7 @@ camera-z depth over pixels that are valid and have a ground truth: Gaussian inte
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 from dataclasses import asdict, dataclass, field
@@ -38,6 +39,7 @@ from tqdm.auto import tqdm
 
 from ..cameras import generate_rays_for_view, intrinsics_3x3, make_cameras
 from ..data.dataset import parse_views
+from ..distributed import shard_indices
 from ..renderer import seeded_chunks
 from ..io_utils import atomic_folder, atomic_path, atomic_write_text, check_file_name, read_json
 from .depth_maps import (CONVENTIONS, DepthProducts, check_quantile_levels, compute_depth_products,
@@ -324,6 +326,12 @@ class CalibrationAccumulator:
         q = draw_quantiles(torch.from_numpy(products.depth_draws[m]).double(), self.QUANTILE_LEVELS).numpy()  # [4, P]
         self.rows.append(np.stack([gt_depth[m], products.depth_mean[m], products.depth_std[m], *q]).astype(np.float64))
 
+    def merge(self, other: "CalibrationAccumulator") -> None:
+        """Append ``other``'s pixels after this one's (views pooled in order; ``band_multiplier`` is not merged)."""
+        self.rows.extend(other.rows)
+        self.num_gt += other.num_gt
+        self.num_valid += other.num_valid
+
     def summary(self) -> dict | None:
         if not self.rows:
             return None
@@ -406,15 +414,18 @@ def picture_viewpoint(specs: Sequence[ViewSpec], points: np.ndarray) -> tuple[np
 
 
 # ------------------------------------------------------------------------------- driver
-def export_run(run_dir: str | Path, opts: ExportOptions) -> dict:
-    """Export the products of a trained run (see the module doc). Returns the summary it saves."""
+def export_run(run_dir: str | Path, opts: ExportOptions, *, distributed=None) -> dict:
+    """Export the products of a trained run (see the module doc). Returns the summary it saves.
+    ``distributed``: this rank's ``distributed.DistContext`` (see ``export_views``); the model is
+    loaded on the rank's device."""
     from ..trainer import load_trained_model
 
     opts.validate()
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise FileNotFoundError(f"run folder {run_dir} does not exist")
-    cfg, model, dataset = load_trained_model(run_dir, device=opts.device)
+    device = opts.device if distributed is None else str(distributed.device)
+    cfg, model, dataset = load_trained_model(run_dir, device=device)
     if opts.known_distance is not None:
         from .ros_depth import metres_per_unit_from_known_distance
 
@@ -439,7 +450,7 @@ def export_run(run_dir: str | Path, opts: ExportOptions) -> dict:
 
     calibration = None if opts.raw_uncertainty else load_run_calibration(run_dir)
     return export_views(model, specs, out, opts, mesh_path=mesh_path if mesh_path.is_file() else None,
-                        run_name=str(run_dir), calibration=calibration)
+                        run_name=str(run_dir), calibration=calibration, distributed=distributed)
 
 
 #: Entries an export folder holds: a non-empty folder with anything else is not replaced.
@@ -452,41 +463,102 @@ def is_export_folder(path: Path) -> bool:
 
 
 def export_views(model, specs: Sequence[ViewSpec], out: Path, opts: ExportOptions, *, mesh_path: Path | None = None,
-                 run_name: str = "", calibration=None) -> dict:
+                 run_name: str = "", calibration=None, distributed=None) -> dict:
     """Render, write and summarise ``specs`` into ``out`` (see the module doc): the files go to a
     fresh folder beside ``out`` that replaces it when complete (``io_utils.atomic_folder``); an
     existing ``out`` that holds anything but a previous export is refused. ``calibration``: the
-    run's depth recalibration (``compute_depth_products``), or None."""
+    run's depth recalibration (``compute_depth_products``), or None.
+
+    ``distributed``: a ``distributed.DistContext`` (one rank of a torchrun launch). Rank 0 opens
+    the temporary folder and broadcasts its path (or its refusal, raised on every rank); rank r
+    renders positions r, r + W, ... of ``specs`` and writes their per-view files into that folder
+    itself (one folder for all ranks: a shared file system across hosts); the clouds, calibration
+    rows and counts are gathered to rank 0, which writes the clouds, the fused cloud and
+    summary.json and swaps the folder in; every rank then returns rank 0's summary. A rank that
+    fails makes the others raise ``DistributedError`` before the swap: ``out`` is left as it was
+    (a ``.OUT.partial-*`` left by a rank still writing is removed by the next export).
+    """
     opts.validate()
     if "ros" in opts.formats and opts.metres_per_unit is None:
         raise ValueError("export_views: --known-distance is resolved against the dataset's cameras by export_run; "
                          "pass metres_per_unit here")
     for spec in specs:
         check_file_name(spec.name, "view name")
-    with atomic_folder(out, replaceable=is_export_folder, option="--out") as work:
-        return _export_views_into(model, specs, work, opts, mesh_path=mesh_path, run_name=run_name,
-                                  calibration=calibration)
+    ctx = distributed
+    if ctx is None:
+        with atomic_folder(out, replaceable=is_export_folder, option="--out") as work:
+            return _export_views_into(model, specs, work, opts, mesh_path=mesh_path, run_name=run_name,
+                                      calibration=calibration)
+    what = "export's temporary folder from rank 0"
+    summary = None
+    if ctx.is_main:
+        try:
+            folder = atomic_folder(out, replaceable=is_export_folder, option="--out")
+            work = folder.__enter__()
+        except (ValueError, OSError) as exc:  # refused on every rank
+            ctx.broadcast_object(exc, what=what)
+            raise
+        with contextlib.ExitStack() as stack:
+            stack.push(folder.__exit__)  # removes the folder on an error, swaps it in on success
+            ctx.broadcast_object(str(work), what=what)
+            summary = _export_views_into(model, specs, work, opts, mesh_path=mesh_path, run_name=run_name,
+                                         calibration=calibration, distributed=ctx)
+    else:
+        work = ctx.broadcast_object(None, what=what)
+        if isinstance(work, BaseException):
+            raise type(work)(*work.args)
+        _export_views_into(model, specs, Path(work), opts, mesh_path=mesh_path, run_name=run_name,
+                           calibration=calibration, distributed=ctx)
+    # after rank 0's swap: its summary (or its failure) ends every rank's call
+    return ctx.broadcast_object(summary, what="export's summary from rank 0 after the folder swap")
+
+
+def _export_view(model, spec: ViewSpec, index: int, out: Path, opts: ExportOptions, flt: PointFilter,
+                 calibration) -> dict:
+    """Render and write one camera (position ``index`` in the export): its files, filtered cloud,
+    pixel counts and calibration rows (numpy only: sent between ranks as is)."""
+    products = render_products(model, spec, opts, calibration)
+    files = write_view_files(out, spec.name, products, opts)
+    calib = CalibrationAccumulator()
+    calib.add(products, spec.gt_depth)
+    calib.band_multiplier = None  # the run's, set by the caller (a closure does not travel between ranks)
+    cloud = cloud_from_products(products, view=index, covariance=opts.covariance)  # valid pixels
+    kept, counts = filter_cloud(cloud, flt)
+    counts = {"pixels": int(products.valid.size), **counts}  # input = opacity >= min_opacity
+    return {"position": index, "files": files, "calibration": calib, "cloud": kept, "counts": counts,
+            "num_draws": products.num_draws}
 
 
 def _export_views_into(model, specs: Sequence[ViewSpec], out: Path, opts: ExportOptions, *,
-                       mesh_path: Path | None, run_name: str, calibration=None) -> dict:
+                       mesh_path: Path | None, run_name: str, calibration=None, distributed=None) -> dict | None:
+    """The export into the folder ``out``; with ``distributed``, this rank's share of ``specs``
+    (positions rank::W), then rank 0 assembles (returns the summary) and the others return None."""
     out = Path(out)
     flt = opts.point_filter()
+    ctx = distributed
+    positions = range(len(specs)) if ctx is None else shard_indices(len(specs), ctx.rank, ctx.world_size)
+    records = [_export_view(model, specs[i], i, out, opts, flt, calibration)
+               for i in tqdm(positions, desc="export", dynamic_ncols=True,
+                             disable=not opts.progress or (ctx is not None and not ctx.is_main))]
+    if ctx is not None:
+        parts = ctx.gather_object(records, what="export's per-view clouds and counts to rank 0")
+        if not ctx.is_main:
+            return None
+        records = sorted((r for part in parts for r in part), key=lambda r: r["position"])
+        assert [r["position"] for r in records] == list(range(len(specs))), "gathered views do not cover the export"
     calib = CalibrationAccumulator()
+    depth_cal = None if calibration is None else calibration.depth
+    calib.band_multiplier = None if depth_cal is None else (lambda level: float(depth_cal.relative_scale(level)))
     clouds: list[CloudArrays] = []
     per_view: dict[str, dict] = {}
     files: list[Path] = []
     num_draws = None
-    for index, spec in enumerate(tqdm(specs, desc="export", disable=not opts.progress, dynamic_ncols=True)):
-        products = render_products(model, spec, opts, calibration)
-        num_draws = products.num_draws
-        files += write_view_files(out, spec.name, products, opts)
-        calib.add(products, spec.gt_depth)
-        cloud = cloud_from_products(products, view=index, covariance=opts.covariance)  # valid pixels
-        kept, counts = filter_cloud(cloud, flt)
-        counts = {"pixels": int(products.valid.size), **counts}  # input = opacity >= min_opacity
-        per_view[spec.name] = {"counts": counts, "view_index_in_clouds": index}
-        clouds.append(kept)
+    for spec, rec in zip(specs, records):  # in the order of ``specs``, whichever rank rendered them
+        num_draws = rec["num_draws"]
+        files += rec["files"]
+        calib.merge(rec["calibration"])
+        per_view[spec.name] = {"counts": rec["counts"], "view_index_in_clouds": rec["position"]}
+        clouds.append(rec["cloud"])
     all_points = CloudArrays.concatenate(clouds)
     colour_range = None
     if opts.colour_by == "uncertainty":
