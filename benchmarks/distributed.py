@@ -62,11 +62,24 @@ def _config(args: argparse.Namespace):
     return cfg
 
 
+def _measure_on_ranks(measure, rank: int, world: int, path: Path) -> None:
+    """``measure(ctx)`` in one process (ctx None) or inside this rank's process group; rank 0
+    writes the result to ``path``."""
+    from stochastic_fields.distributed import process_group
+
+    if world == 1:
+        result = measure(None)
+    else:
+        with process_group("cpu") as ctx:
+            result = measure(ctx)
+    if rank == 0:
+        path.write_text(json.dumps(result))
+
+
 def _rank(rank: int, world: int, port: int, args: argparse.Namespace, out: str) -> None:
     os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1",
                       MASTER_PORT=str(port), OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     torch.set_num_threads(1)
-    from stochastic_fields.distributed import process_group
     from stochastic_fields.scenes import load_run_dataset
     from stochastic_fields.trainer import Trainer
 
@@ -97,13 +110,7 @@ def _rank(rank: int, world: int, port: int, args: argparse.Namespace, out: str) 
                 "dense_values": sum(p.numel() for p in trainer.reducer.dense) if trainer.reducer else None,
                 "table_rows": [int(t.shape[0]) for t in trainer.reducer.tables] if trainer.reducer else None}
 
-    if world == 1:
-        result = measure(None)
-    else:
-        with process_group("cpu") as ctx:
-            result = measure(ctx)
-    if rank == 0:
-        (Path(out) / f"result_{world}.json").write_text(json.dumps(result))
+    _measure_on_ranks(measure, rank, world, Path(out) / f"result_{world}.json")
 
 
 def _eval_rank(rank: int, world: int, port: int, args: argparse.Namespace, out: str) -> None:
@@ -111,7 +118,6 @@ def _eval_rank(rank: int, world: int, port: int, args: argparse.Namespace, out: 
     os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1",
                       MASTER_PORT=str(port), OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
     torch.set_num_threads(1)
-    from stochastic_fields.distributed import process_group
     from stochastic_fields.evaluation import evaluate
     from stochastic_fields.trainer import load_trained_model
 
@@ -129,13 +135,7 @@ def _eval_rank(rank: int, world: int, port: int, args: argparse.Namespace, out: 
                 "pixels_per_view": int(dataset.height * dataset.width), "num_draws": result["num_draws"],
                 "pooled_nll": result["pooled"]["nll"], "psnr": result["summary"]["psnr"]["mean"]}
 
-    if world == 1:
-        result = measure(None)
-    else:
-        with process_group("cpu") as ctx:
-            result = measure(ctx)
-    if rank == 0:
-        (Path(out) / f"eval_result_{world}.json").write_text(json.dumps(result))
+    _measure_on_ranks(measure, rank, world, Path(out) / f"eval_result_{world}.json")
 
 
 def _same_metrics(work: str, worlds: list[int]) -> bool:

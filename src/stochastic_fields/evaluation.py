@@ -105,10 +105,12 @@ def interval_scale_of(calibration):
     return None if calibration is None or calibration.depth is None else calibration.depth.relative_scale
 
 
-def score_depth(samples: DepthSamples, calibration=None) -> dict[str, Any]:
+def score_depth(samples: DepthSamples, calibration=None, scores: dict | None = None) -> dict[str, Any]:
     """``depth/<score>`` (and, with a calibration, the raw std's ``depth_raw/<score>``) of
-    ``sparse_depth.paired_depth_scores``, ``DEPTH_SCORE_KEYS`` only."""
-    scores = paired_depth_scores(samples.gt, samples.pred, samples.std, interval_scale=interval_scale_of(calibration))
+    ``sparse_depth.paired_depth_scores``, ``DEPTH_SCORE_KEYS`` only. ``scores``: the recalibrated
+    std's ``paired_depth_scores`` if already computed (with ``interval_scale_of(calibration)``)."""
+    if scores is None:
+        scores = paired_depth_scores(samples.gt, samples.pred, samples.std, interval_scale=interval_scale_of(calibration))
     out = {f"depth/{k}": scores[k] for k in DEPTH_SCORE_KEYS}
     if calibration is not None:
         raw = paired_depth_scores(samples.gt, samples.pred, samples.std_raw)
@@ -116,27 +118,66 @@ def score_depth(samples: DepthSamples, calibration=None) -> dict[str, Any]:
     return out
 
 
-def score_colour(products: dict[str, np.ndarray], gt_colour: np.ndarray) -> dict[str, Any]:
+@dataclasses.dataclass
+class ColourTerms:
+    """Per-pixel colour quantities of one view, computed once: its own scores and the scores
+    pooled over views (rank correlations, sparsification, NLL, calibration) all derive from them."""
+
+    mse: np.ndarray
+    """[P] mean_c (gt - mean)^2 (``metrics.pixel_mse``), float64."""
+    err_mae: np.ndarray
+    """[P] mean_c |gt - mean| (``metrics.pixel_errors``, 'mae'), float64."""
+    unc: np.ndarray
+    """[P] mean_c var (``metrics.pixel_uncertainty``), float64."""
+    nll: np.ndarray
+    """[P] Gaussian NLL per pixel, averaged over channels (``metrics.gaussian_nll_per_pixel``)."""
+    calibration: M.CalibrationResult
+    """Coverage of the central intervals, pooled over pixels and channels (``metrics.calibration_curve``)."""
+
+    @property
+    def err_rmse(self) -> np.ndarray:
+        """[P] sqrt(mse) (``metrics.pixel_errors``, 'rmse')."""
+        return np.sqrt(self.mse)
+
+    @staticmethod
+    def of(products: dict[str, np.ndarray], gt_colour: np.ndarray) -> "ColourTerms":
+        mean = products["colour_mean"].astype(np.float64)
+        var = products["colour_std"].astype(np.float64) ** 2
+        return ColourTerms(mse=M.pixel_mse(gt_colour, mean).numpy().reshape(-1),
+                           err_mae=M.pixel_errors(gt_colour, mean, "mae").numpy().reshape(-1),
+                           unc=M.pixel_uncertainty(var).numpy().reshape(-1),
+                           nll=M.gaussian_nll(gt_colour, mean, var, reduce=False).numpy().reshape(-1),
+                           calibration=M.calibration_curve(gt_colour, mean, np.sqrt(var)))
+
+
+def ranking_scores(mse: np.ndarray, err_mae: np.ndarray, unc: np.ndarray) -> dict[str, Any]:
+    """How the uncertainty ranks the errors of pixels [P]: Pearson/Spearman of MSE vs variance
+    (CorrelationResult) and the RMSE and MAE sparsification curves (SparsificationResult, None for
+    a constant uncertainty, whose ranking is arbitrary)."""
+    constant = unc.size == 0 or bool(np.ptp(unc) == 0)
+    return {"pearson": M.pearson(mse, unc, "error", "uncertainty"),
+            "spearman": M.spearman(mse, unc, "error", "uncertainty"),
+            "rmse": None if constant else M.sparsification_curve(np.sqrt(mse), unc, metric="rmse"),
+            "mae": None if constant else M.sparsification_curve(err_mae, unc, metric="mae")}
+
+
+def _ause_scores(ranking: dict[str, Any]) -> dict[str, float]:
+    return {f"ause_{metric}{suffix}": (math.nan if ranking[metric] is None else getattr(ranking[metric], field))
+            for metric in ("rmse", "mae") for suffix, field in (("", "ause"), ("_normalised", "ause_normalised"))}
+
+
+def score_colour(products: dict[str, np.ndarray], gt_colour: np.ndarray,
+                 terms: ColourTerms | None = None) -> dict[str, Any]:
     """Colour scores of one view: PSNR, SSIM, NLL (variance floor), Pearson/Spearman of per-pixel
     MSE vs variance, AUSE (RMSE, MAE; raw and normalised), AUCE and signed calibration gap. A
-    constant uncertainty map has NaN AUSEs (and undefined correlations)."""
+    constant uncertainty map has NaN AUSEs (and undefined correlations). ``terms``: the view's
+    ``ColourTerms`` if already computed."""
+    terms = terms or ColourTerms.of(products, gt_colour)
     mean = products["colour_mean"].astype(np.float64)
-    var = products["colour_std"].astype(np.float64) ** 2
-    corr = M.mse_uncertainty_correlation(gt_colour, mean, var)
-    sp_rmse = M.colour_sparsification(gt_colour, mean, var, "rmse")
-    sp_mae = M.colour_sparsification(gt_colour, mean, var, "mae")
-    cal = M.calibration_curve(gt_colour, mean, np.sqrt(var))
-    scores = {
-        "psnr": M.psnr(mean, gt_colour), "ssim": M.ssim(mean, gt_colour), "nll": M.gaussian_nll(gt_colour, mean, var),
-        "pearson_mse_var": corr["pearson"], "spearman_mse_var": corr["spearman"],
-        "ause_rmse": sp_rmse.ause, "ause_rmse_normalised": sp_rmse.ause_normalised,
-        "ause_mae": sp_mae.ause, "ause_mae_normalised": sp_mae.ause_normalised,
-        "auce_colour": cal.auce, "calibration_gap_colour": cal.signed_gap,
-    }
-    if np.ptp(M.pixel_uncertainty(var).numpy()) == 0:
-        for key in ("ause_rmse", "ause_rmse_normalised", "ause_mae", "ause_mae_normalised"):
-            scores[key] = math.nan
-    return scores
+    ranking = ranking_scores(terms.mse, terms.err_mae, terms.unc)
+    return {"psnr": M.psnr(mean, gt_colour), "ssim": M.ssim(mean, gt_colour), "nll": float(terms.nll.mean()),
+            "pearson_mse_var": ranking["pearson"], "spearman_mse_var": ranking["spearman"], **_ause_scores(ranking),
+            "auce_colour": terms.calibration.auce, "calibration_gap_colour": terms.calibration.signed_gap}
 
 
 def score_view(products: dict[str, np.ndarray], gt_colour: np.ndarray, gt_depth: np.ndarray | None = None,
@@ -185,8 +226,8 @@ def _conventions(depth_source: str | None, calibration) -> dict[str, str]:
 def _evaluate_view(model, dataset, v: int, position: int, out_dir: Path, *, options: RenderOptions, seed: int,
                    device: torch.device, write_products: bool, sparse, calibration) -> dict[str, Any]:
     """Render, write and score dataset view ``v`` (``position`` in the evaluated list): its scores
-    and what the pooled scores need (per-pixel errors and uncertainty [H W] float32, NLL sum,
-    calibration coverage counts, depth samples), CPU/numpy only (sent between ranks as is)."""
+    and what the pooled scores need (its ``ColourTerms`` and depth samples), CPU/numpy only (sent
+    between ranks as is)."""
     gt_depths = getattr(dataset, "depths", None)
     rays = dataset.rays(v).to(device)
     synchronize(device)
@@ -200,22 +241,14 @@ def _evaluate_view(model, dataset, v: int, position: int, out_dir: Path, *, opti
     if write_products:
         write_view_products(out_dir / "views", f"view_{v:03d}", products, gt, gt_depth,
                             camera=view_camera_arrays(dataset, v))
-    scores = score_colour(products, gt)
+    colour = ColourTerms.of(products, gt)
+    scores = score_colour(products, gt, colour)
     samples = depth_samples(products, gt_depth, sparse)
     if samples is not None:
         scores.update(score_depth(samples, calibration))
     scores.update(render_s=render_s, **draws_summary(maps["num_draws"]))
-    mean = products["colour_mean"].astype(np.float64)
-    var = products["colour_std"].astype(np.float64) ** 2
-    per_pixel_nll = M.gaussian_nll(gt, mean, var, reduce=False).numpy()
-    cal = M.calibration_curve(gt, mean, np.sqrt(var))
     return {"position": position, "view": v, "scores": scores, "render_s": render_s, "depth": samples,
-            "draws": maps["num_draws"].reshape(-1).cpu(),
-            "err_rmse": M.pixel_errors(gt, mean, "rmse").numpy().reshape(-1).astype(np.float32),
-            "err_mae": M.pixel_errors(gt, mean, "mae").numpy().reshape(-1).astype(np.float32),
-            "unc": M.pixel_uncertainty(var).numpy().reshape(-1).astype(np.float32),
-            "nll_sum": float(per_pixel_nll.sum()), "n_pix": per_pixel_nll.size,
-            "coverage_count": cal.coverage * cal.num_values, "num_values": cal.num_values}
+            "draws": maps["num_draws"].reshape(-1).cpu(), "colour": colour}
 
 
 def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = None,
@@ -266,54 +299,42 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
     report = M.MetricReport()
     report.conventions.update(_conventions(depth_source, calibration))
     report.conventions.update(conventions or {})
-    pooled = {"err_rmse": [], "err_mae": [], "unc": [], "nll_sum": 0.0, "n_pix": 0}
-    colour_cov, colour_cov_n = np.zeros_like(M.DEFAULT_CALIBRATION_LEVELS), 0
     depth_pool: list[DepthSamples] = []
-    render_s, draws = [], []
     for rec in records:  # in the order of ``views``, whichever rank rendered them
-        render_s.append(rec["render_s"])
-        draws.append(rec["draws"])
         if rec["depth"] is not None:
             depth_pool.append(rec["depth"])
         report.add(f"view_{rec['view']:03d}", **rec["scores"])
-        for key in ("err_rmse", "err_mae", "unc"):
-            pooled[key].append(rec[key])
-        pooled["nll_sum"] += rec["nll_sum"]
-        pooled["n_pix"] += rec["n_pix"]
-        colour_cov += rec["coverage_count"]
-        colour_cov_n += rec["num_values"]
+    render_s = [rec["render_s"] for rec in records]
 
     result = report.to_dict()
-    result.update(draws_summary(torch.cat(draws)) if draws else {"num_draws": options.num_draws})
+    result.update(draws_summary(torch.cat([rec["draws"] for rec in records])) if records
+                  else {"num_draws": options.num_draws})
     result["render_options"] = {k: v for k, v in dataclasses.asdict(options).items() if k not in ("progress",)}
     result["opacity_mask"] = OPACITY_MASK
     result["depth_source"] = depth_source
     result["depth_calibration"] = None if calibration is None else calibration.to_dict()
     curves: dict[str, np.ndarray] = {}
-    err_rmse, err_mae, unc = (np.concatenate(pooled[k]).astype(np.float64) if pooled[k] else np.zeros(0)
-                              for k in ("err_rmse", "err_mae", "unc"))
-    constant = unc.size == 0 or bool(np.ptp(unc) == 0)
-    pear = M.pearson(err_rmse ** 2, unc, "error", "uncertainty")
-    spear = M.spearman(err_rmse ** 2, unc, "error", "uncertainty")
+    # pooled colour scores: every evaluated pixel at once
+    colour = [rec["colour"] for rec in records]
+    mse, err_mae, unc, nll = (np.concatenate([getattr(c, k) for c in colour]) if colour else np.zeros(0)
+                              for k in ("mse", "err_mae", "unc", "nll"))
+    ranking = ranking_scores(mse, err_mae, unc)
     pooled_out: dict[str, Any] = {
-        "num_pixels": int(err_rmse.size), "nll": pooled["nll_sum"] / max(1, pooled["n_pix"]),
-        "pearson_mse_var": pear.value, "spearman_mse_var": spear.value,
-        "correlation_undefined_reason": pear.reason,
+        "num_pixels": int(mse.size), "nll": float(nll.sum()) / max(1, nll.size),
+        "pearson_mse_var": ranking["pearson"].value, "spearman_mse_var": ranking["spearman"].value,
+        "correlation_undefined_reason": ranking["pearson"].reason, **_ause_scores(ranking),
     }
     levels = M.DEFAULT_CALIBRATION_LEVELS
-    coverage = colour_cov / max(1, colour_cov_n)
+    counts = sum((c.calibration.coverage * c.calibration.num_values for c in colour), np.zeros_like(levels))
+    num_values = sum(c.calibration.num_values for c in colour)
+    coverage = counts / max(1, num_values)
     colour_cal = M.CalibrationResult(levels=levels, coverage=coverage, auce=float(np.abs(coverage - levels).mean()),
-                                     signed_gap=float((coverage - levels).mean()), num_values=int(colour_cov_n))
+                                     signed_gap=float((coverage - levels).mean()), num_values=int(num_values))
     pooled_out.update(auce_colour=colour_cal.auce, calibration_gap_colour=colour_cal.signed_gap)
     curves.update(_pack("colour_calibration", colour_cal))
-    for metric, err in (("rmse", err_rmse), ("mae", err_mae)):
-        if constant:
-            pooled_out[f"ause_{metric}"] = pooled_out[f"ause_{metric}_normalised"] = math.nan
-            continue
-        sp = M.sparsification_curve(err, unc, metric=metric)
-        pooled_out[f"ause_{metric}"] = sp.ause
-        pooled_out[f"ause_{metric}_normalised"] = sp.ause_normalised
-        curves.update(_pack(f"colour_sparsification_{metric}", sp))
+    for metric in ("rmse", "mae"):
+        if ranking[metric] is not None:
+            curves.update(_pack(f"colour_sparsification_{metric}", ranking[metric]))
     if depth_source is not None:
         g, d, s, s_raw = (np.concatenate([getattr(p, k) for p in depth_pool]).astype(np.float64) if depth_pool
                           else np.zeros(0) for k in ("gt", "pred", "std", "std_raw"))

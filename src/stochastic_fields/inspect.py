@@ -47,7 +47,8 @@ from .distributions import RectifiedNormal
 from . import metrics as M
 from .plots import calibration_figure
 from .calibration import apply_depth_calibration, load_run_calibration
-from .evaluation import depth_samples, interval_scale_of, score_view
+from .evaluation import ColourTerms, depth_samples, interval_scale_of, score_colour, score_depth
+from .sparse_depth import paired_depth_scores
 from .view_maps import OPACITY_MASK, camera_z_maps
 from .models.snerf import SNeRF
 from .products.depth_maps import DepthProducts, compute_depth_products
@@ -421,29 +422,34 @@ class RunInspector:
         """Sparsification and calibration curves of one view, and its scores.
 
         Returns:
-            scores: ``evaluation.score_view`` (PSNR, SSIM, NLL, correlations, AUSE, depth scores).
+            scores: ``evaluation.score_view``'s (PSNR, SSIM, NLL, correlations, AUSE, depth scores).
             colour_sparsification: RMSE curve (``metrics.colour_sparsification``).
             colour_calibration: pooled over pixels and channels (``metrics.calibration_curve``).
             depth_sparsification, depth_calibration: on pixels with ground-truth depth and
-                opacity > OPACITY_MASK, or None (no ground truth or fewer than 2 such pixels).
+                opacity > OPACITY_MASK (``sparse_depth.paired_depth_scores``, recalibrated
+                intervals), or None (no ground truth, fewer than 2 such pixels, or for the
+                sparsification a constant depth std).
             depth_mask [H, W] bool or None.
         """
         products = self.render(view, num_draws, quadrature)
         gt, gt_depth = self.ground_truth(view)
-        mean, std = products["colour_mean"], products["colour_std"]
+        colour = ColourTerms.of(products, gt)
         out: dict[str, Any] = {
-            "scores": score_view(products, gt, gt_depth, self.calibration),
-            "colour_sparsification": M.colour_sparsification(gt, mean, std.astype(np.float64) ** 2, "rmse"),
-            "colour_calibration": M.calibration_curve(gt, mean, std),
+            "scores": score_colour(products, gt, colour),
+            "colour_sparsification": M.colour_sparsification(gt, products["colour_mean"],
+                                                             products["colour_std"].astype(np.float64) ** 2, "rmse"),
+            "colour_calibration": colour.calibration,
             "depth_sparsification": None, "depth_calibration": None, "depth_mask": None,
         }
         samples = depth_samples(products, gt_depth)
-        if samples is not None and samples.gt.size >= 2:
-            mask = (gt_depth > 0) & (products["opacity"] > OPACITY_MASK)  # where depth_samples took its pixels
-            out["depth_mask"] = mask
-            out["depth_sparsification"] = M.depth_sparsification(samples.pred, samples.gt, samples.std.astype(np.float64) ** 2)
-            out["depth_calibration"] = M.calibration_curve(samples.gt, samples.pred, samples.std,
-                                                           interval_scale=interval_scale_of(self.calibration))
+        if samples is not None:
+            depth = paired_depth_scores(samples.gt, samples.pred, samples.std,
+                                        interval_scale=interval_scale_of(self.calibration))
+            out["scores"].update(score_depth(samples, self.calibration, depth))
+            if samples.gt.size >= 2:
+                out["depth_mask"] = (gt_depth > 0) & (products["opacity"] > OPACITY_MASK)  # depth_samples' pixels
+                out["depth_sparsification"] = depth["sparsification"]
+                out["depth_calibration"] = depth["calibration"]
         return out
 
     def sparsification_figure(self, view: int, num_draws: int | None = None,
