@@ -142,39 +142,35 @@ def _render_options(model, args: argparse.Namespace):
     return model.render_options(num_draws=args.num_draws, colour_estimator=args.colour_estimator)
 
 
-def cmd_render(args: argparse.Namespace) -> None:
+def _render_and_score(args: argparse.Namespace, default_out: Path, product_views: int | None):
+    """What ``render`` and ``eval`` share: the run loaded, its views rendered and scored by
+    ``evaluation.evaluate`` into ``--out`` (default ``default_out``), sharded over the ranks of a
+    torchrun launch. Returns (config, dataset, views, metrics, out folder, DistContext or None)."""
     from .evaluation import evaluate
+    from .io_utils import check_no_symlinks, check_output_folder
     from .trainer import load_trained_model
 
-    from .io_utils import check_no_symlinks, check_output_folder
-
-    out = check_output_folder(args.out if args.out is not None else Path(args.run) / "renders", "--out")
-    check_no_symlinks(out, "views", "metrics.json")
-    with sharding_from_environment(args.run, args.device, timeout_s=args.dist_timeout) as ctx:
-        device = args.device if ctx is None else str(ctx.device)
-        cfg, model, dataset = load_trained_model(Path(args.run), device=device)
-        views = _parse_views(args.views, dataset)
-        evaluate(model, dataset, out, views=views, options=_render_options(model, args), progress=not args.quiet,
-                 calibration=_run_calibration(args), distributed=ctx)
-    if ctx is None or ctx.is_main:
-        print(f"rendered {len(views)} views into {out / 'views'}" + _on_ranks(ctx))
-
-
-def cmd_eval(args: argparse.Namespace) -> None:
-    from .evaluation import evaluate
-    from .trainer import load_trained_model
-
-    from .io_utils import check_no_symlinks, check_output_folder
-
-    out = check_output_folder(args.out if args.out is not None else Path(args.run), "--out")
+    out = check_output_folder(args.out if args.out is not None else default_out, "--out")
     check_no_symlinks(out, "views", "metrics.json")
     with sharding_from_environment(args.run, args.device, timeout_s=args.dist_timeout) as ctx:
         device = args.device if ctx is None else str(ctx.device)
         cfg, model, dataset = load_trained_model(Path(args.run), device=device)
         views = _parse_views(args.views, dataset)
         result = evaluate(model, dataset, out, views=views, options=_render_options(model, args),
-                          progress=not args.quiet, product_views=0 if args.no_products else None,
+                          progress=not args.quiet, product_views=product_views,
                           calibration=_run_calibration(args), distributed=ctx)
+    return cfg, dataset, views, result, out, ctx
+
+
+def cmd_render(args: argparse.Namespace) -> None:
+    _, _, views, _, out, ctx = _render_and_score(args, Path(args.run) / "renders", None)
+    if ctx is None or ctx.is_main:
+        print(f"rendered {len(views)} views into {out / 'views'}" + _on_ranks(ctx))
+
+
+def cmd_eval(args: argparse.Namespace) -> None:
+    cfg, dataset, views, result, out, ctx = _render_and_score(args, Path(args.run),
+                                                              0 if args.no_products else None)
     if ctx is None or ctx.is_main:
         _print_summary(result, f"{cfg.method} on {dataset.name}: {len(views)} views, K={result['num_draws']}"
                        + _on_ranks(ctx))
