@@ -118,6 +118,27 @@ def shard_indices(total: int, rank: int, world_size: int) -> list[int]:
     return list(range(int(rank), int(total), int(world_size)))
 
 
+def map_sharded(fn, total: int, ctx: "DistContext | None", *, what: str, desc: str, progress: bool = True):
+    """``[fn(i) for i in range(total)]`` in one process (``ctx`` None), or on the ranks of ``ctx``:
+    each rank calls ``fn`` on its ``shard_indices`` and rank 0 receives every result, in position
+    order (None on the other ranks). ``what`` names the gather in errors; ``desc`` the progress bar
+    (rank 0's only)."""
+    from tqdm.auto import tqdm
+
+    positions = range(total) if ctx is None else shard_indices(total, ctx.rank, ctx.world_size)
+    quiet = not progress or (ctx is not None and not ctx.is_main)
+    mine = [(i, fn(i)) for i in tqdm(positions, desc=desc, dynamic_ncols=True, disable=quiet)]
+    if ctx is None:
+        return [r for _, r in mine]
+    parts = ctx.gather_object(mine, what=what)
+    if not ctx.is_main:
+        return None
+    gathered = sorted((pair for part in parts for pair in part), key=lambda pair: pair[0])
+    if [i for i, _ in gathered] != list(range(total)):
+        raise DistributedError(f"{what}: the ranks' results do not cover positions 0..{total - 1}")
+    return [r for _, r in gathered]
+
+
 def shard_size(total: int, rank: int, world_size: int) -> int:
     """Rank ``rank``'s share of ``total`` items: ``total // W``, one more for the first ``total % W`` ranks."""
     return total // world_size + (1 if rank < total % world_size else 0)

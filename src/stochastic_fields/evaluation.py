@@ -27,11 +27,10 @@ from typing import Any, Sequence
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from . import metrics as M
 from .calibration import apply_depth_calibration
-from .distributed import shard_indices
+from .distributed import map_sharded
 from .io_utils import atomic_path, atomic_write_text
 from .renderer import RenderOptions, seeded_chunks
 from .sparse_depth import paired_depth_scores
@@ -223,9 +222,9 @@ def _conventions(depth_source: str | None, calibration) -> dict[str, str]:
     return out
 
 
-def _evaluate_view(model, dataset, v: int, position: int, out_dir: Path, *, options: RenderOptions, seed: int,
+def _evaluate_view(model, dataset, v: int, out_dir: Path, *, options: RenderOptions, seed: int,
                    device: torch.device, write_products: bool, sparse, calibration) -> dict[str, Any]:
-    """Render, write and score dataset view ``v`` (``position`` in the evaluated list): its scores
+    """Render, write and score dataset view ``v``: its scores
     and what the pooled scores need (its ``ColourTerms`` and depth samples), CPU/numpy only (sent
     between ranks as is)."""
     gt_depths = getattr(dataset, "depths", None)
@@ -247,7 +246,7 @@ def _evaluate_view(model, dataset, v: int, position: int, out_dir: Path, *, opti
     if samples is not None:
         scores.update(score_depth(samples, calibration))
     scores.update(render_s=render_s, **draws_summary(maps["num_draws"]))
-    return {"position": position, "view": v, "scores": scores, "render_s": render_s, "depth": samples,
+    return {"view": v, "scores": scores, "render_s": render_s, "depth": samples,
             "draws": maps["num_draws"].reshape(-1).cpu(), "colour": colour}
 
 
@@ -285,17 +284,14 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
     gt_depths = getattr(dataset, "depths", None)
     depth_source = "sparse" if sparse_depth is not None else ("dense" if gt_depths is not None else None)
     ctx = distributed
-    positions = range(len(views)) if ctx is None else shard_indices(len(views), ctx.rank, ctx.world_size)
-    records = [_evaluate_view(model, dataset, views[i], i, out_dir, options=options, seed=seed, device=device,
-                              write_products=i < product_views, calibration=calibration,
-                              sparse=None if sparse_depth is None else sparse_depth[views[i]])
-               for i in tqdm(positions, desc="evaluate", disable=not progress or (ctx is not None and not ctx.is_main))]
-    if ctx is not None:
-        parts = ctx.gather_object(records, what="evaluation's per-view results to rank 0")
-        if not ctx.is_main:  # rank 0 pools and writes; its result (or its failure) ends every rank's call
-            return ctx.broadcast_object(None, what="evaluation's metrics from rank 0")
-        records = sorted((r for part in parts for r in part), key=lambda r: r["position"])
-        assert [r["view"] for r in records] == views, "gathered views do not cover the evaluated list"
+    records = map_sharded(lambda i: _evaluate_view(model, dataset, views[i], out_dir, options=options, seed=seed,
+                                                   device=device, write_products=i < product_views,
+                                                   calibration=calibration,
+                                                   sparse=None if sparse_depth is None else sparse_depth[views[i]]),
+                          len(views), ctx, what="evaluation's per-view results to rank 0", desc="evaluate",
+                          progress=progress)
+    if records is None:  # not rank 0: rank 0 pools and writes; its result (or its failure) ends every rank's call
+        return ctx.broadcast_object(None, what="evaluation's metrics from rank 0")
     report = M.MetricReport()
     report.conventions.update(_conventions(depth_source, calibration))
     report.conventions.update(conventions or {})

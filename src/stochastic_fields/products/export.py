@@ -35,11 +35,10 @@ from typing import Sequence
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from ..cameras import generate_rays_for_view, intrinsics_3x3, make_cameras
 from ..data.dataset import parse_views
-from ..distributed import shard_indices
+from ..distributed import map_sharded
 from ..renderer import seeded_chunks
 from ..io_utils import atomic_folder, atomic_path, atomic_write_text, check_file_name, read_json
 from .depth_maps import (CONVENTIONS, DepthProducts, check_quantile_levels, compute_depth_products,
@@ -536,16 +535,10 @@ def _export_views_into(model, specs: Sequence[ViewSpec], out: Path, opts: Export
     out = Path(out)
     flt = opts.point_filter()
     ctx = distributed
-    positions = range(len(specs)) if ctx is None else shard_indices(len(specs), ctx.rank, ctx.world_size)
-    records = [_export_view(model, specs[i], i, out, opts, flt, calibration)
-               for i in tqdm(positions, desc="export", dynamic_ncols=True,
-                             disable=not opts.progress or (ctx is not None and not ctx.is_main))]
-    if ctx is not None:
-        parts = ctx.gather_object(records, what="export's per-view clouds and counts to rank 0")
-        if not ctx.is_main:
-            return None
-        records = sorted((r for part in parts for r in part), key=lambda r: r["position"])
-        assert [r["position"] for r in records] == list(range(len(specs))), "gathered views do not cover the export"
+    records = map_sharded(lambda i: _export_view(model, specs[i], i, out, opts, flt, calibration), len(specs), ctx,
+                          what="export's per-view clouds and counts to rank 0", desc="export", progress=opts.progress)
+    if records is None:
+        return None
     calib = CalibrationAccumulator()
     depth_cal = None if calibration is None else calibration.depth
     calib.band_multiplier = None if depth_cal is None else (lambda level: float(depth_cal.relative_scale(level)))
