@@ -191,11 +191,7 @@ def pearson(x: Any, y: Any, x_name: str = "x", y_name: str = "y") -> Correlation
     Shapes:
         x, y: any shapes with the same number of elements P.
     """
-    xt, yt = _correlation_inputs(x, y, x_name, y_name)
-    reason = _undefined_reason(xt, yt, x_name, y_name)
-    if reason is not None:
-        return CorrelationResult(float("nan"), False, reason, xt.numel())
-    return CorrelationResult(_pearson_core(xt, yt), True, None, xt.numel())
+    return _correlation(x, y, x_name, y_name, ranked=False)
 
 
 def average_ranks(x: Tensor) -> Tensor:
@@ -218,11 +214,18 @@ def spearman(x: Any, y: Any, x_name: str = "x", y_name: str = "y") -> Correlatio
     Shapes:
         x, y: any shapes with the same number of elements P.
     """
+    return _correlation(x, y, x_name, y_name, ranked=True)
+
+
+def _correlation(x: Any, y: Any, x_name: str, y_name: str, *, ranked: bool) -> CorrelationResult:
+    """Pearson of x and y (``ranked``: of their average ranks), undefined for a constant input."""
     xt, yt = _correlation_inputs(x, y, x_name, y_name)
     reason = _undefined_reason(xt, yt, x_name, y_name)
     if reason is not None:
         return CorrelationResult(float("nan"), False, reason, xt.numel())
-    return CorrelationResult(_pearson_core(average_ranks(xt), average_ranks(yt)), True, None, xt.numel())
+    if ranked:
+        xt, yt = average_ranks(xt), average_ranks(yt)
+    return CorrelationResult(_pearson_core(xt, yt), True, None, xt.numel())
 
 
 def pixel_mse(gt: Any, mean: Any) -> Tensor:
