@@ -26,8 +26,11 @@ from pathlib import Path
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA_ROOT = REPO_ROOT / ".." / "shared" / "data" / "nerf_llff_data"
 
-#: (row name, method of stochastic_fields_bench.tables.METHOD_SPECS, extra config overrides, what the row changes)
-ROWS: tuple[tuple[str, str, tuple[tuple[str, object], ...], str], ...] = (
+Row = tuple[str, str, tuple[tuple[str, object], ...], str]
+
+#: Study 1: (row name, method of stochastic_fields_bench.tables.METHOD_SPECS, extra config overrides,
+#: what the row changes); each row changes one thing of S-NeRF + learned pixel noise.
+ROWS: tuple[Row, ...] = (
     ("base", "snerf_predictive", (), "S-NeRF + learned pixel noise, independent noise per point (the paper)"),
     ("shared_noise", "snerf_predictive", (("render.shared_noise", True),),
      "noise shared along each ray per draw (trajectory-consistent draws), training and rendering"),
@@ -38,6 +41,21 @@ ROWS: tuple[tuple[str, str, tuple[tuple[str, object], ...], str], ...] = (
     ("ensemble", "ensemble", (), "reference: deep ensemble of 5"),
     ("deterministic", "deterministic", (), "reference: deterministic NeRF"),
 )
+
+#: Study 2: one change of today's default (study 1's decision: + sparse-depth likelihood).
+ROWS_NOISE_HEAD: tuple[Row, ...] = (
+    ("default", "snerf_default", (), "S-NeRF default: learned global pixel noise, sparse-depth likelihood"),
+    ("per_point_noise", "snerf_default", (("loss.per_point_noise", True),),
+     "+ per-point observation noise beta(x) beside the global one (likelihood and predictive variance)"),
+    ("per_point_noise_decoupled", "snerf_default", (("loss.per_point_noise", True), ("loss.noise_head_decoupled", True)),
+     "+ per-point observation noise that only explains residuals: colours and densities keep the global-noise "
+     "likelihood's gradient (stop-gradient weighting)"),
+    ("ensemble", "ensemble", (), "reference: deep ensemble of 5"),
+    ("deterministic", "deterministic", (), "reference: deterministic NeRF"),
+)
+
+#: --study NAME -> its rows.
+STUDIES: dict[str, tuple[Row, ...]] = {"factors": ROWS, "noise_head": ROWS_NOISE_HEAD}
 
 COLUMNS: tuple[tuple[str, str], ...] = (
     ("psnr", "PSNR"), ("nll", "NLL"), ("auce_colour", "AUCE"), ("spearman_mse_var", "Spearman MSE-var"),
@@ -76,7 +94,8 @@ def _row_numbers(run_dir: Path) -> dict[str, float]:
 
 
 def measure_cost(out: Path, scene: str, data_root: Path, *, rows: tuple[str, ...] = ("depth", "deterministic"),
-                 reference: str = "deterministic", rounds: int = 4, steps: int = 25, render_repeats: int = 3) -> dict:
+                 study: tuple[Row, ...] = ROWS, reference: str = "deterministic", rounds: int = 4, steps: int = 25,
+                 render_repeats: int = 3) -> dict:
     """Training and rendering cost of ``rows`` against ``reference`` on one scene, interleaved in
     one process (1 thread): ``rounds`` x ``steps`` training steps per row after a warm-up (the
     trainer's loop time, no set-up or checkpoints), and ``render_repeats`` full renders of the first
@@ -95,7 +114,7 @@ def measure_cost(out: Path, scene: str, data_root: Path, *, rows: tuple[str, ...
     scene_path = resolve_scene(scene, data_root)
     dataset = load_dataset(scene_path, images="images_8", split_every=5)
     view = select_views(list(dataset.test_indices), BenchmarkSettings())[0]
-    specs = {name: (method, dict(overrides)) for name, method, overrides, _ in ROWS}
+    specs = {name: (method, dict(overrides)) for name, method, overrides, _ in study}
     trainers, step_s = {}, {r: [] for r in rows}
     with tempfile.TemporaryDirectory() as tmp:
         for r in rows:
@@ -142,12 +161,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scenes", nargs="+", default=["synthetic", "fern", "flower"],
                    help="LLFF scene names under --data-root, folders, or 'synthetic' (the embedded scene, "
                         "generated into OUT/_scenes).")
-    p.add_argument("--rows", nargs="+", default=[r[0] for r in ROWS], choices=[r[0] for r in ROWS])
+    p.add_argument("--study", choices=sorted(STUDIES), default="factors",
+                   help="Which rows: 'factors' (study 1, factors of S-NeRF + learned noise) or 'noise_head' "
+                        "(study 2, the per-point observation noise against today's default).")
+    p.add_argument("--rows", nargs="+", default=None, help="Rows of the study to run (default: all of them).")
     p.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
     p.add_argument("--cost", action="store_true",
-                   help="Only measure the training-step and render cost of the depth row against the deterministic "
-                        "NeRF on fern (interleaved, one process; needs those rows trained) into OUT/cost.json; "
-                        "the table run includes it.")
+                   help="Only measure the training-step and render cost of the study's S-NeRF rows (factors: depth; "
+                        "noise_head: per_point_noise, default) against the deterministic NeRF on fern (interleaved, "
+                        "one process; needs those rows trained) into OUT/cost.json; the table run includes it.")
     p.add_argument("--collect-only", action="store_true",
                    help="Train and score nothing: rebuild study.md/json from the finished runs under OUT.")
     p.add_argument("--quiet", action="store_true")
@@ -163,7 +185,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.cost:
         from stochastic_fields.io_utils import atomic_write_text
 
-        cost = measure_cost(out, "fern", args.data_root)
+        cost_rows = {"factors": ("depth", "deterministic"),
+                     "noise_head": ("per_point_noise", "default", "deterministic")}[args.study]
+        cost = measure_cost(out, "fern", args.data_root, rows=cost_rows, study=STUDIES[args.study])
         atomic_write_text(out / "cost.json", json.dumps(cost, indent=2))
         print(json.dumps(cost, indent=2))
         return 0
@@ -178,7 +202,11 @@ def main(argv: list[str] | None = None) -> int:
             scenes.append(str(path))
         else:
             scenes.append(scene)
-    rows = [r for r in ROWS if r[0] in args.rows]
+    study_rows = STUDIES[args.study]
+    names = [r[0] for r in study_rows]
+    if args.rows is not None and not set(args.rows) <= set(names):
+        p.error(f"--rows must be among {names} for --study {args.study}, got {args.rows}")
+    rows = [r for r in study_rows if args.rows is None or r[0] in args.rows]
     for name, method, overrides, _ in ([] if args.collect_only else rows):
         settings = BenchmarkSettings(timing=False, overrides=overrides)
         for scene in scenes:

@@ -97,6 +97,11 @@ OCCUPANCY_UPPER_NUM_STD: float = 3.0
 #: 0.03 is about 8 levels of 8-bit colour, above the pixel noise of real captures.
 NERFW_BETA_MIN: float = 0.03
 
+#: Initial observation-noise std beta(x) of a field's noise head (``loss.per_point_noise``),
+#: colour units: small against the learned global pixel noise (0.05 initially), which stays as the
+#: floor of the rendered noise variance, so training starts from the global-noise model.
+NOISE_HEAD_INIT_STD: float = 0.01
+
 #: Floor of a point's depth variance (scene units squared) when it becomes an inverse-variance
 #: weight in point-cloud fusion (products.fusion): a deterministic method or a fully collapsed
 #: pixel can report variance 0, whose weight would be infinite. Same reasoning and value as

@@ -1,6 +1,7 @@
 """The variational objective (docs/definitions.md §4, paper Eq. var_snerf):
 
     L = -1/(R K) sum_{r,k} log N(c_r | C_rk, sigma_n^2 I)                  (MC likelihood)
+        [with a noise head: variance sigma_n^2 + sum_i w_rki beta_i^2 per draw, §4.7]
         + lambda_rand * mean_{x ~ region, d ~ sphere} KL(q(.|x,d) || p_rand)
         + lambda_obs  * mean_{x on training rays}     KL(q(.|x,d) || p_obs)
         [+ lambda_dist * mean_{r,k} distortion(w_rk)]                      (optional, off by default)
@@ -49,6 +50,10 @@ class LossConfig:
     """Stratified random KL points: n per axis, n^3 points per step. Range: an integer >= 1 and <= 256."""
     observed_kl_samples: int = 4096
     """Training-ray samples per step on which the observed-prior KL is evaluated (a uniform random subset: an unbiased estimate of the mean over all samples at a fraction of the cost; 0 = all). Range: an integer >= 0 and <= 16777216."""
+    noise_head_decoupled: bool = False
+    """With loss.per_point_noise: the noise head only explains residuals. Each pixel-draw term of the likelihood is weighted by stopgrad(v / sigma_n^2) and v uses stopgrad(w), so colours and densities get exactly the gradient of the global-noise likelihood, while beta still fits the residuals (stationary at v = r^2; beta-NLL, Seitzer et al. 2022). Off: the joint likelihood, where a large beta also down-weights a pixel for the colours and the geometry."""
+    per_point_noise: bool = False
+    """Learn an observation-noise std beta(x) per point (one more field output) beside sigma_n: each trajectory's pixel likelihood gets variance sigma_n^2 + sum_i w_i beta_i^2, and with render.colour_variance='predictive' the rendered colour variance adds its mean over draws (docs/definitions.md §4.7). Off: one noise for every pixel (sigma_n)."""
     lambda_depth: float = 0.1
     """Weight of the sparse-depth likelihood of the capture's own structure-from-motion points (FIT role of the spatial split, stochastic_fields.capture_points): -mean_k log sum_i w_ik N(t* | t_i, s_i^2) per point ray (termination_depth_nll). 0 = off (the paper); scenes without capture points train without it. Default 0.1: benchmarks/results/uncertainty_study. Range: a finite number >= 0."""
     depth_rays_per_batch: int = 256
@@ -72,6 +77,8 @@ def _loss_checks() -> dict:
     return {
         "likelihood_std": real(0.0, lo_open=True),
         "learn_likelihood_std": boolean(),
+        "per_point_noise": boolean(),
+        "noise_head_decoupled": boolean(),
         "kl": choice("none", "fixed_prior", "full"),
         "kl_estimator": choice("closed_form", "monte_carlo"),
         "kl_mc_samples": integer(1, 4096),
@@ -109,15 +116,45 @@ class Priors(nn.Module):
                 self.observed_rgb_loc, positive_scale(self.observed_rgb_raw_scale))
 
 
-def gaussian_likelihood_nll(colours: Tensor, target: Tensor, std: float | Tensor) -> Tensor:
-    """Mean over rays and draws of -log N(target | C_k, diag(std^2)), per pixel (3 channels summed).
+def gaussian_likelihood_nll(colours: Tensor, target: Tensor, std: float | Tensor,
+                            extra_variance: Tensor | None = None) -> Tensor:
+    """Mean over rays and draws of -log N(target | C_k, diag(v_k)), per pixel (3 channels summed),
 
-    Shapes: colours [R, K, 3], target [R, 3], std a float or [3] -> scalar.
+        v_kc = std_c^2 + extra_variance_kc
+
+    (``extra_variance``: a draw's observation noise from a field's noise head, §4.7; None = 0).
+
+    Shapes: colours [R, K, 3], target [R, 3], std a float or [3], extra_variance None or
+    [R, K, 3] -> scalar.
     """
     std = torch.as_tensor(std, dtype=colours.dtype, device=colours.device).expand(3)
     sq = (colours - target[:, None, :]) ** 2  # [R, K, 3]
-    per_channel = 0.5 * sq / std ** 2 + torch.log(std) + 0.5 * math.log(2 * math.pi)
+    if extra_variance is None:
+        per_channel = 0.5 * sq / std ** 2 + torch.log(std) + 0.5 * math.log(2 * math.pi)
+    else:
+        var = std ** 2 + extra_variance
+        per_channel = 0.5 * sq / var + 0.5 * torch.log(var) + 0.5 * math.log(2 * math.pi)
     return per_channel.sum(-1).mean()
+
+
+def decoupled_likelihood_nll(colours: Tensor, target: Tensor, std: Tensor, extra_variance: Tensor) -> Tensor:
+    """``gaussian_likelihood_nll`` with ``extra_variance`` whose terms are weighted by the
+    detached ratio ``v_kc / std_c^2`` (v = std^2 + extra): the same value scaled per term, and
+    gradients
+
+        d/dC_k = (C_k - c) / std^2          (the global-noise likelihood's: the fit is not starved)
+        d/d extra, d/d std: stationary where v = (C_k - c)^2, as the plain likelihood
+
+    Pass ``extra_variance`` built from detached weights to keep the geometry's gradient that of
+    the global-noise likelihood too (``loss.noise_head_decoupled``).
+
+    Shapes: colours [R, K, 3], target [R, 3], std [3], extra_variance [R, K, 3] -> scalar.
+    """
+    std = torch.as_tensor(std, dtype=colours.dtype, device=colours.device).expand(3)
+    var = std ** 2 + extra_variance
+    sq = (colours - target[:, None, :]) ** 2
+    per_channel = 0.5 * sq / var + 0.5 * torch.log(var) + 0.5 * math.log(2 * math.pi)
+    return ((var / std ** 2).detach() * per_channel).sum(-1).mean()
 
 
 def termination_depth_nll(weights: Tensor, t_mids: Tensor, deltas: Tensor, target_t: Tensor,

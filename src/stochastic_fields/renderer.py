@@ -46,8 +46,8 @@ from .logistic_normal_table import logistic_normal_moments_tabulated
 from .rays import PackedRaySamples, RayBundle, RaySamples
 from .samplers import Spacing, sample_along_rays
 from .validation import Checker, boolean, check_fields, choice, colour_or_none, integer, real
-from .volume_rendering import (TrajectoryStatistics, concatenate_draws, render_weights, render_weights_packed,
-                               trajectory_statistics, trajectory_statistics_packed, weights_alpha_from_optical_depth)
+from .volume_rendering import (TrajectoryStatistics, accumulate_packed, concatenate_draws, render_weights,
+                               render_weights_packed, trajectory_statistics, trajectory_statistics_packed, weights_alpha_from_optical_depth)
 
 #: RenderSettings.colour_estimator values: drawn colours (docs/definitions.md §3) or Rao-Blackwellised colours.
 COLOUR_ESTIMATORS: tuple[str, ...] = ("draws", "rao_blackwell")
@@ -249,6 +249,31 @@ def colour_moments(params: FieldParams, settings: RenderSettings) -> tuple[Tenso
     return logistic_normal_moments_tabulated(params.rgb_loc, params.rgb_scale)
 
 
+def observation_variance(params: FieldParams, settings: RenderSettings,
+                         observation_noise: bool | None = None) -> Tensor | None:
+    """Per-sample observation-noise variance beta_i^2 (shaped like ``params.density_loc``) to
+    composite into each draw's pixel variance, or None: when the field has no noise head, or
+    ``observation_noise`` is False (None: only for ``colour_variance='predictive'``, where the
+    rendered colour variance is the predictive one, docs/definitions.md §4.7)."""
+    if params.noise_scale is None:
+        return None
+    if observation_noise is None:
+        observation_noise = settings.colour_variance == "predictive"
+    return params.noise_scale ** 2 if observation_noise else None
+
+
+def observation_noise_per_draw(out: "RayRender", *, detach_weights: bool = False) -> Tensor:
+    """[R, K, 3] v_k = sum_i w_ik beta_i^2 of a render whose field has a noise head (every
+    channel), from its weights (detached with ``detach_weights``) and ``params.noise_scale``."""
+    beta2 = out.params.noise_scale ** 2
+    w = out.extras["weights"].detach() if detach_weights else out.extras["weights"]
+    if isinstance(out.samples, PackedRaySamples):  # w [K, N]
+        v = accumulate_packed(w, beta2.expand_as(w), out.samples.ray_indices, out.samples.num_rays).transpose(0, 1)
+    else:  # w [R, K, S], beta2 [R, S]
+        v = torch.matmul(w, beta2[..., None])[..., 0]
+    return v[..., None].expand(*v.shape, 3)
+
+
 def _folded_optical_depth_params(params: FieldParams, samples: RaySamples) -> tuple[Tensor, Tensor]:
     """``(mu_a delta, s_a delta)`` [R, 1, S]: since ``relu(x) delta = relu(x delta)`` for delta > 0, a
     draw's optical depths are ``relu(mu_a delta + s_a delta eps)`` without a separate density tensor."""
@@ -276,7 +301,8 @@ def upcast_half(obj):
 def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSettings, *, num_draws: int,
                    deterministic: bool = False, generator: torch.Generator | None = None,
                    noise: tuple[Tensor, Tensor] | None = None, colour_estimator: str | None = None,
-                   colour_moments: tuple[Tensor, Tensor] | None = None) -> RayRender:
+                   colour_moments: tuple[Tensor, Tensor] | None = None,
+                   observation_noise: bool | None = None) -> RayRender:
     """K trajectories from field parameters already evaluated at ``samples`` ([R, S]).
 
     Draws are made and composited in blocks of ``draw_blocks(K, R * S)``; independent noise is
@@ -284,9 +310,11 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
     block), shared noise for all K at once (as the packed layout, which then agrees exactly).
     ``colour_estimator`` overrides ``settings.colour_estimator``; ``colour_moments`` gives the
     Rao-Blackwellised estimator's per-sample moments if already computed (``colour_moments()``).
+    ``observation_noise``: add the noise head's per-draw variance (``observation_variance``).
     float16/bfloat16 inputs are rendered in float32 (``upcast_half``); the statistics are float32.
     """
     params, samples, noise, colour_moments = upcast_half((params, samples, noise, colour_moments))
+    obs_var = observation_variance(params, settings, observation_noise)
     R, S = samples.t_starts.shape
     dev, dt = params.density_loc.device, params.density_loc.dtype
     rao_blackwell = _use_rao_blackwell(settings, colour_estimator, deterministic)
@@ -315,7 +343,8 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
             w = render_weights(density, samples.t_starts[:, None, :], samples.t_ends[:, None, :], settings.quadrature)
             block_rgb_var = None
         parts.append(trajectory_statistics(w, rgb, samples.t_mids[:, None, :], samples.rays.far,
-                                           background=_background(settings, w), rgb_var=block_rgb_var))
+                                           background=_background(settings, w), rgb_var=block_rgb_var,
+                                           observation_var=obs_var))
         weights.append(w)
     evals = torch.full((R,), S, device=dev, dtype=torch.long)
     return RayRender(stats=concatenate_draws(parts), params=params, samples=samples,
@@ -326,16 +355,19 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
 def render_samples_packed(params: FieldParams, samples: PackedRaySamples, settings: RenderSettings, *,
                           num_draws: int, deterministic: bool = False, generator: torch.Generator | None = None,
                           noise: tuple[Tensor, Tensor] | None = None, colour_estimator: str | None = None,
-                          colour_moments: tuple[Tensor, Tensor] | None = None) -> RayRender:
+                          colour_moments: tuple[Tensor, Tensor] | None = None,
+                          observation_noise: bool | None = None) -> RayRender:
     """K trajectories from field parameters evaluated at packed samples ([N]); alpha compositing only.
 
     Shapes: params [N]; returns statistics per ray [R, ...] like ``render_samples``. Blocks of
-    draws, ``colour_estimator`` and ``colour_moments`` as ``render_samples`` (``draw_blocks(K, N)``).
+    draws, ``colour_estimator``, ``colour_moments`` and ``observation_noise`` as ``render_samples``
+    (``draw_blocks(K, N)``).
     """
     if settings.quadrature != "alpha":
         raise ValueError(f"packed samples (empty-space skipping) need quadrature='alpha', got "
                          f"{settings.quadrature!r}: the packed trapezoid interpolates across skipped gaps")
     params, samples, noise, colour_moments = upcast_half((params, samples, noise, colour_moments))
+    obs_var = observation_variance(params, settings, observation_noise)
     R, N = samples.num_rays, samples.ray_indices.shape[0]
     dev, dt = params.density_loc.device, params.density_loc.dtype
     rao_blackwell = _use_rao_blackwell(settings, colour_estimator, deterministic)
@@ -363,7 +395,8 @@ def render_samples_packed(params: FieldParams, samples: PackedRaySamples, settin
             block_rgb_var = None
         w = render_weights_packed(density, samples.t_starts, samples.t_ends, samples.ray_indices, R, "alpha")
         parts.append(trajectory_statistics_packed(w, rgb, samples.t_mids, samples.ray_indices, R, samples.rays.far,
-                                                  background=_background(settings, w), rgb_var=block_rgb_var))
+                                                  background=_background(settings, w), rgb_var=block_rgb_var,
+                                                  observation_var=obs_var))
         weights.append(w)
     evals = torch.bincount(samples.ray_indices, minlength=R)
     return RayRender(stats=concatenate_draws(parts), params=params, samples=samples,
@@ -395,11 +428,13 @@ def skip_empty(samples: RaySamples, occupied: OccupiedFn | None) -> RaySamples |
 def render_any_samples(params: FieldParams, samples: RaySamples | PackedRaySamples, settings: RenderSettings, *,
                        num_draws: int, deterministic: bool = False, generator: torch.Generator | None = None,
                        noise: tuple[Tensor, Tensor] | None = None, colour_estimator: str | None = None,
-                       colour_moments: tuple[Tensor, Tensor] | None = None) -> RayRender:
+                       colour_moments: tuple[Tensor, Tensor] | None = None,
+                       observation_noise: bool | None = None) -> RayRender:
     """``render_samples`` or ``render_samples_packed``, whichever layout ``samples`` has."""
     render = render_samples_packed if isinstance(samples, PackedRaySamples) else render_samples
     return render(params, samples, settings, num_draws=num_draws, deterministic=deterministic, generator=generator,
-                  noise=noise, colour_estimator=colour_estimator, colour_moments=colour_moments)
+                  noise=noise, colour_estimator=colour_estimator, colour_moments=colour_moments,
+                  observation_noise=observation_noise)
 
 
 def render_rays(field: StochasticField, rays: RayBundle, settings: RenderSettings, *, num_draws: int | None = None,

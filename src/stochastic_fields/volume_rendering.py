@@ -322,11 +322,12 @@ class TrajectoryStatistics:
         depth_var_spread: [R] mean over k of the termination spread.
         depth_var_total: [R] epistemic + spread (law of total variance).
         opacity: [R] mean over k of the opacity.
-        colour_noise_var_draws: None, or with the Rao-Blackwellised colour estimator [R, K, 3]
-            the colour variance of each trajectory given its weights, ``Var[C_k | w_k] =
-            sum_i w_ik^2 Var[r_i]``; ``colour_draws`` are then the conditional means
-            ``E[C_k | w_k] = sum_i w_ik E[r_i]`` and ``colour_var`` is the law of total variance
-            ``Var_k E[C_k | w_k] + mean_k Var[C_k | w_k]``.
+        colour_noise_var_draws: None, or [R, K, 3] the variance of each trajectory's pixel given
+            the trajectory, added to ``colour_var`` as ``mean_k`` (law of total variance). Two
+            parts, either or both: with the Rao-Blackwellised colour estimator ``Var[C_k | w_k] =
+            sum_i w_ik^2 Var[r_i]`` (``colour_draws`` are then the conditional means
+            ``E[C_k | w_k] = sum_i w_ik E[r_i]``); with a field's noise head the observation noise
+            ``v_k = sum_i w_ik beta_i^2``.
     """
 
     colour_draws: Tensor
@@ -390,7 +391,8 @@ def concatenate_draws(parts: list[TrajectoryStatistics]) -> TrajectoryStatistics
         return parts[0]
     noise = [p.colour_noise_var_draws for p in parts]
     if any(n is None for n in noise) and not all(n is None for n in noise):
-        raise ValueError("cannot concatenate Rao-Blackwellised and plain colour draws")
+        raise ValueError("cannot concatenate draws with and without per-draw noise variances "
+                         "(Rao-Blackwellised colours or observation noise)")
     return statistics_from_draws(*(torch.cat([getattr(p, name) for p in parts], dim=1)
                                    for name in ("colour_draws", "depth_draws", "spread_draws", "opacity_draws")),
                                  colour_noise_var_draws=None if noise[0] is None else torch.cat(noise, dim=1))
@@ -410,6 +412,7 @@ def trajectory_statistics(
     far: Tensor | float,
     background: Tensor | float | None = None,
     rgb_var: Tensor | None = None,
+    observation_var: Tensor | None = None,
 ) -> TrajectoryStatistics:
     """Render K trajectories per ray and summarise them (docs/definitions.md §3), dense layout.
 
@@ -421,6 +424,10 @@ def trajectory_statistics(
     Rao-Blackwellised colours (``rgb_var`` given): ``rgb`` [R, S, 3] holds each sample's colour
     mean ``E[r_i]`` and ``rgb_var`` [R, S, 3] its variance; ``C_k = sum_i w_ik E[r_i]`` and
     ``Var[C_k | w_k] = sum_i w_ik^2 Var[r_i]`` (see ``TrajectoryStatistics``).
+
+    Observation noise (``observation_var`` [R, S]: beta_i^2 of a field's noise head, §4.7): each
+    trajectory's pixel also gets the noise variance ``v_k = sum_i w_ik beta_i^2`` (every channel),
+    added to ``colour_noise_var_draws`` and so, as ``mean_k v_k``, to the colour variance.
 
     Shapes:
         weights: [R, K, S]; rgb: [R, K, S, 3] (or [R, S, 3] with rgb_var); t_mids: [R, 1, S] or
@@ -439,6 +446,9 @@ def trajectory_statistics(
     else:  # [R, K, S] @ [R, S, 3]: batched matrix products, no [R, K, S, 3] temporary
         colour_draws = torch.matmul(weights, rgb)
         noise_var = torch.matmul(weights * weights, rgb_var)
+    if observation_var is not None:  # [R, K, S] @ [R, S, 1] -> [R, K, 1]
+        v = torch.matmul(weights, observation_var[..., None]).expand(*weights.shape[:2], 3)
+        noise_var = v if noise_var is None else noise_var + v
     opacity_draws = opacity(weights)  # [R, K]
     if background is not None:
         colour_draws = composite_background(colour_draws, opacity_draws, _background_per_draw(background, colour_draws))
@@ -669,12 +679,14 @@ def trajectory_statistics_packed(
     far: Tensor | float,
     background: Tensor | float | None = None,
     rgb_var: Tensor | None = None,
+    observation_var: Tensor | None = None,
 ) -> TrajectoryStatistics:
     """``trajectory_statistics`` for packed samples (draws axis first).
 
     Shapes:
         weights: [K, N]; rgb: [K, N, 3] (or the colour means [N, 3] with rgb_var [N, 3]: the
-        Rao-Blackwellised estimator of ``trajectory_statistics``); t_mids: [N] or [K, N];
+        Rao-Blackwellised estimator of ``trajectory_statistics``); observation_var: None or [N]
+        (beta_i^2, as ``trajectory_statistics``); t_mids: [N] or [K, N];
         ray_indices: [N]; far: [R] or scalar; background: None, scalar, [3] or [R, 3].
         Returns per-draw fields as [R, K, ...] like the dense version.
     """
@@ -686,6 +698,11 @@ def trajectory_statistics_packed(
         rgb = rgb.expand(weights.shape[0], *rgb.shape[-2:])
         noise_var = accumulate_packed(weights * weights, rgb_var.expand_as(rgb), ray_indices,
                                       num_rays).transpose(0, 1)  # [R, K, 3]
+    if observation_var is not None:
+        v = accumulate_packed(weights, observation_var.expand_as(weights), ray_indices,
+                              num_rays).transpose(0, 1)  # [R, K]
+        v = v[..., None].expand(*v.shape, 3)
+        noise_var = v if noise_var is None else noise_var + v
     colour = accumulate_packed(weights, rgb, ray_indices, num_rays).transpose(0, 1)  # [R, K, 3]
     acc = opacity_packed(weights, ray_indices, num_rays)  # [K, R]
     depth = expected_depth_packed(weights, t_mids, ray_indices, num_rays, far_t, acc)  # [K, R]

@@ -6,7 +6,10 @@ A stochastic field maps points and view directions to the parameters of two dist
     density  alpha = relu(density_loc + density_scale * eps)          (rectified normal)
     radiance r_c   = sigmoid(rgb_loc_c + rgb_scale_c * eps_c)          (logistic normal)
 
-Scales are positive: ``softplus(raw) + FIELD_STD_FLOOR``.
+Scales are positive: ``softplus(raw) + FIELD_STD_FLOOR``. A field built with an observation-noise
+head also returns ``noise_scale`` beta(x) >= 0, the standard deviation (colour units) of the pixel
+noise a point contributes (``loss.per_point_noise``, docs/definitions.md §4.7): a learned point
+value, not a random variable.
 """
 
 from __future__ import annotations
@@ -31,6 +34,13 @@ def inverse_positive_scale(std: float) -> float:
     y = std - FIELD_STD_FLOOR
     if y <= 0:
         raise ValueError(f"std must exceed FIELD_STD_FLOOR={FIELD_STD_FLOOR}, got {std}")
+    return inverse_softplus(y)
+
+
+def inverse_softplus(y: float) -> float:
+    """x with softplus(x) = y > 0 (initial raw value of a softplus-positive output)."""
+    if not y > 0:
+        raise ValueError(f"inverse_softplus needs y > 0, got {y}")
     return float(y + torch.log(-torch.expm1(torch.tensor(-y, dtype=torch.float64))))
 
 
@@ -43,19 +53,23 @@ class FieldParams:
         density_scale: [*B] its standard deviation (s_a > 0).
         rgb_loc: [*B, 3] mean of the colour logits (mu_c).
         rgb_scale: [*B, 3] standard deviation of the colour logits (s_c > 0).
+        noise_scale: None, or [*B] the observation-noise std beta(x) >= 0 of a field with a noise head.
     """
 
     density_loc: Tensor
     density_scale: Tensor
     rgb_loc: Tensor
     rgb_scale: Tensor
+    noise_scale: Tensor | None = None
 
     @property
     def shape(self) -> torch.Size:
         return self.density_loc.shape
 
     def map(self, fn) -> "FieldParams":
-        return replace(self, **{f.name: fn(getattr(self, f.name)) for f in fields(self)})
+        """``fn`` applied to every tensor (an absent ``noise_scale`` stays None)."""
+        return replace(self, **{f.name: fn(getattr(self, f.name)) for f in fields(self)
+                                if getattr(self, f.name) is not None})
 
     def reshape(self, *shape: int) -> "FieldParams":
         return FieldParams(
@@ -63,11 +77,15 @@ class FieldParams:
             density_scale=self.density_scale.reshape(*shape),
             rgb_loc=self.rgb_loc.reshape(*shape, 3),
             rgb_scale=self.rgb_scale.reshape(*shape, 3),
+            noise_scale=None if self.noise_scale is None else self.noise_scale.reshape(*shape),
         )
 
     @staticmethod
     def cat(parts: list["FieldParams"], dim: int = 0) -> "FieldParams":
-        return FieldParams(**{f.name: torch.cat([getattr(p, f.name) for p in parts], dim) for f in fields(parts[0])})
+        if len({p.noise_scale is None for p in parts}) > 1:
+            raise ValueError("cannot concatenate field parameters with and without noise_scale")
+        return FieldParams(**{f.name: torch.cat([getattr(p, f.name) for p in parts], dim) for f in fields(parts[0])
+                              if getattr(parts[0], f.name) is not None})
 
 
 class StochasticField(nn.Module, abc.ABC):

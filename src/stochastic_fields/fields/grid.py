@@ -9,6 +9,7 @@ trilinear interpolation of every level is summed:
     mu_a, raw_s_a = g_0(x), g_1(x)                           (density read straight from the grid)
     mu_c, raw_s_c = decoder([g_2..(x), PE(d)])               (view-dependent colour, 2-layer MLP)
     or, with ``decoder_width=0``: mu_c, raw_s_c = g_2..7(x)  (view-independent, no MLP)
+    with ``noise_head``: beta(x) = softplus(g_last(x))      (observation-noise std, one more channel)
 
 The corners are gathered with ``row_gather.gather_rows``, so a training step touches only the
 cells its samples fall in: their gradients are summed per row (``RowGradient``) and the grid is
@@ -32,9 +33,11 @@ import math
 import torch
 from torch import Tensor, nn
 
-from ..constants import OUTSIDE_DENSITY_LOC
+import torch.nn.functional as F
+
+from ..constants import NOISE_HEAD_INIT_STD, OUTSIDE_DENSITY_LOC
 from ..scene_region import SceneRegion
-from .base import FieldParams, StochasticField, inverse_positive_scale, positive_scale
+from .base import FieldParams, StochasticField, inverse_positive_scale, inverse_softplus, positive_scale
 from .encoding import PositionalEncoding
 from .row_gather import gather_rows
 
@@ -51,19 +54,21 @@ def level_resolutions(finest: tuple[int, int, int], num_levels: int) -> list[tup
 class GridField(StochasticField):
     def __init__(self, region: SceneRegion, resolution: tuple[int, int, int], *, num_levels: int = 3,
                  feature_dim: int = 8, decoder_width: int = 32, direction_frequencies: int = 2,
-                 init_density_loc: float = -1.0, init_std: float = 1.0):
+                 init_density_loc: float = -1.0, init_std: float = 1.0, noise_head: bool = False):
         super().__init__()
         self.region = region
         self.resolution = tuple(int(r) for r in resolution)
         self.decoder_width = decoder_width
         colour_channels = feature_dim if decoder_width > 0 else 6
-        self.num_channels = 2 + colour_channels
+        self.colour_channels = slice(2, 2 + colour_channels)
+        self.noise_head = bool(noise_head)
+        self.num_channels = 2 + colour_channels + int(self.noise_head)
         self.level_shapes = level_resolutions(self.resolution, num_levels)  # (X, Y, Z) per level
         self.levels = nn.ParameterList()
         for rx, ry, rz in self.level_shapes:
             g = torch.zeros(rz * ry * rx, self.num_channels)  # cell (x, y, z) is row (z * Y + y) * X + x
             if decoder_width > 0:
-                g[:, 2:] = 0.1 * torch.randn_like(g[:, 2:])
+                g[:, self.colour_channels] = 0.1 * torch.randn_like(g[:, self.colour_channels])
             self.levels.append(nn.Parameter(g))
         raw_std = inverse_positive_scale(init_std)
         # Offsets added to the summed grid value: the field starts as a uniform, uncertain fog.
@@ -71,6 +76,8 @@ class GridField(StochasticField):
         offset[0], offset[1] = init_density_loc, raw_std
         if decoder_width == 0:
             offset[5:8] = raw_std
+        if self.noise_head:
+            offset[-1] = inverse_softplus(NOISE_HEAD_INIT_STD)
         self.register_buffer("offset", offset)
         if decoder_width > 0:
             self.dir_enc = PositionalEncoding(direction_frequencies)
@@ -123,7 +130,7 @@ class GridField(StochasticField):
         density_loc = torch.where(outside, torch.full_like(values[:, 0], OUTSIDE_DENSITY_LOC), values[:, 0])
         if self.decoder_width > 0:
             d = self.dir_enc(directions.reshape(-1, 3))
-            hidden = torch.relu(self.decoder[0](torch.cat([values[:, 2:], d], dim=-1)))
+            hidden = torch.relu(self.decoder[0](torch.cat([values[:, self.colour_channels], d], dim=-1)))
             if hidden_transform is not None:
                 hidden = hidden_transform(hidden)
             col = self.decoder[-1](hidden)
@@ -134,6 +141,7 @@ class GridField(StochasticField):
             density_scale=positive_scale(values[:, 1]).reshape(batch),
             rgb_loc=col[:, :3].reshape(*batch, 3),
             rgb_scale=positive_scale(col[:, 3:]).reshape(*batch, 3),
+            noise_scale=F.softplus(values[:, -1]).reshape(batch) if self.noise_head else None,
         )
 
     def density_params(self, positions: Tensor) -> tuple[Tensor, Tensor]:

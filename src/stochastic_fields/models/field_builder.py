@@ -18,10 +18,13 @@ def fit_scene_region(dataset, cfg: ExperimentConfig) -> SceneRegion:
                       aabb=dataset.aabb)
 
 
-def build_field(cfg: ExperimentConfig, region: SceneRegion, dataset) -> StochasticField:
+def build_field(cfg: ExperimentConfig, region: SceneRegion, dataset, *, noise_head: bool = False) -> StochasticField:
+    """The configured backend; ``noise_head``: with an observation-noise output (S-NeRF's
+    ``loss.per_point_noise``)."""
     f = cfg.field
     if f.backend == "mlp":
-        return MLPField(region, depth=f.mlp_depth, width=f.mlp_width, dropout=f.dropout, init_std=f.init_std)
+        return MLPField(region, depth=f.mlp_depth, width=f.mlp_width, dropout=f.dropout, init_std=f.init_std,
+                        noise_head=noise_head)
     if f.backend == "grid":
         H, W = image_size(dataset.cameras)
         idx = list(dataset.train_indices)
@@ -30,5 +33,5 @@ def build_field(cfg: ExperimentConfig, region: SceneRegion, dataset) -> Stochast
                                         pixels_per_voxel=f.grid_pixels_per_voxel, max_cells=f.grid_max_cells)
         return GridField(region, res, num_levels=f.grid_levels, feature_dim=f.grid_feature_dim,
                          decoder_width=f.grid_decoder_width, init_density_loc=f.grid_init_density_loc,
-                         init_std=f.init_std)
+                         init_std=f.init_std, noise_head=noise_head)
     raise ValueError(f"field.backend must be 'grid' or 'mlp', got {f.backend!r}")

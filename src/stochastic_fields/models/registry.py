@@ -15,7 +15,7 @@ from .snerf import SNeRF
 
 
 def build_snerf(cfg: ExperimentConfig, dataset, region: SceneRegion) -> RadianceModel:
-    return SNeRF(build_field(cfg, region, dataset), region, cfg.render, cfg.loss,
+    return SNeRF(build_field(cfg, region, dataset, noise_head=cfg.loss.per_point_noise), region, cfg.render, cfg.loss,
                  train_draws=cfg.train.train_draws, tv_weight=cfg.train.tv_weight)
 
 

@@ -28,11 +28,12 @@ from ..adaptive import render_image_adaptive
 from ..distortion import distortion_loss, distortion_loss_packed, normalised_coordinate
 from ..fields.base import StochasticField
 from ..fields.grid import GridField
-from ..losses import LossConfig, Priors, field_kl, gaussian_likelihood_nll, termination_depth_nll
+from ..losses import (LossConfig, Priors, decoupled_likelihood_nll, field_kl, gaussian_likelihood_nll,
+                      termination_depth_nll)
 from ..occupancy import OccupancyGrid, density_threshold, density_upper_estimate
 from ..rays import PackedRaySamples, RayBundle, RaySamples
-from ..renderer import (ChunkGenerators, ChunkRender, RayRender, RenderOptions, RenderSettings, render_any_samples,
-                        render_chunked, render_rays, skip_empty)
+from ..renderer import (ChunkGenerators, ChunkRender, RayRender, RenderOptions, RenderSettings,
+                        observation_noise_per_draw, render_any_samples, render_chunked, render_rays, skip_empty)
 from ..samplers import sample_along_rays
 from ..scene_region import SceneRegion, random_unit_directions
 from .base import RadianceModel
@@ -63,6 +64,10 @@ class SNeRF(RadianceModel):
         self.tv_weight = tv_weight
         if loss.learn_likelihood_std:
             self.log_likelihood_std = nn.Parameter(torch.full((3,), math.log(loss.likelihood_std)))
+        if bool(getattr(field, "noise_head", False)) != loss.per_point_noise:
+            raise ValueError(f"loss.per_point_noise={loss.per_point_noise} needs a field "
+                             f"{'with' if loss.per_point_noise else 'without'} a noise head "
+                             f"(build it with field_builder.build_field(..., noise_head=...))")
         if render_settings.colour_variance not in ("epistemic", "predictive"):
             raise ValueError("render.colour_variance must be 'epistemic' or 'predictive', "
                              f"got {render_settings.colour_variance!r}")
@@ -179,14 +184,23 @@ class SNeRF(RadianceModel):
         n_ray = samples.t_starts.numel()
         params = params_all.map(lambda t: t[:n_ray]).reshape(*samples.t_starts.shape)
         out = render_any_samples(params, samples, settings, num_draws=self.train_draws, generator=generator,
-                                 colour_estimator="draws")  # the likelihood needs drawn colours
+                                 colour_estimator="draws",  # the likelihood needs drawn colours
+                                 observation_noise=False)
         sigma_n = self.likelihood_std()
-        nll = gaussian_likelihood_nll(out.stats.colour_draws, target, sigma_n)
+        noise_var = None
+        if cfg.per_point_noise:  # per-draw variance sigma_n^2 + sum_i w_ik beta_i^2 (§4.7)
+            noise_var = observation_noise_per_draw(out, detach_weights=cfg.noise_head_decoupled)
+        if noise_var is not None and cfg.noise_head_decoupled:
+            nll = decoupled_likelihood_nll(out.stats.colour_draws, target, sigma_n, noise_var)
+        else:
+            nll = gaussian_likelihood_nll(out.stats.colour_draws, target, sigma_n, noise_var)
         loss = nll
         logs = {"nll": nll.item(), "mse": ((out.stats.colour_mean.detach() - target) ** 2).mean().item(),
                 "field_evals_per_ray": n_ray / max(len(rays), 1)}
         if cfg.learn_likelihood_std:
             logs["likelihood_std"] = sigma_n.mean().item()
+        if noise_var is not None:
+            logs["noise_head_rms"] = noise_var.detach().mean().sqrt().item()
         if use_random_kl:
             kl_rand = field_kl(params_all.map(lambda t: t[n_ray:]), self.priors.random(), estimator=cfg.kl_estimator,
                                mc_samples=cfg.kl_mc_samples, generator=generator).mean()
@@ -227,7 +241,7 @@ class SNeRF(RadianceModel):
         params = self.field(samples.positions.reshape(-1, 3), samples.directions.reshape(-1, 3))
         params = params.reshape(*samples.t_starts.shape)
         out = render_any_samples(params, samples, settings, num_draws=self.train_draws, generator=generator,
-                                 colour_estimator="draws")
+                                 colour_estimator="draws", observation_noise=False)
         return termination_depth_nll(out.extras["weights"], samples.t_mids, samples.deltas, target_t,
                                      self.loss_config.depth_relative_std)
 
@@ -265,7 +279,8 @@ class SNeRF(RadianceModel):
         """Maps of ``rays`` [H, W] (``RadianceModel.render_view``): a fixed K, or adaptive K per chunk
         with ``options.adaptive_draws``. Empty space is skipped with the occupancy grid (alpha
         quadrature only: a trapezoid render evaluates every sample). With ``colour_variance =
-        'predictive'`` the colour variance adds sigma_n^2 (law of total variance)."""
+        'predictive'`` the colour variance adds sigma_n^2 and, with a noise head, the mean over
+        draws of sum_i w_ik beta_i^2 (law of total variance, docs/definitions.md §4.7)."""
         options = options or self.default_render_options()
         settings = options.settings_for(self.render_settings)
         if options.adaptive_draws:
