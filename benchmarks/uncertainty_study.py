@@ -44,8 +44,9 @@ ROWS: tuple[Row, ...] = (
 
 #: Study 2: one change of today's default (study 1's decision: + sparse-depth likelihood).
 ROWS_NOISE_HEAD: tuple[Row, ...] = (
-    ("default", "snerf_default", (), "S-NeRF default: learned global pixel noise, sparse-depth likelihood"),
-    ("per_point_noise", "snerf_default", (("loss.per_point_noise", True),),
+    ("default", "snerf_default", (("loss.per_point_noise", False),),
+     "S-NeRF default before this study: learned global pixel noise, sparse-depth likelihood"),
+    ("per_point_noise", "snerf_default", (("loss.per_point_noise", True), ("loss.noise_head_decoupled", False)),
      "+ per-point observation noise beta(x) beside the global one (likelihood and predictive variance)"),
     ("per_point_noise_decoupled", "snerf_default", (("loss.per_point_noise", True), ("loss.noise_head_decoupled", True)),
      "+ per-point observation noise that only explains residuals: colours and densities keep the global-noise "
@@ -168,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
     p.add_argument("--cost", action="store_true",
                    help="Only measure the training-step and render cost of the study's S-NeRF rows (factors: depth; "
-                        "noise_head: per_point_noise, default) against the deterministic NeRF on fern (interleaved, "
+                        "noise_head: per_point_noise_decoupled, default) against the deterministic NeRF on fern (interleaved, "
                         "one process; needs those rows trained) into OUT/cost.json; the table run includes it.")
     p.add_argument("--collect-only", action="store_true",
                    help="Train and score nothing: rebuild study.md/json from the finished runs under OUT.")
@@ -186,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
         from stochastic_fields.io_utils import atomic_write_text
 
         cost_rows = {"factors": ("depth", "deterministic"),
-                     "noise_head": ("per_point_noise", "default", "deterministic")}[args.study]
+                     "noise_head": ("per_point_noise_decoupled", "default", "deterministic")}[args.study]
         cost = measure_cost(out, "fern", args.data_root, rows=cost_rows, study=STUDIES[args.study])
         atomic_write_text(out / "cost.json", json.dumps(cost, indent=2))
         print(json.dumps(cost, indent=2))

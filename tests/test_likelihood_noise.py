@@ -58,6 +58,7 @@ def test_learned_noise_gets_gradient_and_moves_towards_the_residual(dataset, tmp
 def test_predictive_colour_variance_adds_sigma_n_squared(dataset):
     cfg = _tiny_snerf_config()
     cfg.loss.learn_likelihood_std = True
+    cfg.loss.per_point_noise = False  # the head's part: tests/test_noise_head.py
     cfg.render.colour_variance = "epistemic"
     model = build_model(cfg, dataset).eval()
     with torch.no_grad():

@@ -184,14 +184,15 @@ def test_field_noise_heads_start_small_and_leave_the_other_outputs_alone(make):
             torch.testing.assert_close(getattr(noisy(x, d), name), getattr(ref, name))
 
 
-def test_model_needs_a_field_with_a_matching_head(dataset):
+def test_model_uses_the_head_only_when_its_field_has_one(dataset):
     from stochastic_fields.models.field_builder import build_field, fit_scene_region
     from stochastic_fields.models.snerf import SNeRF
 
     cfg = _tiny_config(per_point_noise=True)
     region = fit_scene_region(dataset, cfg)
-    with pytest.raises(ValueError, match="per_point_noise=True needs a field with a noise head"):
-        SNeRF(build_field(cfg, region, dataset), region, cfg.render, cfg.loss)
+    assert not SNeRF(build_field(cfg, region, dataset), region, cfg.render, cfg.loss).noise_head
+    assert SNeRF(build_field(cfg, region, dataset, noise_head=True), region, cfg.render, cfg.loss).noise_head
+    assert build_model(cfg, dataset).noise_head and not build_model(_tiny_config(False), dataset).noise_head
 
 
 def test_noise_head_trains_and_its_variance_enters_the_predictive_colour_variance(dataset, tmp_path):

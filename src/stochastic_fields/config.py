@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import copy
 import dataclasses
 import inspect
 import json
@@ -320,10 +321,31 @@ def save_config(cfg: ExperimentConfig, path: Path) -> None:
     atomic_write_text(path, json.dumps(to_dict(cfg), indent=2))
 
 
+#: Options whose default changed what a model is: a run's saved config without the key was
+#: trained before the option existed and computed with this value (read by ``saved_config``;
+#: the benchmark fingerprints count these values, not the defaults, as "unchanged").
+LEGACY_VALUES: dict[str, Any] = {"loss.per_point_noise": False, "loss.noise_head_decoupled": False}
+
+
+def saved_config(data: dict) -> ExperimentConfig:
+    """The config of a saved run (config.json, a checkpoint's copy): ``from_dict`` with each
+    ``LEGACY_VALUES`` key the run's file lacks set to its legacy value."""
+    data = copy.deepcopy(data)
+    for dotted, value in LEGACY_VALUES.items():
+        *groups, name = dotted.split(".")
+        node = data
+        for g in groups:
+            node = node.setdefault(g, {}) if isinstance(node, dict) else node
+        if isinstance(node, dict) and name not in node:
+            node[name] = value
+    return from_dict(ExperimentConfig, data)
+
+
 def load_config(path: Path) -> ExperimentConfig:
+    """A saved run's config.json (``saved_config``); errors name the file."""
     data = read_config_file(path)
     try:
-        return from_dict(ExperimentConfig, data)
+        return saved_config(data)
     except ValueError as exc:
         raise ValueError(f"config {path}: {exc}") from None
 

@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 
 from .cameras import generate_rays
 from .checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
-from .config import ExperimentConfig, flatten, from_dict, save_config, to_dict, validate_experiment
+from .config import ExperimentConfig, flatten, save_config, saved_config, to_dict, validate_experiment
 from .distributed import DistContext, GradientReducer, rank_seeds, shard_size
 from .io_utils import atomic_write_text, open_append_no_follow, remove_stale_temporaries
 from .models.base import RadianceModel
@@ -69,7 +69,7 @@ def saved_run_config(run_dir: Path, state: dict | None = None) -> ExperimentConf
     text = state.get("config_json")
     if isinstance(text, str):
         try:
-            return from_dict(ExperimentConfig, json.loads(text))
+            return saved_config(json.loads(text))
         except (ValueError, json.JSONDecodeError) as exc:
             raise ValueError(f"checkpoint {ckpt}: its stored config is unreadable ({exc})") from exc
     from .config import load_config

@@ -26,7 +26,8 @@ class MethodSpec:
 #: The paper's S-NeRF objective and colour variance (docs/definitions.md §3, §4): fixed pixel noise, the variance over
 #: the K trajectories, no depth likelihood (explicit, since the package defaults differ).
 PAPER_SNERF: tuple[tuple[str, Any], ...] = (("loss.learn_likelihood_std", False),
-                                            ("render.colour_variance", "epistemic"), ("loss.lambda_depth", 0.0))
+                                            ("render.colour_variance", "epistemic"), ("loss.lambda_depth", 0.0),
+                                            ("loss.per_point_noise", False))
 
 
 METHOD_SPECS: dict[str, MethodSpec] = {
@@ -38,7 +39,8 @@ METHOD_SPECS: dict[str, MethodSpec] = {
     "snerf": MethodSpec("snerf", "snerf", "S-NeRF (paper)", (("loss.kl", "full"),) + PAPER_SNERF),
     "snerf_predictive": MethodSpec("snerf_predictive", "snerf", "S-NeRF + learned noise",
                                    (("loss.kl", "full"), ("loss.learn_likelihood_std", True),
-                                    ("render.colour_variance", "predictive"), ("loss.lambda_depth", 0.0)),
+                                    ("render.colour_variance", "predictive"), ("loss.lambda_depth", 0.0),
+                                    ("loss.per_point_noise", False)),
                                    calibrate=True),
     "snerf_kl_none": MethodSpec("snerf_kl_none", "snerf", "S-NeRF w/o KL", (("loss.kl", "none"),) + PAPER_SNERF),
     "snerf_kl_fixed_prior": MethodSpec("snerf_kl_fixed_prior", "snerf", "S-NeRF w/ KL (fixed prior)",

@@ -14,7 +14,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from stochastic_fields.config import ExperimentConfig, flatten, to_dict
+from stochastic_fields.config import LEGACY_VALUES, ExperimentConfig, flatten, to_dict
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.evaluation import synchronize
 from stochastic_fields.view_maps import draws_summary
@@ -37,11 +37,22 @@ CALIBRATION_PROTOCOL = "calibrate-role capture points from views halfway between
 _NON_SEMANTIC = ("train.device", "train.eval_every", "train.checkpoint_every", "render.chunk_rays", "data.path")
 
 
+#: Options of S-NeRF's noise head (docs/definitions.md §4.7).
+_NOISE_HEAD_OPTIONS = ("loss.per_point_noise", "loss.noise_head_decoupled")
+
+
 def _semantic(flat: dict[str, Any]) -> dict[str, Any]:
     """Entries that change what a run computes, without those equal to the dataclass defaults:
-    an option added later with a default that keeps the old behaviour changes no fingerprint."""
-    defaults = flatten(to_dict(ExperimentConfig()))
-    return {k: v for k, v in flat.items() if k not in _NON_SEMANTIC and not (k in defaults and defaults[k] == v)}
+    an option added later with a default that keeps the old behaviour changes no fingerprint.
+    For an option whose default changed the model (``config.LEGACY_VALUES``) the legacy value is
+    the one left out: runs saved before it existed computed with it."""
+    reference = {**flatten(to_dict(ExperimentConfig())), **LEGACY_VALUES}
+    ignored = set(_NON_SEMANTIC)
+    if flat.get("method", "snerf") != "snerf":
+        ignored.update(_NOISE_HEAD_OPTIONS)  # S-NeRF's field only: the baselines build none
+    elif not flat.get("loss.per_point_noise", LEGACY_VALUES["loss.per_point_noise"]):
+        ignored.add("loss.noise_head_decoupled")  # changes nothing without the noise head
+    return {k: v for k, v in flat.items() if k not in ignored and not (k in reference and reference[k] == v)}
 
 
 def config_fingerprint(cfg: ExperimentConfig, *extra: Any) -> str:

@@ -64,10 +64,9 @@ class SNeRF(RadianceModel):
         self.tv_weight = tv_weight
         if loss.learn_likelihood_std:
             self.log_likelihood_std = nn.Parameter(torch.full((3,), math.log(loss.likelihood_std)))
-        if bool(getattr(field, "noise_head", False)) != loss.per_point_noise:
-            raise ValueError(f"loss.per_point_noise={loss.per_point_noise} needs a field "
-                             f"{'with' if loss.per_point_noise else 'without'} a noise head "
-                             f"(build it with field_builder.build_field(..., noise_head=...))")
+        # the observation-noise head (§4.7) is used when the field has one (``loss.per_point_noise``
+        # makes the builder add it: field_builder.build_field(..., noise_head=True))
+        self.noise_head = bool(getattr(field, "noise_head", False))
         if render_settings.colour_variance not in ("epistemic", "predictive"):
             raise ValueError("render.colour_variance must be 'epistemic' or 'predictive', "
                              f"got {render_settings.colour_variance!r}")
@@ -188,7 +187,7 @@ class SNeRF(RadianceModel):
                                  observation_noise=False)
         sigma_n = self.likelihood_std()
         noise_var = None
-        if cfg.per_point_noise:  # per-draw variance sigma_n^2 + sum_i w_ik beta_i^2 (§4.7)
+        if self.noise_head:  # per-draw variance sigma_n^2 + sum_i w_ik beta_i^2 (§4.7)
             noise_var = observation_noise_per_draw(out, detach_weights=cfg.noise_head_decoupled)
         if noise_var is not None and cfg.noise_head_decoupled:
             nll = decoupled_likelihood_nll(out.stats.colour_draws, target, sigma_n, noise_var)
