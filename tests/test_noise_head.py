@@ -298,3 +298,19 @@ def test_observation_noise_per_draw_dense_packed_and_rendered_agree(dataset):
         ref = torch.stack([torch.stack([(w[k, packed_samples.ray_indices == r] * beta2[packed_samples.ray_indices == r]).sum()
                                         for k in range(4)]) for r in range(len(rays))])
         torch.testing.assert_close(observation_noise_per_draw(packed)[..., 0], ref)
+
+
+def test_runs_saved_before_the_head_load_without_it_and_keep_their_fingerprints():
+    from stochastic_fields.config import ExperimentConfig, flatten, from_dict, saved_config, to_dict
+    from stochastic_fields_bench.runner import _semantic
+
+    old = to_dict(ExperimentConfig())
+    del old["loss"]["per_point_noise"], old["loss"]["noise_head_decoupled"]
+    assert from_dict(ExperimentConfig, old).loss.per_point_noise  # a partial user config takes the default
+    loaded = saved_config(old)  # a saved run lacking the keys was trained without the head
+    assert not loaded.loss.per_point_noise and not loaded.loss.noise_head_decoupled
+    assert "loss.per_point_noise" not in _semantic(flatten(to_dict(loaded)))  # unchanged fingerprint
+    assert _semantic(flatten(to_dict(ExperimentConfig())))["loss.per_point_noise"] is True  # new default counts
+    baseline = to_dict(ExperimentConfig(method="ensemble"))
+    assert not any(k.startswith("loss.per_point") or k.startswith("loss.noise_head")
+                   for k in _semantic(flatten(baseline)))  # the baselines build no head
