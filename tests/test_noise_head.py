@@ -12,7 +12,6 @@ import scipy.stats
 import torch
 import torch.nn.functional as F
 
-from stochastic_fields.config import preset
 from stochastic_fields.data import load_dataset
 from stochastic_fields.fields.base import FieldParams, inverse_softplus
 from stochastic_fields.fields.grid import GridField
@@ -25,14 +24,10 @@ from stochastic_fields.volume_rendering import trajectory_statistics, trajectory
 
 
 def _tiny_config(per_point_noise: bool = True):
-    cfg = preset("tiny")
-    cfg.train.iterations = 3
-    cfg.train.rays_per_batch = 64
-    cfg.train.checkpoint_every = 0
-    cfg.train.device = "cpu"
-    cfg.render.num_samples = 16
-    cfg.field.grid_max_cells = 16 ** 3
-    cfg.field.grid_levels = 2
+    """The likelihood-noise tests' tiny S-NeRF, with or without the noise head."""
+    from test_likelihood_noise import _tiny_snerf_config
+
+    cfg = _tiny_snerf_config()
     cfg.loss.per_point_noise = per_point_noise
     return cfg
 
