@@ -43,6 +43,15 @@ def _weights(R: int, K: int, S: int, generator: torch.Generator) -> torch.Tensor
     return w / w.sum(-1, keepdim=True) * torch.rand(R, K, 1, generator=generator, dtype=torch.float64)
 
 
+def _draws(R: int, K: int, S: int, seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Generator]:
+    """float64 weights [R, K, S], colours [R, K, S, 3], sample distances [R, S] and the generator."""
+    g = torch.Generator().manual_seed(seed)
+    w = _weights(R, K, S, g)
+    rgb = torch.rand(R, K, S, 3, generator=g, dtype=torch.float64)
+    t = torch.linspace(1.0, 4.0, S, dtype=torch.float64).expand(R, S).contiguous()
+    return w, rgb, t, g
+
+
 def test_likelihood_with_per_draw_variance_against_scipy():
     g = torch.Generator().manual_seed(0)
     colours = torch.rand(5, 4, 3, generator=g, dtype=torch.float64)
@@ -71,11 +80,8 @@ def test_likelihood_stays_finite_for_huge_noise_and_prefers_it_only_for_large_re
 
 
 def test_rendered_noise_variance_against_a_float64_loop():
-    g = torch.Generator().manual_seed(1)
     R, K, S = 6, 5, 7
-    w = _weights(R, K, S, g)
-    rgb = torch.rand(R, K, S, 3, generator=g, dtype=torch.float64)
-    t = torch.linspace(1.0, 4.0, S, dtype=torch.float64).expand(R, S)
+    w, rgb, t, g = _draws(R, K, S, 1)
     beta2 = torch.rand(R, S, generator=g, dtype=torch.float64) ** 2
     stats = trajectory_statistics(w, rgb, t, 5.0, observation_var=beta2)
     plain = trajectory_statistics(w, rgb, t, 5.0)
@@ -93,11 +99,8 @@ def test_rendered_noise_variance_against_a_float64_loop():
 
 def test_rendered_noise_variance_matches_monte_carlo_pixels():
     """Pixels drawn as C_k + N(0, v_k) with k uniform have the rendered colour variance."""
-    g = torch.Generator().manual_seed(2)
     R, K, S = 3, 4, 6
-    w = _weights(R, K, S, g)
-    rgb = torch.rand(R, K, S, 3, generator=g, dtype=torch.float64)
-    t = torch.linspace(1.0, 4.0, S, dtype=torch.float64).expand(R, S)
+    w, rgb, t, g = _draws(R, K, S, 2)
     beta2 = 0.05 * torch.rand(R, S, generator=g, dtype=torch.float64)
     stats = trajectory_statistics(w, rgb, t, 5.0, observation_var=beta2)
     n = 400_000
@@ -109,11 +112,8 @@ def test_rendered_noise_variance_matches_monte_carlo_pixels():
 
 
 def test_packed_noise_variance_equals_dense():
-    g = torch.Generator().manual_seed(3)
     R, K, S = 4, 3, 5
-    w = _weights(R, K, S, g)
-    rgb = torch.rand(R, K, S, 3, generator=g, dtype=torch.float64)
-    t = torch.linspace(1.0, 4.0, S, dtype=torch.float64).expand(R, S).contiguous()
+    w, rgb, t, g = _draws(R, K, S, 3)
     beta2 = torch.rand(R, S, generator=g, dtype=torch.float64)
     dense = trajectory_statistics(w, rgb, t, 5.0, observation_var=beta2)
     ray_indices = torch.arange(R).repeat_interleave(S)
@@ -124,11 +124,8 @@ def test_packed_noise_variance_equals_dense():
 
 
 def test_gradients_of_the_likelihood_through_the_noise_head_gradcheck():
-    g = torch.Generator().manual_seed(4)
     R, K, S = 3, 2, 4
-    w = _weights(R, K, S, g)
-    rgb = torch.rand(R, K, S, 3, generator=g, dtype=torch.float64)
-    t = torch.linspace(1.0, 4.0, S, dtype=torch.float64).expand(R, S)
+    w, rgb, t, g = _draws(R, K, S, 4)
     target = torch.rand(R, 3, generator=g, dtype=torch.float64)
     raw = torch.randn(R, S, generator=g, dtype=torch.float64, requires_grad=True)
     log_std = torch.tensor([-3.0, -2.5, -2.0], dtype=torch.float64, requires_grad=True)

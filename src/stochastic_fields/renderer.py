@@ -46,8 +46,9 @@ from .logistic_normal_table import logistic_normal_moments_tabulated
 from .rays import PackedRaySamples, RayBundle, RaySamples
 from .samplers import Spacing, sample_along_rays
 from .validation import Checker, boolean, check_fields, choice, colour_or_none, integer, real
-from .volume_rendering import (TrajectoryStatistics, accumulate_packed, concatenate_draws, render_weights,
-                               render_weights_packed, trajectory_statistics, trajectory_statistics_packed, weights_alpha_from_optical_depth)
+from .volume_rendering import (TrajectoryStatistics, concatenate_draws, observation_noise, observation_noise_packed,
+                               render_weights, render_weights_packed, trajectory_statistics,
+                               trajectory_statistics_packed, weights_alpha_from_optical_depth)
 
 #: RenderSettings.colour_estimator values: drawn colours (docs/definitions.md §3) or Rao-Blackwellised colours.
 COLOUR_ESTIMATORS: tuple[str, ...] = ("draws", "rao_blackwell")
@@ -268,10 +269,8 @@ def observation_noise_per_draw(out: "RayRender", *, detach_weights: bool = False
     beta2 = out.params.noise_scale ** 2
     w = out.extras["weights"].detach() if detach_weights else out.extras["weights"]
     if isinstance(out.samples, PackedRaySamples):  # w [K, N]
-        v = accumulate_packed(w, beta2.expand_as(w), out.samples.ray_indices, out.samples.num_rays).transpose(0, 1)
-    else:  # w [R, K, S], beta2 [R, S]
-        v = torch.matmul(w, beta2[..., None])[..., 0]
-    return v[..., None].expand(*v.shape, 3)
+        return observation_noise_packed(w, beta2, out.samples.ray_indices, out.samples.num_rays)
+    return observation_noise(w, beta2)  # w [R, K, S], beta2 [R, S]
 
 
 def _folded_optical_depth_params(params: FieldParams, samples: RaySamples) -> tuple[Tensor, Tensor]:

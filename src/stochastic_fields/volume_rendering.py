@@ -405,6 +405,13 @@ def _background_per_draw(background: Tensor | float, colour_draws: Tensor) -> Te
     return background
 
 
+def observation_noise(weights: Tensor, observation_var: Tensor) -> Tensor:
+    """Each draw's observation-noise variance ``v_k = sum_i w_ik beta_i^2`` (docs/definitions.md
+    §4.7), the same in every channel: weights [R, K, S], observation_var [R, S] -> [R, K, 3]."""
+    v = torch.matmul(weights, observation_var[..., None])  # [R, K, S] @ [R, S, 1] -> [R, K, 1]
+    return v.expand(*weights.shape[:2], 3)
+
+
 def trajectory_statistics(
     weights: Tensor,
     rgb: Tensor,
@@ -446,8 +453,8 @@ def trajectory_statistics(
     else:  # [R, K, S] @ [R, S, 3]: batched matrix products, no [R, K, S, 3] temporary
         colour_draws = torch.matmul(weights, rgb)
         noise_var = torch.matmul(weights * weights, rgb_var)
-    if observation_var is not None:  # [R, K, S] @ [R, S, 1] -> [R, K, 1]
-        v = torch.matmul(weights, observation_var[..., None]).expand(*weights.shape[:2], 3)
+    if observation_var is not None:
+        v = observation_noise(weights, observation_var)
         noise_var = v if noise_var is None else noise_var + v
     opacity_draws = opacity(weights)  # [R, K]
     if background is not None:
@@ -670,6 +677,13 @@ def termination_spread_packed(
     return _normalise_by_opacity(numerator, acc, 0.0)
 
 
+def observation_noise_packed(weights: Tensor, observation_var: Tensor, ray_indices: Tensor,
+                             num_rays: int) -> Tensor:
+    """``observation_noise`` for packed samples: weights [K, N], observation_var [N] -> [R, K, 3]."""
+    v = accumulate_packed(weights, observation_var.expand_as(weights), ray_indices, num_rays).transpose(0, 1)
+    return v[..., None].expand(*v.shape, 3)
+
+
 def trajectory_statistics_packed(
     weights: Tensor,
     rgb: Tensor,
@@ -699,9 +713,7 @@ def trajectory_statistics_packed(
         noise_var = accumulate_packed(weights * weights, rgb_var.expand_as(rgb), ray_indices,
                                       num_rays).transpose(0, 1)  # [R, K, 3]
     if observation_var is not None:
-        v = accumulate_packed(weights, observation_var.expand_as(weights), ray_indices,
-                              num_rays).transpose(0, 1)  # [R, K]
-        v = v[..., None].expand(*v.shape, 3)
+        v = observation_noise_packed(weights, observation_var, ray_indices, num_rays)
         noise_var = v if noise_var is None else noise_var + v
     colour = accumulate_packed(weights, rgb, ray_indices, num_rays).transpose(0, 1)  # [R, K, 3]
     acc = opacity_packed(weights, ray_indices, num_rays)  # [K, R]
