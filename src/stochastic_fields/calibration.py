@@ -121,6 +121,45 @@ def standardised_errors(gt: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np
     return np.abs(gt[keep] - mean[keep]) / std[keep]
 
 
+def resplit_coverage(cal_abs_z: np.ndarray, cal_blocks: np.ndarray, score_abs_z: np.ndarray,
+                     score_blocks: np.ndarray, blocks: np.ndarray, block_counts: np.ndarray, *,
+                     share: float, levels=(ONE_SIGMA_LEVEL, 0.95), num_splits: int = 200,
+                     seed: int = 0) -> np.ndarray:
+    """Coverage of quantile recalibration over random re-splits of held-out blocks of space.
+
+    One re-split shuffles ``blocks`` [B] (with ``block_counts`` [B] points each) and hands them,
+    whole, to calibration until it holds ``share`` of the points (as ``split_points_by_blocks``);
+    the map is fitted on the calibration errors ``cal_abs_z`` [N] whose ``cal_blocks`` [N] were
+    drawn (``QuantileCalibration.fit``) and scored on the errors ``score_abs_z`` [M] of the other
+    blocks: coverage at level p = share of those |z| <= s(p) z_p. The spread over re-splits is how
+    far one split's coverage can fall from the procedure's expected coverage by the luck of which
+    blocks calibrate; with exchangeable blocks the expected coverage is the nominal level.
+    Re-splits with fewer than ``MIN_CALIBRATION_SAMPLES`` calibration errors or no scored error
+    are skipped. Returns [num_splits', L] coverages."""
+    cal_abs_z, cal_blocks = np.asarray(cal_abs_z, np.float64), np.asarray(cal_blocks)
+    score_abs_z, score_blocks = np.asarray(score_abs_z, np.float64), np.asarray(score_blocks)
+    blocks, block_counts = np.asarray(blocks), np.asarray(block_counts, np.float64)
+    if cal_abs_z.shape != cal_blocks.shape or score_abs_z.shape != score_blocks.shape or blocks.shape != block_counts.shape:
+        raise ValueError("resplit_coverage: errors and their blocks, and blocks and their counts, must have equal shapes")
+    if not 0.0 < share < 1.0:
+        raise ValueError(f"resplit_coverage: share must lie strictly between 0 and 1, got {share}")
+    levels = np.asarray(levels, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(int(num_splits)):
+        order = rng.permutation(len(blocks))
+        before = np.cumsum(block_counts[order]) - block_counts[order]  # points handed out before each block
+        chosen = blocks[order][before < share * block_counts.sum()]
+        fit_z = cal_abs_z[np.isin(cal_blocks, chosen)]
+        scored = score_abs_z[~np.isin(score_blocks, chosen)]
+        if fit_z.size < MIN_CALIBRATION_SAMPLES or scored.size == 0:
+            continue
+        cal = QuantileCalibration.fit(fit_z, quantity="depth_std", levels=levels)
+        bound = cal.scales * ndtri((1.0 + levels) / 2.0)
+        out.append((scored[:, None] <= bound[None, :]).mean(axis=0))
+    return np.asarray(out, dtype=np.float64).reshape(-1, len(levels))
+
+
 # --------------------------------------------------------------------------------------------
 # a run's calibration
 # --------------------------------------------------------------------------------------------
@@ -148,12 +187,22 @@ def render_at_points(model, cameras, near, far, sparse: dict, *,
             "opacity": maps["opacity"].double().cpu().reshape(-1).numpy()}
 
 
-def calibration_views(dataset) -> tuple[object, torch.Tensor, torch.Tensor, list[tuple[int, int]]]:
-    """Virtual cameras halfway between each training view and its nearest other training view
-    (centre: halfway along the arc around the scene box's centre o, at the pair's mean distance
-    from o; rotation: slerp at 1/2; intrinsics, size of the first; bounds: the pair's
-    widest). Novel viewpoints among the training ones, like the test views a user renders, made
-    without any test view. Returns (cameras [P], near [P], far [P], the (i, j) view pairs)."""
+#: Nearest training neighbours each training view is paired with for calibration views.
+CALIBRATION_NEIGHBOURS: int = 1
+#: Where calibration views sit along each pair's arc (0: the first view, 1: the second).
+CALIBRATION_FRACTIONS: tuple[float, ...] = (0.5,)
+
+
+def calibration_views(dataset, *, neighbours: int = CALIBRATION_NEIGHBOURS,
+                      fractions: tuple[float, ...] = CALIBRATION_FRACTIONS
+                      ) -> tuple[object, torch.Tensor, torch.Tensor, list[tuple[int, int]]]:
+    """Virtual cameras between each training view and its ``neighbours`` nearest other training
+    views, at each of ``fractions`` of the way (default: halfway between nearest neighbours).
+    Centre: along the arc around the scene box's centre o (at the pair's interpolated distance
+    from o); rotation: slerp at the fraction; intrinsics and size of the first view; bounds: the
+    pair's widest. Novel viewpoints among the training ones, like the test views a user renders,
+    made without any test view. Returns (cameras [P], near [P], far [P], the (i, j) view pair of
+    each camera), the pairs (i < j) sorted and each pair's fractions in the given order."""
     from scipy.spatial.transform import Rotation, Slerp
 
     from .cameras import camera_centres, intrinsics_3x3, make_cameras
@@ -161,30 +210,38 @@ def calibration_views(dataset) -> tuple[object, torch.Tensor, torch.Tensor, list
     train = list(dataset.train_indices)
     if len(train) < 2:
         raise ValueError(f"{dataset.root}: calibration views need at least 2 training views, got {len(train)}")
+    if neighbours < 1:
+        raise ValueError(f"calibration views need neighbours >= 1, got {neighbours}")
+    if not fractions or not all(0.0 < float(f) < 1.0 for f in fractions):
+        raise ValueError(f"calibration view fractions must lie strictly between 0 and 1, got {tuple(fractions)}")
     centres = camera_centres(dataset.cameras).double()[train]
     dist = torch.cdist(centres, centres)
     dist.fill_diagonal_(float("inf"))
-    pairs = sorted({tuple(sorted((train[a], train[int(dist[a].argmin())]))) for a in range(len(train))})
+    nearest = dist.argsort(dim=1)[:, :min(neighbours, len(train) - 1)]
+    pairs = sorted({tuple(sorted((train[a], train[int(b)]))) for a in range(len(train)) for b in nearest[a]})
     w2c = dataset.cameras.extrinsics.double()
     K = intrinsics_3x3(dataset.cameras).double()
     o = dataset.aabb.double().mean(0)
-    mids, Ks = [], []
+    views, Ks, view_pairs = [], [], []
     for i, j in pairs:
-        rot = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([w2c[i, :3, :3].numpy(), w2c[j, :3, :3].numpy()])))
-        R = torch.from_numpy(rot([0.5]).as_matrix()[0])
-        ci, cj = centres[train.index(i)], centres[train.index(j)]
-        # on the arc around the scene centre o (orbits stay outside the scene; forward-facing
-        # captures, far from o, move by a negligible amount)
-        mid = 0.5 * (ci + cj) - o
-        c = o + mid / mid.norm().clamp_min(1e-12) * 0.5 * ((ci - o).norm() + (cj - o).norm())
-        m = torch.eye(4, dtype=torch.float64)
-        m[:3, :3], m[:3, 3] = R, -R @ c
-        mids.append(m)
-        Ks.append(K[i])
-    cams = make_cameras(torch.stack(Ks).float(), torch.stack(mids).float(), int(dataset.height), int(dataset.width))
-    near = torch.stack([torch.minimum(dataset.near[i], dataset.near[j]) for i, j in pairs]).float()
-    far = torch.stack([torch.maximum(dataset.far[i], dataset.far[j]) for i, j in pairs]).float()
-    return cams, near, far, pairs
+        slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([w2c[i, :3, :3].numpy(), w2c[j, :3, :3].numpy()])))
+        ci, cj = centres[train.index(i)] - o, centres[train.index(j)] - o
+        for f in fractions:
+            f = float(f)
+            R = torch.from_numpy(slerp([f]).as_matrix()[0])
+            # on the arc around the scene centre o (orbits stay outside the scene; forward-facing
+            # captures, far from o, move by a negligible amount)
+            direction = (1.0 - f) * ci + f * cj
+            c = o + direction / direction.norm().clamp_min(1e-12) * ((1.0 - f) * ci.norm() + f * cj.norm())
+            m = torch.eye(4, dtype=torch.float64)
+            m[:3, :3], m[:3, 3] = R, -R @ c
+            views.append(m)
+            Ks.append(K[i])
+            view_pairs.append((i, j))
+    cams = make_cameras(torch.stack(Ks).float(), torch.stack(views).float(), int(dataset.height), int(dataset.width))
+    near = torch.stack([torch.minimum(dataset.near[i], dataset.near[j]) for i, j in view_pairs]).float()
+    far = torch.stack([torch.maximum(dataset.far[i], dataset.far[j]) for i, j in view_pairs]).float()
+    return cams, near, far, view_pairs
 
 
 def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float | None = None) -> QuantileCalibration:

@@ -50,6 +50,23 @@ SYNTHETIC_POINTS_FRACTION: float = 0.02
 SYNTHETIC_VISIBILITY_RTOL: float = 0.02
 
 
+def block_keys(xyz: np.ndarray, reference: np.ndarray, *,
+               blocks_per_axis: int = SPLIT_BLOCKS_PER_AXIS) -> np.ndarray:
+    """Block of space of every point ``xyz`` [N, 3] -> [N] int64 key, on the split's grid over the
+    ``reference`` points' [P, 3] robust extent (``SPLIT_EXTENT_PERCENTILES`` per axis, cut into
+    ``blocks_per_axis``^3 blocks; points outside join the block they are clamped into). With the
+    capture points as reference, any other point (a test pixel back-projected) gets the block the
+    split would give it."""
+    n = int(blocks_per_axis)
+    if n < 1:
+        raise ValueError(f"blocks_per_axis must be >= 1, got {blocks_per_axis}")
+    reference = np.asarray(reference, dtype=np.float64)
+    lo, hi = np.percentile(reference, SPLIT_EXTENT_PERCENTILES, axis=0)
+    span = np.where(hi > lo, hi - lo, 1.0)
+    cell = np.clip(np.floor((np.asarray(xyz, dtype=np.float64) - lo) / span * n), 0, n - 1).astype(np.int64)
+    return (cell[:, 0] * n + cell[:, 1]) * n + cell[:, 2]
+
+
 def split_points_by_blocks(xyz: np.ndarray, *, blocks_per_axis: int = SPLIT_BLOCKS_PER_AXIS,
                            fractions: Sequence[float] = SPLIT_FRACTIONS, seed: int = SPLIT_SEED) -> np.ndarray:
     """Role (FIT, CALIBRATE or SCORE) of every point [P, 3] -> [P] int8, by blocks of space (module doc).
@@ -67,11 +84,7 @@ def split_points_by_blocks(xyz: np.ndarray, *, blocks_per_axis: int = SPLIT_BLOC
         raise ValueError(f"fractions must be three non-negative shares summing to 1, got {tuple(fractions)}")
     if blocks_per_axis < 1:
         raise ValueError(f"blocks_per_axis must be >= 1, got {blocks_per_axis}")
-    n = int(blocks_per_axis)
-    lo, hi = np.percentile(xyz, SPLIT_EXTENT_PERCENTILES, axis=0)
-    span = np.where(hi > lo, hi - lo, 1.0)
-    cell = np.clip(np.floor((xyz - lo) / span * n), 0, n - 1).astype(np.int64)  # [P, 3]
-    key = (cell[:, 0] * n + cell[:, 1]) * n + cell[:, 2]
+    key = block_keys(xyz, xyz, blocks_per_axis=blocks_per_axis)
     blocks, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
     order = np.random.default_rng(seed).permutation(len(blocks))
     # walk the shuffled blocks: a block joins the first role whose share is not yet filled
@@ -109,6 +122,17 @@ class CapturePoints:
         return {name: int((self.roles == r).sum()) for r, name in ROLE_NAMES.items()}
 
 
+def backproject_pixels(K: torch.Tensor, c2w: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor,
+                       z: torch.Tensor) -> torch.Tensor:
+    """World points [N, 3] (float64) of pixel centres (``rows``, ``cols`` [N]) at camera-z depths
+    ``z`` [N], for one camera: intrinsics ``K`` [3, 3], camera-to-world ``c2w`` [4, 4] (OpenCV
+    axes): X = R K^-1 (u + 1/2, v + 1/2, 1)^T z + t."""
+    K, c2w, z = K.double(), c2w.double(), z.double()
+    uv1 = torch.stack([cols.double() + 0.5, rows.double() + 0.5, torch.ones_like(z)], dim=-1)
+    cam = torch.linalg.solve(K, uv1.T).T * z[:, None]
+    return cam @ c2w[:3, :3].T + c2w[:3, 3]
+
+
 def synthetic_capture_points(dataset, *, fraction: float = SYNTHETIC_POINTS_FRACTION,
                              seed: int = SPLIT_SEED) -> tuple[np.ndarray, list[np.ndarray]]:
     """Stand-in SfM points of a dense-depth scene: a seeded ``fraction`` of every training view's
@@ -129,10 +153,7 @@ def synthetic_capture_points(dataset, *, fraction: float = SYNTHETIC_POINTS_FRAC
         rows, cols = torch.nonzero(depth > 0, as_tuple=True)
         take = torch.from_numpy(rng.random(rows.numel()) < fraction)
         rows, cols = rows[take], cols[take]
-        z = depth[rows, cols]
-        uv1 = torch.stack([cols.double() + 0.5, rows.double() + 0.5, torch.ones_like(z)], dim=-1)
-        cam = (torch.linalg.solve(K[v], uv1.T).T) * z[:, None]
-        xyz.append(cam @ c2w[v, :3, :3].T + c2w[v, :3, 3])
+        xyz.append(backproject_pixels(K[v], c2w[v], rows, cols, depth[rows, cols]))
     if not xyz:
         return np.zeros((0, 3)), [np.zeros(0, dtype=np.int64) for _ in range(dataset.num_views)]
     points = torch.cat(xyz)
