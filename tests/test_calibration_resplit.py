@@ -139,3 +139,16 @@ def test_calibration_views_at_several_fractions_and_neighbours(tiny_scene):
             calibration_views(ds, fractions=bad)
     with pytest.raises(ValueError, match="neighbours"):
         calibration_views(ds, neighbours=0)
+
+
+def test_plot_resplit_coverage_writes_a_png_and_refuses_nothing_to_plot(tmp_path):
+    from stochastic_fields.plots import plot_resplit_coverage
+
+    rng = np.random.default_rng(0)
+    cov = {"a": rng.uniform(0.5, 1.0, size=(40, 2)), "b": rng.uniform(0.5, 1.0, size=(40, 2))}
+    path = plot_resplit_coverage(cov, {"a": [0.7, 0.96], "b": [0.6, 0.9]}, (ONE_SIGMA_LEVEL, 0.95),
+                                 tmp_path / "sub" / "resplit.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not [p for p in path.parent.iterdir() if p.name.endswith(".tmp")]
+    with pytest.raises(ValueError, match="at least one scene"):
+        plot_resplit_coverage({}, {}, (0.5,), tmp_path / "x.png")

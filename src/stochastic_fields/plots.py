@@ -1,4 +1,5 @@
-"""Plots of sparsification and calibration curves, one line per method, saved as PNG.
+"""Plots of sparsification and calibration curves (one line per method) and of coverage over
+random block re-splits, saved as PNG.
 
 Uses matplotlib's Agg canvas directly (no pyplot, no global backend switch), so it works headless
 and never touches a user's interactive backend. Files are written atomically: the figure goes to
@@ -11,7 +12,9 @@ from __future__ import annotations
 import os
 import tempfile
 from pathlib import Path
-from typing import Mapping
+from typing import Mapping, Sequence
+
+import numpy as np
 
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
@@ -112,3 +115,46 @@ def plot_calibration(
     if not curves:
         raise ValueError("plot_calibration needs at least one curve")
     return _save_atomic(calibration_figure(curves, title), path, dpi)
+
+
+def plot_resplit_coverage(
+    coverages: Mapping[str, np.ndarray],
+    today: Mapping[str, Sequence[float]],
+    levels: Sequence[float],
+    path: str | os.PathLike,
+    tolerance: float = 0.05,
+    title: str | None = None,
+    dpi: int = 110,
+) -> Path:
+    """Histograms of the recalibrated depth coverage over random block re-splits, one panel per
+    scene (columns) and level (rows), with the nominal level +- ``tolerance`` shaded and the
+    committed split's coverage dashed.
+
+    Args:
+        coverages: scene -> [splits, L] coverages (``calibration.resplit_coverage``).
+        today: scene -> [L] coverage of the committed split.
+        levels: [L] nominal central levels.
+    Returns:
+        the written path.
+    """
+    if not coverages:
+        raise ValueError("plot_resplit_coverage needs at least one scene")
+    scenes = list(coverages)
+    fig = Figure(figsize=(4.0 * len(scenes), 3.2 * len(levels)))
+    for c, scene in enumerate(scenes):
+        cov = np.asarray(coverages[scene], dtype=np.float64).reshape(-1, len(levels))
+        for r, level in enumerate(levels):
+            ax = fig.add_subplot(len(levels), len(scenes), r * len(scenes) + c + 1)
+            ax.axvspan(level - tolerance, level + tolerance, color="tab:green", alpha=0.15,
+                       label=f"nominal +- {tolerance * 100:.0f} points")
+            ax.hist(cov[:, r], bins=30, color="tab:blue", alpha=0.8, label=f"{len(cov)} random re-splits")
+            ax.axvline(level, color="tab:green")
+            ax.axvline(float(today[scene][r]), color="tab:red", linestyle="--", label="committed split")
+            ax.set_title(f"{scene}: {level:.0%} interval")
+            ax.set_xlabel("share of scored depths inside")
+            if r == 0 and c == 0:
+                ax.legend(fontsize="x-small")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return _save_atomic(fig, path, dpi)
