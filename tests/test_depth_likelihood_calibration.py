@@ -289,6 +289,40 @@ def test_fit_depth_calibration_recovers_the_error_factor(tmp_path):
     assert exact.std_scale == pytest.approx(1.0, rel=0.2)
 
 
+def test_held_out_calibration_fits_on_calibrate_and_score_points_and_eval_says_so(tmp_path):
+    """--points held-out fits on the CALIBRATE and SCORE roles (more samples, the factor kept), is
+    stored in calibration.json, and makes eval warn and note that its depth scores saw the map's
+    data; old files without "points" read as "calibrate"; unknown values are refused."""
+    from stochastic_fields.calibration import (fit_depth_calibration, load_run_calibration, save_run_calibration)
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.data.synthetic import make_synthetic_scene
+    from stochastic_fields.evaluation import SCORE_POINTS_SEEN, _conventions
+
+    scene = make_synthetic_scene(tmp_path / "scene", num_views=20, width=192, height=144, seed=0)
+    ds = load_dataset(scene, split_every=5)
+    model = _MeshDepthModel(scene / "scene.ply", 3.0)
+    only = fit_depth_calibration(model, ds)
+    held = fit_depth_calibration(model, ds, points="held-out")
+    assert held.num_samples > 2 * only.num_samples
+    # a few points render on another surface (occluded from the virtual view) with a large |z|
+    # whatever the factor; below them the quantiles scale with the error factor exactly
+    exact = fit_depth_calibration(_MeshDepthModel(scene / "scene.ply", 1.0), ds, points="held-out")
+    assert held.std_scale / exact.std_scale == pytest.approx(3.0, rel=0.05)
+    assert "calibrate and score roles" in held.source and "calibrate role" in only.source
+    with pytest.raises(ValueError, match="calibration points"):
+        fit_depth_calibration(model, ds, points="score")
+
+    save_run_calibration(tmp_path, RunCalibration(depth=held, points="held-out"))
+    loaded = load_run_calibration(tmp_path)
+    assert loaded.points == "held-out" and loaded.saw_score_points
+    assert _conventions("sparse", loaded)["depth_calibration_independence"] == SCORE_POINTS_SEEN
+    assert "depth_calibration_independence" not in _conventions("sparse", RunCalibration(depth=only))
+    old = RunCalibration.from_dict({"depth": only.to_dict()}, where="old")
+    assert old.points == "calibrate" and not old.saw_score_points
+    with pytest.raises(ValueError, match="points must be one of"):
+        RunCalibration.from_dict({"depth": None, "points": "all"}, where="bad")
+
+
 def test_export_applies_the_run_calibration(tmp_path, tiny_scene):
     """Export with a recalibration: depth_std = s(0.683) x raw (raw kept), the 90% band uses
     s(0.9) / s(0.683) on top, and the summary records the map."""

@@ -44,6 +44,11 @@ MIN_CALIBRATION_SAMPLES: int = 50
 MIN_CALIBRATION_SCALE: float = 1e-3
 #: File of a run's calibration.
 CALIBRATION_FILE = "calibration.json"
+#: Which capture points a depth map may be fitted on (``--points``): "calibrate", the CALIBRATE role
+#: only (the default; the SCORE points stay an independent test), or "held-out", every point the
+#: training did not fit (CALIBRATE and SCORE: three times the blocks, less luck of the split, for a
+#: user who does not score the run against its SfM points; docs/uncertainty.md, study 3).
+CALIBRATION_POINTS: tuple[str, ...] = ("calibrate", "held-out")
 
 
 @dataclass
@@ -244,54 +249,71 @@ def calibration_views(dataset, *, neighbours: int = CALIBRATION_NEIGHBOURS,
     return cams, near, far, view_pairs
 
 
-def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float | None = None) -> QuantileCalibration:
-    """Fit the depth map on the CALIBRATE capture points seen from the calibration views
-    (``calibration_views``: halfway between neighbouring training views; a point counts when both
-    views of the pair observed it), at pixels with rendered opacity above ``opacity_mask`` (as
-    the depth scores). ValueError when the scene has no capture points or too few of that role."""
-    from .capture_points import CALIBRATE, load_capture_points
+def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
+                          points: str = "calibrate") -> QuantileCalibration:
+    """Fit the depth map on the CALIBRATE capture points (``points="held-out"``: CALIBRATE and
+    SCORE, see ``CALIBRATION_POINTS``) seen from the calibration views (``calibration_views``:
+    halfway between neighbouring training views; a point counts when both views of the pair
+    observed it), at pixels with rendered opacity above ``opacity_mask`` (as the depth scores).
+    ValueError when the scene has no capture points or too few of those roles, or for an unknown
+    ``points``."""
+    from .capture_points import CALIBRATE, SCORE, load_capture_points
     from .sparse_depth import project_sparse_depth
     from .view_maps import OPACITY_MASK
 
+    if points not in CALIBRATION_POINTS:
+        raise ValueError(f"calibration points must be one of {CALIBRATION_POINTS}, got {points!r}")
     mask = OPACITY_MASK if opacity_mask is None else opacity_mask
-    points = load_capture_points(dataset)
-    if points is None:
+    capture = load_capture_points(dataset)
+    if capture is None:
         raise ValueError(f"{dataset.root}: no capture points (sparse/0/points3D.bin or dense depth) to calibrate on")
     cams, near, far, pairs = calibration_views(dataset)
-    role = points.roles == CALIBRATE
+    role = np.isin(capture.roles, [CALIBRATE] if points == "calibrate" else [CALIBRATE, SCORE])
     visible = []
     for i, j in pairs:
-        if points.visible is None:
-            seen = np.arange(len(points.xyz))
+        if capture.visible is None:
+            seen = np.arange(len(capture.xyz))
         else:
-            seen = np.intersect1d(points.visible[i], points.visible[j])
+            seen = np.intersect1d(capture.visible[i], capture.visible[j])
         visible.append(seen[role[seen]])
-    sparse = project_sparse_depth(cams, points.xyz, range(len(pairs)), visible=visible, visibility_name="pair")
+    sparse = project_sparse_depth(cams, capture.xyz, range(len(pairs)), visible=visible, visibility_name="pair")
     device = next(model.parameters()).device
     r = render_at_points(model, cams, near, far, sparse, generator=torch.Generator(device=device).manual_seed(seed))
     keep = r["opacity"] > mask
     z = standardised_errors(r["gt"][keep], r["depth_mean"][keep], r["depth_std"][keep])
     return QuantileCalibration.fit(z, quantity="depth_std",
-                                   source=f"{len(z)} {points.source} points of the calibrate role seen from "
+                                   source=f"{len(z)} {capture.source} points of the "
+                                          f"{'calibrate role' if points == 'calibrate' else 'calibrate and score roles'} seen from "
                                           f"{len(pairs)} views halfway between neighbouring training views "
                                           f"(opacity > {mask})")
 
 
 @dataclass
 class RunCalibration:
-    """What a run stores in ``calibration.json``: one map per calibrated quantity (depth for now)."""
+    """What a run stores in ``calibration.json``: one map per calibrated quantity (depth for now)
+    and the capture points it was fitted on (``CALIBRATION_POINTS``; files without it: "calibrate")."""
 
     depth: QuantileCalibration | None = None
+    points: str = "calibrate"
+
+    @property
+    def saw_score_points(self) -> bool:
+        """Whether the SCORE points were fitted on (their depth scores are then not independent)."""
+        return self.points != "calibrate"
 
     def to_dict(self) -> dict[str, Any]:
-        return {"depth": None if self.depth is None else self.depth.to_dict()}
+        return {"depth": None if self.depth is None else self.depth.to_dict(), "points": self.points}
 
     @classmethod
     def from_dict(cls, data: dict, *, where: str) -> "RunCalibration":
         if not isinstance(data, dict):
             raise ValueError(f"{where}: expected a JSON object, got {type(data).__name__}")
+        points = data.get("points", "calibrate")
+        if points not in CALIBRATION_POINTS:
+            raise ValueError(f"{where}: points must be one of {CALIBRATION_POINTS}, got {points!r}")
         depth = data.get("depth")
-        return cls(depth=None if depth is None else QuantileCalibration.from_dict(depth, where=f"{where}: depth"))
+        return cls(depth=None if depth is None else QuantileCalibration.from_dict(depth, where=f"{where}: depth"),
+                   points=points)
 
 
 def save_run_calibration(run_dir: str | Path, calibration: RunCalibration) -> Path:
@@ -313,13 +335,14 @@ def load_run_calibration(run_dir: str | Path) -> RunCalibration | None:
 
 
 def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int = 0, model=None,
-                  dataset=None) -> RunCalibration:
-    """Fit the run's calibration from its capture points and write ``RUN/calibration.json``."""
+                  dataset=None, points: str = "calibrate") -> RunCalibration:
+    """Fit the run's calibration from its capture points (``points``: ``CALIBRATION_POINTS``) and
+    write ``RUN/calibration.json``."""
     from .trainer import load_trained_model
 
     if model is None:
         _, model, dataset = load_trained_model(Path(run_dir), dataset=dataset, device=device)
-    calibration = RunCalibration(depth=fit_depth_calibration(model, dataset, seed=seed))
+    calibration = RunCalibration(depth=fit_depth_calibration(model, dataset, seed=seed, points=points), points=points)
     save_run_calibration(run_dir, calibration)
     return calibration
 
@@ -354,9 +377,14 @@ def add_arguments(p) -> None:
     p.add_argument("--run", required=True, help="Trained run folder.")
     p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
     p.add_argument("--seed", type=int, default=0, help="Seed of the K draws of the calibration renders.")
+    p.add_argument("--points", choices=CALIBRATION_POINTS, default="calibrate",
+                   help="Capture points to fit on: 'calibrate' (default) keeps the SCORE points an independent "
+                        "test of the depth intervals; 'held-out' also fits on them (three times the blocks of "
+                        "space, a steadier map) for a capture you will not score; eval then warns that its "
+                        "depth scores are not independent.")
 
 
 def run(args) -> None:
-    cal = calibrate_run(Path(args.run), device=args.device, seed=args.seed)
+    cal = calibrate_run(Path(args.run), device=args.device, seed=args.seed, points=args.points)
     print(f"calibrated {args.run}: {describe(cal)}")
     print(f"written: {Path(args.run) / CALIBRATION_FILE} (render, eval and export apply it; raw std as depth_std_raw)")

@@ -22,6 +22,7 @@ import dataclasses
 import json
 import math
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -207,6 +208,12 @@ def _plain_scores(scores: dict) -> dict[str, Any]:
             for k, v in scores.items() if k not in ("calibration", "sparsification")}
 
 
+#: What eval says when the run's calibration was fitted on the SCORE points too (``calibrate --points held-out``).
+SCORE_POINTS_SEEN = ("the depth calibration was fitted on the SCORE capture points too (calibrate --points "
+                     "held-out): depth coverage, AUCE and NLL are not an independent test; refit with "
+                     "--points calibrate to score")
+
+
 def _conventions(depth_source: str | None, calibration) -> dict[str, str]:
     out = {"opacity_mask": f"depth is scored and drawn where the rendered opacity > {OPACITY_MASK}",
            "constant_uncertainty": "a constant uncertainty map (deterministic NeRF) has undefined correlations and "
@@ -219,6 +226,8 @@ def _conventions(depth_source: str | None, calibration) -> dict[str, str]:
     if calibration is not None:
         out["depth_calibration"] = ("depth_std recalibrated (calibration.json), intervals at level p scaled by "
                                     "s(p)/s(0.683); raw scores under depth_raw/")
+        if depth_source == "sparse" and calibration.saw_score_points:
+            out["depth_calibration_independence"] = SCORE_POINTS_SEEN
     return out
 
 
@@ -283,6 +292,8 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
     device = next(model.parameters()).device
     gt_depths = getattr(dataset, "depths", None)
     depth_source = "sparse" if sparse_depth is not None else ("dense" if gt_depths is not None else None)
+    if depth_source == "sparse" and calibration is not None and calibration.saw_score_points:
+        warnings.warn(f"{SCORE_POINTS_SEEN} (evaluating into {out_dir})", stacklevel=2)
     ctx = distributed
     records = map_sharded(lambda i: _evaluate_view(model, dataset, views[i], out_dir, options=options, seed=seed,
                                                    device=device, write_products=i < product_views,
