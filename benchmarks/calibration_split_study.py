@@ -106,7 +106,8 @@ def study_scene(run_dir: Path, *, splits: int, seed: int = 0, quiet: bool = Fals
     """Every placement's today's-split and re-split coverage for one trained run."""
     from scipy.special import ndtri
 
-    from stochastic_fields.calibration import QuantileCalibration, calibration_views, resplit_coverage
+    from stochastic_fields.calibration import (QuantileCalibration, calibration_views, pair_visible_points,
+                                              resplit_coverage)
     from stochastic_fields.capture_points import CALIBRATE, FIT, SCORE, block_keys, load_capture_points
     from stochastic_fields.io_utils import read_json
     from stochastic_fields.sparse_depth import project_sparse_depth
@@ -129,12 +130,8 @@ def study_scene(run_dir: Path, *, splits: int, seed: int = 0, quiet: bool = Fals
     for name, (neighbours, fractions) in PLACEMENTS.items():
         t0 = time.perf_counter()
         cams, near, far, pairs = calibration_views(dataset, neighbours=neighbours, fractions=fractions)
-        visible = []
-        for i, j in pairs:
-            seen = (np.arange(len(points.xyz)) if points.visible is None
-                    else np.intersect1d(points.visible[i], points.visible[j]))
-            visible.append(seen[held[seen]])
-        sparse = project_sparse_depth(cams, points.xyz, range(len(pairs)), visible=visible, visibility_name="pair")
+        sparse = project_sparse_depth(cams, points.xyz, range(len(pairs)), visible=pair_visible_points(points, pairs, held),
+                                      visibility_name="pair")
         cal = _standardised(model, cams, near, far, sparse, seed)
         cal_role = points.roles[cal["index"]]
         today_fit = QuantileCalibration.fit(cal["abs_z"][cal_role == CALIBRATE], quantity="depth_std", levels=levels)

@@ -249,6 +249,18 @@ def calibration_views(dataset, *, neighbours: int = CALIBRATION_NEIGHBOURS,
     return cams, near, far, view_pairs
 
 
+def pair_visible_points(capture, pairs: list[tuple[int, int]], keep: np.ndarray) -> list[np.ndarray]:
+    """Per calibration view of ``pairs`` (i, j), the indices of the capture points with ``keep``
+    [P] that both views i and j observed (COLMAP tracks; every kept point when the capture has no
+    visibility)."""
+    out = []
+    for i, j in pairs:
+        seen = (np.arange(len(capture.xyz)) if capture.visible is None
+                else np.intersect1d(capture.visible[i], capture.visible[j]))
+        out.append(seen[keep[seen]])
+    return out
+
+
 def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
                           points: str = "calibrate") -> QuantileCalibration:
     """Fit the depth map on the CALIBRATE capture points (``points="held-out"``: CALIBRATE and
@@ -269,14 +281,8 @@ def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float 
         raise ValueError(f"{dataset.root}: no capture points (sparse/0/points3D.bin or dense depth) to calibrate on")
     cams, near, far, pairs = calibration_views(dataset)
     role = np.isin(capture.roles, [CALIBRATE] if points == "calibrate" else [CALIBRATE, SCORE])
-    visible = []
-    for i, j in pairs:
-        if capture.visible is None:
-            seen = np.arange(len(capture.xyz))
-        else:
-            seen = np.intersect1d(capture.visible[i], capture.visible[j])
-        visible.append(seen[role[seen]])
-    sparse = project_sparse_depth(cams, capture.xyz, range(len(pairs)), visible=visible, visibility_name="pair")
+    sparse = project_sparse_depth(cams, capture.xyz, range(len(pairs)), visible=pair_visible_points(capture, pairs, role),
+                                  visibility_name="pair")
     device = next(model.parameters()).device
     r = render_at_points(model, cams, near, far, sparse, generator=torch.Generator(device=device).manual_seed(seed))
     keep = r["opacity"] > mask
