@@ -55,8 +55,19 @@ ROWS_NOISE_HEAD: tuple[Row, ...] = (
     ("deterministic", "deterministic", (), "reference: deterministic NeRF"),
 )
 
+#: Study 4: few-view geometry, one change of today's default (study 2's decision: + decoupled noise head).
+ROWS_GEOMETRY: tuple[Row, ...] = (
+    ("default", "snerf_default", (), "S-NeRF default (sparse-depth likelihood, decoupled per-point noise)"),
+    ("coarse_to_fine", "snerf_default", (("field.grid_coarse_to_fine", 0.5),),
+     "the finer grid levels fade in over the first half of training, coarsest first"),
+    ("tv_strong", "snerf_default", (("train.tv_weight", 1e-2),), "10x the grid's total-variation weight (1e-2)"),
+    ("depth_strong", "snerf_default", (("loss.lambda_depth", 0.3),), "3x the sparse-depth likelihood weight (0.3)"),
+    ("ensemble", "ensemble", (), "reference: deep ensemble of 5"),
+    ("deterministic", "deterministic", (), "reference: deterministic NeRF"),
+)
+
 #: --study NAME -> its rows.
-STUDIES: dict[str, tuple[Row, ...]] = {"factors": ROWS, "noise_head": ROWS_NOISE_HEAD}
+STUDIES: dict[str, tuple[Row, ...]] = {"factors": ROWS, "noise_head": ROWS_NOISE_HEAD, "geometry": ROWS_GEOMETRY}
 
 COLUMNS: tuple[tuple[str, str], ...] = (
     ("psnr", "PSNR"), ("nll", "NLL"), ("auce_colour", "AUCE"), ("spearman_mse_var", "Spearman MSE-var"),
@@ -163,8 +174,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="LLFF scene names under --data-root, folders, or 'synthetic' (the embedded scene, "
                         "generated into OUT/_scenes).")
     p.add_argument("--study", choices=sorted(STUDIES), default="factors",
-                   help="Which rows: 'factors' (study 1, factors of S-NeRF + learned noise) or 'noise_head' "
-                        "(study 2, the per-point observation noise against today's default).")
+                   help="Which rows: 'factors' (study 1, factors of S-NeRF + learned noise), 'noise_head' "
+                        "(study 2, the per-point observation noise against today's default) or 'geometry' "
+                        "(study 4, few-view geometry regularisers against today's default).")
     p.add_argument("--rows", nargs="+", default=None, help="Rows of the study to run (default: all of them).")
     p.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
     p.add_argument("--cost", action="store_true",
@@ -187,7 +199,8 @@ def main(argv: list[str] | None = None) -> int:
         from stochastic_fields.io_utils import atomic_write_text
 
         cost_rows = {"factors": ("depth", "deterministic"),
-                     "noise_head": ("per_point_noise_decoupled", "default", "deterministic")}[args.study]
+                     "noise_head": ("per_point_noise_decoupled", "default", "deterministic"),
+                     "geometry": ("default", "coarse_to_fine", "deterministic")}[args.study]
         cost = measure_cost(out, "fern", args.data_root, rows=cost_rows, study=STUDIES[args.study])
         atomic_write_text(out / "cost.json", json.dumps(cost, indent=2))
         print(json.dumps(cost, indent=2))

@@ -68,6 +68,8 @@ class FieldConfig:
     """Hidden width of the colour decoder (0: colours stored directly, view-independent). Range: an integer >= 0 and <= 8192."""
     grid_init_density_loc: float = -1.0
     """Initial mean of the pre-ReLU density everywhere. Range: a finite number."""
+    grid_coarse_to_fine: float = 0.0
+    """Share of training over which the finer grid levels fade in, coarsest first (0: all from the start; a few-view regulariser). Range: a finite number >= 0 and <= 1."""
 
     def __post_init__(self) -> None:
         V.check_fields(self, FIELD_CHECKS)
@@ -149,6 +151,7 @@ FIELD_CHECKS: dict[str, V.Checker] = {
     "grid_feature_dim": V.integer(1, 1024),
     "grid_decoder_width": V.integer(0, 8192),
     "grid_init_density_loc": V.real(),
+    "grid_coarse_to_fine": V.real(0.0, 1.0),
 }
 TRAIN_CHECKS: dict[str, V.Checker] = {
     "iterations": V.integer(1, 10**9),
@@ -188,6 +191,9 @@ def validate_experiment(cfg: "ExperimentConfig") -> None:
     if cfg.method == "snerf" and cfg.render.quadrature == "trapezoid" and cfg.render.skip_empty_space:
         raise V.ConfigError("render.skip_empty_space", "false with render.quadrature='trapezoid' (empty-space "
                             "skipping needs alpha compositing)", cfg.render.skip_empty_space)
+    if cfg.field.grid_coarse_to_fine > 0 and cfg.field.backend != "grid":
+        raise V.ConfigError("field.grid_coarse_to_fine", "0 with field.backend='mlp' (it fades in grid levels)",
+                            cfg.field.grid_coarse_to_fine)
 
 
 #: Named presets as data: dotted option -> value, applied on top of the defaults (``--help``

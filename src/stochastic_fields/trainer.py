@@ -24,6 +24,7 @@ from .checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
 from .config import ExperimentConfig, flatten, save_config, saved_config, to_dict, validate_experiment
 from .distributed import DistContext, GradientReducer, rank_seeds, shard_size
 from .io_utils import atomic_write_text, open_append_no_follow, remove_stale_temporaries
+from .fields.grid import GridField, coarse_to_fine_weights
 from .models.base import RadianceModel
 from .models.registry import build_model, resolve_device
 from .optim import FieldOptimizer
@@ -322,6 +323,16 @@ class Trainer:
         atomic_write_text(path, "".join(k + "\n" for k in kept))
 
     # ------------------------------------------------------------------ loop
+    def _set_level_weights(self, progress: float | None) -> None:
+        """Coarse to fine (``field.grid_coarse_to_fine``): every grid's level weights at training
+        ``progress`` (``grid.coarse_to_fine_weights``); None: all levels at 1 (a trained model)."""
+        fraction = self.cfg.field.grid_coarse_to_fine
+        if fraction <= 0:
+            return
+        for grid in (m for m in self.model.modules() if isinstance(m, GridField)):
+            grid.set_level_weights(None if progress is None else
+                                   coarse_to_fine_weights(len(grid.levels), progress, fraction))
+
     def train(self, *, progress: bool = True, max_steps: int | None = None) -> RadianceModel:
         """Train to ``cfg.train.iterations`` (or stop after ``max_steps`` more steps, for tests)."""
         if self.run_dir.exists() and not self.run_dir.is_dir():
@@ -350,28 +361,32 @@ class Trainer:
                    disable=not (progress and main), dynamic_ncols=True)
         self.model.train()
         t_last = time.perf_counter()
-        with open_append_no_follow(log_path) if main else contextlib.nullcontext() as log:
-            while self.step < stop_at:
-                loss, logs = self.compute_gradients(data, depth_data)
-                self.optimizer.set_step(self.step)
-                self.optimizer.step()
-                self.model.after_step(self.step)
-                self.step += 1
-                now = time.perf_counter()
-                self.elapsed += now - t_last
-                t_last = now
-                record = {"step": self.step, "loss": loss, "elapsed_s": round(self.elapsed, 3), **logs}
-                if main and self.cfg.train.eval_every and eval_view is not None \
-                        and self.step % self.cfg.train.eval_every == 0:
-                    record.update(quick_eval(self.model, self.dataset, eval_view, self.device))
-                    t_last = time.perf_counter()
-                if main and (self.step % 10 == 0 or "eval_psnr" in record):
-                    log.write(json.dumps(record) + "\n")
-                    log.flush()
-                    bar.set_postfix({k: f"{v:.4g}" for k, v in record.items() if k in ("loss", "mse", "eval_psnr")})
-                if self.cfg.train.checkpoint_every and self.step % self.cfg.train.checkpoint_every == 0:
-                    self.save()
-                bar.update(1)
+        try:
+            with open_append_no_follow(log_path) if main else contextlib.nullcontext() as log:
+                while self.step < stop_at:
+                    self._set_level_weights(self.step / total)
+                    loss, logs = self.compute_gradients(data, depth_data)
+                    self.optimizer.set_step(self.step)
+                    self.optimizer.step()
+                    self.model.after_step(self.step)
+                    self.step += 1
+                    now = time.perf_counter()
+                    self.elapsed += now - t_last
+                    t_last = now
+                    record = {"step": self.step, "loss": loss, "elapsed_s": round(self.elapsed, 3), **logs}
+                    if main and self.cfg.train.eval_every and eval_view is not None \
+                            and self.step % self.cfg.train.eval_every == 0:
+                        record.update(quick_eval(self.model, self.dataset, eval_view, self.device))
+                        t_last = time.perf_counter()
+                    if main and (self.step % 10 == 0 or "eval_psnr" in record):
+                        log.write(json.dumps(record) + "\n")
+                        log.flush()
+                        bar.set_postfix({k: f"{v:.4g}" for k, v in record.items() if k in ("loss", "mse", "eval_psnr")})
+                    if self.cfg.train.checkpoint_every and self.step % self.cfg.train.checkpoint_every == 0:
+                        self.save()
+                    bar.update(1)
+        finally:
+            self._set_level_weights(None)  # the trained model reads every level
         bar.close()
         self.save()
         self.model.eval()

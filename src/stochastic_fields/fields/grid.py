@@ -11,6 +11,12 @@ trilinear interpolation of every level is summed:
     or, with ``decoder_width=0``: mu_c, raw_s_c = g_2..7(x)  (view-independent, no MLP)
     with ``noise_head``: beta(x) = softplus(g_last(x))      (observation-noise std, one more channel)
 
+Coarse to fine (``field.grid_coarse_to_fine``, a few-view regulariser): during training each level
+may carry a weight a_l in [0, 1], g(x) = sum_l a_l g_l(x), set by the trainer from the training
+progress (``coarse_to_fine_weights``): the coarse level alone first, the finer ones fading in, so
+the early geometry is the smooth one that explains all views. A level of weight 0 is not read.
+A loaded model reads every level at weight 1.
+
 The corners are gathered with ``row_gather.gather_rows``, so a training step touches only the
 cells its samples fall in: their gradients are summed per row (``RowGradient``) and the grid is
 optimised with ``optim.RowSparseAdam`` (Adam moments updated only where a cell received gradient,
@@ -42,6 +48,23 @@ from .encoding import PositionalEncoding
 from .row_gather import gather_rows
 
 
+def coarse_to_fine_weights(num_levels: int, progress: float, fraction: float) -> list[float]:
+    """Per-level weights a_l at training ``progress`` in [0, 1]: level 0 always 1, level l >= 1
+
+        a_l = clamp(progress / fraction * (L - 1) - (l - 1), 0, 1)
+
+    i.e. the finer levels fade in one after the other, linearly, each over ``fraction / (L - 1)``
+    of training, and all are 1 from ``progress = fraction`` on. ``fraction = 0``: all 1."""
+    if num_levels < 1:
+        raise ValueError(f"num_levels must be >= 1, got {num_levels}")
+    if not 0.0 <= fraction <= 1.0:
+        raise ValueError(f"coarse-to-fine fraction must be in [0, 1], got {fraction}")
+    if fraction == 0.0 or num_levels == 1:
+        return [1.0] * num_levels
+    ramp = min(max(float(progress), 0.0), 1.0) / fraction * (num_levels - 1)
+    return [1.0] + [min(max(ramp - (level - 1), 0.0), 1.0) for level in range(1, num_levels)]
+
+
 def level_resolutions(finest: tuple[int, int, int], num_levels: int) -> list[tuple[int, int, int]]:
     """Per-level (X, Y, Z) resolutions, halving from the finest, never below 4."""
     out = []
@@ -70,6 +93,8 @@ class GridField(StochasticField):
             if decoder_width > 0:
                 g[:, self.colour_channels] = 0.1 * torch.randn_like(g[:, self.colour_channels])
             self.levels.append(nn.Parameter(g))
+        #: per-level weights a_l (``coarse_to_fine_weights``) while training; None: every level at 1
+        self.level_weights: list[float] | None = None
         raw_std = inverse_positive_scale(init_std)
         # Offsets added to the summed grid value: the field starts as a uniform, uncertain fog.
         offset = torch.zeros(self.num_channels)
@@ -88,6 +113,16 @@ class GridField(StochasticField):
             with torch.no_grad():
                 self.decoder[-1].bias[3:] = raw_std
 
+    def set_level_weights(self, weights: list[float] | None) -> None:
+        """Weights a_l of the levels in g(x) = sum_l a_l g_l(x) (None: all 1)."""
+        if weights is not None:
+            if len(weights) != len(self.levels) or not all(0.0 <= float(a) <= 1.0 for a in weights):
+                raise ValueError(f"level weights must be {len(self.levels)} numbers in [0, 1], got {weights}")
+            weights = [float(a) for a in weights]
+            if weights[0] == 0.0:
+                raise ValueError("the coarsest level's weight must be > 0")
+        self.level_weights = weights
+
     def num_parameters(self) -> int:
         return sum(p.numel() for p in self.parameters())
 
@@ -99,9 +134,12 @@ class GridField(StochasticField):
         # without gradients (occupancy updates, rendering) read only the asked-for channels
         sliced = channels is not None and not torch.is_grad_enabled()
         total = None
-        for table, shape in zip(self.levels, self.level_shapes):
+        weights = self.level_weights or [1.0] * len(self.levels)
+        for table, shape, a in zip(self.levels, self.level_shapes, weights):
+            if a == 0.0:
+                continue  # a level not yet faded in (coarse to fine) is not read
             idx, w = trilinear_corners(unit, shape)  # [P, 8], [P, 8]
-            v = gather_rows(table[:, channels] if sliced else table, idx, w)  # [P, C]
+            v = gather_rows(table[:, channels] if sliced else table, idx, w if a == 1.0 else w * a)  # [P, C]
             total = v if total is None else total + v
         if channels is not None and not sliced:
             total = total[:, channels]
