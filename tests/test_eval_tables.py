@@ -25,7 +25,7 @@ from stochastic_fields import sparse_depth as CD
 from stochastic_fields_bench import tables as T
 from stochastic_fields_bench.tables import json_default
 from stochastic_fields.models.registry import METHODS
-from stochastic_fields.renderer import MAP_NAMES, RenderOptions, RenderSettings
+from stochastic_fields.renderer import MAP_NAMES, RenderOptions
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -419,3 +419,25 @@ def test_resume_check_counts_missing_options_as_defaults(tmp_path):
     assert T.config_fingerprint(cfg) == fp
     cfg.train.iterations = 5000  # more steps resume the same run
     T.check_compatible(tmp_path, cfg)
+
+
+def test_the_depth_weight_default_change_retrains_only_snerf_default_runs():
+    """loss.lambda_depth went 0.1 -> 0.3 (study 4): a run stored at 0.1 keeps its fingerprint (the
+    entry stays left out), a run at the new default gets a new one, the baselines (no depth term)
+    none, and a saved config from before the option existed loads with the depth term off."""
+    from stochastic_fields.config import ExperimentConfig, flatten, saved_config, to_dict
+    from stochastic_fields_bench.runner import _semantic
+
+    assert ExperimentConfig().loss.lambda_depth == 0.3
+    stored = ExperimentConfig()
+    stored.loss.lambda_depth = 0.1
+    assert "loss.lambda_depth" not in _semantic(flatten(to_dict(stored)))
+    assert _semantic(flatten(to_dict(ExperimentConfig())))["loss.lambda_depth"] == 0.3
+    assert T.config_fingerprint(ExperimentConfig()) != T.config_fingerprint(stored)
+    for method in ("ensemble", "deterministic"):
+        a, b = ExperimentConfig(method=method), ExperimentConfig(method=method)
+        b.loss.lambda_depth = 0.1
+        assert T.config_fingerprint(a) == T.config_fingerprint(b)
+    old = to_dict(ExperimentConfig())
+    del old["loss"]["lambda_depth"]
+    assert saved_config(old).loss.lambda_depth == 0.0

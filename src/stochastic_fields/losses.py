@@ -54,8 +54,8 @@ class LossConfig:
     """With loss.per_point_noise: the noise head only explains residuals. Each pixel-draw term of the likelihood is weighted by stopgrad(v / sigma_n^2) and v uses stopgrad(w), so colours and densities get exactly the gradient of the global-noise likelihood, while beta still fits the residuals (stationary at v = r^2; beta-NLL, Seitzer et al. 2022). Off: the joint likelihood, where a large beta also down-weights a pixel for the colours and the geometry (it cost up to 1.2 dB PSNR in benchmarks/results/uncertainty_study/noise_head)."""
     per_point_noise: bool = True
     """Learn an observation-noise std beta(x) per point (one more field output) beside sigma_n: each trajectory's pixel likelihood gets variance sigma_n^2 + sum_i w_i beta_i^2, and with render.colour_variance='predictive' the rendered colour variance adds its mean over draws (docs/definitions.md §4.7). Default on: benchmarks/results/uncertainty_study/noise_head. Off: one noise for every pixel (sigma_n), the paper's model."""
-    lambda_depth: float = 0.1
-    """Weight of the sparse-depth likelihood of the capture's own structure-from-motion points (FIT role of the spatial split, stochastic_fields.capture_points): -mean_k log sum_i w_ik N(t* | t_i, s_i^2) per point ray (termination_depth_nll). 0 = off (the paper); scenes without capture points train without it. Default 0.1: benchmarks/results/uncertainty_study. Range: a finite number >= 0."""
+    lambda_depth: float = 0.3
+    """Weight of the sparse-depth likelihood of the capture's own structure-from-motion points (FIT role of the spatial split, stochastic_fields.capture_points): -mean_k log sum_i w_ik N(t* | t_i, s_i^2) per point ray (termination_depth_nll). 0 = off (the paper); scenes without capture points train without it. Default 0.3: benchmarks/results/uncertainty_study (0.1 in study 1, 0.3 in study 4, geometry). Range: a finite number >= 0."""
     depth_rays_per_batch: int = 256
     """Capture-point rays per training step for the depth likelihood (drawn from the training views' FIT points). Range: an integer >= 1 and <= 1048576."""
     depth_relative_std: float = 0.01

@@ -40,16 +40,25 @@ _NON_SEMANTIC = ("train.device", "train.eval_every", "train.checkpoint_every", "
 #: Options of S-NeRF's noise head (docs/definitions.md §4.7).
 _NOISE_HEAD_OPTIONS = ("loss.per_point_noise", "loss.noise_head_decoupled")
 
+#: Options of S-NeRF's sparse-depth likelihood (the baselines take no depth term).
+_DEPTH_OPTIONS = ("loss.lambda_depth", "loss.depth_rays_per_batch", "loss.depth_relative_std")
+
+#: Options whose default changed after fingerprints were stored: the value the stored fingerprints
+#: left out as "the default" (lambda_depth was 0.1 until study 4 made it 0.3), so that a run at the
+#: new default gets a new fingerprint and one stored at the old value keeps its own.
+_FINGERPRINT_REFERENCE: dict[str, Any] = {"loss.lambda_depth": 0.1}
+
 
 def _semantic(flat: dict[str, Any]) -> dict[str, Any]:
     """Entries that change what a run computes, without those equal to the dataclass defaults:
     an option added later with a default that keeps the old behaviour changes no fingerprint.
     For an option whose default changed the model (``config.LEGACY_VALUES``) the legacy value is
     the one left out: runs saved before it existed computed with it."""
-    reference = {**flatten(to_dict(ExperimentConfig())), **LEGACY_VALUES}
+    reference = {**flatten(to_dict(ExperimentConfig())), **LEGACY_VALUES, **_FINGERPRINT_REFERENCE}
     ignored = set(_NON_SEMANTIC)
     if flat.get("method", "snerf") != "snerf":
         ignored.update(_NOISE_HEAD_OPTIONS)  # S-NeRF's field only: the baselines build none
+        ignored.update(_DEPTH_OPTIONS)  # nor do they take the depth likelihood
     elif not flat.get("loss.per_point_noise", LEGACY_VALUES["loss.per_point_noise"]):
         ignored.add("loss.noise_head_decoupled")  # changes nothing without the noise head
     return {k: v for k, v in flat.items() if k not in ignored and not (k in reference and reference[k] == v)}
