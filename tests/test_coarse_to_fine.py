@@ -72,29 +72,30 @@ def test_weighted_levels_equal_the_weighted_sum_of_single_levels():
     torch.testing.assert_close(field._interpolate(unit), offset + sum(single), rtol=1e-12, atol=1e-12)
 
 
+def _level_gradients(weights: list[float], unit: torch.Tensor) -> tuple[list[torch.Tensor], torch.Tensor]:
+    """Dense gradients of sum v^2 for every level, and v [P, C], with the given level weights."""
+    field = _field()
+    field.set_level_weights(weights)
+    value = field._interpolate(unit)
+    value.pow(2).sum().backward()
+    return [row_gradient(level).dense(level) for level in field.levels], value.detach()
+
+
 def test_a_faded_level_gets_a_scaled_gradient_and_an_unread_one_none():
     unit = _points()
-    grads = {}
-    for weights in ([1.0, 1.0, 1.0], [1.0, 0.25, 0.0]):
-        field = _field()
-        field.set_level_weights(weights)
-        field._interpolate(unit).pow(2).sum().backward()
-        grads[tuple(weights)] = [row_gradient(level).dense(level) for level in field.levels]
-    full, faded = grads[(1.0, 1.0, 1.0)], grads[(1.0, 0.25, 0.0)]
+    full, _ = _level_gradients([1.0, 1.0, 1.0], unit)
+    faded, value = _level_gradients([1.0, 0.25, 0.0], unit)
     assert faded[2].abs().max() == 0  # level 2 not read
-    # d/dG_1 of sum (offset + G0 + a G1)^2 = a * 2 (value) ...: compare through the chain rule by hand
-    field = _field()
-    field.set_level_weights([1.0, 0.25, 0.0])
-    value = field._interpolate(unit).detach()
+    assert full[1].abs().max() > 0
+    # by hand: d/dG_1 sum_p v_p^2 = sum_p 2 v_p * 0.25 * w_pj at level 1's corners, i.e. the gradient
+    # of sum_p <g_1(x_p), 2 * 0.25 * v_p> with g_1 level 1 alone
     ref = _field()
     with torch.no_grad():
         ref.levels[0].zero_()
         ref.levels[2].zero_()
     ref.offset.zero_()
-    # the level-1 gradient of sum v^2 is sum_p 2 v_p * 0.25 * w_pj at its corners: a linear map of 2 v
     (ref._interpolate(unit) * (2 * 0.25 * value)).sum().backward()
     torch.testing.assert_close(faded[1], row_gradient(ref.levels[1]).dense(ref.levels[1]), rtol=1e-10, atol=1e-12)
-    assert full[1].abs().max() > 0
 
 
 def test_level_weights_are_checked():

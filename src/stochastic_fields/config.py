@@ -329,7 +329,8 @@ def save_config(cfg: ExperimentConfig, path: Path) -> None:
 
 #: Options whose default changed what a model is: a run's saved config without the key was
 #: trained before the option existed and computed with this value (read by ``saved_config``;
-#: the benchmark fingerprints count these values, not the defaults, as "unchanged").
+#: the benchmark fingerprints count these values, not the defaults, as "unchanged", except where
+#: ``stochastic_fields_bench.runner._FINGERPRINT_REFERENCE`` names the value stored runs left out).
 LEGACY_VALUES: dict[str, Any] = {"loss.per_point_noise": False, "loss.noise_head_decoupled": False,
                                  "loss.lambda_depth": 0.0}
 

@@ -53,7 +53,8 @@ def _semantic(flat: dict[str, Any]) -> dict[str, Any]:
     """Entries that change what a run computes, without those equal to the dataclass defaults:
     an option added later with a default that keeps the old behaviour changes no fingerprint.
     For an option whose default changed the model (``config.LEGACY_VALUES``) the legacy value is
-    the one left out: runs saved before it existed computed with it."""
+    the one left out: runs saved before it existed computed with it; for one whose default changed
+    after runs were fingerprinted (``_FINGERPRINT_REFERENCE``), the value those runs left out."""
     reference = {**flatten(to_dict(ExperimentConfig())), **LEGACY_VALUES, **_FINGERPRINT_REFERENCE}
     ignored = set(_NON_SEMANTIC)
     if flat.get("method", "snerf") != "snerf":
