@@ -136,18 +136,42 @@ def _tiny_cfg(iterations: int):
     return cfg
 
 
-def test_trainer_resume_continues_exactly(tiny_scene, tmp_path):
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="no CUDA"))])
+def test_trainer_resume_continues_exactly(tiny_scene, tmp_path, device, monkeypatch):
+    """A run interrupted and resumed ends where the uninterrupted run does: model, optimiser and
+    both random streams come back from the checkpoint. On CUDA the checkpoint is read onto the
+    GPU; the generators' states must still be restored (they take CPU byte tensors)."""
+
+    def cfg():
+        c = _tiny_cfg(12)
+        c.train.device = device
+        return c
+
+    torch.set_num_threads(1)  # bitwise-reproducible reductions for the comparison
+    was_deterministic = torch.are_deterministic_algorithms_enabled()
+    if device == "cuda":  # CUDA's scatter-adds sum in no fixed order unless asked to
+        monkeypatch.setenv("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+        torch.use_deterministic_algorithms(True)
+    try:
+        _interrupt_and_resume(tiny_scene, tmp_path, cfg)
+    finally:
+        torch.use_deterministic_algorithms(was_deterministic)
+
+
+def _interrupt_and_resume(tiny_scene, tmp_path, cfg) -> None:
     from stochastic_fields.data import load_dataset
     from stochastic_fields.trainer import Trainer
 
-    torch.set_num_threads(1)  # bitwise-reproducible reductions for the comparison
     ds = load_dataset(tiny_scene, split_every=4)
-    straight = Trainer(_tiny_cfg(12), tmp_path / "straight", ds)
+    straight = Trainer(cfg(), tmp_path / "straight", ds)
     straight.train(progress=False)
-    interrupted = Trainer(_tiny_cfg(12), tmp_path / "resumed", ds)
+    interrupted = Trainer(cfg(), tmp_path / "resumed", ds)
     interrupted.train(progress=False, max_steps=7)  # "interrupted" after 7 steps (checkpoint at 5 and 7)
-    resumed = Trainer(_tiny_cfg(12), tmp_path / "resumed", ds)
+    resumed = Trainer(cfg(), tmp_path / "resumed", ds)
     assert resumed.try_resume() and resumed.step == 7
+    assert torch.equal(resumed.draw_generator.get_state(), interrupted.draw_generator.get_state())
+    assert torch.equal(resumed.generator.get_state(), interrupted.generator.get_state())
     resumed.train(progress=False)
     assert resumed.step == 12
     for (name, a), (_, b) in zip(straight.model.state_dict().items(), resumed.model.state_dict().items()):

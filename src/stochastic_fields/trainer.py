@@ -274,9 +274,10 @@ class Trainer:
         saved_world = int(state.get("world_size", 1))
         if saved_world == world:
             rng = state if world == 1 else state["rank_rngs"][rank]
-            self.generator.set_state(rng["batch_rng"])
-            self.draw_generator.set_state(rng["draw_rng"].to(self.draw_generator.device) if self.device.type == "cuda"
-                                          else rng["draw_rng"])
+            # Generator.set_state takes a CPU ByteTensor for every device's generator (a CUDA one
+            # too), and a checkpoint read with map_location=cuda holds the states on the GPU.
+            self.generator.set_state(rng["batch_rng"].cpu())
+            self.draw_generator.set_state(rng["draw_rng"].cpu())
             return
         batch_seed, draw_seed = rank_seeds(self.cfg.train.seed, rank, world, self.step)
         self.generator.manual_seed(batch_seed)
