@@ -68,11 +68,23 @@ ROWS_GEOMETRY: tuple[Row, ...] = (
     ("deterministic", "deterministic", (), "reference: deterministic NeRF"),
 )
 
+#: Study 5: colour recalibration from pixel blocks of the training views held out of training.
+ROWS_COLOUR: tuple[Row, ...] = (
+    ("default", "snerf_default", (), "S-NeRF default (sparse-depth likelihood at weight 0.3, decoupled per-point noise)"),
+    ("colour_holdout", "snerf_default", (("train.holdout_fraction", 0.1),),
+     "10% of each training view's 16-pixel blocks held out of training; the colour std recalibrated on them"),
+    ("ensemble", "ensemble", (), "reference: deep ensemble of 5"),
+    ("deterministic", "deterministic", (), "reference: deterministic NeRF"),
+)
+
+
 #: --study NAME -> its rows.
-STUDIES: dict[str, tuple[Row, ...]] = {"factors": ROWS, "noise_head": ROWS_NOISE_HEAD, "geometry": ROWS_GEOMETRY}
+STUDIES: dict[str, tuple[Row, ...]] = {"factors": ROWS, "noise_head": ROWS_NOISE_HEAD, "geometry": ROWS_GEOMETRY,
+                                       "colour": ROWS_COLOUR}
 
 COLUMNS: tuple[tuple[str, str], ...] = (
-    ("psnr", "PSNR"), ("nll", "NLL"), ("auce_colour", "AUCE"), ("spearman_mse_var", "Spearman MSE-var"),
+    ("psnr", "PSNR"), ("nll", "NLL"), ("auce_colour", "AUCE"), ("nll_raw", "NLL raw"), ("auce_colour_raw", "AUCE raw"),
+    ("colour_scale", "colour x(68%)"), ("spearman_mse_var", "Spearman MSE-var"),
     ("pooled_spearman", "Spearman pooled"), ("ause_rmse_normalised", "AUSE norm."),
     ("depth_abs_rel", "depth abs-rel"), ("depth_spearman", "depth Spearman"),
     ("cov68_raw", "cov68 raw"), ("cov95_raw", "cov95 raw"), ("cov68", "cov68 cal."), ("cov95", "cov95 cal."),
@@ -96,6 +108,8 @@ def _row_numbers(run_dir: Path) -> dict[str, float]:
     cal = m.get("depth_calibration") or {}
     return {
         "psnr": mean("psnr"), "nll": mean("nll"), "auce_colour": mean("auce_colour"),
+        "nll_raw": mean("nll_raw"), "auce_colour_raw": mean("auce_colour_raw"),
+        "colour_scale": (cal.get("colour") or {}).get("std_scale", math.nan),
         "spearman_mse_var": mean("spearman_mse_var"), "pooled_spearman": pooled.get("spearman_mse_var", math.nan),
         "ause_rmse_normalised": mean("ause_rmse_normalised"),
         "depth_abs_rel": depth.get("abs_rel", math.nan), "depth_spearman": depth.get("spearman", math.nan),
@@ -177,8 +191,9 @@ def main(argv: list[str] | None = None) -> int:
                         "generated into OUT/_scenes).")
     p.add_argument("--study", choices=sorted(STUDIES), default="factors",
                    help="Which rows: 'factors' (study 1, factors of S-NeRF + learned noise), 'noise_head' "
-                        "(study 2, the per-point observation noise against today's default) or 'geometry' "
-                        "(study 4, few-view geometry regularisers against today's default).")
+                        "(study 2, the per-point observation noise against today's default), 'geometry' "
+                        "(study 4, few-view geometry regularisers against today's default) or 'colour' "
+                        "(study 5, colour recalibration from held-out pixel blocks against today's default).")
     p.add_argument("--rows", nargs="+", default=None, help="Rows of the study to run (default: all of them).")
     p.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
     p.add_argument("--cost", action="store_true",
@@ -202,7 +217,8 @@ def main(argv: list[str] | None = None) -> int:
 
         cost_rows = {"factors": ("depth", "deterministic"),
                      "noise_head": ("per_point_noise_decoupled", "default", "deterministic"),
-                     "geometry": ("default", "deterministic")}[args.study]
+                     "geometry": ("default", "deterministic"),
+                     "colour": ("colour_holdout", "default", "deterministic")}[args.study]
         cost = measure_cost(out, "fern", args.data_root, rows=cost_rows, study=STUDIES[args.study])
         atomic_write_text(out / "cost.json", json.dumps(cost, indent=2))
         print(json.dumps(cost, indent=2))

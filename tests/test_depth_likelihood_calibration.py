@@ -12,7 +12,7 @@ from scipy import stats
 
 from stochastic_fields.renderer import RenderOptions
 from stochastic_fields.calibration import (CALIBRATION_LEVELS, ONE_SIGMA_LEVEL, QuantileCalibration, RunCalibration,
-                                           apply_depth_calibration, standardised_errors)
+                                           apply_calibration, standardised_errors)
 from stochastic_fields.capture_points import (CALIBRATE, FIT, SCORE, SPLIT_BLOCKS_PER_AXIS, split_points_by_blocks)
 from stochastic_fields.constants import DEPTH_MIXTURE_WEIGHT_FLOOR
 from stochastic_fields import metrics as M
@@ -172,14 +172,14 @@ def test_quantile_calibration_round_trip_and_validation():
         QuantileCalibration.from_dict({"levels": [0.5]}, where="x")
 
 
-def test_apply_depth_calibration_keeps_the_raw_std():
+def test_apply_calibration_keeps_the_raw_std():
     cal = RunCalibration(depth=QuantileCalibration("depth_std", CALIBRATION_LEVELS,
                                                    np.full(CALIBRATION_LEVELS.shape, 2.5), 1000))
     products = {"depth_std": np.array([[1.0, 2.0]], np.float32), "depth_mean": np.ones((1, 2), np.float32)}
-    out = apply_depth_calibration(products, cal)
+    out = apply_calibration(products, cal)
     assert np.array_equal(out["depth_std_raw"], products["depth_std"])
     assert out["depth_std"] == pytest.approx(np.array([[2.5, 5.0]]))
-    assert apply_depth_calibration(products, None) == products
+    assert apply_calibration(products, None) == products
 
 
 # ----------------------------------------------------------------------------- capture-point rays

@@ -20,7 +20,12 @@ so that the interval ``d +- s(p) z_p sigma`` holds the fitted points at rate p. 
 
 A Gaussian error model with the right scale gives s(p) constant; heavier or lighter tails give
 an s(p) that rises or falls with p. The raw sigma stays available (``depth_std_raw``).
-docs/uncertainty.md states the protocol and its limits.
+
+The colour std gets the same kind of map when the run held pixel blocks of its training views out
+of training (``train.holdout_fraction``, ``holdout``): |z| = |c - c*| / sigma_c per channel value
+of the held-out pixels, rendered from their own (training) cameras; applied as for depth
+(``colour_std`` calibrated, ``colour_std_raw`` kept). docs/uncertainty.md states the protocols
+and their limits.
 """
 
 from __future__ import annotations
@@ -294,13 +299,46 @@ def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float 
                                           f"(opacity > {mask})")
 
 
+def fit_colour_calibration(model, dataset, *, fraction: float, block: int, seed: int = 0) -> QuantileCalibration:
+    """Fit the colour map on the pixels of the training views held out from training
+    (``holdout.holdout_mask`` with the run's ``fraction`` and ``block``), rendered from their own
+    cameras: |z| = |c - c*| / sigma_c over every channel value with a positive std.
+    ValueError when nothing was held out (``fraction`` 0) or too few values remain."""
+    from .holdout import holdout_masks
+
+    if fraction <= 0:
+        raise ValueError("colour calibration needs pixels held out from training (train.holdout_fraction > 0)")
+    views = list(dataset.train_indices)
+    masks = holdout_masks(dataset, views, fraction=fraction, block=block)
+    device = next(model.parameters()).device
+    generator = torch.Generator(device=device).manual_seed(seed)
+    errors, pixels = [], 0
+    for v, mask in zip(views, masks):
+        keep = torch.from_numpy(mask)
+        rays = dataset.rays(v)[keep]
+        with torch.no_grad():
+            maps = model.render_view(rays.reshape(1, len(rays)).to(device), generator=generator)
+        std = maps["colour_var"].double().cpu().clamp_min(0).sqrt().reshape(-1, 3).numpy()
+        mean = maps["colour_mean"].double().cpu().reshape(-1, 3).numpy()
+        gt = dataset.images[v][keep].double().numpy()
+        errors.append(standardised_errors(gt, mean, std))
+        pixels += int(mask.sum())
+    z = np.concatenate(errors)
+    return QuantileCalibration.fit(z, quantity="colour_std",
+                                   source=f"{len(z)} channel values of {pixels} pixels held out from training in "
+                                          f"{block}-pixel blocks ({fraction:g} of the blocks) of {len(views)} "
+                                          "training views")
+
+
 @dataclass
 class RunCalibration:
-    """What a run stores in ``calibration.json``: one map per calibrated quantity (depth for now)
-    and the capture points it was fitted on (``CALIBRATION_POINTS``; files without it: "calibrate")."""
+    """What a run stores in ``calibration.json``: one map per calibrated quantity (depth, colour;
+    None where not fitted) and the capture points the depth map was fitted on
+    (``CALIBRATION_POINTS``; files without it: "calibrate")."""
 
     depth: QuantileCalibration | None = None
     points: str = "calibrate"
+    colour: QuantileCalibration | None = None
 
     @property
     def saw_score_points(self) -> bool:
@@ -308,7 +346,8 @@ class RunCalibration:
         return self.points != "calibrate"
 
     def to_dict(self) -> dict[str, Any]:
-        return {"depth": None if self.depth is None else self.depth.to_dict(), "points": self.points}
+        return {"depth": None if self.depth is None else self.depth.to_dict(), "points": self.points,
+                "colour": None if self.colour is None else self.colour.to_dict()}
 
     @classmethod
     def from_dict(cls, data: dict, *, where: str) -> "RunCalibration":
@@ -317,9 +356,10 @@ class RunCalibration:
         points = data.get("points", "calibrate")
         if points not in CALIBRATION_POINTS:
             raise ValueError(f"{where}: points must be one of {CALIBRATION_POINTS}, got {points!r}")
-        depth = data.get("depth")
+        depth, colour = data.get("depth"), data.get("colour")
         return cls(depth=None if depth is None else QuantileCalibration.from_dict(depth, where=f"{where}: depth"),
-                   points=points)
+                   points=points,
+                   colour=None if colour is None else QuantileCalibration.from_dict(colour, where=f"{where}: colour"))
 
 
 def save_run_calibration(run_dir: str | Path, calibration: RunCalibration) -> Path:
@@ -342,35 +382,56 @@ def load_run_calibration(run_dir: str | Path) -> RunCalibration | None:
 
 def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int = 0, model=None,
                   dataset=None, points: str = "calibrate") -> RunCalibration:
-    """Fit the run's calibration from its capture points (``points``: ``CALIBRATION_POINTS``) and
-    write ``RUN/calibration.json``."""
+    """Fit the run's calibration and write ``RUN/calibration.json``: the depth map from its capture
+    points (``points``: ``CALIBRATION_POINTS``) and, when the run held pixels out of training
+    (``train.holdout_fraction`` > 0 in its config.json), the colour map from them. ValueError
+    (the depth fit's reason) when neither can be fitted; a depth fit that fails beside a colour one
+    leaves depth raw."""
+    from .config import load_config
     from .trainer import load_trained_model
 
     if model is None:
-        _, model, dataset = load_trained_model(Path(run_dir), dataset=dataset, device=device)
-    calibration = RunCalibration(depth=fit_depth_calibration(model, dataset, seed=seed, points=points), points=points)
+        cfg, model, dataset = load_trained_model(Path(run_dir), dataset=dataset, device=device)
+    else:
+        cfg = load_config(Path(run_dir) / "config.json")
+    colour = None
+    if cfg.train.holdout_fraction > 0:
+        colour = fit_colour_calibration(model, dataset, fraction=cfg.train.holdout_fraction,
+                                        block=cfg.train.holdout_block, seed=seed)
+    try:
+        depth = fit_depth_calibration(model, dataset, seed=seed, points=points)
+    except ValueError:
+        if colour is None:
+            raise
+        depth = None
+    calibration = RunCalibration(depth=depth, points=points, colour=colour)
     save_run_calibration(run_dir, calibration)
     return calibration
 
 
 def describe(calibration: RunCalibration) -> str:
     """A few lines for people: the fitted factors at 68% and 95%."""
-    d = calibration.depth
-    if d is None:
-        return "no calibrated quantity"
-    return (f"depth std: x{d.std_scale:.3g} (one sigma, 68.3%), x{float(d.scale_at(0.95)):.3g} at 95% "
-            f"[{d.source}]")
+    parts = [f"{name} std: x{m.std_scale:.3g} (one sigma, 68.3%), x{float(m.scale_at(0.95)):.3g} at 95% [{m.source}]"
+             for name, m in (("depth", calibration.depth), ("colour", calibration.colour)) if m is not None]
+    return "; ".join(parts) if parts else "no calibrated quantity"
 
 
-def apply_depth_calibration(products: dict[str, np.ndarray], calibration: RunCalibration | None) -> dict[str, np.ndarray]:
-    """Camera-z products with ``depth_std`` calibrated and the raw one kept as ``depth_std_raw``
-    (unchanged when ``calibration`` has no depth map). Returns a new dict."""
+def _scaled(products: dict[str, np.ndarray], key: str, scale: float) -> dict[str, np.ndarray]:
+    """``key`` times ``scale`` (in float64, stored in its own dtype), the raw one as ``key_raw``."""
+    raw = products[key]
+    return {f"{key}_raw": raw, key: (raw.astype(np.float64) * scale).astype(raw.dtype)}
+
+
+def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibration | None) -> dict[str, np.ndarray]:
+    """Camera-z products (``view_maps.camera_z_maps``) with ``depth_std`` and ``colour_std``
+    calibrated where the run has their maps, the raw ones kept as ``depth_std_raw`` and
+    ``colour_std_raw``. Returns a new dict (unchanged entries where a map is missing)."""
     out = dict(products)
-    if calibration is None or calibration.depth is None:
+    if calibration is None:
         return out
-    out["depth_std_raw"] = products["depth_std"]
-    out["depth_std"] = (products["depth_std"].astype(np.float64) * calibration.depth.std_scale).astype(
-        products["depth_std"].dtype)
+    for key, cal in (("depth_std", calibration.depth), ("colour_std", calibration.colour)):
+        if cal is not None and key in products:
+            out.update(_scaled(products, key, cal.std_scale))
     return out
 
 
@@ -393,4 +454,5 @@ def add_arguments(p) -> None:
 def run(args) -> None:
     cal = calibrate_run(Path(args.run), device=args.device, seed=args.seed, points=args.points)
     print(f"calibrated {args.run}: {describe(cal)}")
-    print(f"written: {Path(args.run) / CALIBRATION_FILE} (render, eval and export apply it; raw std as depth_std_raw)")
+    print(f"written: {Path(args.run) / CALIBRATION_FILE} (render, eval and export apply it; raw stds as depth_std_raw "
+          "and colour_std_raw)")

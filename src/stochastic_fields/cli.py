@@ -115,8 +115,9 @@ def _train_distributed(args: argparse.Namespace, run_dir: Path, cfg: C.Experimen
 
 
 def _calibrate_after_training(run_dir: Path, model, dataset):
-    """Fit the depth recalibration of an S-NeRF run from its capture points (calibration.json);
-    a scene without enough of them keeps the raw std (said, not an error). Returns the calibration or None."""
+    """Fit the recalibration of an S-NeRF run (calibration.json): depth from its capture points,
+    colour from the pixels it held out of training (``train.holdout_fraction``); a run with neither
+    keeps the raw stds (said, not an error). Returns the calibration or None."""
     from .calibration import calibrate_run, describe
 
     if not getattr(model, "accepts_depth", False):
@@ -124,9 +125,9 @@ def _calibrate_after_training(run_dir: Path, model, dataset):
     try:
         calibration = calibrate_run(run_dir, model=model, dataset=dataset)
     except ValueError as exc:
-        print(f"depth uncertainty not recalibrated: {exc}")
+        print(f"uncertainty not recalibrated: {exc}")
         return None
-    print(f"depth uncertainty recalibrated ({run_dir / 'calibration.json'}): {describe(calibration)}")
+    print(f"uncertainty recalibrated ({run_dir / 'calibration.json'}): {describe(calibration)}")
     return calibration
 
 

@@ -91,6 +91,10 @@ class TrainConfig:
     """Learning rate at the end, as a fraction of lr (exponential decay). Range: a finite number > 0 and <= 1."""
     tv_weight: float = 1e-3
     """Total-variation weight on grid cells (grid backend). Range: a finite number >= 0."""
+    holdout_fraction: float = 0.0
+    """Share of each training view's pixel blocks held out from training; the colour std is recalibrated on them after training (stochastic_fields.holdout; 0: none). Range: a finite number >= 0 and <= 0.5."""
+    holdout_block: int = 16
+    """Side of the held-out pixel blocks, in pixels. Range: an integer >= 1 and <= 4096."""
     seed: int = 0
     """Seed for initialisation, ray batches and draws. Range: an integer >= 0 and <= 9223372036854775807."""
     eval_every: int = 500
@@ -160,6 +164,8 @@ TRAIN_CHECKS: dict[str, V.Checker] = {
     "lr": V.real(0.0, lo_open=True),
     "lr_final_factor": V.real(0.0, 1.0, lo_open=True),
     "tv_weight": V.real(0.0),
+    "holdout_fraction": V.real(0.0, 0.5),
+    "holdout_block": V.integer(1, 4096),
     "seed": V.integer(0, 2**63 - 1),
     "eval_every": V.integer(0, 10**9),
     "checkpoint_every": V.integer(0, 10**9),

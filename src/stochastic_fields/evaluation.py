@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from . import metrics as M
-from .calibration import apply_depth_calibration
+from .calibration import apply_calibration
 from .distributed import map_sharded
 from .io_utils import atomic_path, atomic_write_text
 from .renderer import RenderOptions, seeded_chunks
@@ -100,9 +100,11 @@ def depth_samples(products: dict[str, np.ndarray], gt_depth: np.ndarray | None =
     return DepthSamples(gt_depth[mask], d[mask], s[mask], s_raw[mask])
 
 
-def interval_scale_of(calibration):
-    """The level-dependent interval multiplier of a recalibrated depth std, or None (Gaussian)."""
-    return None if calibration is None or calibration.depth is None else calibration.depth.relative_scale
+def interval_scale_of(calibration, quantity: str = "depth"):
+    """The level-dependent interval multiplier of a recalibrated std (``quantity``: "depth" or
+    "colour"), or None (Gaussian intervals: no calibration, or none of that quantity)."""
+    cal = None if calibration is None else getattr(calibration, quantity)
+    return None if cal is None else cal.relative_scale
 
 
 def score_depth(samples: DepthSamples, calibration=None, scores: dict | None = None) -> dict[str, Any]:
@@ -112,7 +114,7 @@ def score_depth(samples: DepthSamples, calibration=None, scores: dict | None = N
     if scores is None:
         scores = paired_depth_scores(samples.gt, samples.pred, samples.std, interval_scale=interval_scale_of(calibration))
     out = {f"depth/{k}": scores[k] for k in DEPTH_SCORE_KEYS}
-    if calibration is not None:
+    if calibration is not None and calibration.depth is not None:
         raw = paired_depth_scores(samples.gt, samples.pred, samples.std_raw)
         out.update({f"depth_raw/{k}": raw[k] for k in DEPTH_SCORE_KEYS})
     return out
@@ -140,14 +142,15 @@ class ColourTerms:
         return np.sqrt(self.mse)
 
     @staticmethod
-    def of(products: dict[str, np.ndarray], gt_colour: np.ndarray) -> "ColourTerms":
+    def of(products: dict[str, np.ndarray], gt_colour: np.ndarray, interval_scale=None) -> "ColourTerms":
+        """``interval_scale``: the recalibrated colour std's level multiplier (``interval_scale_of``), or None."""
         mean = products["colour_mean"].astype(np.float64)
         var = products["colour_std"].astype(np.float64) ** 2
         return ColourTerms(mse=M.pixel_mse(gt_colour, mean).numpy().reshape(-1),
                            err_mae=M.pixel_errors(gt_colour, mean, "mae").numpy().reshape(-1),
                            unc=M.pixel_uncertainty(var).numpy().reshape(-1),
                            nll=M.gaussian_nll(gt_colour, mean, var, reduce=False).numpy().reshape(-1),
-                           calibration=M.calibration_curve(gt_colour, mean, np.sqrt(var)))
+                           calibration=M.calibration_curve(gt_colour, mean, np.sqrt(var), interval_scale=interval_scale))
 
 
 def ranking_scores(mse: np.ndarray, err_mae: np.ndarray, unc: np.ndarray) -> dict[str, Any]:
@@ -184,7 +187,7 @@ def score_view(products: dict[str, np.ndarray], gt_colour: np.ndarray, gt_depth:
                calibration=None, sparse=None) -> dict[str, Any]:
     """:func:`score_colour` plus :func:`score_depth` where the view has depth ground truth
     (``gt_depth`` [H, W] or ``sparse`` points)."""
-    scores = score_colour(products, gt_colour)
+    scores = score_colour(products, gt_colour, ColourTerms.of(products, gt_colour, interval_scale_of(calibration, "colour")))
     samples = depth_samples(products, gt_depth, sparse)
     if samples is not None:
         scores.update(score_depth(samples, calibration))
@@ -223,7 +226,10 @@ def _conventions(depth_source: str | None, calibration) -> dict[str, str]:
         from .sparse_depth import sparse_depth_conventions
 
         out.update(sparse_depth_conventions())
-    if calibration is not None:
+    if calibration is not None and calibration.colour is not None:
+        out["colour_calibration"] = ("colour_std recalibrated on pixels held out from training (calibration.json), "
+                                     "intervals at level p scaled by s(p)/s(0.683)")
+    if calibration is not None and calibration.depth is not None:
         out["depth_calibration"] = ("depth_std recalibrated (calibration.json), intervals at level p scaled by "
                                     "s(p)/s(0.683); raw scores under depth_raw/")
         if depth_source == "sparse" and calibration.saw_score_points:
@@ -243,14 +249,17 @@ def _evaluate_view(model, dataset, v: int, out_dir: Path, *, options: RenderOpti
     maps = model.render_view(rays, options, generator=seeded_chunks(seed, v, device))
     synchronize(device)
     render_s = time.perf_counter() - t0
-    products = apply_depth_calibration(camera_z_maps(maps), calibration)
+    products = apply_calibration(camera_z_maps(maps), calibration)
     gt = dataset.images[v].numpy()
     gt_depth = gt_depths[v].numpy() if gt_depths is not None else None
     if write_products:
         write_view_products(out_dir / "views", f"view_{v:03d}", products, gt, gt_depth,
                             camera=view_camera_arrays(dataset, v))
-    colour = ColourTerms.of(products, gt)
+    colour = ColourTerms.of(products, gt, interval_scale_of(calibration, "colour"))
     scores = score_colour(products, gt, colour)
+    if "colour_std_raw" in products:  # the raw std's calibration, beside the recalibrated one
+        raw = ColourTerms.of({"colour_mean": products["colour_mean"], "colour_std": products["colour_std_raw"]}, gt)
+        scores.update(nll_raw=float(raw.nll.mean()), auce_colour_raw=raw.calibration.auce)
     samples = depth_samples(products, gt_depth, sparse)
     if samples is not None:
         scores.update(score_depth(samples, calibration))
@@ -347,7 +356,7 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
                           else np.zeros(0) for k in ("gt", "pred", "std", "std_raw"))
         ds = paired_depth_scores(g, d, s, interval_scale=interval_scale_of(calibration))
         pooled_out["depth"] = _plain_scores(ds)
-        if calibration is not None:
+        if calibration is not None and calibration.depth is not None:
             pooled_out["depth_raw"] = _plain_scores(paired_depth_scores(g, d, s_raw))
         if ds["calibration"] is not None:
             curves.update(_pack("depth_calibration", ds["calibration"]))

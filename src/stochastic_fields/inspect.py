@@ -46,7 +46,7 @@ from .cameras import generate_rays_for_view, image_size, intrinsics_3x3
 from .distributions import RectifiedNormal
 from . import metrics as M
 from .plots import calibration_figure
-from .calibration import apply_depth_calibration, load_run_calibration
+from .calibration import apply_calibration, load_run_calibration
 from .evaluation import ColourTerms, depth_samples, interval_scale_of, score_colour, score_depth
 from .sparse_depth import paired_depth_scores
 from .view_maps import OPACITY_MASK, camera_z_maps
@@ -241,7 +241,7 @@ class RunInspector:
                 raw, intrinsics_3x3(ds.cameras)[view].double().cpu().numpy(),
                 ds.cameras.extrinsics[view].double().cpu().numpy(), near=float(ds.near[view]),
                 far=float(ds.far[view]), min_opacity=OPACITY_MASK, calibration=self.calibration)
-            products = apply_depth_calibration(camera_z_maps(raw), self.calibration)
+            products = apply_calibration(camera_z_maps(raw), self.calibration)
             gt, gt_depth = self.ground_truth(view)
             products["colour_abs_error"] = np.abs(products["colour_mean"] - gt).mean(axis=-1).astype(np.float32)
             if gt_depth is not None:

@@ -94,20 +94,27 @@ def check_resume(run_dir: Path, cfg: ExperimentConfig, state: dict | None = None
 
 @dataclass
 class TrainingRays:
-    """Every training pixel as a flat ray with its colour: rays [P], colours [P, 3]."""
+    """Every training pixel as a flat ray with its colour: rays [P], colours [P, 3]; without the
+    pixels held out for the colour recalibration (``holdout.holdout_mask``) when ``holdout_fraction`` > 0."""
 
     rays: RayBundle
     colours: torch.Tensor
 
     @staticmethod
-    def from_dataset(dataset, device: torch.device) -> "TrainingRays":
+    def from_dataset(dataset, device: torch.device, *, holdout_fraction: float = 0.0,
+                     holdout_block: int = 16) -> "TrainingRays":
         from .cameras import select_cameras
+        from .holdout import holdout_masks
 
         idx = list(dataset.train_indices)
         cams = select_cameras(dataset.cameras, idx)
-        rays = generate_rays(cams, dataset.near[idx], dataset.far[idx]).flatten().to(device)
-        colours = dataset.images[idx].reshape(-1, 3).to(device)
-        return TrainingRays(rays, colours)
+        rays = generate_rays(cams, dataset.near[idx], dataset.far[idx]).flatten()
+        colours = dataset.images[idx].reshape(-1, 3)
+        if holdout_fraction > 0:
+            keep = torch.from_numpy(~holdout_masks(dataset, idx, fraction=holdout_fraction,
+                                                   block=holdout_block).reshape(-1))
+            rays, colours = rays[keep], colours[keep]
+        return TrainingRays(rays.to(device), colours.to(device))
 
     def batch(self, n: int, generator: torch.Generator) -> tuple[RayBundle, torch.Tensor]:
         idx = torch.randint(0, len(self.colours), (n,), generator=generator).to(self.colours.device)
@@ -347,7 +354,8 @@ class Trainer:
             self._truncate_log()
         if self.dist is not None:  # identical starting point on every rank, whatever happened before
             self.dist.broadcast_tensors(list(self.model.state_dict().values()), what="parameters from rank 0")
-        data = TrainingRays.from_dataset(self.dataset, self.device)
+        data = TrainingRays.from_dataset(self.dataset, self.device, holdout_fraction=self.cfg.train.holdout_fraction,
+                                         holdout_block=self.cfg.train.holdout_block)
         depth_data = None
         if self.cfg.loss.lambda_depth > 0 and getattr(self.model, "accepts_depth", False):
             depth_data = TrainingDepth.from_dataset(self.dataset, self.device)

@@ -48,7 +48,7 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
-from ..calibration import apply_depth_calibration
+from ..calibration import apply_calibration
 from ..view_maps import camera_z_maps
 from ..io_utils import atomic_path, atomic_write_text
 
@@ -237,7 +237,7 @@ def compute_depth_products(maps: dict[str, torch.Tensor], intrinsics: np.ndarray
     if "depth_draws" not in maps:
         raise ValueError("compute_depth_products needs per-draw depths: render with keep_draws=True")
     levels = np.unique(check_quantile_levels(quantiles))  # ascending, no duplicates
-    z = apply_depth_calibration(camera_z_maps(maps), calibration)  # camera-z numpy float32
+    z = apply_calibration(camera_z_maps(maps), calibration)  # camera-z numpy float32
     depth_cal = None if calibration is None else calibration.depth
     draws = torch.from_numpy(z["depth_draws"]).double()  # [H, W, K]
     q = draw_quantiles(draws, levels).float().numpy()  # [Q, H, W]
