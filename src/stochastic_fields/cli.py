@@ -234,7 +234,8 @@ DISTRIBUTED_COMMANDS: tuple[str, ...] = ("train", "render", "eval", "export")
 EXTRA_COMMANDS = {
     "export": ("stochastic_fields.products.cli", "Export depth maps, uncertainty maps and point clouds of a trained run."),
     "calibrate": ("stochastic_fields.calibration",
-                  "Fit a run's depth-uncertainty recalibration from its capture points (calibration.json)."),
+                  "Fit a run's uncertainty recalibration (calibration.json): depth from its capture points, "
+                  "colour from the pixels it held out of training."),
     "occupancy": ("stochastic_fields.products.planner_cli", "Occupancy probabilities of a run (npz + OctoMap .ot)."),
     "free-path": ("stochastic_fields.products.free_path_cli", "P(collision-free) of segments or a path, with its error."),
     "rosbag": ("stochastic_fields.products.rosbag", "ROS 2 bag (depth, std, CameraInfo, colour, PointCloud2) of an export."),
