@@ -41,7 +41,10 @@ def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, dev
     if unknown:
         raise ValueError(f"unknown methods {unknown}; choose from {sorted(METHOD_SPECS)}")
     scene_path = resolve_scene(scene, data_root)
-    dataset = load_dataset(scene_path, images="images_8", split_every=5)
+    from stochastic_fields.data import detect_format
+
+    kwargs = {"images": "images_8"} if detect_format(scene_path) == "llff" else {}
+    dataset = load_dataset(scene_path, split_every=5, **kwargs)
     settings = BenchmarkSettings(budget=budget, device=device)
 
     def sync() -> None:
@@ -73,7 +76,7 @@ def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, dev
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--scene", default="fern", help="LLFF scene name under --data-root, or a scene folder.")
+    p.add_argument("--scene", default="fern", help="LLFF scene name under --data-root, or a scene folder (any format).")
     p.add_argument("--methods", nargs="+", default=["deterministic", "snerf_default"])
     p.add_argument("--reference", default="deterministic")
     p.add_argument("--budget", choices=("cpu", "full"), default="cpu")
