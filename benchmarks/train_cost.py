@@ -6,7 +6,8 @@ comparable. This measures the step time alone: every method's trainer is built w
 configuration at the chosen budget, warmed up, then trained ``--rounds`` x ``--steps`` steps in
 turn (method A, B, A, B, ...), so drifts of the machine hit every method alike. Medians of the
 per-round step times, read from the trainer's loop clock (set-up, resume and checkpoint writes
-excluded); ratios to ``--reference``.
+excluded); ratios to ``--reference``. Beside them, the tensor operations per step (each at least
+one kernel launch on a GPU, where small steps are launch-bound) and the functions issuing most.
 
     python benchmarks/train_cost.py --scene fern --budget full --methods deterministic snerf_default \\
         --out benchmarks/results/eval_tables_full/train_cost.json
@@ -23,6 +24,43 @@ from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA_ROOT = REPO_ROOT / ".." / "shared" / "data" / "nerf_llff_data"
+
+
+def count_step_ops(trainer, *, top: int = 8) -> tuple[float, list[tuple[str, float]]]:
+    """Tensor operations (ATen calls, the backward pass's included) per training step, and the
+    ``top`` functions of the package issuing the most (the backward's are counted where
+    ``backward()`` was called). On a GPU each is at least one kernel launch, so when steps are
+    launch-bound this count, not the arithmetic, sets the cost. Each ``train()`` call has set-up
+    work of its own (training rays, a resume), so one step is the difference of 3 steps and 1."""
+    import collections
+    import sys as _sys
+
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class _Count(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.by_function = collections.Counter()
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            frame, where = _sys._getframe(1), "(outside the package)"
+            while frame is not None:
+                name = frame.f_code.co_filename.replace("\\", "/")
+                if "/stochastic_fields/" in name:
+                    where = f"{name.rsplit('/stochastic_fields/', 1)[1]}:{frame.f_code.co_name}"
+                    break
+                frame = frame.f_back
+            self.by_function[where] += 1
+            return func(*args, **(kwargs or {}))
+
+    counts = []
+    for steps in (1, 3):
+        with _Count() as c:
+            trainer.train(progress=False, max_steps=steps)
+        counts.append(c.by_function)
+    per_step = collections.Counter({k: (counts[1][k] - counts[0][k]) / 2 for k in counts[1]})
+    total = float(sum(per_step.values()))
+    return total, [(k, v) for k, v in per_step.most_common(top) if v > 0]
 
 
 def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, device: str, rounds: int, steps: int,
@@ -67,11 +105,13 @@ def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, dev
                 sync()
                 step_s[m].append((trainers[m].elapsed - before) / steps)
         device_name = str(trainers[reference].device)
+        ops = {m: count_step_ops(trainers[m]) for m in methods}
     med = {m: float(np.median(v)) for m, v in step_s.items()}
     return {"scene": dataset.name, "budget": budget, "device": device_name,
             "device_name": torch.cuda.get_device_name() if device_name.startswith("cuda") else "cpu",
             "threads": torch.get_num_threads(), "steps": steps, "rounds": rounds, "step_s": med,
-            "ratio": {m: med[m] / med[reference] for m in methods}, "reference": reference}
+            "ratio": {m: med[m] / med[reference] for m in methods}, "reference": reference,
+            "ops_per_step": {m: ops[m][0] for m in methods}, "ops_by_function": {m: ops[m][1] for m in methods}}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -96,10 +136,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(f"{result['scene']}, budget {result['budget']}, {result['device_name']}, {result['threads']} thread(s), "
           f"{result['rounds']} x {result['steps']} steps")
-    print("| method | step ms | x " + args.reference + " |")
-    print("|---|---|---|")
+    print("| method | step ms | x " + args.reference + " | tensor ops / step | x " + args.reference + " |")
+    print("|---|---|---|---|---|")
+    ref_ops = result["ops_per_step"][args.reference]
     for m in args.methods:
-        print(f"| {m} | {1e3 * result['step_s'][m]:.1f} | {result['ratio'][m]:.2f} |")
+        print(f"| {m} | {1e3 * result['step_s'][m]:.1f} | {result['ratio'][m]:.2f} | "
+              f"{result['ops_per_step'][m]:.0f} | {result['ops_per_step'][m] / ref_ops:.2f} |")
+    for m in args.methods:
+        print(f"{m}: most tensor ops per step in " + ", ".join(f"{k} ({v:.0f})" for k, v in result["ops_by_function"][m]))
     if args.out is not None:
         from stochastic_fields.io_utils import atomic_write_text
 

@@ -1,0 +1,53 @@
+"""benchmarks/train_cost.py: the interleaved step cost and the tensor operations per step."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location("train_cost", REPO_ROOT / "benchmarks" / "train_cost.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_operations_per_step_are_those_of_one_step(tiny_scene, tmp_path):
+    """The count is per step (set-up excluded): a trainer's 2-step difference equals its
+    1-step count on the next call, and S-NeRF issues more operations than its deterministic baseline."""
+    import torch
+
+    from stochastic_fields.config import preset
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.trainer import Trainer
+
+    torch.set_num_threads(1)
+    ds = load_dataset(tiny_scene, split_every=5)
+    counts = {}
+    for method in ("snerf", "deterministic"):
+        cfg = preset("tiny")
+        cfg.method = method
+        cfg.train.iterations = 50
+        cfg.train.checkpoint_every = 0
+        cfg.train.eval_every = 0
+        trainer = Trainer(cfg, tmp_path / method, ds)
+        trainer.train(progress=False, max_steps=2)
+        total, top = _script().count_step_ops(trainer, top=3)
+        assert trainer.step == 2 + 1 + 3
+        assert total > 0 and len(top) == 3 and all(v > 0 for _, v in top)
+        assert total == pytest.approx(_script().count_step_ops(trainer)[0], rel=0.02)  # steady from step to step
+        counts[method] = total
+    assert counts["snerf"] > counts["deterministic"]
+
+
+def test_command_refuses_a_reference_it_does_not_measure(tiny_scene, capsys):
+    script = _script()
+    assert script.main(["--scene", str(tiny_scene), "--methods", "snerf_default", "--reference", "deterministic"]) == 2
+    assert "--reference" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        script.main(["--scene", str(tiny_scene), "--steps", "0"])
