@@ -117,11 +117,48 @@ def _laplace_continued_fraction(a: Tensor) -> tuple[Tensor, Tensor]:
     ``E[Y | Y > 0] = t1`` and ``Var[Y | Y > 0] = t1 * (t2 - t1)``; neither subtracts nearly
     equal numbers, unlike ``z + phi/Phi`` at very negative ``z``.
     """
+    t1, t2, _ = _laplace_tails(a)
+    return t1, t2
+
+
+def _laplace_tails(a: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``t1, t2, t3`` of Laplace's continued fraction (``_laplace_continued_fraction``)."""
     t = 0.5 * (torch.sqrt(a * a + 4.0 * (MILLS_CF_DEPTH + 1)) - a)
+    t3 = t
     for j in range(MILLS_CF_DEPTH, 1, -1):
-        t = j / (a + t)
-    t1 = 1.0 / (a + t)
-    return t1, t
+        t3, t = t, j / (a + t)
+    return 1.0 / (a + t), t, t3
+
+
+class _GaussianTailMoments(torch.autograd.Function):
+    """``(lam, kappa, var)`` of ``Y ~ N(-a, 1)`` given ``Y > 0`` for ``a >= MILLS_CF_SWITCH``, with
+    a closed-form backward (``truncated_normal_stats``' far-tail branch).
+
+    Forward: ``kappa = t1``, ``var = t1 (t2 - t1)``, ``lam = a + t1`` from Laplace's continued
+    fraction, evaluated without building an autograd graph (its 40-term loop would otherwise add
+    some 160 tensor operations to every backward pass). Backward, with ``mu = -a`` and the
+    truncated normal's identities ``d kappa/d mu = var``, ``d lam/d mu = -lam kappa``,
+    ``d var/d mu = lam (kappa^2 - var)``, written in the fraction's tails so that nothing cancels
+    (``2 t1 - t2 = t1 t2 (t3 - t2)``, from ``t1 = 1/(a + t2)`` and ``t2 = 2/(a + t3)``):
+
+        d lam/da   = 1 - var
+        d kappa/da = -var
+        d var/da   = -lam t1^2 t2 (t3 - t2)
+
+    Differentiable once (the KLs need first derivatives only)."""
+
+    @staticmethod
+    def forward(ctx, a: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        t1, t2, t3 = _laplace_tails(a)
+        lam, var = a + t1, t1 * (t2 - t1)
+        ctx.save_for_backward(t1, t2, t3, lam, var)
+        return lam, t1, var
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_lam: Tensor, g_kappa: Tensor, g_var: Tensor) -> Tensor:
+        t1, t2, t3, lam, var = ctx.saved_tensors
+        return g_lam * (1.0 - var) - g_kappa * var - g_var * (lam * t1 * t1 * t2 * (t3 - t2))
 
 
 def truncated_normal_stats(z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -147,11 +184,10 @@ def truncated_normal_stats(z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     lam_d = torch.where(z_d < 0, lam_neg, lam_pos)
     kappa_d = z_d + lam_d
     var_d = 1.0 - lam_d * kappa_d
-    a = (-z).clamp_min(MILLS_CF_SWITCH)
-    t1, t2 = _laplace_continued_fraction(a)
-    lam = torch.where(use_cf, a + t1, lam_d)
-    kappa = torch.where(use_cf, t1, kappa_d)
-    var = torch.where(use_cf, t1 * (t2 - t1), var_d)
+    lam_cf, kappa_cf, var_cf = _GaussianTailMoments.apply((-z).clamp_min(MILLS_CF_SWITCH))
+    lam = torch.where(use_cf, lam_cf, lam_d)
+    kappa = torch.where(use_cf, kappa_cf, kappa_d)
+    var = torch.where(use_cf, var_cf, var_d)
     return lam, kappa, var
 
 
