@@ -324,3 +324,32 @@ def test_half_precision_render_equals_float32(dtype, estimator):
     for name in ("colour_mean", "colour_var", "depth_mean", "depth_var_epistemic", "depth_var_spread"):
         torch.testing.assert_close(getattr(half, name), getattr(ref, name), rtol=0, atol=0)
     assert bool(torch.isfinite(half.colour_mean).all()) and float(half.colour_mean.max()) <= 1.0
+
+
+def test_set_aside_run_keeps_everything_under_a_free_name(tmp_path):
+    from stochastic_fields.cli import set_aside_run
+
+    run = tmp_path / "demo"
+    for n in range(2):
+        run.mkdir()
+        (run / "metrics.json").write_text(f'{{"n": {n}}}')
+        kept = set_aside_run(run)
+        assert not run.exists() and (kept / "metrics.json").read_text() == f'{{"n": {n}}}'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["demo.previous", "demo.previous-2"]
+
+
+@pytest.mark.slow
+def test_demo_over_a_run_of_other_options_sets_it_aside_and_trains(run, tmp_path, capsys):
+    """After an upgrade changes a default, `make demo` must still run: the old run is kept beside."""
+    import shutil
+
+    out = tmp_path / "demo"
+    shutil.copytree(run, out)
+    before = tree_digest(out)
+    rc = main([str(a) for a in ["demo", "--out", out, "--preset", "tiny", "--train.iterations", "2",
+                                "--train.lr", "0.01", "--quiet"]])
+    printed = capsys.readouterr().out
+    assert rc == 0
+    assert f"moved it to {tmp_path / 'demo.previous'}" in printed and "train.lr: 0.005 in the run, 0.01 now" in printed
+    assert tree_digest(tmp_path / "demo.previous") == before
+    assert (out / "metrics.json").is_file() and (out / "checkpoint.pt").is_file()

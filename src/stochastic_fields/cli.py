@@ -192,6 +192,18 @@ def _print_summary(result: dict, title: str) -> None:
               f"{depth['num_used']} px; coverage 68% {depth['coverage_68']:.3f}, 95% {depth['coverage_95']:.3f}")
 
 
+def set_aside_run(run_dir: Path) -> Path:
+    """Rename ``run_dir`` to the first free ``<run_dir>.previous``, ``.previous-2``, ... and return
+    the new path: nothing in it is lost, and ``run_dir`` is free for a new run."""
+    run_dir = Path(run_dir)
+    for n in range(1, 10_000):
+        target = run_dir.with_name(run_dir.name + (".previous" if n == 1 else f".previous-{n}"))
+        if not target.exists():
+            run_dir.rename(target)
+            return target
+    raise ValueError(f"{run_dir}: no free name to set the old run aside (.previous ... .previous-9999 exist)")
+
+
 def cmd_demo(args: argparse.Namespace) -> None:
     """Generate the embedded scene, train S-NeRF, render and score the held-out views."""
     from .evaluation import evaluate
@@ -204,7 +216,12 @@ def cmd_demo(args: argparse.Namespace) -> None:
 
     run_dir = check_output_folder(args.out, "--out")
     cfg = experiment_from_args(argparse.Namespace(**{**vars(args), "preset": args.preset or "demo"}), run_dir)
-    check_resume(run_dir, cfg)
+    try:
+        check_resume(run_dir, cfg)
+    except ValueError as exc:  # a run of other options (an older version's defaults): kept, not resumed
+        kept = set_aside_run(run_dir)
+        print(f"demo: {run_dir} holds a run made with other options; moved it to {kept} and training afresh "
+              f"({str(exc).split(' (', 1)[-1].split('). Only', 1)[0]})")
     resolve_device(cfg.train.device)
     t0 = time.perf_counter()
     dataset = load_run_dataset(cfg, run_dir)
