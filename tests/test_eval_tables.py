@@ -421,19 +421,24 @@ def test_resume_check_counts_missing_options_as_defaults(tmp_path):
     T.check_compatible(tmp_path, cfg)
 
 
-def test_the_depth_weight_default_change_retrains_only_snerf_default_runs():
-    """loss.lambda_depth went 0.1 -> 0.3 (study 4): a run stored at 0.1 keeps its fingerprint (the
-    entry stays left out), a run at the new default gets a new one, the baselines (no depth term)
-    none, and a saved config from before the option existed loads with the depth term off."""
+def test_the_depth_weight_default_changes_retrain_only_snerf_default_runs():
+    """loss.lambda_depth went 0.1 -> 0.3 (study 4) -> 1.0 (study 6): a run stored at 0.1 keeps its
+    fingerprint (the entry stays left out), one stored at 0.3 keeps its own, a run at the new default
+    gets a new one, the baselines (no depth term) none, and a saved config from before the option
+    existed loads with the depth term off."""
     from stochastic_fields.config import ExperimentConfig, flatten, saved_config, to_dict
     from stochastic_fields_bench.runner import _semantic
 
-    assert ExperimentConfig().loss.lambda_depth == 0.3
+    assert ExperimentConfig().loss.lambda_depth == 1.0
     stored = ExperimentConfig()
     stored.loss.lambda_depth = 0.1
     assert "loss.lambda_depth" not in _semantic(flatten(to_dict(stored)))
-    assert _semantic(flatten(to_dict(ExperimentConfig())))["loss.lambda_depth"] == 0.3
+    assert _semantic(flatten(to_dict(ExperimentConfig())))["loss.lambda_depth"] == 1.0
     assert T.config_fingerprint(ExperimentConfig()) != T.config_fingerprint(stored)
+    study4 = ExperimentConfig()
+    study4.loss.lambda_depth = 0.3
+    assert _semantic(flatten(to_dict(study4)))["loss.lambda_depth"] == 0.3
+    assert len({T.config_fingerprint(c) for c in (ExperimentConfig(), stored, study4)}) == 3
     for method in ("ensemble", "deterministic"):
         a, b = ExperimentConfig(method=method), ExperimentConfig(method=method)
         b.loss.lambda_depth = 0.1

@@ -44,7 +44,7 @@ _NOISE_HEAD_OPTIONS = ("loss.per_point_noise", "loss.noise_head_decoupled")
 _DEPTH_OPTIONS = ("loss.lambda_depth", "loss.depth_rays_per_batch", "loss.depth_relative_std")
 
 #: Options whose default changed after fingerprints were stored: the value the stored fingerprints
-#: left out as "the default" (lambda_depth was 0.1 until study 4 made it 0.3), so that a run at the
+#: left out as "the default" (lambda_depth was 0.1 until study 4 made it 0.3, then study 6 1.0), so that a run at the
 #: new default gets a new fingerprint and one stored at the old value keeps its own.
 _FINGERPRINT_REFERENCE: dict[str, Any] = {"loss.lambda_depth": 0.1}
 
