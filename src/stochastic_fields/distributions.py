@@ -107,8 +107,8 @@ def _log_phi(z: Tensor) -> Tensor:
     return -0.5 * z * z - _LOG_SQRT_2PI
 
 
-def _laplace_continued_fraction(a: Tensor) -> tuple[Tensor, Tensor]:
-    """First two tails ``t1, t2`` of Laplace's continued fraction, for ``a >= MILLS_CF_SWITCH``.
+def _laplace_tails(a: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """First three tails ``t1, t2, t3`` of Laplace's continued fraction, for ``a >= MILLS_CF_SWITCH``.
 
         t_j = j / (a + t_{j+1}),   j = D, ..., 1,   D = MILLS_CF_DEPTH,
 
@@ -117,12 +117,6 @@ def _laplace_continued_fraction(a: Tensor) -> tuple[Tensor, Tensor]:
     ``E[Y | Y > 0] = t1`` and ``Var[Y | Y > 0] = t1 * (t2 - t1)``; neither subtracts nearly
     equal numbers, unlike ``z + phi/Phi`` at very negative ``z``.
     """
-    t1, t2, _ = _laplace_tails(a)
-    return t1, t2
-
-
-def _laplace_tails(a: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """``t1, t2, t3`` of Laplace's continued fraction (``_laplace_continued_fraction``)."""
     t = 0.5 * (torch.sqrt(a * a + 4.0 * (MILLS_CF_DEPTH + 1)) - a)
     t3 = t
     for j in range(MILLS_CF_DEPTH, 1, -1):
