@@ -85,10 +85,6 @@ def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, dev
     dataset = load_dataset(scene_path, split_every=5, **kwargs)
     settings = BenchmarkSettings(budget=budget, device=device)
 
-    def sync() -> None:
-        if torch.cuda.is_available():
-            torch.cuda.synchronize()
-
     trainers, step_s = {}, {m: [] for m in methods}
     with tempfile.TemporaryDirectory() as tmp:
         for m in methods:
@@ -99,10 +95,8 @@ def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, dev
             trainers[m].train(progress=False, max_steps=5)  # warm-up: allocations, kernels, caches
         for _ in range(rounds):
             for m in methods:
-                sync()
                 before = trainers[m].elapsed  # the training loop's own clock: no set-up, resume or checkpoint
                 trainers[m].train(progress=False, max_steps=steps)
-                sync()
                 step_s[m].append((trainers[m].elapsed - before) / steps)
         device_name = str(trainers[reference].device)
         ops = {m: count_step_ops(trainers[m]) for m in methods}

@@ -28,6 +28,13 @@ DEFAULT_DATA_ROOT = REPO_ROOT / ".." / "shared" / "data" / "nerf_llff_data"
 
 Row = tuple[str, str, tuple[tuple[str, object], ...], str]
 
+#: The references beside every study's rows.
+REFERENCE_ROWS: tuple[Row, ...] = (
+    ("ensemble", "ensemble", (), "reference: deep ensemble of 5"),
+    ("deterministic", "deterministic", (), "reference: deterministic NeRF"),
+)
+
+
 #: Study 1: (row name, method of stochastic_fields_bench.tables.METHOD_SPECS, extra config overrides,
 #: what the row changes); each row changes one thing of S-NeRF + learned pixel noise.
 ROWS: tuple[Row, ...] = (
@@ -38,9 +45,7 @@ ROWS: tuple[Row, ...] = (
      "Rao-Blackwellised colour statistics at render time (less Monte-Carlo noise in the variance)"),
     ("depth", "snerf_predictive", (("loss.lambda_depth", 0.1),),
      "+ sparse-depth likelihood of the FIT capture points (weight 0.1)"),
-    ("ensemble", "ensemble", (), "reference: deep ensemble of 5"),
-    ("deterministic", "deterministic", (), "reference: deterministic NeRF"),
-)
+) + REFERENCE_ROWS
 
 #: Study 2: one change of today's default (study 1's decision: + sparse-depth likelihood).
 ROWS_NOISE_HEAD: tuple[Row, ...] = (
@@ -51,9 +56,7 @@ ROWS_NOISE_HEAD: tuple[Row, ...] = (
     ("per_point_noise_decoupled", "snerf_default", (("loss.per_point_noise", True), ("loss.noise_head_decoupled", True)),
      "+ per-point observation noise that only explains residuals: colours and densities keep the global-noise "
      "likelihood's gradient (stop-gradient weighting)"),
-    ("ensemble", "ensemble", (), "reference: deep ensemble of 5"),
-    ("deterministic", "deterministic", (), "reference: deterministic NeRF"),
-)
+) + REFERENCE_ROWS
 
 #: Study 4: few-view geometry, one change of today's default (study 2's decision: + decoupled noise head).
 ROWS_GEOMETRY: tuple[Row, ...] = (
@@ -64,9 +67,7 @@ ROWS_GEOMETRY: tuple[Row, ...] = (
     ("tv_strong", "snerf_default", (("train.tv_weight", 1e-2),), "10x the grid's total-variation weight (1e-2)"),
     ("depth_strong", "snerf_default", (("loss.lambda_depth", 0.3),),
      "3x the sparse-depth likelihood weight (0.3; the default from this study to study 6)"),
-    ("ensemble", "ensemble", (), "reference: deep ensemble of 5"),
-    ("deterministic", "deterministic", (), "reference: deterministic NeRF"),
-)
+) + REFERENCE_ROWS
 
 #: Study 5: colour recalibration from pixel blocks of the training views held out of training.
 ROWS_COLOUR: tuple[Row, ...] = (
@@ -74,9 +75,7 @@ ROWS_COLOUR: tuple[Row, ...] = (
      "S-NeRF default at the time (sparse-depth likelihood at weight 0.3, decoupled per-point noise)"),
     ("colour_holdout", "snerf_default", (("loss.lambda_depth", 0.3), ("train.holdout_fraction", 0.1)),
      "10% of each training view's 16-pixel blocks held out of training; the colour std recalibrated on them"),
-    ("ensemble", "ensemble", (), "reference: deep ensemble of 5"),
-    ("deterministic", "deterministic", (), "reference: deterministic NeRF"),
-)
+) + REFERENCE_ROWS
 
 
 #: Study 6: the sparse-depth weight beyond study 4's 0.3 (its trend: every metric improved from 0.1 to 0.3).
@@ -85,9 +84,7 @@ ROWS_DEPTH_WEIGHT: tuple[Row, ...] = (
      "S-NeRF default before this study (sparse-depth likelihood at weight 0.3, decoupled per-point noise)"),
     ("depth_1", "snerf_default", (("loss.lambda_depth", 1.0),),
      "the sparse-depth likelihood at weight 1.0 (today's default since this study)"),
-    ("ensemble", "ensemble", (), "reference: deep ensemble of 5"),
-    ("deterministic", "deterministic", (), "reference: deterministic NeRF"),
-)
+) + REFERENCE_ROWS
 
 
 #: --study NAME -> its rows.

@@ -28,6 +28,7 @@ def test_operations_per_step_are_those_of_one_step(tiny_scene, tmp_path):
 
     torch.set_num_threads(1)
     ds = load_dataset(tiny_scene, split_every=5)
+    script = _script()
     counts = {}
     for method in ("snerf", "deterministic"):
         cfg = preset("tiny")
@@ -37,10 +38,10 @@ def test_operations_per_step_are_those_of_one_step(tiny_scene, tmp_path):
         cfg.train.eval_every = 0
         trainer = Trainer(cfg, tmp_path / method, ds)
         trainer.train(progress=False, max_steps=2)
-        total, top = _script().count_step_ops(trainer, top=3)
+        total, top = script.count_step_ops(trainer, top=3)
         assert trainer.step == 2 + 1 + 3
         assert total > 0 and len(top) == 3 and all(v > 0 for _, v in top)
-        assert total == pytest.approx(_script().count_step_ops(trainer)[0], rel=0.02)  # steady from step to step
+        assert total == pytest.approx(script.count_step_ops(trainer)[0], rel=0.02)  # steady from step to step
         counts[method] = total
     assert counts["snerf"] > counts["deterministic"]
 

@@ -212,16 +212,15 @@ def cmd_demo(args: argparse.Namespace) -> None:
     from .trainer import Trainer
 
     from .io_utils import check_output_folder
-    from .trainer import check_resume
+    from .trainer import describe_differences, resume_differences
 
     run_dir = check_output_folder(args.out, "--out")
     cfg = experiment_from_args(argparse.Namespace(**{**vars(args), "preset": args.preset or "demo"}), run_dir)
-    try:
-        check_resume(run_dir, cfg)
-    except ValueError as exc:  # a run of other options (an older version's defaults): kept, not resumed
+    diffs = resume_differences(run_dir, cfg)
+    if diffs:  # a run of other options (an older version's defaults): kept, not resumed
         kept = set_aside_run(run_dir)
         print(f"demo: {run_dir} holds a run made with other options; moved it to {kept} and training afresh "
-              f"({str(exc).split(' (', 1)[-1].split('). Only', 1)[0]})")
+              f"({describe_differences(diffs)})")
     resolve_device(cfg.train.device)
     t0 = time.perf_counter()
     dataset = load_run_dataset(cfg, run_dir)

@@ -78,15 +78,23 @@ def saved_run_config(run_dir: Path, state: dict | None = None) -> ExperimentConf
     return load_config(Path(run_dir) / "config.json")
 
 
+def resume_differences(run_dir: Path, cfg: ExperimentConfig, state: dict | None = None) -> list[tuple[str, object, object]]:
+    """``config_differences`` of the run folder's checkpoint config and ``cfg`` ([] without a checkpoint)."""
+    saved = saved_run_config(run_dir, state)
+    return [] if saved is None else config_differences(saved, cfg)
+
+
+def describe_differences(diffs: list[tuple[str, object, object]]) -> str:
+    """'option: saved in the run, new now; ...' of ``config_differences``."""
+    return "; ".join(f"{k}: {va!r} in the run, {vb!r} now" for k, va, vb in diffs)
+
+
 def check_resume(run_dir: Path, cfg: ExperimentConfig, state: dict | None = None) -> None:
     """Refuse (ValueError naming each differing option, saved and new value) to resume a run
     folder's checkpoint with a config that changes anything but ``RESUMABLE_OPTIONS``. Reads only."""
-    saved = saved_run_config(run_dir, state)
-    if saved is None:
-        return
-    diffs = config_differences(saved, cfg)
+    diffs = resume_differences(run_dir, cfg, state)
     if diffs:
-        listed = "; ".join(f"{k}: {va!r} in the run, {vb!r} now" for k, va, vb in diffs)
+        listed = describe_differences(diffs)
         raise ValueError(f"cannot resume {Path(run_dir) / CHECKPOINT_NAME} with different options ({listed}). "
                          f"Only {', '.join(RESUMABLE_OPTIONS)} may change when resuming; train into a new --out "
                          "folder for the rest. Nothing was changed on disk.")
