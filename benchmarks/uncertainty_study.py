@@ -267,7 +267,7 @@ def main(argv: list[str] | None = None) -> int:
     lines += [f"- **{n}** ({m}): {why}" + (f"; overrides {dict(o)}" if o else "") for n, m, o, why in rows]
     lines += ["", "Columns: colour PSNR / NLL / AUCE / Spearman MSE-variance (per-view mean and pooled) / "
               "normalised AUSE-RMSE on the test views; depth abs-rel, Spearman |err|-std, and the share of "
-              "SCORE capture points (synthetic: every test pixel with opacity > 0.5) inside the central "
+              "SCORE capture points (synthetic: the test pixels whose surface lies in a SCORE block, opacity > 0.5) inside the central "
               "68% / 95% intervals, raw and recalibrated (pooled); the recalibration factor at one sigma; "
               "training seconds (1 thread, machine shared with other work: compare within a column only).", ""]
     for scene, by_row in results.items():

@@ -113,6 +113,59 @@ def test_split_points_by_blocks_rejects_bad_input(xyz, kwargs, message):
         split_points_by_blocks(xyz, **kwargs)
 
 
+def _hand_block_key(xyz: np.ndarray, reference: np.ndarray) -> list[tuple[int, int, int]]:
+    """The split's block of each point, by hand: the 1st-99th percentile box of ``reference`` cut
+    into SPLIT_BLOCKS_PER_AXIS^3 cells, points outside clamped into the border cells."""
+    n = SPLIT_BLOCKS_PER_AXIS
+    lo, hi = np.percentile(reference, (1, 99), axis=0)
+    out = []
+    for p in xyz:
+        out.append(tuple(min(max(int(math.floor((p[a] - lo[a]) / (hi[a] - lo[a]) * n)), 0), n - 1) for a in range(3)))
+    return out
+
+
+def test_block_roles_by_hand_and_for_blocks_without_points():
+    from stochastic_fields.capture_points import NO_ROLE, CapturePoints, block_roles
+
+    rng = np.random.default_rng(1)
+    xyz = rng.uniform(0, 10, size=(3000, 3))
+    xyz = xyz[(xyz[:, 0] < 4) | (xyz[:, 0] > 7)]  # a slab of space with no capture point
+    cap = CapturePoints(xyz, split_points_by_blocks(xyz), "sfm")
+    assert np.array_equal(block_roles(xyz, cap), cap.roles)
+    query = np.concatenate([rng.uniform(-5, 15, size=(400, 3)), [[5.5, 5.0, 5.0], [1e6, -1e6, 0.0]]])
+    role_of = dict(zip(_hand_block_key(xyz, xyz), cap.roles.tolist()))
+    expected = np.array([role_of.get(k, NO_ROLE) for k in _hand_block_key(query, xyz)])
+    got = block_roles(query, cap)
+    assert got.dtype == np.int8 and np.array_equal(got, expected)
+    assert got[-2] == NO_ROLE  # inside the empty slab
+    assert (got == NO_ROLE).any() and set(np.unique(got)) - {NO_ROLE} == {FIT, CALIBRATE, SCORE}
+
+
+def test_dense_depth_score_mask_keeps_the_score_blocks_surfaces(tiny_scene):
+    """Dense scoring mirrors the sparse one: a pixel of the exact depth map scores only when its
+    surface point (back-projected by hand, float64) lies in a block of the SCORE role; the stand-in
+    points a training view gave fall on pixels the mask agrees with."""
+    from stochastic_fields.cameras import camera_to_world, intrinsics_3x3
+    from stochastic_fields.capture_points import dense_depth_score_mask, load_capture_points
+    from stochastic_fields.data import load_dataset
+
+    ds = load_dataset(tiny_scene, split_every=5)
+    cap = load_capture_points(ds)
+    role_of = dict(zip(_hand_block_key(cap.xyz, cap.xyz), cap.roles.tolist()))
+    for v in (ds.test_indices[0], ds.train_indices[0]):
+        depth = ds.depths[v].double().numpy()
+        mask = dense_depth_score_mask(ds, cap, v)
+        assert mask.shape == depth.shape and 0 < mask.sum() < (depth > 0).sum()
+        K = intrinsics_3x3(ds.cameras)[v].double().numpy()
+        c2w = camera_to_world(ds.cameras)[v].double().numpy()
+        rows, cols = np.nonzero(depth > 0)
+        cam = np.linalg.solve(K, np.stack([cols + 0.5, rows + 0.5, np.ones(len(rows))])) * depth[rows, cols]
+        world = (c2w[:3, :3] @ cam).T + c2w[:3, 3]
+        expected = np.zeros_like(mask)
+        expected[rows, cols] = [role_of.get(k) == SCORE for k in _hand_block_key(world, cap.xyz)]
+        assert np.array_equal(mask, expected)
+
+
 # ----------------------------------------------------------------------------- recalibration
 def _coverage(err, std, levels, scale=None):
     return M.calibration_curve(err, np.zeros_like(err), std, levels=levels, interval_scale=scale).coverage

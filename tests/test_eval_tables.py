@@ -17,10 +17,12 @@ import torch
 from torch import nn
 
 from stochastic_fields.cameras import make_cameras
+from stochastic_fields.capture_points import dense_depth_score_mask, load_capture_points
 from stochastic_fields.config import save_config, set_dotted
 from stochastic_fields.constants import DEPTH_NLL_VARIANCE_FLOOR, NLL_VARIANCE_FLOOR
 from stochastic_fields.data import load_dataset
 from stochastic_fields.data.colmap import ColmapPoints, read_points3d_binary
+from stochastic_fields.evaluation import DENSE_DEPTH_SCORED
 from stochastic_fields import sparse_depth as CD
 from stochastic_fields_bench import tables as T
 from stochastic_fields_bench.tables import json_default
@@ -299,10 +301,12 @@ def test_evaluate_run_with_an_oracle_uncertainty(tiny_scene, tmp_path):
     assert s["ause_rmse"]["mean"] == pytest.approx(0.0, abs=1e-12)
     assert result["pooled"]["ause_rmse"] == pytest.approx(0.0, abs=1e-12)
     assert s["ause_mae"]["mean"] > 0  # ranking by variance is not the MAE oracle
-    # depth against the dataset's exact depth maps, on pixels with a surface
+    # depth against the dataset's exact depth maps, on the pixels whose surface lies in a SCORE block
     assert result["depth_source"] == "dense"
+    assert result["conventions"]["dense_depth_scored"] == DENSE_DEPTH_SCORED
     gt_depth = ds.depths[v].numpy().astype(np.float64)
-    mask = gt_depth > 0
+    mask = dense_depth_score_mask(ds, load_capture_points(ds), v)
+    assert 0 < mask.sum() < (gt_depth > 0).sum() and not (mask & (gt_depth <= 0)).any()
     assert s["depth/abs_rel"]["mean"] == pytest.approx(np.mean((0.02 * gt_depth[mask] + 0.01) / gt_depth[mask]),
                                                        rel=1e-5)
     assert s["depth/num_used"]["mean"] == mask.sum()

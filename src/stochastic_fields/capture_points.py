@@ -20,7 +20,10 @@ Scenes without SfM points but with dense depth (the embedded synthetic scene) ge
 capture points: a seeded ``SYNTHETIC_POINTS_FRACTION`` of every training view's surface pixels,
 back-projected, observed by every training view whose depth map agrees with them
 (``synthetic_capture_points``). They play the part of SfM points (surface points
-seen from training views); test views are scored on their exact dense depth.
+seen from training views). Test views are scored on their exact dense depth, but only at the
+pixels whose surface lies in a SCORE block (``dense_depth_score_mask``), as the sparse scenes are
+scored on the SCORE points only: the FIT blocks' surfaces trained the depth likelihood and the
+CALIBRATE blocks' fitted the recalibration.
 """
 
 from __future__ import annotations
@@ -35,6 +38,8 @@ import torch
 FIT, CALIBRATE, SCORE = 0, 1, 2
 ROLE_NAMES: dict[int, str] = {FIT: "fit", CALIBRATE: "calibrate", SCORE: "score"}
 
+#: Role of a point in a block of space that holds no capture point (no role: nothing trained or fitted there).
+NO_ROLE = -1
 #: Blocks per axis of the spatial split (6^3 = 216 blocks; fern's points occupy about 70 of them).
 SPLIT_BLOCKS_PER_AXIS: int = 6
 #: Share of the points per role (fit, calibrate, score).
@@ -65,6 +70,34 @@ def block_keys(xyz: np.ndarray, reference: np.ndarray, *,
     span = np.where(hi > lo, hi - lo, 1.0)
     cell = np.clip(np.floor((np.asarray(xyz, dtype=np.float64) - lo) / span * n), 0, n - 1).astype(np.int64)
     return (cell[:, 0] * n + cell[:, 1]) * n + cell[:, 2]
+
+
+def block_roles(xyz: np.ndarray, capture: "CapturePoints") -> np.ndarray:
+    """Role of the block of space each point ``xyz`` [N, 3] falls in, on the split of ``capture``'s
+    points (``block_keys`` over their extent; every block belongs wholly to one role) -> [N] int8:
+    FIT, CALIBRATE, SCORE, or ``NO_ROLE`` for a block that holds no capture point."""
+    keys = block_keys(capture.xyz, capture.xyz)
+    blocks, first = np.unique(keys, return_index=True)
+    query = block_keys(np.asarray(xyz, dtype=np.float64).reshape(-1, 3), capture.xyz)
+    pos = np.clip(np.searchsorted(blocks, query), 0, len(blocks) - 1)
+    return np.where(blocks[pos] == query, capture.roles[first[pos]], NO_ROLE).astype(np.int8)
+
+
+def dense_depth_score_mask(dataset, capture: "CapturePoints", view: int) -> np.ndarray:
+    """[H, W] bool: the pixels of ``view``'s exact depth map (``dataset.depths``, > 0 on a surface)
+    whose surface point, back-projected, lies in a SCORE block of ``capture``'s split: the dense
+    counterpart of scoring the SCORE capture points only (module doc)."""
+    from .cameras import camera_to_world, intrinsics_3x3
+
+    depth = dataset.depths[view].double()
+    rows, cols = torch.nonzero(depth > 0, as_tuple=True)
+    mask = np.zeros(tuple(depth.shape), dtype=bool)
+    if rows.numel() == 0:
+        return mask
+    xyz = backproject_pixels(intrinsics_3x3(dataset.cameras)[view], camera_to_world(dataset.cameras)[view],
+                             rows, cols, depth[rows, cols])
+    mask[rows.numpy(), cols.numpy()] = block_roles(xyz.numpy(), capture) == SCORE
+    return mask
 
 
 def split_points_by_blocks(xyz: np.ndarray, *, blocks_per_axis: int = SPLIT_BLOCKS_PER_AXIS,

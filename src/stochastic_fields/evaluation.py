@@ -217,7 +217,13 @@ SCORE_POINTS_SEEN = ("the depth calibration was fitted on the SCORE capture poin
                      "--points calibrate to score")
 
 
-def _conventions(depth_source: str | None, calibration) -> dict[str, str]:
+#: How dense (exact) depth is scored when the scene has capture points (capture_points.dense_depth_score_mask).
+DENSE_DEPTH_SCORED = ("exact camera-z depth at the test pixels whose surface point lies in a SCORE block of the "
+                      "capture points' spatial split (the FIT blocks trained the depth likelihood, the CALIBRATE "
+                      "blocks fitted the recalibration)")
+
+
+def _conventions(depth_source: str | None, calibration, *, dense_scored_blocks: bool = False) -> dict[str, str]:
     out = {"opacity_mask": f"depth is scored and drawn where the rendered opacity > {OPACITY_MASK}",
            "constant_uncertainty": "a constant uncertainty map (deterministic NeRF) has undefined correlations and "
                                    "AUSE; its NLL uses the variance floor",
@@ -226,22 +232,27 @@ def _conventions(depth_source: str | None, calibration) -> dict[str, str]:
         from .sparse_depth import sparse_depth_conventions
 
         out.update(sparse_depth_conventions())
+    if depth_source == "dense":
+        out["dense_depth_scored"] = (DENSE_DEPTH_SCORED if dense_scored_blocks
+                                     else "exact camera-z depth at every test pixel with a surface (no capture points)")
     if calibration is not None and calibration.colour is not None:
         out["colour_calibration"] = ("colour_std recalibrated on pixels held out from training (calibration.json), "
                                      "intervals at level p scaled by s(p)/s(0.683)")
     if calibration is not None and calibration.depth is not None:
         out["depth_calibration"] = ("depth_std recalibrated (calibration.json), intervals at level p scaled by "
                                     "s(p)/s(0.683); raw scores under depth_raw/")
-        if depth_source == "sparse" and calibration.saw_score_points:
+        if depth_source is not None and calibration.saw_score_points:
             out["depth_calibration_independence"] = SCORE_POINTS_SEEN
     return out
 
 
 def _evaluate_view(model, dataset, v: int, out_dir: Path, *, options: RenderOptions, seed: int,
-                   device: torch.device, write_products: bool, sparse, calibration) -> dict[str, Any]:
+                   device: torch.device, write_products: bool, sparse, calibration,
+                   dense_scored: np.ndarray | None = None) -> dict[str, Any]:
     """Render, write and score dataset view ``v``: its scores
     and what the pooled scores need (its ``ColourTerms`` and depth samples), CPU/numpy only (sent
-    between ranks as is)."""
+    between ranks as is). ``dense_scored`` [H, W]: the pixels of the exact depth map that score
+    depth (None: every pixel with a surface)."""
     gt_depths = getattr(dataset, "depths", None)
     rays = dataset.rays(v).to(device)
     synchronize(device)
@@ -255,6 +266,8 @@ def _evaluate_view(model, dataset, v: int, out_dir: Path, *, options: RenderOpti
     if write_products:
         write_view_products(out_dir / "views", f"view_{v:03d}", products, gt, gt_depth,
                             camera=view_camera_arrays(dataset, v))
+    if gt_depth is not None and dense_scored is not None:  # score the SCORE blocks' surfaces only
+        gt_depth = np.where(dense_scored, gt_depth, 0.0)
     colour = ColourTerms.of(products, gt, interval_scale_of(calibration, "colour"))
     scores = score_colour(products, gt, colour)
     if "colour_std_raw" in products:  # the raw std's calibration, beside the recalibrated one
@@ -301,19 +314,26 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
     device = next(model.parameters()).device
     gt_depths = getattr(dataset, "depths", None)
     depth_source = "sparse" if sparse_depth is not None else ("dense" if gt_depths is not None else None)
-    if depth_source == "sparse" and calibration is not None and calibration.saw_score_points:
+    capture = None
+    if depth_source == "dense":
+        from .capture_points import dense_depth_score_mask, load_capture_points
+
+        capture = load_capture_points(dataset)
+    if depth_source is not None and calibration is not None and calibration.saw_score_points:
         warnings.warn(f"{SCORE_POINTS_SEEN} (evaluating into {out_dir})", stacklevel=2)
     ctx = distributed
     records = map_sharded(lambda i: _evaluate_view(model, dataset, views[i], out_dir, options=options, seed=seed,
                                                    device=device, write_products=i < product_views,
                                                    calibration=calibration,
-                                                   sparse=None if sparse_depth is None else sparse_depth[views[i]]),
+                                                   sparse=None if sparse_depth is None else sparse_depth[views[i]],
+                                                   dense_scored=None if capture is None
+                                                   else dense_depth_score_mask(dataset, capture, views[i])),
                           len(views), ctx, what="evaluation's per-view results to rank 0", desc="evaluate",
                           progress=progress)
     if records is None:  # not rank 0: rank 0 pools and writes; its result (or its failure) ends every rank's call
         return ctx.broadcast_object(None, what="evaluation's metrics from rank 0")
     report = M.MetricReport()
-    report.conventions.update(_conventions(depth_source, calibration))
+    report.conventions.update(_conventions(depth_source, calibration, dense_scored_blocks=capture is not None))
     report.conventions.update(conventions or {})
     depth_pool: list[DepthSamples] = []
     for rec in records:  # in the order of ``views``, whichever rank rendered them

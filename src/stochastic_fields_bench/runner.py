@@ -27,6 +27,9 @@ from .report import build_tables, format_markdown, write_plots
 #: Which capture points score depth (capture_points: the SCORE role of the spatial split); part of
 #: the eval fingerprint so that runs scored on every point are re-scored.
 SCORED_POINTS = "score-role blocks"
+#: Which pixels of an exact depth map score depth (evaluation.DENSE_DEPTH_SCORED); part of the eval
+#: fingerprint of dense-depth scenes so that runs scored on every pixel are re-scored.
+SCORED_PIXELS = "score-role blocks of the exact depth"
 
 
 #: How the depth recalibration is fitted (part of the calibrate fingerprint: a new protocol refits).
@@ -187,7 +190,8 @@ def run_method(spec: MethodSpec, dataset, scene_path: Path, run_dir: Path, setti
     stages = load_stages(run_dir)
     fp_train = config_fingerprint(cfg)
     fp_cal = config_fingerprint(cfg, "calibrate", settings.seed, CALIBRATION_PROTOCOL)
-    fp_eval = config_fingerprint(cfg, "eval", list(views), settings.seed, sparse_depth is not None, SCORED_POINTS,
+    fp_eval = config_fingerprint(cfg, "eval", list(views), settings.seed, sparse_depth is not None,
+                                 SCORED_POINTS if sparse_depth is not None else SCORED_PIXELS,
                                  spec.calibrate)
     fp_time = config_fingerprint(cfg, "timing", settings.seed, settings.timing_repeats)
     tag = f"{dataset.name}/{spec.name}"
