@@ -176,10 +176,10 @@ def resplit_coverage(cal_abs_z: np.ndarray, cal_blocks: np.ndarray, score_abs_z:
 
 
 def render_at_points(model, cameras, near, far, sparse: dict, *,
-                     generator: torch.Generator | None = None) -> dict[str, np.ndarray]:
+                     generator: torch.Generator | None = None, options=None) -> dict[str, np.ndarray]:
     """Render the rays through the pixels of {view: SparseDepth} (continuous uv) of ``cameras``
-    (bounds ``near``/``far``: floats or [V]): camera-z depth mean, total std and opacity [N], with
-    the points' depths [N] as "gt" (float64)."""
+    (bounds ``near``/``far``: floats or [V]) with the render ``options`` (default: the model's):
+    camera-z depth mean, total std and opacity [N], with the points' depths [N] as "gt" (float64)."""
     from .capture_points import rays_through_points
 
     found = rays_through_points(cameras, near, far, sparse)
@@ -189,7 +189,7 @@ def render_at_points(model, cameras, near, far, sparse: dict, *,
     device = next(model.parameters()).device
     rays = rays.to(device)
     with torch.no_grad():
-        maps = model.render_view(rays.reshape(1, len(gt)), generator=generator)
+        maps = model.render_view(rays.reshape(1, len(gt)), options, generator=generator)
     z = maps["z_scale"].double().cpu().reshape(-1)
     return {"gt": gt,
             "depth_mean": (maps["depth_mean"].double().cpu().reshape(-1) * z).numpy(),
@@ -267,11 +267,13 @@ def pair_visible_points(capture, pairs: list[tuple[int, int]], keep: np.ndarray)
 
 
 def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
-                          points: str = "calibrate") -> QuantileCalibration:
+                          points: str = "calibrate", options=None) -> QuantileCalibration:
     """Fit the depth map on the CALIBRATE capture points (``points="held-out"``: CALIBRATE and
     SCORE, see ``CALIBRATION_POINTS``) seen from the calibration views (``calibration_views``:
     halfway between neighbouring training views; a point counts when both views of the pair
-    observed it), at pixels with rendered opacity above ``opacity_mask`` (as the depth scores).
+    observed it), at pixels with rendered opacity above ``opacity_mask`` (as the depth scores),
+    rendered with ``options`` (default: the model's; a map fits the std of the K and estimator it
+    is fitted with, so fit it with the options the run will render with).
     ValueError when the scene has no capture points or too few of those roles, or for an unknown
     ``points``."""
     from .capture_points import CALIBRATE, SCORE, load_capture_points
@@ -289,7 +291,8 @@ def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float 
     sparse = project_sparse_depth(cams, capture.xyz, range(len(pairs)), visible=pair_visible_points(capture, pairs, role),
                                   visibility_name="pair")
     device = next(model.parameters()).device
-    r = render_at_points(model, cams, near, far, sparse, generator=torch.Generator(device=device).manual_seed(seed))
+    r = render_at_points(model, cams, near, far, sparse, generator=torch.Generator(device=device).manual_seed(seed),
+                         options=options)
     keep = r["opacity"] > mask
     z = standardised_errors(r["gt"][keep], r["depth_mean"][keep], r["depth_std"][keep])
     return QuantileCalibration.fit(z, quantity="depth_std",
