@@ -45,7 +45,7 @@ def rays(n_side: int = 8) -> RayBundle:
 
 
 SETTINGS = RenderSettings(num_samples=32, chunk_rays=32, adaptive_batch_draws=8, adaptive_max_draws=128,
-                          adaptive_rtol=0.05)
+                          adaptive_rtol=0.05, colour_estimator="draws")
 
 
 def test_relative_change_hand_values():

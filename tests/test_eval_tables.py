@@ -450,3 +450,36 @@ def test_the_depth_weight_default_changes_retrain_only_snerf_default_runs():
     old = to_dict(ExperimentConfig())
     del old["loss"]["lambda_depth"]
     assert saved_config(old).loss.lambda_depth == 0.0
+
+
+def test_render_only_options_rescore_a_stored_run_without_retraining(tmp_path):
+    """Study 7 changed the render defaults (K 16 -> 8, Rao-Blackwellised colours): a run stored with
+    the old values keeps its training fingerprint and is accepted for resuming (the differing
+    render options are returned), its calibrate/eval fingerprints change; an option that shapes
+    training still refuses the folder."""
+    from stochastic_fields.config import ExperimentConfig, to_dict
+    from stochastic_fields_bench.runner import RENDER_ONLY_OPTIONS
+
+    assert {"render.num_draws", "render.colour_estimator"} <= set(RENDER_ONLY_OPTIONS)
+    new = T.base_config(T.BenchmarkSettings())
+    assert (new.render.num_draws, new.render.colour_estimator) == (8, "rao_blackwell")
+    old = T.base_config(T.BenchmarkSettings())
+    old.render.num_draws, old.render.colour_estimator = 16, "draws"
+    (tmp_path / "config.json").write_text(json.dumps(to_dict(old)))
+    assert T.check_compatible(tmp_path, new) == ["render.colour_estimator", "render.num_draws"]
+    assert T.check_compatible(tmp_path, old) == []
+    train_fp = [T.config_fingerprint(c, leave_out=RENDER_ONLY_OPTIONS) for c in (old, new)]
+    assert train_fp[0] == train_fp[1]
+    # the stored training fingerprint (computed before the option was left out) is unchanged
+    assert train_fp[0] == T.config_fingerprint(old)
+    assert T.config_fingerprint(old, "eval") != T.config_fingerprint(new, "eval")
+    # the baselines render their own K from deterministic passes: nothing of theirs changes
+    for method in ("deterministic", "ensemble", "mc_dropout", "nerfw"):
+        a, b = ExperimentConfig(method=method), ExperimentConfig(method=method)
+        b.render.num_draws, b.render.colour_estimator = 16, "draws"
+        assert T.config_fingerprint(a, "eval") == T.config_fingerprint(b, "eval")
+    trained = T.base_config(T.BenchmarkSettings())
+    trained.loss.lambda_random *= 2
+    with pytest.raises(ValueError, match="lambda_random"):
+        T.check_compatible(tmp_path, trained)
+    assert ExperimentConfig().render.num_draws == 8

@@ -345,14 +345,18 @@ def test_render_cache_per_view_k_and_quadrature(inspector):
 
 
 def test_colour_estimator_switch_re_renders(inspector):
-    """Switching to Rao-Blackwellised colours clears the cache and renders the same colour mean up to
-    Monte-Carlo noise, with the same density draws behind the depths (same seeds)."""
+    """Switching between drawn and Rao-Blackwellised colours (the run's default) clears the cache and
+    renders the same colour mean up to Monte-Carlo noise, with the same density draws behind the
+    depths (same seeds)."""
     view = inspector.dataset.test_indices[-1]
-    drawn = inspector.render(view, 8, "alpha")
+    default = inspector.colour_estimator
+    assert default == inspector.model.default_render_options().colour_estimator == "rao_blackwell"
     with pytest.raises(ValueError, match="colour_estimator"):
         inspector.colour_estimator = "exact"
-    inspector.colour_estimator = "rao_blackwell"
     try:
+        inspector.colour_estimator = "draws"
+        drawn = inspector.render(view, 8, "alpha")
+        inspector.colour_estimator = "rao_blackwell"
         assert inspector.cached_keys() == [] and "rao_blackwell" in inspector.summary()
         rb = inspector.render(view, 8, "alpha")
         assert rb is not drawn
@@ -362,6 +366,7 @@ def test_colour_estimator_switch_re_renders(inspector):
         np.testing.assert_allclose(rb["depth_draws"], drawn["depth_draws"], rtol=1e-5, atol=1e-6)
     finally:
         inspector.colour_estimator = "draws"
+        inspector.colour_estimator = default
     assert inspector.cached_keys() == []
 
 

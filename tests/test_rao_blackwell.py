@@ -185,10 +185,11 @@ def test_bad_estimator_and_mixed_concatenation_raise():
     with pytest.raises(ValueError, match="colour_estimator"):
         render_samples(params, samples, RenderSettings(num_samples=24), num_draws=2, colour_estimator="exact")
     rb = render_samples(params, samples, RenderSettings(num_samples=24), num_draws=2, colour_estimator="rao_blackwell")
-    dr = render_samples(params, samples, RenderSettings(num_samples=24), num_draws=2)
+    dr = render_samples(params, samples, RenderSettings(num_samples=24), num_draws=2, colour_estimator="draws")
     with pytest.raises(ValueError, match="Rao-Blackwellised"):
         concatenate_draws([rb.stats, dr.stats])
-    assert colour_moments(params, RenderSettings()) is None
+    assert colour_moments(params, RenderSettings(colour_estimator="draws")) is None
+    assert colour_moments(params, RenderSettings()) is not None  # the default since study 7
 
 
 def test_adaptive_k_stops_at_the_first_batch_when_only_colours_are_random():
@@ -204,7 +205,7 @@ def test_adaptive_k_stops_at_the_first_batch_when_only_colours_are_random():
     with torch.no_grad():
         rb = RenderSettings(num_samples=24, colour_estimator="rao_blackwell", adaptive_batch_draws=4)
         _, k_rb, _ = render_rays_adaptive(FixedDensity(), rays, rb, max_draws=64, rtol=1e-3)
-        dr = RenderSettings(num_samples=24, adaptive_batch_draws=4)
+        dr = RenderSettings(num_samples=24, adaptive_batch_draws=4, colour_estimator="draws")
         _, k_dr, _ = render_rays_adaptive(FixedDensity(), rays, dr, max_draws=64, rtol=1e-3)
     assert k_rb == 4 and k_dr > 4
 

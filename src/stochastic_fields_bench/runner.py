@@ -14,9 +14,10 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from stochastic_fields.config import LEGACY_VALUES, ExperimentConfig, flatten, to_dict
+from stochastic_fields.config import LEGACY_VALUES, ExperimentConfig, flatten, save_config, to_dict
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.evaluation import synchronize
+from stochastic_fields.trainer import RESUMABLE_OPTIONS
 from stochastic_fields.view_maps import draws_summary
 
 from .methods import MethodSpec, METHOD_SPECS, method_config
@@ -43,13 +44,23 @@ _NON_SEMANTIC = ("train.device", "train.eval_every", "train.checkpoint_every", "
 #: Options of S-NeRF's noise head (docs/definitions.md §4.7).
 _NOISE_HEAD_OPTIONS = ("loss.per_point_noise", "loss.noise_head_decoupled")
 
+#: S-NeRF's render-time trajectory options: the baselines render their own K (1, the ensemble's
+#: members, MC-Dropout's passes) from deterministic passes, so these change nothing of theirs.
+_SNERF_RENDER_OPTIONS = ("render.num_draws", "render.colour_estimator")
+
 #: Options of S-NeRF's sparse-depth likelihood (the baselines take no depth term).
 _DEPTH_OPTIONS = ("loss.lambda_depth", "loss.depth_rays_per_batch", "loss.depth_relative_std")
 
 #: Options whose default changed after fingerprints were stored: the value the stored fingerprints
 #: left out as "the default" (lambda_depth was 0.1 until study 4 made it 0.3, then study 6 1.0), so that a run at the
 #: new default gets a new fingerprint and one stored at the old value keeps its own.
-_FINGERPRINT_REFERENCE: dict[str, Any] = {"loss.lambda_depth": 0.1}
+_FINGERPRINT_REFERENCE: dict[str, Any] = {"loss.lambda_depth": 0.1, "render.num_draws": 16,
+                                          "render.colour_estimator": "draws"}
+
+#: Render-time options a trained run may change (``trainer.RESUMABLE_OPTIONS``): they are left out
+#: of the training fingerprint (a new K or colour estimator re-calibrates and re-scores a stored run,
+#: it does not retrain it) and a run folder saved with other values is updated to the new ones.
+RENDER_ONLY_OPTIONS: tuple[str, ...] = tuple(k for k in RESUMABLE_OPTIONS if k.startswith("render."))
 
 
 def _semantic(flat: dict[str, Any]) -> dict[str, Any]:
@@ -63,29 +74,34 @@ def _semantic(flat: dict[str, Any]) -> dict[str, Any]:
     if flat.get("method", "snerf") != "snerf":
         ignored.update(_NOISE_HEAD_OPTIONS)  # S-NeRF's field only: the baselines build none
         ignored.update(_DEPTH_OPTIONS)  # nor do they take the depth likelihood
+        ignored.update(_SNERF_RENDER_OPTIONS)  # nor draw S-NeRF's trajectories
     elif not flat.get("loss.per_point_noise", LEGACY_VALUES["loss.per_point_noise"]):
         ignored.add("loss.noise_head_decoupled")  # changes nothing without the noise head
     return {k: v for k, v in flat.items() if k not in ignored and not (k in reference and reference[k] == v)}
 
 
-def config_fingerprint(cfg: ExperimentConfig, *extra: Any) -> str:
-    flat = _semantic(flatten(to_dict(cfg)))
+def config_fingerprint(cfg: ExperimentConfig, *extra: Any, leave_out: Sequence[str] = ()) -> str:
+    """Hash of what ``cfg`` computes (``_semantic``) with ``extra``, without the ``leave_out`` entries."""
+    flat = {k: v for k, v in _semantic(flatten(to_dict(cfg))).items() if k not in leave_out}
     text = json.dumps([flat, list(extra)], sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def check_compatible(run_dir: Path, cfg: ExperimentConfig) -> None:
-    """A run folder may only be resumed with the same config (more iterations are allowed).
-    Options missing from the saved config count as their defaults."""
+def check_compatible(run_dir: Path, cfg: ExperimentConfig) -> list[str]:
+    """A run folder may only be resumed with the same config (more iterations are allowed, and
+    other ``RENDER_ONLY_OPTIONS``); returns the render-only options that differ. Options missing
+    from the saved config count as their defaults."""
     saved = Path(run_dir) / "config.json"
     if not saved.exists():
-        return
+        return []
     old = _semantic(flatten(json.loads(saved.read_text())))
     new = _semantic(flatten(to_dict(cfg)))
     differ = sorted(k for k in set(old) | set(new) if k != "train.iterations" and old.get(k) != new.get(k))
-    if differ:
+    trained = [k for k in differ if k not in RENDER_ONLY_OPTIONS]
+    if trained:
         raise ValueError(f"run folder {run_dir} was trained with a different configuration "
-                         f"(differs in {differ}); use another --out or remove the folder")
+                         f"(differs in {trained}); use another --out or remove the folder")
+    return differ
 
 
 def _read_json(path: Path) -> dict:
@@ -185,10 +201,13 @@ def run_method(spec: MethodSpec, dataset, scene_path: Path, run_dir: Path, setti
 
     run_dir = Path(run_dir)
     cfg = method_config(spec, base_config(settings, dataset), scene_path)
-    check_compatible(run_dir, cfg)
+    render_changes = check_compatible(run_dir, cfg)
+    if render_changes:  # renders of the stored run follow the new render options (stages below re-run)
+        save_config(cfg, run_dir / "config.json")
+        log(f"[{dataset.name}/{spec.name}] render options changed ({', '.join(render_changes)}): config.json updated")
     run_dir.mkdir(parents=True, exist_ok=True)
     stages = load_stages(run_dir)
-    fp_train = config_fingerprint(cfg)
+    fp_train = config_fingerprint(cfg, leave_out=RENDER_ONLY_OPTIONS)
     fp_cal = config_fingerprint(cfg, "calibrate", settings.seed, CALIBRATION_PROTOCOL)
     fp_eval = config_fingerprint(cfg, "eval", list(views), settings.seed, sparse_depth is not None,
                                  SCORED_POINTS if sparse_depth is not None else SCORED_PIXELS,
