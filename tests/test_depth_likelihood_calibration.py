@@ -412,3 +412,32 @@ def _with_draws(render):
         maps["colour_var"] = torch.zeros((*rays.shape, 3))
         return maps
     return wrapped
+
+
+@pytest.mark.parametrize("shared_noise, quadrature", [(False, "alpha"), (True, "alpha"), (False, "trapezoid")])
+def test_trajectory_weights_are_the_renders_weights_without_colours(shared_noise, quadrature):
+    """The depth likelihood's weights-only draws: for the same density noise they equal the full
+    render's weights exactly (colour noise drawn or not), and from a generator they draw [R, K, S]
+    (shared: constant along the ray) normals, so the depth term needs no colour draws."""
+    from stochastic_fields.fields.base import FieldParams
+    from stochastic_fields.rays import RayBundle
+    from stochastic_fields.renderer import RenderSettings, render_samples, trajectory_weights
+    from stochastic_fields.samplers import sample_along_rays
+
+    R, S, K = 5, 12, 4
+    g = torch.Generator().manual_seed(0)
+    rays = RayBundle(torch.zeros(R, 3), torch.nn.functional.normalize(torch.randn(R, 3, generator=g), dim=-1),
+                     torch.full((R,), 0.5), torch.full((R,), 4.0), torch.ones(R))
+    samples = sample_along_rays(rays, S)
+    params = FieldParams(torch.randn(R, S, generator=g), torch.rand(R, S, generator=g) + 0.1,
+                         torch.randn(R, S, 3, generator=g), torch.rand(R, S, 3, generator=g) + 0.1)
+    st = RenderSettings(num_samples=S, shared_noise=shared_noise, quadrature=quadrature)
+    eps_a = torch.randn(R, K, 1 if shared_noise else S, generator=g)
+    eps_c = torch.randn(R, K, 1 if shared_noise else S, 3, generator=g)
+    full = render_samples(params, samples, st, num_draws=K, noise=(eps_a, eps_c), colour_estimator="draws")
+    w = trajectory_weights(params, samples, st, num_draws=K, noise=eps_a)
+    assert torch.equal(w, full.extras["weights"])
+    drawn = trajectory_weights(params, samples, st, num_draws=K, generator=torch.Generator().manual_seed(3))
+    again = trajectory_weights(params, samples, st, num_draws=K,
+                               noise=torch.randn(R, K, 1 if shared_noise else S, generator=torch.Generator().manual_seed(3)))
+    assert drawn.shape == (R, K, S) and torch.equal(drawn, again)

@@ -478,6 +478,19 @@ def test_render_only_options_rescore_a_stored_run_without_retraining(tmp_path):
         a, b = ExperimentConfig(method=method), ExperimentConfig(method=method)
         b.render.num_draws, b.render.colour_estimator = 16, "draws"
         assert T.config_fingerprint(a, "eval") == T.config_fingerprint(b, "eval")
+    # the runner updates only the render options of the stored config.json, nothing it was trained with
+    from stochastic_fields.config import load_config
+    from stochastic_fields_bench.runner import update_render_options
+
+    stored = T.base_config(T.BenchmarkSettings())
+    stored.render.num_draws, stored.render.colour_estimator, stored.loss.noise_head_decoupled = 16, "draws", False
+    (tmp_path / "config.json").write_text(json.dumps(to_dict(stored)))
+    update_render_options(tmp_path, new, ["render.num_draws", "render.colour_estimator"])
+    updated = load_config(tmp_path / "config.json")
+    assert (updated.render.num_draws, updated.render.colour_estimator) == (8, "rao_blackwell")
+    assert updated.loss.noise_head_decoupled is False and new.loss.noise_head_decoupled is True
+    with pytest.raises(ValueError, match="not a render-only option"):
+        update_render_options(tmp_path, new, ["loss.kl"])
     trained = T.base_config(T.BenchmarkSettings())
     trained.loss.lambda_random *= 2
     with pytest.raises(ValueError, match="lambda_random"):

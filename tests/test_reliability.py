@@ -79,10 +79,13 @@ def test_run_damaged_by_an_old_failed_resume_still_loads(run, tmp_path):
     shutil.copytree(run, copy)
     cfg = load_config(copy / "config.json")
     cfg.field.grid_levels = 2
+    cfg.render.num_draws, cfg.render.colour_estimator = 5, "draws"  # render options: free to change
     save_config(cfg, copy / "config.json")
     with pytest.warns(UserWarning, match="field.grid_levels"):
         cfg, model, _ = load_trained_model(copy)
     assert cfg.field.grid_levels == 3
+    assert (cfg.render.num_draws, cfg.render.colour_estimator) == (5, "draws")  # config.json's, not the checkpoint's
+    assert model.default_render_options().num_draws == 5
 
 
 def test_resume_may_extend_iterations(tmp_path, tiny_scene, capsys):

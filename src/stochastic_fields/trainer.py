@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 
 from .cameras import generate_rays
 from .checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
-from .config import ExperimentConfig, flatten, save_config, saved_config, to_dict, validate_experiment
+from .config import ExperimentConfig, flatten, save_config, saved_config, set_dotted, to_dict, validate_experiment
 from .distributed import DistContext, GradientReducer, rank_seeds, shard_size
 from .io_utils import atomic_write_text, open_append_no_follow, remove_stale_temporaries
 from .fields.grid import GridField, coarse_to_fine_weights
@@ -454,7 +454,8 @@ def load_trained_model(run_dir: Path, dataset=None, device: str | None = None):
 
     The config is the run's config.json; when it differs from the config stored in the
     checkpoint in an option that shapes the model or its training (a run damaged by an earlier
-    failed resume), the checkpoint's config is used, with a warning naming the options."""
+    failed resume), the checkpoint's config is used, with a warning naming the options, but for
+    ``RESUMABLE_OPTIONS`` (render options among them), which stay config.json's."""
     from .config import load_config
     from .scenes import load_run_dataset
 
@@ -477,6 +478,9 @@ def load_trained_model(run_dir: Path, dataset=None, device: str | None = None):
         listed = ", ".join(k for k, _, _ in config_differences(trained, cfg))
         warnings.warn(f"{run_dir / 'config.json'} differs from the config stored in {ckpt} ({listed}); "
                       "using the checkpoint's", stacklevel=2)
+        flat = flatten(to_dict(cfg))
+        for key in RESUMABLE_OPTIONS:
+            set_dotted(trained, key, flat[key])
         cfg = trained
     if dev_name is not None:
         cfg.train.device = dev_name

@@ -54,7 +54,7 @@ class BenchmarkSettings:
 
 
 def base_config(settings: BenchmarkSettings, dataset=None) -> ExperimentConfig:
-    """The shared configuration: the ``llff`` preset (disparity spacing, 64 samples, K = 16) or,
+    """The shared configuration: the ``llff`` preset (disparity spacing, 64 samples; S-NeRF renders K = 8 with Rao-Blackwellised colours) or,
     with ``tiny``, a configuration that runs in seconds. Scenes that are not forward-facing
     (``dataset.forward_facing`` False) sample linearly in distance and composite the dataset's
     background colour. ``settings.overrides`` apply last."""

@@ -14,7 +14,8 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from stochastic_fields.config import LEGACY_VALUES, ExperimentConfig, flatten, save_config, to_dict
+from stochastic_fields.config import (LEGACY_VALUES, ExperimentConfig, flatten, save_config, saved_config,
+                                     set_dotted, to_dict)
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.evaluation import synchronize
 from stochastic_fields.trainer import RESUMABLE_OPTIONS
@@ -102,6 +103,18 @@ def check_compatible(run_dir: Path, cfg: ExperimentConfig) -> list[str]:
         raise ValueError(f"run folder {run_dir} was trained with a different configuration "
                          f"(differs in {trained}); use another --out or remove the folder")
     return differ
+
+
+def update_render_options(run_dir: Path, cfg: ExperimentConfig, keys: Sequence[str]) -> None:
+    """Set the render-only options ``keys`` of ``run_dir``'s config.json to ``cfg``'s values,
+    leaving every other entry as the run was trained (written atomically)."""
+    saved = saved_config(_read_json(Path(run_dir) / "config.json"))
+    flat = flatten(to_dict(cfg))
+    for key in keys:
+        if key not in RENDER_ONLY_OPTIONS:
+            raise ValueError(f"{key} is not a render-only option ({', '.join(RENDER_ONLY_OPTIONS)})")
+        set_dotted(saved, key, flat[key])
+    save_config(saved, Path(run_dir) / "config.json")
 
 
 def _read_json(path: Path) -> dict:
@@ -203,7 +216,7 @@ def run_method(spec: MethodSpec, dataset, scene_path: Path, run_dir: Path, setti
     cfg = method_config(spec, base_config(settings, dataset), scene_path)
     render_changes = check_compatible(run_dir, cfg)
     if render_changes:  # renders of the stored run follow the new render options (stages below re-run)
-        save_config(cfg, run_dir / "config.json")
+        update_render_options(run_dir, cfg, render_changes)
         log(f"[{dataset.name}/{spec.name}] render options changed ({', '.join(render_changes)}): config.json updated")
     run_dir.mkdir(parents=True, exist_ok=True)
     stages = load_stages(run_dir)

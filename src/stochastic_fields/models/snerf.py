@@ -33,7 +33,8 @@ from ..losses import (LossConfig, Priors, decoupled_likelihood_nll, field_kl, ga
 from ..occupancy import OccupancyGrid, density_threshold, density_upper_estimate
 from ..rays import PackedRaySamples, RayBundle, RaySamples
 from ..renderer import (ChunkGenerators, ChunkRender, RayRender, RenderOptions, RenderSettings,
-                        observation_noise_per_draw, render_any_samples, render_chunked, render_rays, skip_empty)
+                        observation_noise_per_draw, render_any_samples, render_chunked, render_rays, skip_empty,
+                        trajectory_weights)
 from ..samplers import sample_along_rays
 from ..scene_region import SceneRegion, random_unit_directions
 from .base import RadianceModel
@@ -233,15 +234,15 @@ class SNeRF(RadianceModel):
 
     def _depth_nll(self, rays: RayBundle, target_t: Tensor, *, generator: torch.Generator | None) -> Tensor:
         """``termination_depth_nll`` of capture-point rays [M] at their surface distances [M]:
-        dense stratified samples (as the colour rays, without skipping), ``train_draws`` trajectories."""
+        dense stratified samples (as the colour rays, without skipping), ``train_draws`` trajectories
+        of the density alone (``trajectory_weights``: the loss needs no colours)."""
         settings = self.render_settings
         samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing, stratified=True,
                                     generator=generator)
         params = self.field(samples.positions.reshape(-1, 3), samples.directions.reshape(-1, 3))
         params = params.reshape(*samples.t_starts.shape)
-        out = render_any_samples(params, samples, settings, num_draws=self.train_draws, generator=generator,
-                                 colour_estimator="draws", observation_noise=False)
-        return termination_depth_nll(out.extras["weights"], samples.t_mids, samples.deltas, target_t,
+        weights = trajectory_weights(params, samples, settings, num_draws=self.train_draws, generator=generator)
+        return termination_depth_nll(weights, samples.t_mids, samples.deltas, target_t,
                                      self.loss_config.depth_relative_std)
 
     def _distortion(self, out: RayRender, samples: RaySamples | PackedRaySamples) -> Tensor:
