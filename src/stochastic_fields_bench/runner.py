@@ -303,16 +303,15 @@ def load_method_result(run_dir: Path) -> dict[str, Any]:
             "config": _read_json(run_dir / "config.json"), "curves": curves}
 
 
-def run_scene(scene: str, methods: Sequence[str], out_root: Path, settings: BenchmarkSettings, *,
-              data_root: Path | None = None, progress: bool = True,
-              log: Callable[[str], None] = print) -> dict[str, dict]:
-    """Every method on one scene: {method: load_method_result(...)}."""
-    from stochastic_fields.data import load_dataset
-    from stochastic_fields.data import detect_format
+def scene_inputs(scene: str, settings: BenchmarkSettings, data_root: Path | None = None, *,
+                 log: Callable[[str], None] = print) -> tuple[Path, Any, list[int], dict | None]:
+    """What every method of a scene is scored on: (scene folder, dataset with every 5th view
+    training, the scored test views, {view: SparseDepth} of the SCORE capture points or None
+    where the scene has exact depth maps or no points)."""
+    from stochastic_fields.data import detect_format, load_dataset
 
     scene_path = resolve_scene(scene, data_root)
-    kind = detect_format(scene_path)
-    if kind == "llff":
+    if detect_format(scene_path) == "llff":
         dataset = load_dataset(scene_path, images=settings.images, split_every=5)
     else:
         dataset = load_dataset(scene_path, split_every=5)
@@ -326,6 +325,14 @@ def run_scene(scene: str, methods: Sequence[str], out_root: Path, settings: Benc
             log(f"[{dataset.name}] no sparse depth ground truth: the scene has no COLMAP points")
         else:
             sparse = sparse_depth_for_role(dataset, points, views, SCORE)
+    return scene_path, dataset, views, sparse
+
+
+def run_scene(scene: str, methods: Sequence[str], out_root: Path, settings: BenchmarkSettings, *,
+              data_root: Path | None = None, progress: bool = True,
+              log: Callable[[str], None] = print) -> dict[str, dict]:
+    """Every method on one scene: {method: load_method_result(...)}."""
+    scene_path, dataset, views, sparse = scene_inputs(scene, settings, data_root, log=log)
     name = dataset.name
     results = {}
     for m in methods:
