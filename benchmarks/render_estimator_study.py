@@ -35,7 +35,7 @@ from stochastic_fields.evaluation import evaluate  # noqa: E402
 from stochastic_fields.io_utils import atomic_write_text  # noqa: E402
 from stochastic_fields.trainer import load_trained_model  # noqa: E402
 from stochastic_fields_bench.budget import BenchmarkSettings  # noqa: E402
-from stochastic_fields_bench.runner import TABLE_CONVENTIONS, scene_inputs  # noqa: E402
+from stochastic_fields_bench.runner import TABLE_CONVENTIONS, scene_inputs, time_renders_interleaved  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATA_ROOT = REPO_ROOT / ".." / "shared" / "data" / "nerf_llff_data"
@@ -112,13 +112,7 @@ def time_interleaved(det, snerf, dataset, view: int, repeats: int) -> dict:
     for model, options in variants.values():
         with torch.no_grad():
             model.render_view(warm, options, generator=torch.Generator().manual_seed(0))
-    times: dict[str, list[float]] = {k: [] for k in variants}
-    for _ in range(repeats):
-        for k, (model, options) in variants.items():
-            t0 = time.perf_counter()
-            with torch.no_grad():
-                model.render_view(rays, options, generator=torch.Generator().manual_seed(0))
-            times[k].append(time.perf_counter() - t0)
+    times = time_renders_interleaved(variants, rays, repeats)
     med = {k: statistics.median(v) for k, v in times.items()}
     return {"view": int(view), "repeats": repeats, "torch_threads": torch.get_num_threads(), "seconds": times,
             "median_s": med, "ratio_to_deterministic": {k: med[k] / med["deterministic"] for k in med}}

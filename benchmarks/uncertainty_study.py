@@ -147,6 +147,7 @@ def measure_cost(out: Path, scene: str, data_root: Path, *, rows: tuple[str, ...
     from stochastic_fields_bench.tables import (METHOD_SPECS, BenchmarkSettings, base_config, method_config,
                                                resolve_scene, select_views)
     from stochastic_fields.trainer import Trainer, load_trained_model
+    from stochastic_fields_bench.runner import time_renders_interleaved
 
     scene_path = resolve_scene(scene, data_root)
     dataset = load_dataset(scene_path, images="images_8", split_every=5)
@@ -168,16 +169,8 @@ def measure_cost(out: Path, scene: str, data_root: Path, *, rows: tuple[str, ...
                 before = t.elapsed
                 t.train(progress=False, max_steps=steps)
                 step_s[r].append((t.elapsed - before) / steps)
-    render_s = {r: [] for r in rows}
     models = {r: load_trained_model(out / r / dataset.name / specs[r][0], dataset=dataset)[1] for r in rows}
-    rays = dataset.rays(view)
-    for _ in range(render_repeats):
-        for r in rows:
-            gen = torch.Generator().manual_seed(0)
-            t0 = time.perf_counter()
-            with torch.no_grad():
-                models[r].render_view(rays, generator=gen)
-            render_s[r].append(time.perf_counter() - t0)
+    render_s = time_renders_interleaved({r: (models[r], None) for r in rows}, dataset.rays(view), render_repeats)
     med = lambda v: float(np.median(v))  # noqa: E731
     return {"scene": dataset.name, "view": int(view), "threads": torch.get_num_threads(),
             "train_step_s": {r: med(v) for r, v in step_s.items()},

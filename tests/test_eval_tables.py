@@ -496,3 +496,22 @@ def test_render_only_options_rescore_a_stored_run_without_retraining(tmp_path):
     with pytest.raises(ValueError, match="lambda_random"):
         T.check_compatible(tmp_path, trained)
     assert ExperimentConfig().render.num_draws == 8
+
+
+def test_renders_are_timed_interleaved():
+    """Interleaved timing renders A, B, A, B, ... with each variant's own options and a generator seeded 0."""
+    from stochastic_fields_bench.runner import time_renders_interleaved
+
+    calls = []
+
+    class Recorder:
+        def __init__(self, name):
+            self.name = name
+
+        def render_view(self, rays, options, *, generator):
+            calls.append((self.name, options, float(torch.rand(1, generator=generator))))
+
+    times = time_renders_interleaved({"a": (Recorder("a"), "opt_a"), "b": (Recorder("b"), None)}, rays=None, repeats=3)
+    assert [c[:2] for c in calls] == [("a", "opt_a"), ("b", None)] * 3
+    assert len({c[2] for c in calls}) == 1  # every render's generator starts from seed 0
+    assert set(times) == {"a", "b"} and all(len(v) == 3 and min(v) >= 0 for v in times.values())

@@ -45,10 +45,6 @@ _NON_SEMANTIC = ("train.device", "train.eval_every", "train.checkpoint_every", "
 #: Options of S-NeRF's noise head (docs/definitions.md §4.7).
 _NOISE_HEAD_OPTIONS = ("loss.per_point_noise", "loss.noise_head_decoupled")
 
-#: S-NeRF's render-time trajectory options: the baselines render their own K (1, the ensemble's
-#: members, MC-Dropout's passes) from deterministic passes, so these change nothing of theirs.
-_SNERF_RENDER_OPTIONS = ("render.num_draws", "render.colour_estimator")
-
 #: Options of S-NeRF's sparse-depth likelihood (the baselines take no depth term).
 _DEPTH_OPTIONS = ("loss.lambda_depth", "loss.depth_rays_per_batch", "loss.depth_relative_std")
 
@@ -75,7 +71,9 @@ def _semantic(flat: dict[str, Any]) -> dict[str, Any]:
     if flat.get("method", "snerf") != "snerf":
         ignored.update(_NOISE_HEAD_OPTIONS)  # S-NeRF's field only: the baselines build none
         ignored.update(_DEPTH_OPTIONS)  # nor do they take the depth likelihood
-        ignored.update(_SNERF_RENDER_OPTIONS)  # nor draw S-NeRF's trajectories
+        # nor draw S-NeRF's trajectories: they render their own K (1, the ensemble's members,
+        # MC-Dropout's passes) from deterministic passes, whatever K or colour estimator is set
+        ignored.update(RENDER_ONLY_OPTIONS)
     elif not flat.get("loss.per_point_noise", LEGACY_VALUES["loss.per_point_noise"]):
         ignored.add("loss.noise_head_decoupled")  # changes nothing without the noise head
     return {k: v for k, v in flat.items() if k not in ignored and not (k in reference and reference[k] == v)}
@@ -194,6 +192,20 @@ def time_render(model, dataset, view: int, *, seed: int = 0, repeats: int = 3) -
             **draws_summary(maps["num_draws"]), "device": str(device),
             "torch_threads": torch.get_num_threads(), "machine": platform.processor() or platform.machine(),
             **_peak_memory()}
+
+
+def time_renders_interleaved(variants: dict[str, tuple[Any, Any]], rays, repeats: int) -> dict[str, list[float]]:
+    """Wall times of full renders of ``rays`` by each variant {name: (model, RenderOptions or None
+    for the model's own)}, the variants in turn ``repeats`` times (A, B, A, B, ...) so that drifts of
+    the machine hit every variant alike; each render draws from a generator seeded 0."""
+    times: dict[str, list[float]] = {k: [] for k in variants}
+    for _ in range(repeats):
+        for name, (model, options) in variants.items():
+            t0 = time.perf_counter()
+            with torch.no_grad():
+                model.render_view(rays, options, generator=torch.Generator().manual_seed(0))
+            times[name].append(time.perf_counter() - t0)
+    return times
 
 
 def resolve_scene(scene: str, data_root: Path | None) -> Path:
