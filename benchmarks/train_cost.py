@@ -1,16 +1,18 @@
-"""Training-step cost of the tables' methods on one scene, interleaved in one process.
+"""Training cost of the tables' methods on one scene: the whole training, interleaved in one process.
 
 The tables' own ``train s`` column is the wall time of each method's whole training; when several
-methods train side by side on one machine (parallel processes on one GPU, say) those times are not
-comparable. This measures the step time alone: every method's trainer is built with the tables'
-configuration at the chosen budget, warmed up, then trained ``--rounds`` x ``--steps`` steps in
-turn (method A, B, A, B, ...), so drifts of the machine hit every method alike. Medians of the
-per-round step times, read from the trainer's loop clock (set-up, resume and checkpoint writes
-excluded); ratios to ``--reference``. Beside them, the tensor operations per step (each at least
-one kernel launch on a GPU, where small steps are launch-bound) and the functions issuing most.
+methods train side by side on one machine (parallel processes, other sessions) those times are not
+comparable. This trains every method with the tables' configuration at the chosen budget from
+scratch to its last step (or ``--max-steps``), in turn, ``--chunk`` steps at a time (method A, B,
+A, B, ...), so drifts of the machine hit every method alike and every phase of training is in the
+sum (S-NeRF skips empty space only after its occupancy warm-up, so early steps alone misstate it).
+Times are the trainer's loop clock (set-up, resume and checkpoint writes excluded); the ratio is
+of whole-training loop times to ``--reference``. Beside them: the step time of each chunk (a plot
+with ``--out``), and the tensor operations per step at the end (each at least one kernel launch on
+a GPU, where small steps are launch-bound) with the functions issuing most.
 
-    python benchmarks/train_cost.py --scene fern --budget full --methods deterministic snerf_default \\
-        --out benchmarks/results/eval_tables_full/train_cost.json
+    python benchmarks/train_cost.py --scene fern --methods deterministic snerf_default \\
+        --out benchmarks/results/eval_tables/train_cost.json
 """
 
 from __future__ import annotations
@@ -63,11 +65,13 @@ def count_step_ops(trainer, *, top: int = 8) -> tuple[float, list[tuple[str, flo
     return total, [(k, v) for k, v in per_step.most_common(top) if v > 0]
 
 
-def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, device: str, rounds: int, steps: int,
-            reference: str) -> dict:
-    """{"scene", "device", "threads", "steps", "rounds", "step_s": {method: median s}, "ratio": {method: x}}."""
+def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, device: str, chunk: int,
+            reference: str, max_steps: int | None = None, progress: bool = True) -> dict:
+    """{"scene", "device", "threads", "steps", "chunk", "train_s": {method: loop s},
+    "step_s": {method: mean s}, "ratio": {method: x}, "chunk_step_s": {method: [s per step]}, ...}."""
     import numpy as np
     import torch
+    from tqdm import tqdm
 
     from stochastic_fields.data import load_dataset
     from stochastic_fields.trainer import Trainer
@@ -85,26 +89,40 @@ def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, dev
     dataset = load_dataset(scene_path, split_every=5, **kwargs)
     settings = BenchmarkSettings(budget=budget, device=device)
 
-    trainers, step_s = {}, {m: [] for m in methods}
+    configs = {}
+    for m in methods:
+        configs[m] = method_config(METHOD_SPECS[m], base_config(settings, dataset), scene_path)
+        configs[m].train.checkpoint_every = 0
+        configs[m].train.eval_every = 0
+    trainers, chunk_s = {}, {m: [] for m in methods}
     with tempfile.TemporaryDirectory() as tmp:
         for m in methods:
-            cfg = method_config(METHOD_SPECS[m], base_config(settings, dataset), scene_path)
-            cfg.train.checkpoint_every = 0
-            cfg.train.eval_every = 0
-            trainers[m] = Trainer(copy.deepcopy(cfg), Path(tmp) / m, dataset)
-            trainers[m].train(progress=False, max_steps=5)  # warm-up: allocations, kernels, caches
-        for _ in range(rounds):
+            trainers[m] = Trainer(copy.deepcopy(configs[m]), Path(tmp) / m, dataset)
+        iterations = {m: t.cfg.train.iterations for m, t in trainers.items()}
+        if len(set(iterations.values())) != 1:
+            raise ValueError(f"the methods train for different numbers of steps at this budget: {iterations}")
+        total = next(iter(iterations.values())) if max_steps is None else min(max_steps, *iterations.values())
+        done, bar = 0, tqdm(total=total, desc="train (interleaved)", unit="step", disable=not progress)
+        while done < total:
+            n = min(chunk, total - done)
             for m in methods:
                 before = trainers[m].elapsed  # the training loop's own clock: no set-up, resume or checkpoint
-                trainers[m].train(progress=False, max_steps=steps)
-                step_s[m].append((trainers[m].elapsed - before) / steps)
+                trainers[m].train(progress=False, max_steps=n)
+                chunk_s[m].append((trainers[m].elapsed - before, n))
+            done += n
+            bar.update(n)
+        bar.close()
         device_name = str(trainers[reference].device)
-        ops = {m: count_step_ops(trainers[m]) for m in methods}
-    med = {m: float(np.median(v)) for m, v in step_s.items()}
+        # operations per step of fresh trainers (the timed ones have finished their training)
+        ops = {m: count_step_ops(Trainer(copy.deepcopy(configs[m]), Path(tmp) / f"ops_{m}", dataset)) for m in methods}
+    train_s = {m: float(sum(t for t, _ in v)) for m, v in chunk_s.items()}
     return {"scene": dataset.name, "budget": budget, "device": device_name,
             "device_name": torch.cuda.get_device_name() if device_name.startswith("cuda") else "cpu",
-            "threads": torch.get_num_threads(), "steps": steps, "rounds": rounds, "step_s": med,
-            "ratio": {m: med[m] / med[reference] for m in methods}, "reference": reference,
+            "threads": torch.get_num_threads(), "steps": total, "chunk": chunk, "train_s": train_s,
+            "step_s": {m: train_s[m] / total for m in methods},
+            "ratio": {m: train_s[m] / train_s[reference] for m in methods}, "reference": reference,
+            "chunk_step_s": {m: [t / n for t, n in v] for m, v in chunk_s.items()},
+            "chunk_end_step": np.cumsum([n for _, n in chunk_s[reference]]).tolist(),
             "ops_per_step": {m: ops[m][0] for m in methods}, "ops_by_function": {m: ops[m][1] for m in methods}}
 
 
@@ -115,26 +133,31 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reference", default="deterministic")
     p.add_argument("--budget", choices=("cpu", "full"), default="cpu")
     p.add_argument("--device", default="auto", help="auto, cpu or cuda.")
-    p.add_argument("--rounds", type=int, default=4)
-    p.add_argument("--steps", type=int, default=25, help="Training steps per method and round.")
+    p.add_argument("--chunk", type=int, default=50, help="Training steps per method between switches.")
+    p.add_argument("--max-steps", type=int, default=None,
+                   help="Stop every method after this many steps (default: the budget's whole training).")
     p.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
-    p.add_argument("--out", type=Path, default=None, help="Also write the result as JSON here.")
+    p.add_argument("--out", type=Path, default=None,
+                   help="Also write the result as JSON here, and the step-time plot beside it (.png).")
+    p.add_argument("--quiet", action="store_true", help="No progress bar.")
     args = p.parse_args(argv)
-    if args.rounds < 1 or args.steps < 1:
-        p.error("--rounds and --steps must be positive")
+    if args.chunk < 1 or (args.max_steps is not None and args.max_steps < 1):
+        p.error("--chunk and --max-steps must be positive")
     try:
         result = measure(args.scene, args.methods, budget=args.budget, data_root=args.data_root, device=args.device,
-                         rounds=args.rounds, steps=args.steps, reference=args.reference)
+                         chunk=args.chunk, reference=args.reference, max_steps=args.max_steps,
+                         progress=not args.quiet)
     except (ValueError, FileNotFoundError) as exc:
         print(f"train_cost: error: {exc}", file=sys.stderr)
         return 2
     print(f"{result['scene']}, budget {result['budget']}, {result['device_name']}, {result['threads']} thread(s), "
-          f"{result['rounds']} x {result['steps']} steps")
-    print("| method | step ms | x " + args.reference + " | tensor ops / step | x " + args.reference + " |")
-    print("|---|---|---|---|---|")
+          f"{result['steps']} steps each, interleaved every {result['chunk']}")
+    print("| method | training loop s | ms / step | x " + args.reference + " | tensor ops / step | x "
+          + args.reference + " |")
+    print("|---|---|---|---|---|---|")
     ref_ops = result["ops_per_step"][args.reference]
     for m in args.methods:
-        print(f"| {m} | {1e3 * result['step_s'][m]:.1f} | {result['ratio'][m]:.2f} | "
+        print(f"| {m} | {result['train_s'][m]:.1f} | {1e3 * result['step_s'][m]:.1f} | {result['ratio'][m]:.2f} | "
               f"{result['ops_per_step'][m]:.0f} | {result['ops_per_step'][m] / ref_ops:.2f} |")
     for m in args.methods:
         print(f"{m}: most tensor ops per step in " + ", ".join(f"{k} ({v:.0f})" for k, v in result["ops_by_function"][m]))
@@ -143,6 +166,15 @@ def main(argv: list[str] | None = None) -> int:
 
         args.out.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(args.out, json.dumps(result, indent=2))
+        from stochastic_fields.plots import plot_step_times
+
+        plot = plot_step_times(
+            result["chunk_end_step"], result["chunk_step_s"],
+            {m: f"{m}: {result['ratio'][m]:.2f}x {args.reference} over the whole training" for m in args.methods},
+            args.out.with_suffix(".png"),
+            title=f"{result['scene']}, budget {result['budget']}, {result['device_name']}, {result['threads']} "
+                  f"thread(s), interleaved every {result['chunk']} steps")
+        print(f"wrote {args.out} and {plot}")
     return 0
 
 

@@ -87,9 +87,19 @@ ROWS_DEPTH_WEIGHT: tuple[Row, ...] = (
 ) + REFERENCE_ROWS
 
 
+#: Study 8: the training likelihood's colour estimator (drawn colours against their exact expectation).
+ROWS_LIKELIHOOD: tuple[Row, ...] = (
+    ("default", "snerf_default", (),
+     "S-NeRF default (study 6's depth_1): the training likelihood draws every sample's colour"),
+    ("rb_likelihood", "snerf_default", (("loss.likelihood_estimator", "rao_blackwell"),),
+     "the training likelihood takes the colours' expectation given each density draw (Rao-Blackwellised)"),
+) + REFERENCE_ROWS
+
+
 #: --study NAME -> its rows.
 STUDIES: dict[str, tuple[Row, ...]] = {"factors": ROWS, "noise_head": ROWS_NOISE_HEAD, "geometry": ROWS_GEOMETRY,
-                                       "colour": ROWS_COLOUR, "depth_weight": ROWS_DEPTH_WEIGHT}
+                                       "colour": ROWS_COLOUR, "depth_weight": ROWS_DEPTH_WEIGHT,
+                                       "likelihood": ROWS_LIKELIHOOD}
 
 COLUMNS: tuple[tuple[str, str], ...] = (
     ("psnr", "PSNR"), ("nll", "NLL"), ("auce_colour", "AUCE"), ("nll_raw", "NLL raw"), ("auce_colour_raw", "AUCE raw"),
@@ -196,7 +206,8 @@ def main(argv: list[str] | None = None) -> int:
                         "(study 2, the per-point observation noise against today's default), 'geometry' "
                         "(study 4, few-view geometry regularisers against today's default), 'colour' "
                         "(study 5, colour recalibration from held-out pixel blocks against today's default) or "
-                        "'depth_weight' (study 6, the sparse-depth weight 1.0 against today's 0.3).")
+                        "'depth_weight' (study 6, the sparse-depth weight 1.0 against today's 0.3) or "
+                        "'likelihood' (study 8, the training likelihood's colours drawn or Rao-Blackwellised).")
     p.add_argument("--rows", nargs="+", default=None, help="Rows of the study to run (default: all of them).")
     p.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
     p.add_argument("--cost", action="store_true",
@@ -222,7 +233,8 @@ def main(argv: list[str] | None = None) -> int:
                      "noise_head": ("per_point_noise_decoupled", "default", "deterministic"),
                      "geometry": ("default", "deterministic"),
                      "colour": ("colour_holdout", "default", "deterministic"),
-                     "depth_weight": ("depth_1", "default", "deterministic")}[args.study]
+                     "depth_weight": ("depth_1", "default", "deterministic"),
+                     "likelihood": ("rb_likelihood", "default", "deterministic")}[args.study]
         cost = measure_cost(out, "fern", args.data_root, rows=cost_rows, study=STUDIES[args.study])
         atomic_write_text(out / "cost.json", json.dumps(cost, indent=2))
         print(json.dumps(cost, indent=2))

@@ -3,6 +3,7 @@ against float64 loops, gradcheck, Monte-Carlo samples with known miscalibration 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -435,9 +436,62 @@ def test_trajectory_weights_are_the_renders_weights_without_colours(shared_noise
     eps_a = torch.randn(R, K, 1 if shared_noise else S, generator=g)
     eps_c = torch.randn(R, K, 1 if shared_noise else S, 3, generator=g)
     full = render_samples(params, samples, st, num_draws=K, noise=(eps_a, eps_c), colour_estimator="draws")
-    w = trajectory_weights(params, samples, st, num_draws=K, noise=eps_a)
+    w = trajectory_weights(params.density_loc, params.density_scale, samples, st, num_draws=K, noise=eps_a)
     assert torch.equal(w, full.extras["weights"])
-    drawn = trajectory_weights(params, samples, st, num_draws=K, generator=torch.Generator().manual_seed(3))
-    again = trajectory_weights(params, samples, st, num_draws=K,
+    drawn = trajectory_weights(params.density_loc, params.density_scale, samples, st, num_draws=K,
+                               generator=torch.Generator().manual_seed(3))
+    again = trajectory_weights(params.density_loc, params.density_scale, samples, st, num_draws=K,
                                noise=torch.randn(R, K, 1 if shared_noise else S, generator=torch.Generator().manual_seed(3)))
     assert drawn.shape == (R, K, S) and torch.equal(drawn, again)
+
+
+def test_depth_term_reads_density_only_and_matches_the_full_field_pass(tiny_scene):
+    """The model's depth term evaluates only the density (``field.density_params``: no colour
+    decoder, a 2-channel backward on the grid) and gives the loss and grid gradients of the full
+    field evaluation with the same draws, float64."""
+    from stochastic_fields.config import preset
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.fields.row_gather import row_gradient
+    from stochastic_fields.losses import termination_depth_nll
+    from stochastic_fields.models.registry import build_model
+    from stochastic_fields.renderer import trajectory_weights
+    from stochastic_fields.samplers import sample_along_rays
+    from stochastic_fields.rays import RayBundle
+    from stochastic_fields.trainer import TrainingDepth
+
+    dataset = load_dataset(tiny_scene, split_every=5)
+    cfg = preset("tiny")
+    model = build_model(cfg, dataset).double()
+    with torch.no_grad():  # a field with structure, not the uniform initial fog
+        for table in model.field.levels:
+            table.normal_(0.0, 0.5, generator=torch.Generator().manual_seed(1))
+    depth = TrainingDepth.from_dataset(dataset, torch.device("cpu"))
+    rays, target = depth.batch(16, torch.Generator().manual_seed(0))
+    rays = RayBundle(*(t.double() for t in dataclasses.astuple(rays)))
+    target = target.double()
+
+    def grads():
+        out = [row_gradient(t).dense(t).clone() for t in model.field.levels]
+        for t in model.field.levels:
+            row_gradient(t).zero()
+        return out
+
+    got = model._depth_nll(rays, target, generator=torch.Generator().manual_seed(5))
+    got.backward()
+    got_grads = grads()
+
+    g = torch.Generator().manual_seed(5)
+    st = model.render_settings
+    samples = sample_along_rays(rays, st.num_samples, spacing=st.spacing, stratified=True, generator=g)
+    params = model.field(samples.positions.reshape(-1, 3), samples.directions.reshape(-1, 3))
+    params = params.reshape(*samples.t_starts.shape)
+    w = trajectory_weights(params.density_loc, params.density_scale, samples, st, num_draws=model.train_draws,
+                           generator=g)
+    ref = termination_depth_nll(w, samples.t_mids, samples.deltas, target, model.loss_config.depth_relative_std)
+    ref.backward()
+    ref_grads = grads()
+    assert torch.isfinite(got) and got.item() == pytest.approx(ref.item(), rel=1e-12)
+    for a, b in zip(got_grads, ref_grads):
+        assert b.abs().max() > 0
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-14)
+    assert model.field.decoder[0].weight.grad is None  # the colour decoder never ran

@@ -51,4 +51,31 @@ def test_command_refuses_a_reference_it_does_not_measure(tiny_scene, capsys):
     assert script.main(["--scene", str(tiny_scene), "--methods", "snerf_default", "--reference", "deterministic"]) == 2
     assert "--reference" in capsys.readouterr().err
     with pytest.raises(SystemExit):
-        script.main(["--scene", str(tiny_scene), "--steps", "0"])
+        script.main(["--scene", str(tiny_scene), "--chunk", "0"])
+
+
+def test_whole_training_is_timed_in_interleaved_chunks(tiny_scene, tmp_path, monkeypatch):
+    """Every method trains the same steps in chunks of --chunk (the last one shorter); the loop
+    times add up to each method's total, the ratio is of totals, and the JSON and the plot are
+    written."""
+    import json
+
+    import torch
+
+    from stochastic_fields_bench import budget
+
+    torch.set_num_threads(1)
+    script = _script()
+    monkeypatch.setattr(budget, "CPU_BUDGET_OVERRIDES", (("train.iterations", 7), ("field.grid_max_cells", 4096)))
+    out = tmp_path / "cost.json"
+    assert script.main(["--scene", str(tiny_scene), "--chunk", "3", "--quiet", "--out", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert r["steps"] == 7 and r["chunk_end_step"] == [3, 6, 7]
+    for m in ("deterministic", "snerf_default"):
+        assert len(r["chunk_step_s"][m]) == 3 and all(t > 0 for t in r["chunk_step_s"][m])
+        total = sum(t * n for t, n in zip(r["chunk_step_s"][m], (3, 3, 1)))
+        assert total == pytest.approx(r["train_s"][m], rel=1e-9)
+        assert r["step_s"][m] == pytest.approx(r["train_s"][m] / 7, rel=1e-12)
+    assert r["ratio"]["snerf_default"] == pytest.approx(r["train_s"]["snerf_default"] / r["train_s"]["deterministic"])
+    assert r["ratio"]["deterministic"] == 1.0
+    assert out.with_suffix(".png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

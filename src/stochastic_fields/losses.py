@@ -36,6 +36,8 @@ class LossConfig:
     """sigma_n: standard deviation of the Gaussian pixel likelihood (colour units, [0, 1]); the starting value when learned. Range: a finite number > 0."""
     learn_likelihood_std: bool = True
     """Learn sigma_n (one per colour channel) with the rest of the objective instead of fixing it (default: learned; the paper fixes it). Render with render.colour_variance='predictive' to add sigma_n^2 to the colour variance."""
+    likelihood_estimator: Literal["draws", "rao_blackwell"] = "draws"
+    """How the expected pixel log-likelihood E_q[log N(c | C_k, v_k)] is estimated over the K training trajectories: 'draws' draws each sample's colour (the paper); 'rao_blackwell' draws the density only and takes the colour's expectation exactly, E[(C_k - c)^2 | w_k] = (sum_i w_ik E[r_i] - c)^2 + sum_i w_ik^2 Var[r_i] (logistic-normal moments, tabulated): the same objective, with less Monte-Carlo noise and no colour draws (gaussian_likelihood_nll)."""
     kl: Literal["none", "fixed_prior", "full"] = "full"
     """KL terms (paper Table 3): none, fixed-prior (random points) only, or full (random + observed-ray priors)."""
     kl_estimator: Literal["closed_form", "monte_carlo"] = "closed_form"
@@ -79,6 +81,7 @@ def _loss_checks() -> dict:
         "learn_likelihood_std": boolean(),
         "per_point_noise": boolean(),
         "noise_head_decoupled": boolean(),
+        "likelihood_estimator": choice("draws", "rao_blackwell"),
         "kl": choice("none", "fixed_prior", "full"),
         "kl_estimator": choice("closed_form", "monte_carlo"),
         "kl_mc_samples": integer(1, 4096),
@@ -117,18 +120,22 @@ class Priors(nn.Module):
 
 
 def gaussian_likelihood_nll(colours: Tensor, target: Tensor, std: float | Tensor,
-                            extra_variance: Tensor | None = None) -> Tensor:
+                            extra_variance: Tensor | None = None, colour_variance: Tensor | None = None) -> Tensor:
     """Mean over rays and draws of -log N(target | C_k, diag(v_k)), per pixel (3 channels summed),
 
         v_kc = std_c^2 + extra_variance_kc
 
     (``extra_variance``: a draw's observation noise from a field's noise head, §4.7; None = 0).
+    With ``colour_variance`` W_k, ``colours`` are the draws' conditional means m_k = E[C_k | w_k]
+    and the term is its expectation over the colours (Rao-Blackwellised):
 
-    Shapes: colours [R, K, 3], target [R, 3], std a float or [3], extra_variance None or
-    [R, K, 3] -> scalar.
+        E[-log N(target | C_k, v_k) | w_k] = ((m_k - target)^2 + W_k) / (2 v_k) + log(2 pi v_k) / 2
+
+    Shapes: colours [R, K, 3], target [R, 3], std a float or [3], extra_variance and
+    colour_variance None or [R, K, 3] -> scalar.
     """
     std = torch.as_tensor(std, dtype=colours.dtype, device=colours.device).expand(3)
-    sq = (colours - target[:, None, :]) ** 2  # [R, K, 3]
+    sq = _expected_square_error(colours, target, colour_variance)  # [R, K, 3]
     if extra_variance is None:
         per_channel = 0.5 * sq / std ** 2 + torch.log(std) + 0.5 * math.log(2 * math.pi)
     else:
@@ -137,7 +144,14 @@ def gaussian_likelihood_nll(colours: Tensor, target: Tensor, std: float | Tensor
     return per_channel.sum(-1).mean()
 
 
-def decoupled_likelihood_nll(colours: Tensor, target: Tensor, std: Tensor, extra_variance: Tensor) -> Tensor:
+def _expected_square_error(colours: Tensor, target: Tensor, colour_variance: Tensor | None) -> Tensor:
+    """[R, K, 3] (C_k - c)^2, or (m_k - c)^2 + W_k: its expectation given the draw's weights."""
+    sq = (colours - target[:, None, :]) ** 2
+    return sq if colour_variance is None else sq + colour_variance
+
+
+def decoupled_likelihood_nll(colours: Tensor, target: Tensor, std: Tensor, extra_variance: Tensor,
+                             colour_variance: Tensor | None = None) -> Tensor:
     """``gaussian_likelihood_nll`` with ``extra_variance`` whose terms are weighted by the
     detached ratio ``v_kc / std_c^2`` (v = std^2 + extra): the same value scaled per term, and
     gradients
@@ -146,13 +160,16 @@ def decoupled_likelihood_nll(colours: Tensor, target: Tensor, std: Tensor, extra
         d/d extra, d/d std: stationary where v = (C_k - c)^2, as the plain likelihood
 
     Pass ``extra_variance`` built from detached weights to keep the geometry's gradient that of
-    the global-noise likelihood too (``loss.noise_head_decoupled``).
+    the global-noise likelihood too (``loss.noise_head_decoupled``). ``colour_variance``: the
+    Rao-Blackwellised form, as in ``gaussian_likelihood_nll`` (the weight depends on the draw's
+    density only, so the expectation over colours passes through it).
 
-    Shapes: colours [R, K, 3], target [R, 3], std [3], extra_variance [R, K, 3] -> scalar.
+    Shapes: colours [R, K, 3], target [R, 3], std [3], extra_variance and colour_variance [R, K, 3]
+    (colour_variance optional) -> scalar.
     """
     std = torch.as_tensor(std, dtype=colours.dtype, device=colours.device).expand(3)
     var = std ** 2 + extra_variance
-    sq = (colours - target[:, None, :]) ** 2
+    sq = _expected_square_error(colours, target, colour_variance)
     per_channel = 0.5 * sq / var + 0.5 * torch.log(var) + 0.5 * math.log(2 * math.pi)
     return ((var / std ** 2).detach() * per_channel).sum(-1).mean()
 

@@ -158,3 +158,39 @@ def plot_resplit_coverage(
         fig.suptitle(title)
     fig.tight_layout()
     return _save_atomic(fig, path, dpi)
+
+
+def plot_step_times(
+    end_steps: Sequence[int],
+    step_s: Mapping[str, Sequence[float]],
+    labels: Mapping[str, str],
+    path: str | os.PathLike,
+    title: str | None = None,
+    dpi: int = 110,
+) -> Path:
+    """Training step time (ms) against the training step, one line per method
+    (``benchmarks/train_cost.py``: each point a chunk of steps, at the chunk's last step).
+
+    Args:
+        end_steps: [C] the last step of each chunk.
+        step_s: method -> [C] seconds per step in each chunk.
+        labels: method -> legend label.
+    Returns:
+        the written path.
+    """
+    if not step_s:
+        raise ValueError("plot_step_times needs at least one method")
+    fig = Figure(figsize=(7.0, 3.6))
+    ax = fig.add_subplot(1, 1, 1)
+    for method, seconds in step_s.items():
+        if len(seconds) != len(end_steps):
+            raise ValueError(f"{method}: {len(seconds)} step times for {len(end_steps)} chunks")
+        ax.plot(list(end_steps), [1e3 * float(t) for t in seconds], marker=".", label=labels.get(method, method))
+    ax.set_xlabel("training step (end of chunk)")
+    ax.set_ylabel("ms per step")
+    ax.set_ylim(bottom=0)
+    if title:
+        ax.set_title(title, fontsize="small")
+    ax.legend(fontsize="small")
+    fig.tight_layout()
+    return _save_atomic(fig, path, dpi)

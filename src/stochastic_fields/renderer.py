@@ -351,19 +351,20 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
                              "field_evals": evals})
 
 
-def trajectory_weights(params: FieldParams, samples: RaySamples, settings: RenderSettings, *, num_draws: int,
-                       generator: torch.Generator | None = None, noise: Tensor | None = None) -> Tensor:
-    """The compositing weights [R, K, S] of K density draws at dense ``samples`` ([R, S] params)
-    and nothing else: what a loss on the termination distribution needs, without drawing colours.
+def trajectory_weights(density_loc: Tensor, density_scale: Tensor, samples: RaySamples, settings: RenderSettings, *,
+                       num_draws: int, generator: torch.Generator | None = None, noise: Tensor | None = None) -> Tensor:
+    """The compositing weights [R, K, S] of K density draws at dense ``samples`` from the density
+    parameters alone (mu_a, s_a [R, S]; ``field.density_params``): what a loss on the termination
+    distribution needs, without evaluating or drawing colours.
     ``alpha = relu(mu_a + s_a eps_a)`` with eps_a [R, K, S] (or [R, K, 1] with
     ``settings.shared_noise``) from ``generator``, or ``noise`` if given; the weights equal
     ``render_samples``' for the same eps_a."""
-    params, samples = upcast_half((params, samples))
+    density_loc, density_scale, samples = upcast_half((density_loc, density_scale, samples))
     R, S = samples.t_starts.shape
     if noise is None:
         noise = torch.randn(R, num_draws, 1 if settings.shared_noise else S, generator=generator,
-                            device=params.density_loc.device, dtype=params.density_loc.dtype)
-    density = torch.relu(params.density_loc[:, None, :] + params.density_scale[:, None, :] * noise)
+                            device=density_loc.device, dtype=density_loc.dtype)
+    density = torch.relu(density_loc[:, None, :] + density_scale[:, None, :] * noise)
     return render_weights(density, samples.t_starts[:, None, :], samples.t_ends[:, None, :], settings.quadrature)
 
 

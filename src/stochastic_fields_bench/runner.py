@@ -48,6 +48,9 @@ _NOISE_HEAD_OPTIONS = ("loss.per_point_noise", "loss.noise_head_decoupled")
 #: Options of S-NeRF's sparse-depth likelihood (the baselines take no depth term).
 _DEPTH_OPTIONS = ("loss.lambda_depth", "loss.depth_rays_per_batch", "loss.depth_relative_std")
 
+#: S-NeRF's training-likelihood estimator: the baselines' likelihoods draw no colours.
+_LIKELIHOOD_OPTIONS = ("loss.likelihood_estimator",)
+
 #: Options whose default changed after fingerprints were stored: the value the stored fingerprints
 #: left out as "the default" (lambda_depth was 0.1 until study 4 made it 0.3, then study 6 1.0), so that a run at the
 #: new default gets a new fingerprint and one stored at the old value keeps its own.
@@ -71,6 +74,7 @@ def _semantic(flat: dict[str, Any]) -> dict[str, Any]:
     if flat.get("method", "snerf") != "snerf":
         ignored.update(_NOISE_HEAD_OPTIONS)  # S-NeRF's field only: the baselines build none
         ignored.update(_DEPTH_OPTIONS)  # nor do they take the depth likelihood
+        ignored.update(_LIKELIHOOD_OPTIONS)
         # nor draw S-NeRF's trajectories: they render their own K (1, the ensemble's members,
         # MC-Dropout's passes) from deterministic passes, whatever K or colour estimator is set
         ignored.update(RENDER_ONLY_OPTIONS)

@@ -130,19 +130,17 @@ class GridField(StochasticField):
         """unit [P, 3] in [-1, 1] -> [P, C] summed trilinear values of every level (plus offsets).
 
         Points outside the cube read the border cells (their density is replaced in ``decode``).
-        The cells' gradients go to each level's ``RowGradient`` (rows of the touched corners)."""
-        # without gradients (occupancy updates, rendering) read only the asked-for channels
-        sliced = channels is not None and not torch.is_grad_enabled()
+        The cells' gradients go to each level's ``RowGradient`` (rows of the touched corners, only
+        the asked-for ``channels``: a density-only read, as the depth likelihood's, back-propagates
+        2 of the C channels)."""
         total = None
         weights = self.level_weights or [1.0] * len(self.levels)
         for table, shape, a in zip(self.levels, self.level_shapes, weights):
             if a == 0.0:
                 continue  # a level not yet faded in (coarse to fine) is not read
             idx, w = trilinear_corners(unit, shape)  # [P, 8], [P, 8]
-            v = gather_rows(table[:, channels] if sliced else table, idx, w if a == 1.0 else w * a)  # [P, C]
+            v = gather_rows(table, idx, w if a == 1.0 else w * a, channels=channels)  # [P, C] or [P, c]
             total = v if total is None else total + v
-        if channels is not None and not sliced:
-            total = total[:, channels]
         off = self.offset if channels is None else self.offset[channels]
         return total + off.to(total)
 

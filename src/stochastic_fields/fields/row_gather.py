@@ -48,10 +48,11 @@ class RowGradient:
             touched[rows] = True
         return acc, touched
 
-    def add(self, table: Tensor, rows: Tensor, values: Tensor) -> None:
-        """Accumulate values [M, C] into rows [M] (duplicates summed)."""
+    def add(self, table: Tensor, rows: Tensor, values: Tensor, channels: slice | None = None) -> None:
+        """Accumulate values [M, C] into rows [M] (duplicates summed); with ``channels``, values
+        [M, c] into those channels only (the others' gradient is zero for these rows)."""
         acc, touched = self._unreplace(table)
-        acc.index_add_(0, rows, values.to(acc.dtype))
+        (acc if channels is None else acc[:, channels]).index_add_(0, rows, values.to(acc.dtype))
         touched[rows] = True
 
     def take(self, table: Tensor) -> tuple[Tensor, Tensor]:
@@ -116,26 +117,32 @@ def _weighted_sum_of_rows(table: Tensor, idx: Tensor, weights: Tensor) -> Tensor
 
 class _WeightedRowGather(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, table: Tensor, idx: Tensor, weights: Tensor) -> Tensor:
+    def forward(ctx, table: Tensor, idx: Tensor, weights: Tensor, channels: slice | None) -> Tensor:
         ctx.save_for_backward(table, idx, weights)
-        return _weighted_sum_of_rows(table, idx, weights)
+        ctx.channels = channels
+        return _weighted_sum_of_rows(table if channels is None else table[:, channels], idx, weights)
 
     @staticmethod
     def backward(ctx, grad_out: Tensor):
         table, idx, weights = ctx.saved_tensors
+        channels = ctx.channels
         grad_w = None
         if ctx.needs_input_grad[0]:
-            rows = (weights[..., None] * grad_out[..., None, :]).reshape(-1, table.shape[1])
-            row_gradient(table).add(table, idx.reshape(-1), rows)
+            rows = (weights[..., None] * grad_out[..., None, :]).reshape(-1, grad_out.shape[-1])
+            row_gradient(table).add(table, idx.reshape(-1), rows, channels)
         if ctx.needs_input_grad[2]:
             M, J = idx.shape
-            corners = table.index_select(0, idx.reshape(-1)).view(M, J, table.shape[1])
+            read = table if channels is None else table[:, channels]
+            corners = read.index_select(0, idx.reshape(-1)).view(M, J, grad_out.shape[-1])
             grad_w = torch.bmm(corners, grad_out[:, :, None].to(corners.dtype))[..., 0]
-        return None, None, grad_w
+        return None, None, grad_w, None
 
 
-def gather_rows(table: Tensor, idx: Tensor, weights: Tensor | None = None) -> Tensor:
-    """``out[m] = sum_j weights[m, j] * table[idx[m, j]]``: table [N, C], idx [M, J] -> [M, C].
+def gather_rows(table: Tensor, idx: Tensor, weights: Tensor | None = None, *,
+                channels: slice | None = None) -> Tensor:
+    """``out[m] = sum_j weights[m, j] * table[idx[m, j], channels]``: table [N, C], idx [M, J]
+    -> [M, C] (or [M, c] for the ``channels`` slice: the gradient rows then carry only those
+    channels, a fraction of the backward's cost when few are read).
 
     Without weights, idx [M] -> table[idx] [M, C]. The table's gradient goes to its
     :class:`RowGradient` (see module doc), never to ``table.grad``.
@@ -144,5 +151,5 @@ def gather_rows(table: Tensor, idx: Tensor, weights: Tensor | None = None) -> Te
         idx = idx[:, None]
         weights = torch.ones(idx.shape, dtype=table.dtype, device=table.device)
     if not (torch.is_grad_enabled() and table.requires_grad):
-        return _weighted_sum_of_rows(table, idx, weights)
-    return _WeightedRowGather.apply(table, idx, weights)
+        return _weighted_sum_of_rows(table if channels is None else table[:, channels], idx, weights)
+    return _WeightedRowGather.apply(table, idx, weights, channels)

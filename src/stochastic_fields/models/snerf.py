@@ -183,17 +183,19 @@ class SNeRF(RadianceModel):
         params_all = self.field(positions, directions)
         n_ray = samples.t_starts.numel()
         params = params_all.map(lambda t: t[:n_ray]).reshape(*samples.t_starts.shape)
+        # drawn colours, or (Rao-Blackwellised) each draw's colour mean and variance given its density
+        rao_blackwell = cfg.likelihood_estimator == "rao_blackwell"
         out = render_any_samples(params, samples, settings, num_draws=self.train_draws, generator=generator,
-                                 colour_estimator="draws",  # the likelihood needs drawn colours
-                                 observation_noise=False)
+                                 colour_estimator=cfg.likelihood_estimator, observation_noise=False)
+        colour_var = out.stats.colour_noise_var_draws if rao_blackwell else None  # [R, K, 3] sum_i w_ik^2 Var[r_i]
         sigma_n = self.likelihood_std()
         noise_var = None
         if self.noise_head:  # per-draw variance sigma_n^2 + sum_i w_ik beta_i^2 (§4.7)
             noise_var = observation_noise_per_draw(out, detach_weights=cfg.noise_head_decoupled)
         if noise_var is not None and cfg.noise_head_decoupled:
-            nll = decoupled_likelihood_nll(out.stats.colour_draws, target, sigma_n, noise_var)
+            nll = decoupled_likelihood_nll(out.stats.colour_draws, target, sigma_n, noise_var, colour_var)
         else:
-            nll = gaussian_likelihood_nll(out.stats.colour_draws, target, sigma_n, noise_var)
+            nll = gaussian_likelihood_nll(out.stats.colour_draws, target, sigma_n, noise_var, colour_var)
         loss = nll
         logs = {"nll": nll.item(), "mse": ((out.stats.colour_mean.detach() - target) ** 2).mean().item(),
                 "field_evals_per_ray": n_ray / max(len(rays), 1)}
@@ -235,13 +237,13 @@ class SNeRF(RadianceModel):
     def _depth_nll(self, rays: RayBundle, target_t: Tensor, *, generator: torch.Generator | None) -> Tensor:
         """``termination_depth_nll`` of capture-point rays [M] at their surface distances [M]:
         dense stratified samples (as the colour rays, without skipping), ``train_draws`` trajectories
-        of the density alone (``trajectory_weights``: the loss needs no colours)."""
+        of the density alone: the field's density parameters (``field.density_params``, no colour
+        decoder, and on the grid a backward over 2 of its channels) into ``trajectory_weights``."""
         settings = self.render_settings
         samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing, stratified=True,
                                     generator=generator)
-        params = self.field(samples.positions.reshape(-1, 3), samples.directions.reshape(-1, 3))
-        params = params.reshape(*samples.t_starts.shape)
-        weights = trajectory_weights(params, samples, settings, num_draws=self.train_draws, generator=generator)
+        loc, scale = self.field.density_params(samples.positions)  # [M, S] each
+        weights = trajectory_weights(loc, scale, samples, settings, num_draws=self.train_draws, generator=generator)
         return termination_depth_nll(weights, samples.t_mids, samples.deltas, target_t,
                                      self.loss_config.depth_relative_std)
 
