@@ -65,6 +65,16 @@ def count_step_ops(trainer, *, top: int = 8) -> tuple[float, list[tuple[str, flo
     return total, [(k, v) for k, v in per_step.most_common(top) if v > 0]
 
 
+def _started_trainer(cfg, run_dir: Path, dataset):
+    """A fresh trainer past its first call (which starts from scratch while every later call
+    resumes): what ``count_step_ops`` needs once the timed trainers have finished training."""
+    from stochastic_fields.trainer import Trainer
+
+    trainer = Trainer(copy.deepcopy(cfg), run_dir, dataset)
+    trainer.train(progress=False, max_steps=2)
+    return trainer
+
+
 def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, device: str, chunk: int,
             reference: str, max_steps: int | None = None, progress: bool = True) -> dict:
     """{"scene", "device", "threads", "steps", "chunk", "train_s": {method: loop s},
@@ -113,8 +123,7 @@ def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, dev
             bar.update(n)
         bar.close()
         device_name = str(trainers[reference].device)
-        # operations per step of fresh trainers (the timed ones have finished their training)
-        ops = {m: count_step_ops(Trainer(copy.deepcopy(configs[m]), Path(tmp) / f"ops_{m}", dataset)) for m in methods}
+        ops = {m: count_step_ops(_started_trainer(configs[m], Path(tmp) / f"ops_{m}", dataset)) for m in methods}
     train_s = {m: float(sum(t for t, _ in v)) for m, v in chunk_s.items()}
     return {"scene": dataset.name, "budget": budget, "device": device_name,
             "device_name": torch.cuda.get_device_name() if device_name.startswith("cuda") else "cpu",
