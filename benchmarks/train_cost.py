@@ -81,10 +81,10 @@ def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, dev
     "step_s": {method: mean s}, "ratio": {method: x}, "chunk_step_s": {method: [s per step]}, ...}."""
     import numpy as np
     import torch
-    from tqdm import tqdm
 
     from stochastic_fields.data import load_dataset
     from stochastic_fields.trainer import Trainer
+    from stochastic_fields_bench.runner import time_training_interleaved
     from stochastic_fields_bench.tables import METHOD_SPECS, BenchmarkSettings, base_config, method_config, resolve_scene
 
     if reference not in methods:
@@ -104,7 +104,7 @@ def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, dev
         configs[m] = method_config(METHOD_SPECS[m], base_config(settings, dataset), scene_path)
         configs[m].train.checkpoint_every = 0
         configs[m].train.eval_every = 0
-    trainers, chunk_s = {}, {m: [] for m in methods}
+    trainers = {}
     with tempfile.TemporaryDirectory() as tmp:
         for m in methods:
             trainers[m] = Trainer(copy.deepcopy(configs[m]), Path(tmp) / m, dataset)
@@ -112,16 +112,7 @@ def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, dev
         if len(set(iterations.values())) != 1:
             raise ValueError(f"the methods train for different numbers of steps at this budget: {iterations}")
         total = next(iter(iterations.values())) if max_steps is None else min(max_steps, *iterations.values())
-        done, bar = 0, tqdm(total=total, desc="train (interleaved)", unit="step", disable=not progress)
-        while done < total:
-            n = min(chunk, total - done)
-            for m in methods:
-                before = trainers[m].elapsed  # the training loop's own clock: no set-up, resume or checkpoint
-                trainers[m].train(progress=False, max_steps=n)
-                chunk_s[m].append((trainers[m].elapsed - before, n))
-            done += n
-            bar.update(n)
-        bar.close()
+        chunk_s = time_training_interleaved(trainers, total, chunk, progress=progress)
         device_name = str(trainers[reference].device)
         ops = {m: count_step_ops(_started_trainer(configs[m], Path(tmp) / f"ops_{m}", dataset)) for m in methods}
     train_s = {m: float(sum(t for t, _ in v)) for m, v in chunk_s.items()}

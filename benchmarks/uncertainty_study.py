@@ -157,13 +157,13 @@ def measure_cost(out: Path, scene: str, data_root: Path, *, rows: tuple[str, ...
     from stochastic_fields_bench.tables import (METHOD_SPECS, BenchmarkSettings, base_config, method_config,
                                                resolve_scene, select_views)
     from stochastic_fields.trainer import Trainer, load_trained_model
-    from stochastic_fields_bench.runner import time_renders_interleaved
+    from stochastic_fields_bench.runner import time_renders_interleaved, time_training_interleaved
 
     scene_path = resolve_scene(scene, data_root)
     dataset = load_dataset(scene_path, images="images_8", split_every=5)
     view = select_views(list(dataset.test_indices), BenchmarkSettings())[0]
     specs = {name: (method, dict(overrides)) for name, method, overrides, _ in study}
-    trainers, step_s = {}, {r: [] for r in rows}
+    trainers = {}
     with tempfile.TemporaryDirectory() as tmp:
         for r in rows:
             method, overrides = specs[r]
@@ -173,12 +173,8 @@ def measure_cost(out: Path, scene: str, data_root: Path, *, rows: tuple[str, ...
             cfg.train.eval_every = 0
             trainers[r] = Trainer(copy.deepcopy(cfg), Path(tmp) / r, dataset)
             trainers[r].train(progress=False, max_steps=5)  # warm-up
-        for _ in range(rounds):
-            for r in rows:
-                t = trainers[r]
-                before = t.elapsed
-                t.train(progress=False, max_steps=steps)
-                step_s[r].append((t.elapsed - before) / steps)
+        chunks = time_training_interleaved(trainers, rounds * steps, steps)
+        step_s = {r: [t / n for t, n in v] for r, v in chunks.items()}
     models = {r: load_trained_model(out / r / dataset.name / specs[r][0], dataset=dataset)[1] for r in rows}
     render_s = time_renders_interleaved({r: (models[r], None) for r in rows}, dataset.rays(view), render_repeats)
     med = lambda v: float(np.median(v))  # noqa: E731

@@ -212,6 +212,27 @@ def time_renders_interleaved(variants: dict[str, tuple[Any, Any]], rays, repeats
     return times
 
 
+def time_training_interleaved(trainers: dict[str, Any], steps: int, chunk: int, *,
+                              progress: bool = False) -> dict[str, list[tuple[float, int]]]:
+    """Train each of ``trainers`` {name: Trainer} ``steps`` more steps, ``chunk`` at a time in turn
+    (A, B, A, B, ...) so that drifts of the machine hit every one alike; returns {name: [(loop
+    seconds, steps) per chunk]} from the trainer's own loop clock (no set-up, resume or checkpoint)."""
+    from tqdm import tqdm
+
+    times: dict[str, list[tuple[float, int]]] = {k: [] for k in trainers}
+    done, bar = 0, tqdm(total=steps, desc="train (interleaved)", unit="step", disable=not progress)
+    while done < steps:
+        n = min(chunk, steps - done)
+        for name, trainer in trainers.items():
+            before = trainer.elapsed
+            trainer.train(progress=False, max_steps=n)
+            times[name].append((trainer.elapsed - before, n))
+        done += n
+        bar.update(n)
+    bar.close()
+    return times
+
+
 def resolve_scene(scene: str, data_root: Path | None) -> Path:
     """A scene name under ``data_root`` or a path to a scene folder; FileNotFoundError if neither."""
     p = Path(scene)
