@@ -96,10 +96,21 @@ ROWS_LIKELIHOOD: tuple[Row, ...] = (
 ) + REFERENCE_ROWS
 
 
+#: Study 9: how many Monte-Carlo samples a training step draws (the training-cost target, issue 19's 5b).
+ROWS_TRAINING_SAMPLES: tuple[Row, ...] = (
+    ("default", "snerf_default", (),
+     "S-NeRF default (study 6's depth_1): K = 8 training trajectories, KL on 4096 ray samples and 12^3 random points"),
+    ("draws4", "snerf_default", (("train.train_draws", 4),),
+     "K = 4 training trajectories per ray (the Monte-Carlo expected log-likelihood from half the draws)"),
+    ("kl_quarter", "snerf_default", (("loss.observed_kl_samples", 1024), ("loss.random_points_per_axis", 8)),
+     "the KL terms' Monte-Carlo means over about a quarter of the points: 1024 ray samples and 8^3 random points"),
+) + REFERENCE_ROWS
+
+
 #: --study NAME -> its rows.
 STUDIES: dict[str, tuple[Row, ...]] = {"factors": ROWS, "noise_head": ROWS_NOISE_HEAD, "geometry": ROWS_GEOMETRY,
                                        "colour": ROWS_COLOUR, "depth_weight": ROWS_DEPTH_WEIGHT,
-                                       "likelihood": ROWS_LIKELIHOOD}
+                                       "likelihood": ROWS_LIKELIHOOD, "training_samples": ROWS_TRAINING_SAMPLES}
 
 COLUMNS: tuple[tuple[str, str], ...] = (
     ("psnr", "PSNR"), ("nll", "NLL"), ("auce_colour", "AUCE"), ("nll_raw", "NLL raw"), ("auce_colour_raw", "AUCE raw"),
@@ -203,7 +214,8 @@ def main(argv: list[str] | None = None) -> int:
                         "(study 4, few-view geometry regularisers against today's default), 'colour' "
                         "(study 5, colour recalibration from held-out pixel blocks against today's default) or "
                         "'depth_weight' (study 6, the sparse-depth weight 1.0 against today's 0.3) or "
-                        "'likelihood' (study 8, the training likelihood's colours drawn or Rao-Blackwellised).")
+                        "'likelihood' (study 8, the training likelihood's colours drawn or Rao-Blackwellised) or "
+                        "'training_samples' (study 9, fewer training trajectories or fewer KL points).")
     p.add_argument("--rows", nargs="+", default=None, help="Rows of the study to run (default: all of them).")
     p.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
     p.add_argument("--cost", action="store_true",
@@ -230,7 +242,8 @@ def main(argv: list[str] | None = None) -> int:
                      "geometry": ("default", "deterministic"),
                      "colour": ("colour_holdout", "default", "deterministic"),
                      "depth_weight": ("depth_1", "default", "deterministic"),
-                     "likelihood": ("rb_likelihood", "default", "deterministic")}[args.study]
+                     "likelihood": ("rb_likelihood", "default", "deterministic"),
+                     "training_samples": ("draws4", "kl_quarter", "default", "deterministic")}[args.study]
         cost = measure_cost(out, "fern", args.data_root, rows=cost_rows, study=STUDIES[args.study])
         atomic_write_text(out / "cost.json", json.dumps(cost, indent=2))
         print(json.dumps(cost, indent=2))
