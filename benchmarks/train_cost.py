@@ -13,6 +13,12 @@ a GPU, where small steps are launch-bound) with the functions issuing most.
 
     python benchmarks/train_cost.py --scene fern --methods deterministic snerf_default \\
         --out benchmarks/results/eval_tables/train_cost.json
+
+A study row's configuration is timed as a variant of a method, ``LABEL=METHOD:KEY=VALUE,...``
+(values read as JSON, else as text; the result is checked like any configuration):
+
+    python benchmarks/train_cost.py --methods deterministic snerf_default \\
+        --variant draws4=snerf_default:train.train_draws=4
 """
 
 from __future__ import annotations
@@ -65,6 +71,26 @@ def count_step_ops(trainer, *, top: int = 8) -> tuple[float, list[tuple[str, flo
     return total, [(k, v) for k, v in per_step.most_common(top) if v > 0]
 
 
+def parse_variant(text: str) -> tuple[str, str, tuple[tuple[str, object], ...]]:
+    """``"LABEL=METHOD:KEY=VALUE,KEY=VALUE"`` -> (label, method, ((key, value), ...)); each value
+    is read as JSON (``4``, ``true``, ``0.5``) and kept as text when it is not JSON."""
+    label, sep, rest = text.partition("=")
+    method, sep2, pairs = rest.partition(":")
+    if not sep or not sep2 or not label or not method or not pairs:
+        raise ValueError(f"--variant {text!r}: expected LABEL=METHOD:KEY=VALUE[,KEY=VALUE...]")
+    overrides = []
+    for pair in pairs.split(","):
+        key, sep3, raw = pair.partition("=")
+        if not sep3 or not key:
+            raise ValueError(f"--variant {text!r}: {pair!r} is not KEY=VALUE")
+        try:
+            value = json.loads(raw)
+        except json.JSONDecodeError:
+            value = raw
+        overrides.append((key, value))
+    return label, method, tuple(overrides)
+
+
 def _started_trainer(cfg, run_dir: Path, dataset):
     """A fresh trainer past its first call (which starts from scratch while every later call
     resumes): what ``count_step_ops`` needs once the timed trainers have finished training."""
@@ -76,9 +102,11 @@ def _started_trainer(cfg, run_dir: Path, dataset):
 
 
 def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, device: str, chunk: int,
-            reference: str, max_steps: int | None = None, progress: bool = True) -> dict:
+            reference: str, max_steps: int | None = None, progress: bool = True,
+            variants: tuple[tuple[str, str, tuple[tuple[str, object], ...]], ...] = ()) -> dict:
     """{"scene", "device", "threads", "steps", "chunk", "train_s": {method: loop s},
-    "step_s": {method: mean s}, "ratio": {method: x}, "chunk_step_s": {method: [s per step]}, ...}."""
+    "step_s": {method: mean s}, "ratio": {method: x}, "chunk_step_s": {method: [s per step]}, ...}.
+    ``variants`` (label, method, overrides) are timed beside ``methods`` under their labels."""
     import numpy as np
     import torch
 
@@ -87,11 +115,16 @@ def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, dev
     from stochastic_fields_bench.runner import time_training_interleaved
     from stochastic_fields_bench.tables import METHOD_SPECS, BenchmarkSettings, base_config, method_config, resolve_scene
 
+    from stochastic_fields.config import ExperimentConfig, from_dict, set_dotted, to_dict
+
     if reference not in methods:
         raise ValueError(f"--reference {reference!r} is not among --methods {methods}")
-    unknown = [m for m in methods if m not in METHOD_SPECS]
+    unknown = [m for m in methods + [v[1] for v in variants] if m not in METHOD_SPECS]
     if unknown:
         raise ValueError(f"unknown methods {unknown}; choose from {sorted(METHOD_SPECS)}")
+    labels = [v[0] for v in variants]
+    if len(set(methods + labels)) != len(methods) + len(labels):
+        raise ValueError(f"every method and variant label must be distinct, got {methods + labels}")
     scene_path = resolve_scene(scene, data_root)
     from stochastic_fields.data import detect_format
 
@@ -102,8 +135,15 @@ def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, dev
     configs = {}
     for m in methods:
         configs[m] = method_config(METHOD_SPECS[m], base_config(settings, dataset), scene_path)
-        configs[m].train.checkpoint_every = 0
-        configs[m].train.eval_every = 0
+    for label, method, overrides in variants:
+        cfg = method_config(METHOD_SPECS[method], base_config(settings, dataset), scene_path)
+        for key, value in overrides:
+            set_dotted(cfg, key, value)
+        configs[label] = from_dict(ExperimentConfig, to_dict(cfg))  # checks every value's range
+    methods = methods + labels
+    for cfg in configs.values():
+        cfg.train.checkpoint_every = 0
+        cfg.train.eval_every = 0
     trainers = {}
     with tempfile.TemporaryDirectory() as tmp:
         for m in methods:
@@ -130,6 +170,9 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scene", default="fern", help="LLFF scene name under --data-root, or a scene folder (any format).")
     p.add_argument("--methods", nargs="+", default=["deterministic", "snerf_default"])
+    p.add_argument("--variant", action="append", default=[], metavar="LABEL=METHOD:KEY=VALUE[,KEY=VALUE]",
+                   help="Also time METHOD with these config overrides under LABEL (repeatable), e.g. "
+                        "draws4=snerf_default:train.train_draws=4.")
     p.add_argument("--reference", default="deterministic")
     p.add_argument("--budget", choices=("cpu", "full"), default="cpu")
     p.add_argument("--device", default="auto", help="auto, cpu or cuda.")
@@ -144,9 +187,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.chunk < 1 or (args.max_steps is not None and args.max_steps < 1):
         p.error("--chunk and --max-steps must be positive")
     try:
+        variants = tuple(parse_variant(v) for v in args.variant)
         result = measure(args.scene, args.methods, budget=args.budget, data_root=args.data_root, device=args.device,
                          chunk=args.chunk, reference=args.reference, max_steps=args.max_steps,
-                         progress=not args.quiet)
+                         progress=not args.quiet, variants=variants)
     except (ValueError, FileNotFoundError) as exc:
         print(f"train_cost: error: {exc}", file=sys.stderr)
         return 2
@@ -156,10 +200,10 @@ def main(argv: list[str] | None = None) -> int:
           + args.reference + " |")
     print("|---|---|---|---|---|---|")
     ref_ops = result["ops_per_step"][args.reference]
-    for m in args.methods:
+    for m in result["train_s"]:
         print(f"| {m} | {result['train_s'][m]:.1f} | {1e3 * result['step_s'][m]:.1f} | {result['ratio'][m]:.2f} | "
               f"{result['ops_per_step'][m]:.0f} | {result['ops_per_step'][m] / ref_ops:.2f} |")
-    for m in args.methods:
+    for m in result["train_s"]:
         print(f"{m}: most tensor ops per step in " + ", ".join(f"{k} ({v:.0f})" for k, v in result["ops_by_function"][m]))
     if args.out is not None:
         from stochastic_fields.io_utils import atomic_write_text
@@ -170,7 +214,7 @@ def main(argv: list[str] | None = None) -> int:
 
         plot = plot_step_times(
             result["chunk_end_step"], result["chunk_step_s"],
-            {m: f"{m}: {result['ratio'][m]:.2f}x {args.reference} over the whole training" for m in args.methods},
+            {m: f"{m}: {result['ratio'][m]:.2f}x {args.reference} over the whole training" for m in result["train_s"]},
             args.out.with_suffix(".png"),
             title=f"{result['scene']}, budget {result['budget']}, {result['device_name']}, {result['threads']} "
                   f"thread(s), interleaved every {result['chunk']} steps")

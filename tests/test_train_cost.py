@@ -54,24 +54,55 @@ def test_command_refuses_a_reference_it_does_not_measure(tiny_scene, capsys):
         script.main(["--scene", str(tiny_scene), "--chunk", "0"])
 
 
+def test_variant_is_parsed_into_typed_overrides():
+    script = _script()
+    assert script.parse_variant("k4=snerf_default:train.train_draws=4,loss.kl=none,loss.lambda_depth=0.5") == (
+        "k4", "snerf_default", (("train.train_draws", 4), ("loss.kl", "none"), ("loss.lambda_depth", 0.5)))
+    assert script.parse_variant("s=snerf:render.shared_noise=true")[2] == (("render.shared_noise", True),)
+    for bad in ("k4", "k4=snerf_default", "=snerf:a=1", "k4=snerf_default:", "k4=snerf_default:train.train_draws"):
+        with pytest.raises(ValueError, match="--variant"):
+            script.parse_variant(bad)
+
+
+def test_command_refuses_a_variant_outside_its_range(tiny_scene, capsys):
+    script = _script()
+    assert script.main(["--scene", str(tiny_scene), "--variant", "k0=snerf_default:train.train_draws=0"]) == 2
+    assert "train.train_draws" in capsys.readouterr().err
+    assert script.main(["--scene", str(tiny_scene), "--variant", "k4=snerf_default:train.no_such=1"]) == 2
+    assert "train.no_such" in capsys.readouterr().err
+    assert script.main(["--scene", str(tiny_scene), "--variant", "deterministic=snerf_default:train.train_draws=4"]) == 2
+    assert "distinct" in capsys.readouterr().err
+
+
 def test_whole_training_is_timed_in_interleaved_chunks(tiny_scene, tmp_path, monkeypatch):
     """Every method trains the same steps in chunks of --chunk (the last one shorter); the loop
     times add up to each method's total, the ratio is of totals, and the JSON and the plot are
-    written."""
+    written. A --variant trains beside them with its overrides."""
     import json
 
     import torch
 
-    from stochastic_fields_bench import budget
+    from stochastic_fields_bench import budget, runner
 
     torch.set_num_threads(1)
     script = _script()
     monkeypatch.setattr(budget, "CPU_BUDGET_OVERRIDES", (("train.iterations", 7), ("field.grid_max_cells", 4096)))
+    timed = runner.time_training_interleaved
+    draws = {}
+
+    def record(trainers, *args, **kwargs):
+        draws.update({m: t.cfg.train.train_draws for m, t in trainers.items()})
+        return timed(trainers, *args, **kwargs)
+
+    monkeypatch.setattr(runner, "time_training_interleaved", record)
     out = tmp_path / "cost.json"
-    assert script.main(["--scene", str(tiny_scene), "--chunk", "3", "--quiet", "--out", str(out)]) == 0
+    assert script.main(["--scene", str(tiny_scene), "--chunk", "3", "--quiet", "--out", str(out),
+                        "--variant", "k3=snerf_default:train.train_draws=3"]) == 0
     r = json.loads(out.read_text())
     assert r["steps"] == 7 and r["chunk_end_step"] == [3, 6, 7]
-    for m in ("deterministic", "snerf_default"):
+    assert draws["k3"] == 3 and draws["snerf_default"] != 3
+    assert r["ratio"]["k3"] == pytest.approx(r["train_s"]["k3"] / r["train_s"]["deterministic"])
+    for m in ("deterministic", "snerf_default", "k3"):
         assert len(r["chunk_step_s"][m]) == 3 and all(t > 0 for t in r["chunk_step_s"][m])
         total = sum(t * n for t, n in zip(r["chunk_step_s"][m], (3, 3, 1)))
         assert total == pytest.approx(r["train_s"][m], rel=1e-9)
