@@ -229,7 +229,11 @@ def test_tables_from_results():
         "flower": {"deterministic": _fake_result(8000.0, nan, 1.0, 20.0, undefined=3),
                    "snerf": _fake_result(3.0, 0.7, 5.0, 40.0), "snerf_kl_none": _fake_result(4.0, 0.1, 5.0, 50.0)},
     }
+    results["fern"]["deterministic"]["config"]["render"]["num_draws"] = 16  # a baseline saved before K changed
+    for scene in results:
+        results[scene]["snerf"]["metrics"]["num_draws"] = 8
     tables = T.build_tables(results, command="python benchmarks/eval_tables.py --tiny")
+    assert tables["budget"]["snerf_num_draws"] == 8  # the K S-NeRF rendered with, not a baseline's stored one
     t1 = tables["table1"]
     assert list(t1) == ["snerf", "deterministic"]  # Table-1 order, methods that ran
     assert t1["snerf"]["nll"] == {"fern": 1.0, "flower": 3.0, "average": 2.0}

@@ -144,13 +144,24 @@ def build_tables(results: dict[str, dict[str, dict]], *, methods: Sequence[str] 
         cfg = any_result["config"]
         budget = {"iterations": cfg["train"]["iterations"], "rays_per_batch": cfg["train"]["rays_per_batch"],
                   "backend": cfg["field"]["backend"], "num_samples": cfg["render"]["num_samples"],
-                  "snerf_num_draws": cfg["render"]["num_draws"], "images": cfg["data"]["images"],
+                  "snerf_num_draws": _snerf_num_draws(rows), "images": cfg["data"]["images"],
                   "split_every": cfg["data"]["split_every"], "seed": cfg["train"]["seed"],
                   "grid_max_cells": cfg["field"]["grid_max_cells"]}
     return {"scenes": scenes, "methods": present, "budget": budget, "command": command,
             "settings": dataclasses.asdict(settings) if settings else None, "table1": table1, "table2": table2,
             "table3": table3, "quality": quality, "depth": depth, "depth_sources": depth_sources,
             "per_scene": rows, "conventions": conventions}
+
+
+def _snerf_num_draws(rows: dict[str, dict[str, dict]]) -> int | None:
+    """K that S-NeRF's scores were rendered with (its metrics, the default S-NeRF column first); a
+    baseline's config.json may keep the K of the day it was trained, which its renders ignore."""
+    methods = sorted({m for by in rows.values() for m in by}, key=lambda m: (m != "snerf_default", m))
+    for m in methods:
+        for by in rows.values():
+            if m in by and m.startswith("snerf") and by[m].get("num_draws") is not None:
+                return by[m]["num_draws"]
+    return None
 
 
 def _fmt(v: Any, digits: int = 3) -> str:
