@@ -5,7 +5,9 @@ methods train side by side on one machine (parallel processes, other sessions) t
 comparable. This trains every method with the tables' configuration at the chosen budget from
 scratch to its last step (or ``--max-steps``), in turn, ``--chunk`` steps at a time (method A, B,
 A, B, ...), so drifts of the machine hit every method alike and every phase of training is in the
-sum (S-NeRF skips empty space only after its occupancy warm-up, so early steps alone misstate it).
+sum (step times change over training, S-NeRF's more than the deterministic NeRF's: see the plot;
+and with ``--variant ...:render.skip_empty_space=true``, which the tables leave off, S-NeRF skips
+empty space only after its occupancy warm-up).
 Times are the trainer's loop clock (set-up, resume and checkpoint writes excluded); the ratio is
 of whole-training loop times to ``--reference``. Beside them: the step time of each chunk (a plot
 with ``--out``), and the tensor operations per step at the end (each at least one kernel launch on

@@ -107,16 +107,27 @@ ROWS_TRAINING_SAMPLES: tuple[Row, ...] = (
 ) + REFERENCE_ROWS
 
 
+#: The seed spread: today's default trained again from other seeds (initialisation, ray batches,
+#: draws), nothing else changed; how far a ruled metric moves by chance alone.
+ROWS_SEEDS: tuple[Row, ...] = (
+    ("default", "snerf_default", (), "S-NeRF default, seed 0 (study 6's depth_1 runs)"),
+    ("seed1", "snerf_default", (("train.seed", 1),), "S-NeRF default, seed 1"),
+    ("seed2", "snerf_default", (("train.seed", 2),), "S-NeRF default, seed 2"),
+) + REFERENCE_ROWS
+
+
 #: --study NAME -> its rows.
 STUDIES: dict[str, tuple[Row, ...]] = {"factors": ROWS, "noise_head": ROWS_NOISE_HEAD, "geometry": ROWS_GEOMETRY,
                                        "colour": ROWS_COLOUR, "depth_weight": ROWS_DEPTH_WEIGHT,
-                                       "likelihood": ROWS_LIKELIHOOD, "training_samples": ROWS_TRAINING_SAMPLES}
+                                       "likelihood": ROWS_LIKELIHOOD, "training_samples": ROWS_TRAINING_SAMPLES,
+                                       "seeds": ROWS_SEEDS}
 
 COLUMNS: tuple[tuple[str, str], ...] = (
     ("psnr", "PSNR"), ("nll", "NLL"), ("auce_colour", "AUCE"), ("nll_raw", "NLL raw"), ("auce_colour_raw", "AUCE raw"),
     ("colour_scale", "colour x(68%)"), ("spearman_mse_var", "Spearman MSE-var"),
     ("pooled_spearman", "Spearman pooled"), ("ause_rmse_normalised", "AUSE norm."),
-    ("depth_abs_rel", "depth abs-rel"), ("depth_spearman", "depth Spearman"),
+    ("depth_abs_rel", "depth abs-rel"), ("depth_spearman_view", "depth Spearman"),
+    ("depth_spearman", "depth Spearman pooled"),
     ("cov68_raw", "cov68 raw"), ("cov95_raw", "cov95 raw"), ("cov68", "cov68 cal."), ("cov95", "cov95 cal."),
     ("depth_scale", "cal. x(68%)"), ("train_s", "train s"),
 )
@@ -143,6 +154,7 @@ def _row_numbers(run_dir: Path) -> dict[str, float]:
         "spearman_mse_var": mean("spearman_mse_var"), "pooled_spearman": pooled.get("spearman_mse_var", math.nan),
         "ause_rmse_normalised": mean("ause_rmse_normalised"),
         "depth_abs_rel": depth.get("abs_rel", math.nan), "depth_spearman": depth.get("spearman", math.nan),
+        "depth_spearman_view": mean("depth/spearman"),
         "cov68_raw": raw.get("coverage_68", math.nan), "cov95_raw": raw.get("coverage_95", math.nan),
         "cov68": depth.get("coverage_68", math.nan), "cov95": depth.get("coverage_95", math.nan),
         "depth_scale": (cal.get("depth") or {}).get("std_scale", math.nan),
@@ -215,7 +227,8 @@ def main(argv: list[str] | None = None) -> int:
                         "(study 5, colour recalibration from held-out pixel blocks against today's default) or "
                         "'depth_weight' (study 6, the sparse-depth weight 1.0 against today's 0.3) or "
                         "'likelihood' (study 8, the training likelihood's colours drawn or Rao-Blackwellised) or "
-                        "'training_samples' (study 9, fewer training trajectories or fewer KL points).")
+                        "'training_samples' (study 9, fewer training trajectories or fewer KL points) or "
+                        "'seeds' (today's default from seeds 0, 1 and 2: the spread of every metric by chance).")
     p.add_argument("--rows", nargs="+", default=None, help="Rows of the study to run (default: all of them).")
     p.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
     p.add_argument("--cost", action="store_true",
@@ -243,7 +256,8 @@ def main(argv: list[str] | None = None) -> int:
                      "colour": ("colour_holdout", "default", "deterministic"),
                      "depth_weight": ("depth_1", "default", "deterministic"),
                      "likelihood": ("rb_likelihood", "default", "deterministic"),
-                     "training_samples": ("draws4", "kl_quarter", "default", "deterministic")}[args.study]
+                     "training_samples": ("draws4", "kl_quarter", "default", "deterministic"),
+                     "seeds": ("default", "deterministic")}[args.study]
         cost = measure_cost(out, "fern", args.data_root, rows=cost_rows, study=STUDIES[args.study])
         atomic_write_text(out / "cost.json", json.dumps(cost, indent=2))
         print(json.dumps(cost, indent=2))
@@ -280,8 +294,8 @@ def main(argv: list[str] | None = None) -> int:
              "Rows (fixed before the run):", ""]
     lines += [f"- **{n}** ({m}): {why}" + (f"; overrides {dict(o)}" if o else "") for n, m, o, why in rows]
     lines += ["", "Columns: colour PSNR / NLL / AUCE / Spearman MSE-variance (per-view mean and pooled) / "
-              "normalised AUSE-RMSE on the test views; depth abs-rel, Spearman |err|-std, and the share of "
-              "SCORE capture points (synthetic: the test pixels whose surface lies in a SCORE block, opacity > 0.5) inside the central "
+              "normalised AUSE-RMSE on the test views; depth abs-rel (pooled), Spearman |err|-std (per-view mean "
+              "and pooled), and the share of SCORE capture points (synthetic: the test pixels whose surface lies in a SCORE block, opacity > 0.5) inside the central "
               "68% / 95% intervals, raw and recalibrated (pooled); the recalibration factor at one sigma; "
               "training seconds (1 thread, machine shared with other work: compare within a column only).", ""]
     for scene, by_row in results.items():
