@@ -172,6 +172,32 @@ def test_sparse_depth_scores_mask_low_opacity():
     assert s["rmse"] == pytest.approx(math.sqrt((1.5 ** 2 + 0.5 ** 2) / 2))
 
 
+def test_depth_parts_rank_errors_by_each_part_alone():
+    """depth_parts/spearman_<part> is scipy's Spearman of |error| with that part's std, at the
+    pixels the total is scored on (opacity mask); a part the maps lack is left out."""
+    from stochastic_fields.evaluation import depth_samples, score_depth
+
+    rng = np.random.default_rng(0)
+    H, W = 12, 16
+    gt = rng.uniform(2.0, 4.0, (H, W))
+    epistemic, spread = rng.uniform(0.01, 0.5, (H, W)), rng.uniform(0.01, 0.5, (H, W))
+    pred = gt + rng.normal(0.0, 1.0, (H, W)) * epistemic  # errors follow the epistemic part
+    opacity = np.ones((H, W))
+    opacity[:3] = 0.1  # not scored
+    products = {"depth_mean": pred, "depth_std": np.hypot(epistemic, spread), "opacity": opacity,
+                "depth_std_epistemic": epistemic, "depth_std_spread": spread}
+    scores = score_depth(depth_samples(products, gt_depth=gt))
+    keep = opacity > 0.5
+    err = np.abs(pred - gt)[keep]
+    for part, std in (("epistemic", epistemic), ("spread", spread)):
+        assert scores[f"depth_parts/spearman_{part}"].value == pytest.approx(
+            scipy.stats.spearmanr(err, std[keep])[0], abs=1e-12)
+        assert scores[f"depth_parts/spearman_{part}"].n == keep.sum()
+    assert scores["depth_parts/spearman_epistemic"].value > 0.5 > scores["depth_parts/spearman_spread"].value
+    del products["depth_std_spread"]
+    assert "depth_parts/spearman_spread" not in score_depth(depth_samples(products, gt_depth=gt))
+
+
 # ------------------------------------------------------------------------------ configuration
 
 

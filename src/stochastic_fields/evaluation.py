@@ -42,6 +42,10 @@ from .visualize import colourise, to_uint8_rgb
 DEPTH_SCORE_KEYS: tuple[str, ...] = ("abs_rel", "rmse", "nll", "ause_rmse", "ause_rmse_normalised", "pearson",
                                      "spearman", "coverage_68", "coverage_95", "auce", "num_used")
 
+#: The parts of S-NeRF's total depth variance (docs/definitions.md §3.4), by the view maps holding
+#: their std: ``depth_parts/spearman_<part>`` ranks the depth errors by that part alone.
+DEPTH_STD_PARTS: dict[str, str] = {"epistemic": "depth_std_epistemic", "spread": "depth_std_spread"}
+
 
 # ----------------------------------------------------------------------------- files of a view
 def _save_png(path: Path, rgb: np.ndarray) -> None:
@@ -81,6 +85,8 @@ class DepthSamples:
     std: np.ndarray
     std_raw: np.ndarray
     """The std before recalibration (equal to ``std`` without a calibration)."""
+    parts: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    """The std of each part of the total variance (``DEPTH_STD_PARTS``) where the maps have it."""
 
 
 def depth_samples(products: dict[str, np.ndarray], gt_depth: np.ndarray | None = None,
@@ -90,14 +96,23 @@ def depth_samples(products: dict[str, np.ndarray], gt_depth: np.ndarray | None =
     in both cases only where the rendered opacity exceeds ``OPACITY_MASK``; None without either."""
     d, op, s = products["depth_mean"], products["opacity"], products["depth_std"]
     s_raw = products.get("depth_std_raw", s)
+    parts = {name: products[key] for name, key in DEPTH_STD_PARTS.items() if key in products}
     if sparse is not None:
         keep = sparse.sample(op) > OPACITY_MASK
         return DepthSamples(sparse.depth[keep], sparse.sample(d)[keep], sparse.sample(s)[keep],
-                            sparse.sample(s_raw)[keep])
+                            sparse.sample(s_raw)[keep], {k: sparse.sample(v)[keep] for k, v in parts.items()})
     if gt_depth is None:
         return None
     mask = (gt_depth > 0) & (op > OPACITY_MASK)
-    return DepthSamples(gt_depth[mask], d[mask], s[mask], s_raw[mask])
+    return DepthSamples(gt_depth[mask], d[mask], s[mask], s_raw[mask], {k: v[mask] for k, v in parts.items()})
+
+
+def depth_part_rankings(samples: DepthSamples) -> dict[str, M.CorrelationResult]:
+    """``depth_parts/spearman_<part>``: Spearman of |depth error| with each part's std alone
+    (which part of the variance ranks the errors; the total's is ``depth/spearman``)."""
+    err = np.abs(samples.pred - samples.gt)
+    return {f"depth_parts/spearman_{name}": M.spearman(err, std, "|depth error|", f"depth std, {name}")
+            for name, std in samples.parts.items()}
 
 
 def interval_scale_of(calibration, quantity: str = "depth"):
@@ -114,6 +129,7 @@ def score_depth(samples: DepthSamples, calibration=None, scores: dict | None = N
     if scores is None:
         scores = paired_depth_scores(samples.gt, samples.pred, samples.std, interval_scale=interval_scale_of(calibration))
     out = {f"depth/{k}": scores[k] for k in DEPTH_SCORE_KEYS}
+    out.update(depth_part_rankings(samples))
     if calibration is not None and calibration.depth is not None:
         raw = paired_depth_scores(samples.gt, samples.pred, samples.std_raw)
         out.update({f"depth_raw/{k}": raw[k] for k in DEPTH_SCORE_KEYS})
@@ -376,6 +392,11 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
                           else np.zeros(0) for k in ("gt", "pred", "std", "std_raw"))
         ds = paired_depth_scores(g, d, s, interval_scale=interval_scale_of(calibration))
         pooled_out["depth"] = _plain_scores(ds)
+        part_names = set.intersection(*(set(p.parts) for p in depth_pool)) if depth_pool else set()
+        pooled_parts = DepthSamples(g, d, s, s_raw, {k: np.concatenate([p.parts[k] for p in depth_pool])
+                                                     for k in sorted(part_names)})
+        pooled_out["depth_parts"] = {k.split("/", 1)[1]: v.value
+                                     for k, v in depth_part_rankings(pooled_parts).items()}
         if calibration is not None and calibration.depth is not None:
             pooled_out["depth_raw"] = _plain_scores(paired_depth_scores(g, d, s_raw))
         if ds["calibration"] is not None:

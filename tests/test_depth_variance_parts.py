@@ -1,0 +1,58 @@
+"""benchmarks/depth_variance_parts.py: a trained run re-scored, the total's and each part's ranking."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location("depth_variance_parts", REPO_ROOT / "benchmarks" / "depth_variance_parts.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_parts_of_a_trained_run_are_scored_as_the_tables_score(tiny_scene, tmp_path):
+    import torch
+
+    from stochastic_fields.config import preset
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.trainer import Trainer
+
+    torch.set_num_threads(1)
+    cfg = preset("tiny")
+    cfg.train.iterations = 30
+    cfg.train.checkpoint_every = 0
+    cfg.train.eval_every = 0
+    cfg.data.path = str(tiny_scene)
+    run = tmp_path / "run"
+    Trainer(cfg, run, load_dataset(tiny_scene, split_every=5)).train(progress=False)
+    out = tmp_path / "parts"
+    script = _script()
+    assert script.main(["--run", f"{tiny_scene}={run}", "--out", str(out), "--quiet"]) == 0
+    row = json.loads((out / "depth_variance_parts.json").read_text())["rows"][0]
+    metrics = json.loads(next(out.glob("*/0/metrics.json")).read_text())
+    assert row["view_mean"]["total"] == metrics["summary"]["depth/spearman"]["mean"]
+    assert row["pooled"]["total"] == metrics["pooled"]["depth"]["spearman"]
+    for part in ("epistemic", "spread"):
+        assert -1.0 <= row["view_mean"][part] <= 1.0 and -1.0 <= row["pooled"][part] <= 1.0
+        assert row["view_mean"][part] == metrics["summary"][f"depth_parts/spearman_{part}"]["mean"]
+    assert "| total (views / pooled) |" in (out / "depth_variance_parts.md").read_text()
+    # resumable: a second call reads the finished scores back
+    stamp = (next(out.glob("*/0/metrics.json"))).stat().st_mtime_ns
+    assert script.main(["--run", f"{tiny_scene}={run}", "--out", str(out), "--quiet"]) == 0
+    assert next(out.glob("*/0/metrics.json")).stat().st_mtime_ns == stamp
+
+
+def test_refuses_what_is_not_a_run(tmp_path):
+    script = _script()
+    with pytest.raises(SystemExit):
+        script.main(["--run", "fern", "--out", str(tmp_path)])
+    with pytest.raises(SystemExit):
+        script.main(["--run", f"fern={tmp_path / 'nothing'}", "--out", str(tmp_path)])
