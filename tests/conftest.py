@@ -28,3 +28,19 @@ def tiny_scene(tmp_path_factory) -> Path:
     from stochastic_fields.data.synthetic import make_synthetic_scene
 
     return make_synthetic_scene(tmp_path_factory.mktemp("tiny_scene"), num_views=20, width=64, height=48, seed=0)
+
+
+@pytest.fixture(scope="session")
+def load_script():
+    """``load_script("benchmarks/train_cost.py")``: a script of the repository (not a package
+    module) imported by path, as its command line would run it."""
+    import importlib.util
+
+    def load(relative: str):
+        path = REPO_ROOT / relative
+        spec = importlib.util.spec_from_file_location(path.stem, path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load

@@ -2,23 +2,14 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location("depth_variance_parts", REPO_ROOT / "benchmarks" / "depth_variance_parts.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
-
-def test_parts_of_a_trained_run_are_scored_as_the_tables_score(tiny_scene, tmp_path):
+def test_parts_of_a_trained_run_are_scored_as_the_tables_score(tiny_scene, tmp_path, load_script):
     import torch
 
     from stochastic_fields.config import preset
@@ -34,7 +25,7 @@ def test_parts_of_a_trained_run_are_scored_as_the_tables_score(tiny_scene, tmp_p
     run = tmp_path / "run"
     Trainer(cfg, run, load_dataset(tiny_scene, split_every=5)).train(progress=False)
     out = tmp_path / "parts"
-    script = _script()
+    script = load_script("benchmarks/depth_variance_parts.py")
     assert script.main(["--run", f"{tiny_scene}={run}", "--out", str(out), "--quiet"]) == 0
     row = json.loads((out / "depth_variance_parts.json").read_text())["rows"][0]
     metrics = json.loads(next(out.glob("*/0/metrics.json")).read_text())
@@ -50,8 +41,8 @@ def test_parts_of_a_trained_run_are_scored_as_the_tables_score(tiny_scene, tmp_p
     assert next(out.glob("*/0/metrics.json")).stat().st_mtime_ns == stamp
 
 
-def test_refuses_what_is_not_a_run(tmp_path):
-    script = _script()
+def test_refuses_what_is_not_a_run(tmp_path, load_script):
+    script = load_script("benchmarks/depth_variance_parts.py")
     with pytest.raises(SystemExit):
         script.main(["--run", "fern", "--out", str(tmp_path)])
     with pytest.raises(SystemExit):

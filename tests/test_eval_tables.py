@@ -393,12 +393,8 @@ def test_every_method_end_to_end_on_the_synthetic_scene(tiny_scene, tmp_path):
 
 
 @pytest.mark.slow
-def test_benchmark_script_on_fern_images_16(shared_data, tmp_path, capsys):
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("eval_tables", REPO_ROOT / "benchmarks" / "eval_tables.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+def test_benchmark_script_on_fern_images_16(shared_data, tmp_path, capsys, load_script):
+    script = load_script("benchmarks/eval_tables.py")
     argv = ["--tiny", "--scenes", "fern", "--methods", "deterministic", "snerf", "--iterations", "5",
             "--max-views", "1", "--data-root", str(shared_data / "nerf_llff_data"), "--out", str(tmp_path),
             "--device", "cpu", "--quiet", "--no-timing", "--product-views", "0"]

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
@@ -134,7 +132,7 @@ def test_pose_round_trip(scene):
     assert bool(torch.all(rays.origins[:, 0, 2] > 0.3))  # upper hemisphere
 
 
-def test_seed_determinism_and_cli(tmp_path):
+def test_seed_determinism_and_cli(tmp_path, load_script):
     a = make_synthetic_scene(tmp_path / "a", num_views=3, width=16, height=12, seed=2)
     b = make_synthetic_scene(tmp_path / "b", num_views=3, width=16, height=12, seed=2)
     c = make_synthetic_scene(tmp_path / "c", num_views=3, width=16, height=12, seed=3)
@@ -142,10 +140,7 @@ def test_seed_determinism_and_cli(tmp_path):
         return (root / "images" / "frame_001.png").read_bytes()
 
     assert png(a) == png(b) and png(a) != png(c)
-    script = Path(__file__).parents[1] / "data_tools" / "make_synthetic_scene.py"
-    spec = importlib.util.spec_from_file_location("cli", script)
-    cli = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(cli)
+    cli = load_script("data_tools/make_synthetic_scene.py")
     out = cli.main([str(tmp_path / "cli"), "--num-views", "5", "--width", "20", "--height", "10"])
     ds = load_dataset(out)
     assert ds.images.shape == (5, 10, 20, 3) and ds.train_indices == [0] and ds.test_indices == [1, 2, 3, 4]

@@ -2,22 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 
 import pytest
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location("train_cost", REPO_ROOT / "benchmarks" / "train_cost.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
-
-def test_operations_per_step_are_those_of_one_step(tiny_scene, tmp_path):
+def test_operations_per_step_are_those_of_one_step(tiny_scene, tmp_path, load_script):
     """The count is per step (set-up excluded): a trainer's 2-step difference equals its
     1-step count on the next call, and S-NeRF issues more operations than its deterministic baseline."""
     import torch
@@ -28,7 +19,7 @@ def test_operations_per_step_are_those_of_one_step(tiny_scene, tmp_path):
 
     torch.set_num_threads(1)
     ds = load_dataset(tiny_scene, split_every=5)
-    script = _script()
+    script = load_script("benchmarks/train_cost.py")
     counts = {}
     for method in ("snerf", "deterministic"):
         cfg = preset("tiny")
@@ -46,16 +37,16 @@ def test_operations_per_step_are_those_of_one_step(tiny_scene, tmp_path):
     assert counts["snerf"] > counts["deterministic"]
 
 
-def test_command_refuses_a_reference_it_does_not_measure(tiny_scene, capsys):
-    script = _script()
+def test_command_refuses_a_reference_it_does_not_measure(tiny_scene, capsys, load_script):
+    script = load_script("benchmarks/train_cost.py")
     assert script.main(["--scene", str(tiny_scene), "--methods", "snerf_default", "--reference", "deterministic"]) == 2
     assert "--reference" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         script.main(["--scene", str(tiny_scene), "--chunk", "0"])
 
 
-def test_variant_is_parsed_into_typed_overrides():
-    script = _script()
+def test_variant_is_parsed_into_typed_overrides(load_script):
+    script = load_script("benchmarks/train_cost.py")
     assert script.parse_variant("k4=snerf_default:train.train_draws=4,loss.kl=none,loss.lambda_depth=0.5") == (
         "k4", "snerf_default", (("train.train_draws", 4), ("loss.kl", "none"), ("loss.lambda_depth", 0.5)))
     assert script.parse_variant("s=snerf:render.shared_noise=true")[2] == (("render.shared_noise", True),)
@@ -64,8 +55,8 @@ def test_variant_is_parsed_into_typed_overrides():
             script.parse_variant(bad)
 
 
-def test_command_refuses_a_variant_outside_its_range(tiny_scene, capsys):
-    script = _script()
+def test_command_refuses_a_variant_outside_its_range(tiny_scene, capsys, load_script):
+    script = load_script("benchmarks/train_cost.py")
     assert script.main(["--scene", str(tiny_scene), "--variant", "k0=snerf_default:train.train_draws=0"]) == 2
     assert "train.train_draws" in capsys.readouterr().err
     assert script.main(["--scene", str(tiny_scene), "--variant", "k4=snerf_default:train.no_such=1"]) == 2
@@ -74,7 +65,7 @@ def test_command_refuses_a_variant_outside_its_range(tiny_scene, capsys):
     assert "distinct" in capsys.readouterr().err
 
 
-def test_whole_training_is_timed_in_interleaved_chunks(tiny_scene, tmp_path, monkeypatch):
+def test_whole_training_is_timed_in_interleaved_chunks(tiny_scene, tmp_path, monkeypatch, load_script):
     """Every method trains the same steps in chunks of --chunk (the last one shorter); the loop
     times add up to each method's total, the ratio is of totals, and the JSON and the plot are
     written. A --variant trains beside them with its overrides."""
@@ -85,7 +76,7 @@ def test_whole_training_is_timed_in_interleaved_chunks(tiny_scene, tmp_path, mon
     from stochastic_fields_bench import budget, runner
 
     torch.set_num_threads(1)
-    script = _script()
+    script = load_script("benchmarks/train_cost.py")
     monkeypatch.setattr(budget, "CPU_BUDGET_OVERRIDES", (("train.iterations", 7), ("field.grid_max_cells", 4096)))
     timed = runner.time_training_interleaved
     draws = {}
