@@ -29,7 +29,6 @@ from stochastic_fields_bench.tables import json_default
 from stochastic_fields.models.registry import METHODS
 from stochastic_fields.renderer import MAP_NAMES, RenderOptions
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
 
 
 # ------------------------------------------------------------------------------ sparse depth
