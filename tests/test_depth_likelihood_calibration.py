@@ -445,10 +445,12 @@ def test_trajectory_weights_are_the_renders_weights_without_colours(shared_noise
     assert drawn.shape == (R, K, S) and torch.equal(drawn, again)
 
 
-def test_depth_term_reads_density_only_and_matches_the_full_field_pass(tiny_scene):
+@pytest.mark.parametrize("depth_draws", [0, 3])
+def test_depth_term_reads_density_only_and_matches_the_full_field_pass(tiny_scene, depth_draws):
     """The model's depth term evaluates only the density (``field.density_params``: no colour
     decoder, a 2-channel backward on the grid) and gives the loss and grid gradients of the full
-    field evaluation with the same draws, float64."""
+    field evaluation with the same draws, float64; it draws ``loss.depth_draws`` trajectories
+    (0: ``train.train_draws``)."""
     from stochastic_fields.config import preset
     from stochastic_fields.data import load_dataset
     from stochastic_fields.fields.row_gather import row_gradient
@@ -461,7 +463,9 @@ def test_depth_term_reads_density_only_and_matches_the_full_field_pass(tiny_scen
 
     dataset = load_dataset(tiny_scene, split_every=5)
     cfg = preset("tiny")
+    cfg.loss.depth_draws = depth_draws
     model = build_model(cfg, dataset).double()
+    assert model.train_draws != 3
     with torch.no_grad():  # a field with structure, not the uniform initial fog
         for table in model.field.levels:
             table.normal_(0.0, 0.5, generator=torch.Generator().manual_seed(1))
@@ -485,8 +489,9 @@ def test_depth_term_reads_density_only_and_matches_the_full_field_pass(tiny_scen
     samples = sample_along_rays(rays, st.num_samples, spacing=st.spacing, stratified=True, generator=g)
     params = model.field(samples.positions.reshape(-1, 3), samples.directions.reshape(-1, 3))
     params = params.reshape(*samples.t_starts.shape)
-    w = trajectory_weights(params.density_loc, params.density_scale, samples, st, num_draws=model.train_draws,
-                           generator=g)
+    w = trajectory_weights(params.density_loc, params.density_scale, samples, st,
+                           num_draws=depth_draws or model.train_draws, generator=g)
+    assert w.shape[1] == (depth_draws or cfg.train.train_draws)
     ref = termination_depth_nll(w, samples.t_mids, samples.deltas, target, model.loss_config.depth_relative_std)
     ref.backward()
     ref_grads = grads()

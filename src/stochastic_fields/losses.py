@@ -62,6 +62,8 @@ class LossConfig:
     """Capture-point rays per training step for the depth likelihood (drawn from the training views' FIT points). Range: an integer >= 1 and <= 1048576."""
     depth_relative_std: float = 0.01
     """Depth noise of a capture point relative to its depth (added to each sample's bin width in the depth likelihood). Range: a finite number > 0."""
+    depth_draws: int = 0
+    """Trajectories per capture-point ray in the depth likelihood (0: ``train.train_draws``, as the colour rays). Range: an integer >= 0 and <= 4096."""
     lambda_distortion: float = 0.0
     """Weight of the Mip-NeRF 360 distortion regulariser on every training trajectory (stochastic_fields.distortion): penalises weight spread along rays (floaters). 0 = off (the paper's objective); on fern at 1000 steps it did not empty space for skipping and cost PSNR at weight 20 (docs/design.md). Range: a finite number >= 0."""
 
@@ -92,6 +94,7 @@ def _loss_checks() -> dict:
         "lambda_depth": real(0.0),
         "depth_rays_per_batch": integer(1, 2**20),
         "depth_relative_std": real(0.0, lo_open=True),
+        "depth_draws": integer(0, 4096),
         "lambda_distortion": real(0.0),
     }
 

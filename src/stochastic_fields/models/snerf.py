@@ -236,14 +236,15 @@ class SNeRF(RadianceModel):
 
     def _depth_nll(self, rays: RayBundle, target_t: Tensor, *, generator: torch.Generator | None) -> Tensor:
         """``termination_depth_nll`` of capture-point rays [M] at their surface distances [M]:
-        dense stratified samples (as the colour rays, without skipping), ``train_draws`` trajectories
-        of the density alone: the field's density parameters (``field.density_params``, no colour
+        dense stratified samples (as the colour rays, without skipping), ``loss.depth_draws``
+        trajectories (0: ``train_draws``) of the density alone: the field's density parameters (``field.density_params``, no colour
         decoder, and on the grid a backward over 2 of its channels) into ``trajectory_weights``."""
         settings = self.render_settings
         samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing, stratified=True,
                                     generator=generator)
         loc, scale = self.field.density_params(samples.positions)  # [M, S] each
-        weights = trajectory_weights(loc, scale, samples, settings, num_draws=self.train_draws, generator=generator)
+        num_draws = self.loss_config.depth_draws or self.train_draws
+        weights = trajectory_weights(loc, scale, samples, settings, num_draws=num_draws, generator=generator)
         return termination_depth_nll(weights, samples.t_mids, samples.deltas, target_t,
                                      self.loss_config.depth_relative_std)
 
