@@ -135,17 +135,12 @@ def measure(scene: str, methods: list[str], *, budget: str, data_root: Path, dev
     settings = BenchmarkSettings(budget=budget, device=device)
 
     configs = {}
-    for m in methods:
-        configs[m] = method_config(METHOD_SPECS[m], base_config(settings, dataset), scene_path)
-    for label, method, overrides in variants:
+    for label, method, overrides in [(m, m, ()) for m in methods] + list(variants):
         cfg = method_config(METHOD_SPECS[method], base_config(settings, dataset), scene_path)
-        for key, value in overrides:
+        for key, value in overrides + (("train.checkpoint_every", 0), ("train.eval_every", 0)):
             set_dotted(cfg, key, value)
         configs[label] = from_dict(ExperimentConfig, to_dict(cfg))  # checks every value's range
     methods = methods + labels
-    for cfg in configs.values():
-        cfg.train.checkpoint_every = 0
-        cfg.train.eval_every = 0
     trainers = {}
     with tempfile.TemporaryDirectory() as tmp:
         for m in methods:

@@ -107,6 +107,16 @@ def depth_samples(products: dict[str, np.ndarray], gt_depth: np.ndarray | None =
     return DepthSamples(gt_depth[mask], d[mask], s[mask], s_raw[mask], {k: v[mask] for k, v in parts.items()})
 
 
+def _pool_depth_samples(pool: Sequence[DepthSamples]) -> DepthSamples:
+    """Every view's depth samples as one, float64; the parts every view has."""
+    def cat(arrays) -> np.ndarray:
+        return np.concatenate(list(arrays)).astype(np.float64) if pool else np.zeros(0)
+
+    names = sorted(set.intersection(*(set(p.parts) for p in pool))) if pool else []
+    return DepthSamples(*(cat(getattr(p, k) for p in pool) for k in ("gt", "pred", "std", "std_raw")),
+                        {k: cat(p.parts[k] for p in pool) for k in names})
+
+
 def depth_part_rankings(samples: DepthSamples) -> dict[str, M.CorrelationResult]:
     """``depth_parts/spearman_<part>``: Spearman of |depth error| with each part's std alone
     (which part of the variance ranks the errors; the total's is ``depth/spearman``)."""
@@ -388,17 +398,12 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
         if ranking[metric] is not None:
             curves.update(_pack(f"colour_sparsification_{metric}", ranking[metric]))
     if depth_source is not None:
-        g, d, s, s_raw = (np.concatenate([getattr(p, k) for p in depth_pool]).astype(np.float64) if depth_pool
-                          else np.zeros(0) for k in ("gt", "pred", "std", "std_raw"))
-        ds = paired_depth_scores(g, d, s, interval_scale=interval_scale_of(calibration))
+        pooled = _pool_depth_samples(depth_pool)
+        ds = paired_depth_scores(pooled.gt, pooled.pred, pooled.std, interval_scale=interval_scale_of(calibration))
         pooled_out["depth"] = _plain_scores(ds)
-        part_names = set.intersection(*(set(p.parts) for p in depth_pool)) if depth_pool else set()
-        pooled_parts = DepthSamples(g, d, s, s_raw, {k: np.concatenate([p.parts[k] for p in depth_pool])
-                                                     for k in sorted(part_names)})
-        pooled_out["depth_parts"] = {k.split("/", 1)[1]: v.value
-                                     for k, v in depth_part_rankings(pooled_parts).items()}
+        pooled_out["depth_parts"] = {k.split("/", 1)[1]: v.value for k, v in depth_part_rankings(pooled).items()}
         if calibration is not None and calibration.depth is not None:
-            pooled_out["depth_raw"] = _plain_scores(paired_depth_scores(g, d, s_raw))
+            pooled_out["depth_raw"] = _plain_scores(paired_depth_scores(pooled.gt, pooled.pred, pooled.std_raw))
         if ds["calibration"] is not None:
             curves.update(_pack("depth_calibration", ds["calibration"]))
         if ds["sparsification"] is not None:
