@@ -552,6 +552,42 @@ def test_gradcheck_trajectory_statistics():
     assert torch.autograd.gradcheck(all_outputs, (weights, rgb, t_mids))
 
 
+@pytest.mark.parametrize("shared", [False, True])
+def test_logit_normal_colour_draws_match_drawn_colours_and_gradcheck(shared):
+    """The fused composite of colours given by their logits equals ``accumulate`` of the drawn
+    colours (float64 loop over rays, draws and samples), with its own backward checked by
+    gradcheck; saturated logits (|mu| ~ 40) give finite gradients, as the sigmoid's."""
+    gen = torch.Generator().manual_seed(12)
+    R, K, S = 3, 4, 5
+    weights = _positive((R, K, S), 13, 0.3)
+    loc = torch.randn(R, S, 3, generator=gen, dtype=torch.float64).requires_grad_(True)
+    scale = _positive((R, S, 3), 14)
+    eps = torch.randn(R, K, 1 if shared else S, 3, generator=gen, dtype=torch.float64)
+
+    def fused(w, mu, s):
+        return vr.composite_logit_normal_draws(w, vr.LogitNormalColourDraws(mu, s, eps))
+
+    expected = torch.zeros(R, K, 3, dtype=torch.float64)
+    for r in range(R):
+        for k in range(K):
+            for i in range(S):
+                e = eps[r, k, 0 if shared else i]
+                expected[r, k] += weights[r, k, i] * torch.sigmoid(loc[r, i] + scale[r, i] * e)
+    torch.testing.assert_close(fused(weights, loc, scale), expected.detach(), rtol=1e-12, atol=1e-14)
+    assert torch.autograd.gradcheck(fused, (weights, loc, scale))
+    # the same statistics as drawn colours through trajectory_statistics, and without autograd
+    t_mids = torch.cumsum(_positive((R, 1, S), 15).detach(), -1)
+    far = torch.full((R,), 9.0, dtype=torch.float64)
+    drawn = torch.sigmoid(loc[:, None] + scale[:, None] * eps)
+    by_logits = vr.trajectory_statistics(weights, vr.LogitNormalColourDraws(loc, scale, eps), t_mids, far, 0.5)
+    torch.testing.assert_close(by_logits.colour_var, vr.trajectory_statistics(weights, drawn, t_mids, far, 0.5).colour_var)
+    with torch.no_grad():
+        torch.testing.assert_close(fused(weights, loc, scale), expected.detach(), rtol=1e-12, atol=1e-14)
+    saturated = (40.0 * torch.sign(loc.detach())).requires_grad_(True)
+    fused(weights, saturated, scale).sum().backward()
+    assert torch.isfinite(saturated.grad).all() and torch.isfinite(scale.grad).all()
+
+
 def test_gradcheck_packed_cumsum():
     x = _positive((2, 7), 12)
     ray_indices = torch.tensor([0, 0, 0, 2, 2, 2, 2])

@@ -192,8 +192,13 @@ def termination_depth_nll(weights: Tensor, t_mids: Tensor, deltas: Tensor, targe
     """
     var = deltas ** 2 / 12.0 + (relative_std * target_t[:, None]) ** 2  # [R, S]
     log_normal = -0.5 * (target_t[:, None] - t_mids) ** 2 / var - 0.5 * torch.log(2 * math.pi * var)
-    log_w = weights.clamp_min(DEPTH_MIXTURE_WEIGHT_FLOOR).log()  # [R, K, S]
-    return -torch.logsumexp(log_w + log_normal[:, None, :], dim=-1).mean()
+    # log sum_i w_i N_i = m + log sum_i w_i exp(log N_i - m), m = max_i log N_i per ray: the
+    # exponentials are taken once per ray [R, S] instead of per draw, and the sum is a matrix
+    # product. Nothing overflows (every ratio <= 1) and the sum is >= the floor at the peak.
+    peak = log_normal.amax(dim=-1, keepdim=True)  # [R, 1]
+    ratio = torch.exp(log_normal - peak)  # [R, S]
+    mixture = torch.matmul(weights.clamp_min(DEPTH_MIXTURE_WEIGHT_FLOOR), ratio[:, :, None])[..., 0]  # [R, K]
+    return -(torch.log(mixture) + peak).mean()
 
 
 def field_kl(params: FieldParams, prior: tuple[Tensor, Tensor, Tensor, Tensor], *,

@@ -46,8 +46,8 @@ from .logistic_normal_table import logistic_normal_moments_tabulated
 from .rays import PackedRaySamples, RayBundle, RaySamples
 from .samplers import Spacing, sample_along_rays
 from .validation import Checker, boolean, check_fields, choice, colour_or_none, integer, real
-from .volume_rendering import (TrajectoryStatistics, concatenate_draws, observation_noise, observation_noise_packed,
-                               render_weights, render_weights_packed, trajectory_statistics,
+from .volume_rendering import (LogitNormalColourDraws, TrajectoryStatistics, concatenate_draws, observation_noise,
+                               observation_noise_packed, render_weights, render_weights_packed, trajectory_statistics,
                                trajectory_statistics_packed, weights_alpha_from_optical_depth)
 
 #: RenderSettings.colour_estimator values: drawn colours (docs/definitions.md §3) or Rao-Blackwellised colours.
@@ -336,11 +336,16 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
                 w = render_weights(density, samples.t_starts[:, None, :], samples.t_ends[:, None, :],
                                    settings.quadrature)
             rgb, block_rgb_var = rgb_mean, rgb_var
-        else:
-            density, rgb = draw_trajectories(params, k, shared_noise=settings.shared_noise,
-                                             deterministic=deterministic, generator=generator, noise=block_noise)
+        elif deterministic:
+            density, rgb = draw_trajectories(params, k, deterministic=True)
             w = render_weights(density, samples.t_starts[:, None, :], samples.t_ends[:, None, :], settings.quadrature)
             block_rgb_var = None
+        else:  # draw_trajectories' draws, the colours composited from their logits (one autograd node)
+            eps_a, eps_c = block_noise if block_noise is not None else dense_noise(
+                R, k, S, shared_noise=settings.shared_noise, generator=generator, device=dev, dtype=dt)
+            density = torch.relu(params.density_loc[:, None, :] + params.density_scale[:, None, :] * eps_a)
+            w = render_weights(density, samples.t_starts[:, None, :], samples.t_ends[:, None, :], settings.quadrature)
+            rgb, block_rgb_var = LogitNormalColourDraws(params.rgb_loc, params.rgb_scale, eps_c), None
         parts.append(trajectory_statistics(w, rgb, samples.t_mids[:, None, :], samples.rays.far,
                                            background=_background(settings, w), rgb_var=block_rgb_var,
                                            observation_var=obs_var))
