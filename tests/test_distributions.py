@@ -588,3 +588,39 @@ def test_gradcheck_moments(loc, scale):
     assert torch.autograd.gradcheck(lambda m, s: LogisticNormal(m, s).mean, args)
     assert torch.autograd.gradcheck(lambda m, s: LogisticNormal(m, s).variance, args)
     assert torch.autograd.gradcheck(log_ndtr, (args[0],))
+
+
+def test_field_kl_means_of_parts_equal_separate_kls_values_and_gradients():
+    """The KL terms evaluated as one batch (each part with its own prior, as the random-point and
+    observed-sample KLs of a training step) equal each part's own ``field_kl`` mean, in value and
+    in the gradients of the points' parameters and of both priors (float64)."""
+    from stochastic_fields.fields.base import FieldParams
+    from stochastic_fields.losses import field_kl, field_kl_means
+
+    gen = torch.Generator().manual_seed(3)
+
+    def params(n):
+        return FieldParams(torch.randn(n, generator=gen, dtype=torch.float64) * 3,
+                           torch.rand(n, generator=gen, dtype=torch.float64) + 0.05,
+                           torch.randn(n, 3, generator=gen, dtype=torch.float64) * 2,
+                           torch.rand(n, 3, generator=gen, dtype=torch.float64) + 0.05).map(lambda t: t.requires_grad_(True))
+
+    def prior(loc, scale):  # (density loc, scale, colour loc [3], scale [3]) as Priors gives them, float64 leaves
+        return tuple(torch.tensor(v, dtype=torch.float64, requires_grad=True)
+                     for v in (loc, scale, [loc, -loc, 0.5], [scale, 2 * scale, 1.0]))
+
+    priors = [prior(0.0, 3.0), prior(-0.7, 0.9)]
+    parts = [(params(7), priors[0]), (params(5), priors[1])]
+    joined = field_kl_means(parts)
+    separate = [field_kl(p, prior).mean() for p, prior in parts]
+    leaves = [t for p, _ in parts for t in (p.density_loc, p.density_scale, p.rgb_loc, p.rgb_scale)] + [t for pr in priors for t in pr]
+    g_joined = torch.autograd.grad(joined[0] + 0.3 * joined[1], leaves, allow_unused=True, retain_graph=True)
+    g_separate = torch.autograd.grad(separate[0] + 0.3 * separate[1], leaves, allow_unused=True)
+    for a, b in zip(joined, separate):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)
+    for a, b in zip(g_joined, g_separate):
+        assert (a is None) == (b is None)
+        if a is not None:
+            torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)
+    assert field_kl_means([]) == []
+    torch.testing.assert_close(field_kl_means(parts[:1])[0], separate[0])

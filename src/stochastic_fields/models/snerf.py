@@ -28,7 +28,7 @@ from ..adaptive import render_image_adaptive
 from ..distortion import distortion_loss, distortion_loss_packed, normalised_coordinate
 from ..fields.base import StochasticField
 from ..fields.grid import GridField
-from ..losses import (LossConfig, Priors, decoupled_likelihood_nll, field_kl, gaussian_likelihood_nll,
+from ..losses import (LossConfig, Priors, decoupled_likelihood_nll, field_kl_means, gaussian_likelihood_nll,
                       termination_depth_nll)
 from ..occupancy import OccupancyGrid, density_threshold, density_upper_estimate
 from ..rays import PackedRaySamples, RayBundle, RaySamples
@@ -203,23 +203,23 @@ class SNeRF(RadianceModel):
             logs["likelihood_std"] = sigma_n.mean().item()
         if noise_var is not None:
             logs["noise_head_rms"] = noise_var.detach().mean().sqrt().item()
+        kl_parts = []  # (log name, weight, params, prior): every KL term of the loss, evaluated in one batch
         if use_random_kl:
-            kl_rand = field_kl(params_all.map(lambda t: t[n_ray:]), self.priors.random(), estimator=cfg.kl_estimator,
-                               mc_samples=cfg.kl_mc_samples, generator=generator).mean()
-            loss = loss + cfg.lambda_random * kl_rand
-            logs["kl_random"] = kl_rand.item()
+            kl_parts.append(("kl_random", cfg.lambda_random, params_all.map(lambda t: t[n_ray:]), self.priors.random()))
         if cfg.kl == "full":
             obs = out.params.map(lambda t: t.reshape(-1, *t.shape[out.params.density_loc.dim():]))
             n_obs = cfg.observed_kl_samples
             if 0 < n_obs < obs.density_loc.shape[0]:
                 pick = torch.randperm(obs.density_loc.shape[0], generator=generator, device=obs.density_loc.device)[:n_obs]
                 obs = obs.map(lambda t: t[pick])
-            kl_obs = field_kl(obs, self.priors.observed(), estimator=cfg.kl_estimator,
-                              mc_samples=cfg.kl_mc_samples, generator=generator).mean()
-            loss = loss + cfg.lambda_observed * kl_obs
-            logs["kl_observed"] = kl_obs.item()
+            kl_parts.append(("kl_observed", cfg.lambda_observed, obs, self.priors.observed()))
         elif cfg.kl not in ("none", "fixed_prior"):
             raise ValueError(f"loss.kl must be 'none', 'fixed_prior' or 'full', got {cfg.kl!r}")
+        kls = field_kl_means([(p, prior) for _, _, p, prior in kl_parts], estimator=cfg.kl_estimator,
+                             mc_samples=cfg.kl_mc_samples, generator=generator)
+        for (name, weight, _, _), kl in zip(kl_parts, kls):
+            loss = loss + weight * kl
+            logs[name] = kl.item()
         if cfg.lambda_distortion > 0:
             dist = self._distortion(out, samples)
             loss = loss + cfg.lambda_distortion * dist
