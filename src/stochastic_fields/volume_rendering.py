@@ -491,7 +491,7 @@ def trajectory_statistics(
 
     Colours given by their logits (``rgb`` a ``LogitNormalColourDraws``): ``C_k = sum_i w_ik
     sigmoid(mu_i + s_i eps_ik)`` by ``composite_logit_normal_draws`` (the training path: one
-    autograd node instead of four over [R, K, S, 3]).
+    autograd node instead of five over [R, K, S, 3]).
 
     Observation noise (``observation_var`` [R, S]: beta_i^2 of a field's noise head, §4.7): each
     trajectory's pixel also gets the noise variance ``v_k = sum_i w_ik beta_i^2`` (every channel),
