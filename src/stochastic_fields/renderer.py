@@ -332,9 +332,8 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
             if folded is not None:  # tau = relu(mu_a delta + s_a delta eps): two passes over [R, k, S]
                 w = weights_alpha_from_optical_depth(torch.relu(torch.addcmul(*folded, eps_a)))
             else:
-                density = torch.relu(params.density_loc[:, None, :] + params.density_scale[:, None, :] * eps_a)
-                w = render_weights(density, samples.t_starts[:, None, :], samples.t_ends[:, None, :],
-                                   settings.quadrature)
+                w = trajectory_weights(params.density_loc, params.density_scale, samples, settings, num_draws=k,
+                                       noise=eps_a)
             rgb, block_rgb_var = rgb_mean, rgb_var
         elif deterministic:
             density, rgb = draw_trajectories(params, k, deterministic=True)
@@ -343,8 +342,7 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
         else:  # draw_trajectories' draws, the colours composited from their logits (one autograd node)
             eps_a, eps_c = block_noise if block_noise is not None else dense_noise(
                 R, k, S, shared_noise=settings.shared_noise, generator=generator, device=dev, dtype=dt)
-            density = torch.relu(params.density_loc[:, None, :] + params.density_scale[:, None, :] * eps_a)
-            w = render_weights(density, samples.t_starts[:, None, :], samples.t_ends[:, None, :], settings.quadrature)
+            w = trajectory_weights(params.density_loc, params.density_scale, samples, settings, num_draws=k, noise=eps_a)
             rgb, block_rgb_var = LogitNormalColourDraws(params.rgb_loc, params.rgb_scale, eps_c), None
         parts.append(trajectory_statistics(w, rgb, samples.t_mids[:, None, :], samples.rays.far,
                                            background=_background(settings, w), rgb_var=block_rgb_var,

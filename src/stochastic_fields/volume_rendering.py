@@ -246,10 +246,6 @@ class LogitNormalColourDraws:
     eps: Tensor
 
 
-def _drawn_colours(loc: Tensor, scale: Tensor, eps: Tensor) -> Tensor:
-    return torch.sigmoid(torch.addcmul(loc[:, None], scale[:, None], eps))  # [R, K, S, 3]
-
-
 class _CompositeLogitNormalDraws(torch.autograd.Function):
     """``C_kc = sum_i w_ik r_ikc`` with ``r = sigmoid(mu + s eps)``; the backward uses
 
@@ -260,7 +256,7 @@ class _CompositeLogitNormalDraws(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, weights: Tensor, loc: Tensor, scale: Tensor, eps: Tensor) -> Tensor:
-        rgb = _drawn_colours(loc, scale, eps)
+        rgb = torch.sigmoid(torch.addcmul(loc[:, None], scale[:, None], eps))  # [R, K, S, 3]
         ctx.save_for_backward(weights, rgb, eps)
         return torch.matmul(weights.unsqueeze(-2), rgb).squeeze(-2)  # [R, K, 1, S] @ [R, K, S, 3]
 
@@ -284,10 +280,7 @@ def composite_logit_normal_draws(weights: Tensor, colours: LogitNormalColourDraw
     """Each trajectory's colour ``C_k = sum_i w_ik sigmoid(mu_i + s_i eps_ik)`` [R, K, 3] from
     weights [R, K, S] (``accumulate(weights, r)`` with the drawn colours r; same values up to the
     summation order, gradients by a fused backward)."""
-    loc, scale, eps = colours.loc, colours.scale, colours.eps
-    if torch.is_grad_enabled() and (weights.requires_grad or loc.requires_grad or scale.requires_grad):
-        return _CompositeLogitNormalDraws.apply(weights, loc, scale, eps)
-    return torch.matmul(weights.unsqueeze(-2), _drawn_colours(loc, scale, eps)).squeeze(-2)
+    return _CompositeLogitNormalDraws.apply(weights, colours.loc, colours.scale, colours.eps)
 
 
 def opacity(weights: Tensor) -> Tensor:
