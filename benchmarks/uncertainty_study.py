@@ -134,12 +134,25 @@ ROWS_SPLIT_DRAWS: tuple[Row, ...] = ROWS_SEEDS[:3] + tuple(
     for seed, suffix in ((0, ""), (1, "_seed1"), (2, "_seed2"))) + REFERENCE_ROWS
 
 
+#: Study 10: the training schedule at the CPU budget (issue 19's first factor: is the reconstruction
+#: gap a budget effect?). A schedule is shared by every method, so each row trains S-NeRF (default)
+#: and the deterministic NeRF with the same change; the seed-0 default and reference rows are
+#: study 6's runs.
+ROWS_SCHEDULE: tuple[Row, ...] = (
+    ("default", "snerf_default", (), "S-NeRF default (study 6's depth_1): lr 5e-3 decaying to 5e-4 over 1000 steps"),
+    ("lr_2x", "snerf_default", (("train.lr", 1e-2),), "twice the learning rate (1e-2, decaying to 1e-3)"),
+    ("lr_2x_det", "deterministic", (("train.lr", 1e-2),), "deterministic NeRF, twice the learning rate"),
+    ("steps_2x", "snerf_default", (("train.iterations", 2000),), "twice the steps (2000; the same lr schedule)"),
+    ("steps_2x_det", "deterministic", (("train.iterations", 2000),), "deterministic NeRF, twice the steps"),
+) + REFERENCE_ROWS
+
+
 #: --study NAME -> its rows.
 STUDIES: dict[str, tuple[Row, ...]] = {"factors": ROWS, "noise_head": ROWS_NOISE_HEAD, "geometry": ROWS_GEOMETRY,
                                        "colour": ROWS_COLOUR, "depth_weight": ROWS_DEPTH_WEIGHT,
                                        "likelihood": ROWS_LIKELIHOOD, "training_samples": ROWS_TRAINING_SAMPLES,
                                        "seeds": ROWS_SEEDS, "draws4_seeds": ROWS_DRAWS4_SEEDS,
-                                       "split_draws": ROWS_SPLIT_DRAWS}
+                                       "split_draws": ROWS_SPLIT_DRAWS, "schedule": ROWS_SCHEDULE}
 
 COLUMNS: tuple[tuple[str, str], ...] = (
     ("psnr", "PSNR"), ("nll", "NLL"), ("auce_colour", "AUCE"), ("nll_raw", "NLL raw"), ("auce_colour_raw", "AUCE raw"),
@@ -249,7 +262,8 @@ def main(argv: list[str] | None = None) -> int:
                         "'training_samples' (study 9, fewer training trajectories or fewer KL points) or "
                         "'seeds' (today's default from seeds 0, 1 and 2: the spread of every metric by chance) or "
                         "'draws4_seeds' (study 9b: K = 4 against the default, seeds 0, 1 and 2 each) or "
-                        "'split_draws' (study 9c: K = 4 for the colour rays and 8 for the depth rays, three seeds).")
+                        "'split_draws' (study 9c: K = 4 for the colour rays and 8 for the depth rays, three seeds) or "
+                        "'schedule' (study 10: twice the learning rate or twice the steps, S-NeRF and deterministic NeRF).")
     p.add_argument("--rows", nargs="+", default=None, help="Rows of the study to run (default: all of them).")
     p.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
     p.add_argument("--cost", action="store_true",
@@ -280,7 +294,8 @@ def main(argv: list[str] | None = None) -> int:
                      "training_samples": ("draws4", "kl_quarter", "default", "deterministic"),
                      "seeds": ("default", "deterministic"),
                      "draws4_seeds": ("draws4", "default", "deterministic"),
-                     "split_draws": ("draws4_depth8", "default", "deterministic")}[args.study]
+                     "split_draws": ("draws4_depth8", "default", "deterministic"),
+                     "schedule": ("default", "deterministic")}[args.study]
         cost = measure_cost(out, "fern", args.data_root, rows=cost_rows, study=STUDIES[args.study])
         atomic_write_text(out / "cost.json", json.dumps(cost, indent=2))
         print(json.dumps(cost, indent=2))
