@@ -64,8 +64,8 @@ def _standardised(model, cameras, near, far, sparse, seed: int) -> dict[str, np.
 
 
 def _scored_points(run_dir: Path, model, dataset, points, views: list[int], held: np.ndarray, seed: int):
-    """Standardised errors at the evaluated test views with their blocks and roles (SCORE for
-    every synthetic pixel, as the tables score them all)."""
+    """Standardised errors at the evaluated test views with their points (world xyz), blocks and
+    roles (SCORE for every synthetic pixel, as the tables score them all)."""
     import torch
 
     from stochastic_fields.cameras import camera_to_world, intrinsics_3x3
@@ -87,7 +87,8 @@ def _scored_points(run_dir: Path, model, dataset, points, views: list[int], held
         xyz = np.concatenate(xyz)
         sparse = project_sparse_depth(dataset.cameras, xyz, views, visible=visible, visibility_name="test pixels")
         out = _standardised(model, dataset.cameras, dataset.near, dataset.far, sparse, seed)
-        out["block"] = block_keys(xyz[out["index"]], points.xyz)
+        out["xyz"] = xyz[out["index"]]
+        out["block"] = block_keys(out["xyz"], points.xyz)
         out["role"] = np.full(len(out["abs_z"]), SCORE)
         return out
     if points.colmap is not None:
@@ -97,7 +98,8 @@ def _scored_points(run_dir: Path, model, dataset, points, views: list[int], held
                                     visibility_name=points.source)
     sparse = {v: restrict_sparse_depth(sd, held[sd.point_index]) for v, sd in full.items()}
     out = _standardised(model, dataset.cameras, dataset.near, dataset.far, sparse, seed)
-    out["block"] = block_keys(points.xyz[out["index"]], points.xyz)
+    out["xyz"] = points.xyz[out["index"]]
+    out["block"] = block_keys(out["xyz"], points.xyz)
     out["role"] = points.roles[out["index"]]
     return out
 

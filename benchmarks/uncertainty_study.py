@@ -144,7 +144,12 @@ ROWS_SCHEDULE: tuple[Row, ...] = (
     ("lr_2x_det", "deterministic", (("train.lr", 1e-2),), "deterministic NeRF, twice the learning rate"),
     ("steps_2x", "snerf_default", (("train.iterations", 2000),), "twice the steps (2000; the same lr schedule)"),
     ("steps_2x_det", "deterministic", (("train.iterations", 2000),), "deterministic NeRF, twice the steps"),
-) + REFERENCE_ROWS
+) + ROWS_SEEDS[1:3] + tuple(
+    (f"{name}_seed{seed}", "snerf_default", overrides + (("train.seed", seed),), f"{why}, seed {seed} (trained only if "
+     "the seed-0 row passes the rule)")
+    for name, overrides, why in (("lr_2x", (("train.lr", 1e-2),), "twice the learning rate"),
+                                 ("steps_2x", (("train.iterations", 2000),), "twice the steps"))
+    for seed in (1, 2)) + REFERENCE_ROWS
 
 
 #: --study NAME -> its rows.

@@ -166,14 +166,33 @@ def backproject_pixels(K: torch.Tensor, c2w: torch.Tensor, rows: torch.Tensor, c
     return cam @ c2w[:3, :3].T + c2w[:3, 3]
 
 
+def depth_map_observes(dataset, xyz: np.ndarray | torch.Tensor, view: int, *,
+                       rtol: float = SYNTHETIC_VISIBILITY_RTOL) -> np.ndarray:
+    """[P] bool: which world points ``xyz`` [P, 3] view ``view`` of a dense-depth dataset observes.
+
+    A point is observed when it projects inside the image in front of the camera and the view's
+    depth map at its pixel is within ``rtol`` (relative) of the point's camera depth: the pixel's
+    surface is the point's, not an occluder (the track of a stand-in point)."""
+    from .cameras import in_image, project_points, select_cameras
+
+    points = torch.as_tensor(np.asarray(xyz), dtype=torch.float64)
+    cam = select_cameras(dataset.cameras, [int(view)])
+    cam64 = type(cam)(cam.intrinsics.double(), cam.extrinsics.double(), cam.height.double(), cam.width.double())
+    uv, zc = project_points(cam64, points)
+    inside = in_image(cam64, uv, zc)[0]
+    rows = uv[0, :, 1].floor().long().clamp(0, dataset.height - 1)
+    cols = uv[0, :, 0].floor().long().clamp(0, dataset.width - 1)
+    surface = dataset.depths[int(view)].double()[rows, cols]
+    return (inside & (surface > 0) & ((surface - zc[0]).abs() <= rtol * zc[0])).numpy()
+
+
 def synthetic_capture_points(dataset, *, fraction: float = SYNTHETIC_POINTS_FRACTION,
                              seed: int = SPLIT_SEED) -> tuple[np.ndarray, list[np.ndarray]]:
     """Stand-in SfM points of a dense-depth scene: a seeded ``fraction`` of every training view's
     surface pixels, back-projected at the pixel centre. Returns (xyz [P, 3], per-view visible point
-    indices): as a COLMAP track, a training view observes a point when the point projects inside it
-    in front of the camera and its depth map there agrees within ``SYNTHETIC_VISIBILITY_RTOL``
-    (test views observe none)."""
-    from .cameras import camera_to_world, in_image, intrinsics_3x3, project_points, select_cameras
+    indices): as a COLMAP track, a training view observes a point when ``depth_map_observes`` says
+    so (test views observe none)."""
+    from .cameras import camera_to_world, intrinsics_3x3
 
     if dataset.depths is None:
         raise ValueError(f"{dataset.root}: no dense depth to take stand-in capture points from")
@@ -189,19 +208,30 @@ def synthetic_capture_points(dataset, *, fraction: float = SYNTHETIC_POINTS_FRAC
         xyz.append(backproject_pixels(K[v], c2w[v], rows, cols, depth[rows, cols]))
     if not xyz:
         return np.zeros((0, 3)), [np.zeros(0, dtype=np.int64) for _ in range(dataset.num_views)]
-    points = torch.cat(xyz)
+    points = torch.cat(xyz).numpy()
     visible = [np.zeros(0, dtype=np.int64) for _ in range(dataset.num_views)]
     for v in dataset.train_indices:
-        cam = select_cameras(dataset.cameras, [v])
-        cam64 = type(cam)(cam.intrinsics.double(), cam.extrinsics.double(), cam.height.double(), cam.width.double())
-        uv, zc = project_points(cam64, points)
-        inside = in_image(cam64, uv, zc)[0]
-        rows = uv[0, :, 1].floor().long().clamp(0, dataset.height - 1)
-        cols = uv[0, :, 0].floor().long().clamp(0, dataset.width - 1)
-        surface = dataset.depths[v].double()[rows, cols]
-        agree = inside & (surface > 0) & ((surface - zc[0]).abs() <= SYNTHETIC_VISIBILITY_RTOL * zc[0])
-        visible[v] = torch.nonzero(agree).reshape(-1).numpy().astype(np.int64)
-    return points.numpy(), visible
+        visible[v] = np.flatnonzero(depth_map_observes(dataset, points, v)).astype(np.int64)
+    return points, visible
+
+
+def training_view_counts(dataset, capture: "CapturePoints", xyz: np.ndarray | None = None) -> np.ndarray:
+    """[P] int: how many training views observe each point: the capture points' own tracks
+    (``capture.visible``), or for other points ``xyz`` [P, 3] of a dense-depth scene the depth-map
+    test of ``depth_map_observes``. Raises ValueError when neither is known."""
+    if xyz is None:
+        if capture.visible is None:
+            raise ValueError(f"{dataset.root}: the capture points have no tracks to count training views from")
+        counts = np.zeros(len(capture.xyz), dtype=np.int64)
+        for v in dataset.train_indices:
+            counts[capture.visible[v]] += 1
+        return counts
+    if getattr(dataset, "depths", None) is None:
+        raise ValueError(f"{dataset.root}: no dense depth to test which training views observe the points")
+    counts = np.zeros(len(xyz), dtype=np.int64)
+    for v in dataset.train_indices:
+        counts += depth_map_observes(dataset, xyz, v)
+    return counts
 
 
 def load_capture_points(dataset) -> CapturePoints | None:

@@ -160,6 +160,60 @@ def plot_resplit_coverage(
     return _save_atomic(fig, path, dpi)
 
 
+def plot_coverage_by_group(
+    groups: Mapping[str, Sequence[Mapping]],
+    levels: Sequence[float],
+    path: str | os.PathLike,
+    tolerance: float = 0.05,
+    xlabel: str = "group",
+    title: str | None = None,
+    dpi: int = 110,
+) -> Path:
+    """Interval coverage per group of points, one panel per scene: bars for each level (calibrated
+    solid, raw hatched), the nominal level +- ``tolerance`` shaded, each group's point count on top.
+
+    Args:
+        groups: scene -> rows with "group" (label), "points", "coverage" [L], "coverage_raw" [L]
+            (``benchmarks/coverage_by_views.coverage_table``).
+        levels: [L] nominal central levels.
+    Returns:
+        the written path.
+    """
+    if not groups:
+        raise ValueError("plot_coverage_by_group needs at least one scene")
+    scenes = list(groups)
+    fig = Figure(figsize=(4.6 * len(scenes), 3.6))
+    colours = ("tab:blue", "tab:orange", "tab:purple", "tab:brown")
+    width = 0.8 / (2 * len(levels))
+    for c, scene in enumerate(scenes):
+        ax = fig.add_subplot(1, len(scenes), c + 1)
+        rows = list(groups[scene])
+        x = np.arange(len(rows))
+        for j, level in enumerate(levels):
+            colour = colours[j % len(colours)]
+            ax.axhspan(level - tolerance, level + tolerance, color=colour, alpha=0.08)
+            ax.axhline(level, color=colour, linewidth=0.8)
+            cal = [float(r["coverage"][j]) for r in rows]
+            raw = [float(r["coverage_raw"][j]) for r in rows]
+            ax.bar(x + (2 * j - len(levels)) * width + width / 2, cal, width, color=colour,
+                   label=f"{level:.0%} recalibrated")
+            ax.bar(x + (2 * j + 1 - len(levels)) * width + width / 2, raw, width, color="none",
+                   edgecolor=colour, hatch="//", label=f"{level:.0%} raw")
+        for i, r in enumerate(rows):
+            ax.text(i, 1.02, str(r["points"]), ha="center", va="bottom", fontsize="x-small")
+        ax.set_xticks(x, [str(r["group"]) for r in rows])
+        ax.set_ylim(0.0, 1.1)
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("share of scored depths inside")
+        ax.set_title(scene)
+        if c == 0:
+            ax.legend(fontsize="x-small", loc="lower left")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return _save_atomic(fig, path, dpi)
+
+
 def plot_step_times(
     end_steps: Sequence[int],
     step_s: Mapping[str, Sequence[float]],
