@@ -206,11 +206,11 @@ def plot_coverage_by_group(
         ax.set_xlabel(xlabel)
         ax.set_ylabel("share of scored depths inside")
         ax.set_title(scene)
-        if c == 0:
-            ax.legend(fontsize="x-small", loc="lower left")
+    handles, labels = fig.axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=2 * len(levels), fontsize="small")
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0.0, 0.08, 1.0, 1.0))
     return _save_atomic(fig, path, dpi)
 
 
