@@ -186,6 +186,20 @@ def _markdown(results: dict, command: str) -> str:
     return "\n".join(lines)
 
 
+def parse_runs(parser: argparse.ArgumentParser, items: list[str]) -> dict[str, Path]:
+    """{scene: run folder} from ``--run SCENE=RUN_DIR`` items; a parser error names the item that
+    is malformed or whose run has no metrics.json."""
+    runs = {}
+    for item in items:
+        scene, sep, path = item.partition("=")
+        if not sep or not scene or not path:
+            parser.error(f"--run expects SCENE=RUN_DIR, got {item!r}")
+        if not (Path(path) / "metrics.json").is_file():
+            parser.error(f"--run {item}: {path} has no metrics.json (train and evaluate the run first)")
+        runs[scene] = Path(path)
+    return runs
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", nargs="+", required=True, metavar="SCENE=RUN_DIR",
@@ -201,14 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     from stochastic_fields.plots import plot_resplit_coverage
 
     torch.set_num_threads(1)
-    runs = {}
-    for item in args.run:
-        scene, sep, path = item.partition("=")
-        if not sep or not scene or not path:
-            p.error(f"--run expects SCENE=RUN_DIR, got {item!r}")
-        if not (Path(path) / "metrics.json").is_file():
-            p.error(f"--run {item}: {path} has no metrics.json (train and evaluate the run first)")
-        runs[scene] = Path(path)
+    runs = parse_runs(p, args.run)
     command = "python benchmarks/calibration_split_study.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
     results = {"command": command, "levels": list(LEVELS), "splits": args.splits, "torch_threads": 1, "scenes": {}}
     for scene, run_dir in runs.items():

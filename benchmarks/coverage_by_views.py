@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the re-split study's renders of the scored points
-from calibration_split_study import LEVELS, _scored_points  # noqa: E402
+from calibration_split_study import LEVELS, _scored_points, parse_runs  # noqa: E402
 
 #: Groups of the training-view count: (label, lowest, highest).
 GROUPS: tuple[tuple[str, int, int], ...] = (("0", 0, 0), ("1", 1, 1), ("2", 2, 2), ("3-4", 3, 4), ("5+", 5, 10**9))
@@ -117,14 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     from stochastic_fields.plots import plot_coverage_by_group
 
     torch.set_num_threads(1)
-    runs = {}
-    for item in args.run:
-        scene, sep, path = item.partition("=")
-        if not sep or not scene or not path:
-            p.error(f"--run expects SCENE=RUN_DIR, got {item!r}")
-        if not (Path(path) / "metrics.json").is_file():
-            p.error(f"--run {item}: {path} has no metrics.json (train and evaluate the run first)")
-        runs[scene] = Path(path)
+    runs = parse_runs(p, args.run)
     command = "python benchmarks/coverage_by_views.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
     results = {"command": command, "levels": list(LEVELS), "torch_threads": 1, "scenes": {}}
     for scene, run_dir in runs.items():
