@@ -63,7 +63,7 @@ def _standardised(model, cameras, near, far, sparse, seed: int) -> dict[str, np.
     return {"abs_z": np.abs(r["gt"] - r["depth_mean"])[keep] / r["depth_std"][keep], "index": index[keep]}
 
 
-def _scored_points(run_dir: Path, model, dataset, points, views: list[int], held: np.ndarray, seed: int):
+def scored_points(run_dir: Path, model, dataset, points, views: list[int], held: np.ndarray, seed: int):
     """Standardised errors at the evaluated test views with their points (world xyz), blocks and
     roles (SCORE for every synthetic pixel, as the tables score them all)."""
     import torch
@@ -124,7 +124,7 @@ def study_scene(run_dir: Path, *, splits: int, seed: int = 0, quiet: bool = Fals
     held = points.roles != FIT
     blocks = block_keys(points.xyz, points.xyz)
     held_blocks, held_counts = np.unique(blocks[held], return_counts=True)
-    scored = _scored_points(run_dir, model, dataset, points, views, held, seed)
+    scored = scored_points(run_dir, model, dataset, points, views, held, seed)
     levels = np.asarray(LEVELS)
     out = {"run": str(run_dir), "views": views, "held_out_points": int(held.sum()),
            "held_out_blocks": int(len(held_blocks)), "scored_today": int((scored["role"] == SCORE).sum()),

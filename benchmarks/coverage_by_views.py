@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the re-split study's renders of the scored points
-from calibration_split_study import LEVELS, _scored_points, parse_runs  # noqa: E402
+from calibration_split_study import LEVELS, scored_points, parse_runs  # noqa: E402
 
 #: Groups of the training-view count: (label, lowest, highest).
 GROUPS: tuple[tuple[str, int, int], ...] = (("0", 0, 0), ("1", 1, 1), ("2", 2, 2), ("3-4", 3, 4), ("5+", 5, 10**9))
@@ -69,14 +69,12 @@ def study_scene(run_dir: Path, *, seed: int = 0) -> dict:
     if calibration is None or calibration.depth is None:
         raise ValueError(f"{run_dir}: no depth calibration in calibration.json (run `stochastic-fields calibrate`)")
     views = [int(name.split("_")[-1]) for name in read_json(run_dir / "metrics.json", "metrics")["views"]]
-    scored = _scored_points(run_dir, model, dataset, points, views, points.roles != FIT, seed)
+    scored = scored_points(run_dir, model, dataset, points, views, points.roles != FIT, seed)
     if points.source == "synthetic":  # the tables score the pixels whose surface lies in a SCORE block
         keep = block_roles(scored["xyz"], points) == SCORE
-    else:
-        keep = scored["role"] == SCORE
-    if points.source == "synthetic":
         counts = training_view_counts(dataset, points, scored["xyz"][keep])
     else:
+        keep = scored["role"] == SCORE
         counts = training_view_counts(dataset, points)[scored["index"][keep]]
     levels = np.asarray(LEVELS)
     raw_bounds = ndtri((1.0 + levels) / 2.0)
