@@ -51,7 +51,8 @@ TOLERANCE: float = 0.05
 
 
 def _standardised(model, cameras, near, far, sparse, seed: int) -> dict[str, np.ndarray]:
-    """|d - d*| / sigma [N] and the point index [N] of each rendered point with opacity > mask."""
+    """|d - d*| / sigma [N], |d - d*| [N], sigma [N] and the point index [N] of each rendered point
+    with opacity > mask."""
     import torch
 
     from stochastic_fields.calibration import render_at_points
@@ -60,7 +61,9 @@ def _standardised(model, cameras, near, far, sparse, seed: int) -> dict[str, np.
     r = render_at_points(model, cameras, near, far, sparse, generator=torch.Generator().manual_seed(seed))
     index = np.concatenate([sparse[v].point_index for v in sparse if len(sparse[v])] or [np.zeros(0, np.int64)])
     keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(r["depth_std"]) & (r["depth_std"] > 0)
-    return {"abs_z": np.abs(r["gt"] - r["depth_mean"])[keep] / r["depth_std"][keep], "index": index[keep]}
+    abs_err = np.abs(r["gt"] - r["depth_mean"])[keep]
+    return {"abs_z": abs_err / r["depth_std"][keep], "abs_err": abs_err, "std": r["depth_std"][keep],
+            "index": index[keep]}
 
 
 def scored_points(run_dir: Path, model, dataset, points, views: list[int], held: np.ndarray, seed: int):

@@ -292,9 +292,12 @@ def test_calibration_views_lie_halfway_between_training_neighbours(tiny_scene):
 
 
 class _MeshDepthModel(torch.nn.Module):
-    """Renders the exact mesh depth plus an error ``error_factor`` times larger than the std it reports."""
+    """Renders the exact mesh depth plus an error ``error_factor`` times larger than the std it reports,
+    and (``abs_std`` > 0) an independent error of std ``abs_std`` that the reported std leaves out; the
+    reported std is ``rel_std`` times the depth, times exp(U(-std_spread, std_spread)) per ray."""
 
-    def __init__(self, mesh_path, error_factor: float, rel_std: float = 0.02):
+    def __init__(self, mesh_path, error_factor: float, rel_std: float = 0.02, abs_std: float = 0.0,
+                 std_spread: float = 0.0):
         super().__init__()
         import open3d as o3d
         import trimesh
@@ -304,7 +307,7 @@ class _MeshDepthModel(torch.nn.Module):
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
                                  o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
-        self.error_factor, self.rel_std = error_factor, rel_std
+        self.error_factor, self.rel_std, self.abs_std, self.std_spread = error_factor, rel_std, abs_std, std_spread
 
     def default_render_options(self):
         return RenderOptions(num_draws=1)
@@ -319,8 +322,10 @@ class _MeshDepthModel(torch.nn.Module):
         t = self.scene.cast_rays(o3d.core.Tensor(np.concatenate([o, d], -1).astype(np.float32)))["t_hit"].numpy()
         hit = np.isfinite(t)
         t = np.where(hit, t, 1.0).astype(np.float64)
-        s = self.rel_std * t
-        err = np.random.default_rng(0).normal(size=t.shape) * s * self.error_factor
+        rng = np.random.default_rng(0)
+        normal = rng.normal(size=t.shape)
+        s = self.rel_std * t * np.exp(rng.uniform(-self.std_spread, self.std_spread, size=t.shape))
+        err = normal * np.hypot(s * self.error_factor, self.abs_std)
         f = lambda a: torch.from_numpy(np.asarray(a, np.float32)).reshape(rays.shape)  # noqa: E731
         return {"depth_mean": f(t + err), "depth_var_total": f(s ** 2), "opacity": f(hit.astype(np.float64)),
                 "z_scale": rays.z_scale, "num_draws": torch.ones(rays.shape)}

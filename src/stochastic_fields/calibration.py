@@ -21,6 +21,18 @@ so that the interval ``d +- s(p) z_p sigma`` holds the fitted points at rate p. 
 A Gaussian error model with the right scale gives s(p) constant; heavier or lighter tails give
 an s(p) that rises or falls with p. The raw sigma stays available (``depth_std_raw``).
 
+A map may also hold a std floor tau (``fit_std_floor``; depth only, ``DEPTH_STD_FLOOR``): the
+errors are standardised by sqrt(sigma^2 + tau^2) instead of sigma, and
+
+    sigma_cal = s(p1) sqrt(sigma^2 + tau^2)
+
+tau is the smallest value for which the standardised errors carry no trend in sigma (their
+Spearman correlation with sigma is zero): without it the most confident renders hold the largest
+standardised errors (a surface rendered in the wrong place with a tiny std), one scale fitted to
+all of them is too wide where sigma is large and too narrow where it is small, and the coverage of
+a set of points depends on its mix of sigmas. sigma_cal is increasing in sigma, so rankings
+(Spearman, AUSE) are unchanged by it.
+
 The colour std gets the same kind of map when the run held pixel blocks of its training views out
 of training (``train.holdout_fraction``, ``holdout``): |z| = |c - c*| / sigma_c per channel value
 of the held-out pixels, rendered from their own (training) cameras; applied as for depth
@@ -30,7 +42,10 @@ and their limits.
 
 from __future__ import annotations
 
+import argparse
 import json
+import math
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -54,6 +69,15 @@ CALIBRATION_FILE = "calibration.json"
 #: training did not fit (CALIBRATE and SCORE: three times the blocks, less luck of the split, for a
 #: user who does not score the run against its SfM points; docs/uncertainty.md, study 3).
 CALIBRATION_POINTS: tuple[str, ...] = ("calibrate", "held-out")
+#: Whether depth maps fit a std floor (``fit_std_floor``); docs/uncertainty.md, study 11.
+DEPTH_STD_FLOOR: bool = False
+#: Relative precision of the fitted std floor (bisection in log tau stops there).
+STD_FLOOR_RTOL: float = 1e-4
+#: A floor is fitted only when the standardised errors fall with sigma at this one-sided significance
+#: (Spearman test): sampling noise alone must not put a floor under a std that needs none.
+STD_FLOOR_SIGNIFICANCE: float = 0.05
+#: Largest std floor tried, in multiples of the largest raw std (beyond it the std is ~constant).
+STD_FLOOR_MAX_RATIO: float = 100.0
 
 
 @dataclass
@@ -66,6 +90,8 @@ class QuantileCalibration:
         scales: [L] s(p) at those levels (> 0; s(p) z_p is non-decreasing in p).
         num_samples: standardised errors it was fitted on.
         source: the data it was fitted on, in words.
+        floor: the std floor tau (units of the quantity; 0: none): errors are standardised by
+            sqrt(sigma^2 + tau^2) (module doc, ``fit_std_floor``).
     """
 
     quantity: str
@@ -73,6 +99,7 @@ class QuantileCalibration:
     scales: np.ndarray
     num_samples: int
     source: str = ""
+    floor: float = 0.0
 
     @classmethod
     def fit(cls, abs_z: np.ndarray, *, quantity: str, source: str = "",
@@ -91,6 +118,25 @@ class QuantileCalibration:
         scales = np.maximum(q / ndtri((1.0 + levels) / 2.0), MIN_CALIBRATION_SCALE)
         return cls(quantity, levels, scales, int(z.size), source)
 
+    @classmethod
+    def fit_errors(cls, abs_err: np.ndarray, std: np.ndarray, *, quantity: str, source: str = "",
+                   floor: bool = False, levels: np.ndarray = CALIBRATION_LEVELS) -> "QuantileCalibration":
+        """Fit on absolute errors ``abs_err`` [N] and raw stds ``std`` [N] (> 0): with ``floor``, first
+        the std floor tau (``fit_std_floor``), then s(p) on |err| / sqrt(std^2 + tau^2) (``fit``)."""
+        abs_err, std = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (abs_err, std))
+        if abs_err.shape != std.shape:
+            raise ValueError(f"calibration of {quantity}: {abs_err.size} errors but {std.size} stds")
+        if not (np.isfinite(std).all() and (std > 0).all()):
+            raise ValueError(f"calibration of {quantity}: stds must be finite and > 0")
+        tau = fit_std_floor(abs_err, std) if floor and abs_err.size >= MIN_CALIBRATION_SAMPLES else 0.0
+        out = cls.fit(abs_err / np.hypot(std, tau), quantity=quantity, source=source, levels=levels)
+        out.floor = float(tau)
+        return out
+
+    def calibrated_std(self, raw: np.ndarray) -> np.ndarray:
+        """s(0.6827) sqrt(raw^2 + floor^2) in float64: the calibrated one-sigma std of raw stds [...]."""
+        return self.std_scale * np.hypot(np.asarray(raw, dtype=np.float64), self.floor)
+
     def scale_at(self, p: float | np.ndarray) -> np.ndarray:
         """s(p), linear between fitted levels, constant beyond the first and last."""
         return np.interp(np.asarray(p, dtype=np.float64), self.levels, self.scales)
@@ -106,22 +152,65 @@ class QuantileCalibration:
 
     def to_dict(self) -> dict[str, Any]:
         return {"quantity": self.quantity, "levels": self.levels.tolist(), "scales": self.scales.tolist(),
-                "num_samples": self.num_samples, "source": self.source, "std_scale": self.std_scale}
+                "num_samples": self.num_samples, "source": self.source, "std_scale": self.std_scale,
+                "floor": self.floor}
 
     @classmethod
     def from_dict(cls, data: dict, *, where: str = "calibration") -> "QuantileCalibration":
         try:
             levels = np.asarray(data["levels"], dtype=np.float64)
             scales = np.asarray(data["scales"], dtype=np.float64)
-            out = cls(str(data["quantity"]), levels, scales, int(data["num_samples"]), str(data.get("source", "")))
+            out = cls(str(data["quantity"]), levels, scales, int(data["num_samples"]), str(data.get("source", "")),
+                      float(data.get("floor", 0.0)))  # files written before the floor: none
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{where}: malformed quantile calibration ({exc!r})") from exc
+        if not (math.isfinite(out.floor) and out.floor >= 0.0):
+            raise ValueError(f"{where}: the std floor must be finite and >= 0, got {out.floor}")
         if (levels.ndim != 1 or levels.shape != scales.shape or levels.size == 0 or not np.isfinite(levels).all()
                 or not np.isfinite(scales).all() or (levels <= 0).any() or (levels >= 1).any()
                 or (np.diff(levels) <= 0).any() or (scales <= 0).any()):
             raise ValueError(f"{where}: levels must increase inside (0, 1) and scales be positive and finite, "
                              f"with one scale per level")
         return out
+
+
+def fit_std_floor(abs_err: np.ndarray, std: np.ndarray) -> float:
+    """The std floor tau >= 0 of ``abs_err`` [N] against raw stds ``std`` [N] (> 0): the smallest
+    tau for which Spearman(std, |err| / sqrt(std^2 + tau^2)) = 0, i.e. the standardised errors
+    carry no trend in sigma.
+
+    At tau = 0 the correlation is Spearman(std, |z|); as tau grows it tends to Spearman(std, |err|).
+    0 unless the first is negative at one-sided significance ``STD_FLOOR_SIGNIFICANCE`` (no
+    over-confident low stds to lift, or too few errors to tell); ``STD_FLOOR_MAX_RATIO``
+    times the largest std when even the second is < 0 (the std does not rank the errors at all: the
+    map is then ~one constant std); otherwise the root, by bisection in log tau to ``STD_FLOOR_RTOL``.
+    Constant stds or errors (Spearman undefined) give 0."""
+    from scipy.stats import spearmanr
+
+    abs_err, std = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (abs_err, std))
+    if abs_err.shape != std.shape or abs_err.size < 3:
+        raise ValueError(f"fit_std_floor: needs >= 3 paired errors and stds, got {abs_err.size} and {std.size}")
+    if not (np.isfinite(abs_err).all() and (abs_err >= 0).all() and np.isfinite(std).all() and (std > 0).all()):
+        raise ValueError("fit_std_floor: errors must be finite and >= 0, stds finite and > 0")
+
+    def trend(tau: float) -> float:
+        with warnings.catch_warnings():  # constant input: Spearman undefined, read as no trend
+            warnings.simplefilter("ignore")
+            rho = spearmanr(std, abs_err / np.hypot(std, tau))[0]
+        return 0.0 if not np.isfinite(rho) else float(rho)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        at_zero = spearmanr(std, abs_err / std, alternative="less")
+    if not (np.isfinite(at_zero.pvalue) and at_zero.pvalue < STD_FLOOR_SIGNIFICANCE):
+        return 0.0
+    lo, hi = float(std.min()) * 1e-6, float(std.max()) * STD_FLOOR_MAX_RATIO
+    if trend(hi) < 0.0:
+        return hi
+    while hi / lo > 1.0 + STD_FLOOR_RTOL:
+        mid = math.sqrt(lo * hi)
+        lo, hi = (mid, hi) if trend(mid) < 0.0 else (lo, mid)
+    return hi
 
 
 def standardised_errors(gt: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
@@ -266,16 +355,16 @@ def pair_visible_points(capture, pairs: list[tuple[int, int]], keep: np.ndarray)
     return out
 
 
-def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
-                          points: str = "calibrate", options=None) -> QuantileCalibration:
-    """Fit the depth map on the CALIBRATE capture points (``points="held-out"``: CALIBRATE and
-    SCORE, see ``CALIBRATION_POINTS``) seen from the calibration views (``calibration_views``:
-    halfway between neighbouring training views; a point counts when both views of the pair
-    observed it), at pixels with rendered opacity above ``opacity_mask`` (as the depth scores),
-    rendered with ``options`` (default: the model's; a map fits the std of the K and estimator it
-    is fitted with, so fit it with the options the run will render with).
-    ValueError when the scene has no capture points or too few of those roles, or for an unknown
-    ``points``."""
+def depth_calibration_errors(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
+                             points: str = "calibrate", options=None) -> tuple[np.ndarray, np.ndarray, str]:
+    """What a depth map is fitted on: the absolute camera-z errors [N] and raw total stds [N] (> 0) at
+    the CALIBRATE capture points (``points="held-out"``: CALIBRATE and SCORE, see
+    ``CALIBRATION_POINTS``) seen from the calibration views (``calibration_views``: halfway between
+    neighbouring training views; a point counts when both views of the pair observed it), at pixels
+    with rendered opacity above ``opacity_mask`` (as the depth scores), rendered with ``options``
+    (default: the model's; a map fits the std of the K and estimator it is fitted with, so fit it
+    with the options the run will render with); and the data, in words.
+    ValueError when the scene has no capture points, or for an unknown ``points``."""
     from .capture_points import CALIBRATE, SCORE, load_capture_points
     from .sparse_depth import project_sparse_depth
     from .view_maps import OPACITY_MASK
@@ -293,13 +382,22 @@ def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float 
     device = next(model.parameters()).device
     r = render_at_points(model, cams, near, far, sparse, generator=torch.Generator(device=device).manual_seed(seed),
                          options=options)
-    keep = r["opacity"] > mask
-    z = standardised_errors(r["gt"][keep], r["depth_mean"][keep], r["depth_std"][keep])
-    return QuantileCalibration.fit(z, quantity="depth_std",
-                                   source=f"{len(z)} {capture.source} points of the "
-                                          f"{'calibrate role' if points == 'calibrate' else 'calibrate and score roles'} seen from "
-                                          f"{len(pairs)} views halfway between neighbouring training views "
-                                          f"(opacity > {mask})")
+    keep = (r["opacity"] > mask) & np.isfinite(r["depth_mean"]) & np.isfinite(r["depth_std"]) & (r["depth_std"] > 0)
+    roles = "calibrate role" if points == "calibrate" else "calibrate and score roles"
+    source = (f"{int(keep.sum())} {capture.source} points of the {roles} seen from {len(pairs)} views halfway "
+              f"between neighbouring training views (opacity > {mask})")
+    return np.abs(r["gt"][keep] - r["depth_mean"][keep]), r["depth_std"][keep], source
+
+
+def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
+                          points: str = "calibrate", options=None, floor: bool = DEPTH_STD_FLOOR
+                          ) -> QuantileCalibration:
+    """The depth map fitted on ``depth_calibration_errors`` (same arguments); with ``floor``, a std
+    floor first (``fit_std_floor``). ValueError when the scene has no capture points or too few of
+    those roles, or for an unknown ``points``."""
+    err, std, source = depth_calibration_errors(model, dataset, seed=seed, opacity_mask=opacity_mask,
+                                                points=points, options=options)
+    return QuantileCalibration.fit_errors(err, std, quantity="depth_std", floor=floor, source=source)
 
 
 def fit_colour_calibration(model, dataset, *, fraction: float, block: int, seed: int = 0) -> QuantileCalibration:
@@ -384,10 +482,11 @@ def load_run_calibration(run_dir: str | Path) -> RunCalibration | None:
 
 
 def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int = 0, model=None,
-                  dataset=None, points: str = "calibrate") -> RunCalibration:
+                  dataset=None, points: str = "calibrate", floor: bool = DEPTH_STD_FLOOR) -> RunCalibration:
     """Fit the run's calibration and write ``RUN/calibration.json``: the depth map from its capture
     points (``points``: ``CALIBRATION_POINTS``) and, when the run held pixels out of training
-    (``train.holdout_fraction`` > 0 in its config.json), the colour map from them. ValueError
+    (``train.holdout_fraction`` > 0 in its config.json), the colour map from them; ``floor``: whether
+    the depth map fits a std floor (``fit_std_floor``). ValueError
     (the depth fit's reason) when neither can be fitted; a depth fit that fails beside a colour one
     leaves depth raw."""
     from .config import load_config
@@ -402,7 +501,7 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
         colour = fit_colour_calibration(model, dataset, fraction=cfg.train.holdout_fraction,
                                         block=cfg.train.holdout_block, seed=seed)
     try:
-        depth = fit_depth_calibration(model, dataset, seed=seed, points=points)
+        depth = fit_depth_calibration(model, dataset, seed=seed, points=points, floor=floor)
     except ValueError:
         if colour is None:
             raise
@@ -414,27 +513,23 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
 
 def describe(calibration: RunCalibration) -> str:
     """A few lines for people: the fitted factors at 68% and 95%."""
-    parts = [f"{name} std: x{m.std_scale:.3g} (one sigma, 68.3%), x{float(m.scale_at(0.95)):.3g} at 95% [{m.source}]"
+    parts = [f"{name} std: {'x' if not m.floor else f'sqrt(raw^2 + {m.floor:.3g}^2) x'}{m.std_scale:.3g} "
+             f"(one sigma, 68.3%), x{float(m.scale_at(0.95)):.3g} at 95% [{m.source}]"
              for name, m in (("depth", calibration.depth), ("colour", calibration.colour)) if m is not None]
     return "; ".join(parts) if parts else "no calibrated quantity"
 
 
-def _scaled(products: dict[str, np.ndarray], key: str, scale: float) -> dict[str, np.ndarray]:
-    """``key`` times ``scale`` (in float64, stored in its own dtype), the raw one as ``key_raw``."""
-    raw = products[key]
-    return {f"{key}_raw": raw, key: (raw.astype(np.float64) * scale).astype(raw.dtype)}
-
-
 def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibration | None) -> dict[str, np.ndarray]:
     """Camera-z products (``view_maps.camera_z_maps``) with ``depth_std`` and ``colour_std``
-    calibrated where the run has their maps, the raw ones kept as ``depth_std_raw`` and
-    ``colour_std_raw``. Returns a new dict (unchanged entries where a map is missing)."""
+    calibrated where the run has their maps (``QuantileCalibration.calibrated_std``, in float64,
+    stored in the raw one's dtype), the raw ones kept as ``depth_std_raw`` and ``colour_std_raw``. Returns a new dict (unchanged entries where a map is missing)."""
     out = dict(products)
     if calibration is None:
         return out
     for key, cal in (("depth_std", calibration.depth), ("colour_std", calibration.colour)):
         if cal is not None and key in products:
-            out.update(_scaled(products, key, cal.std_scale))
+            raw = products[key]
+            out.update({f"{key}_raw": raw, key: cal.calibrated_std(raw).astype(raw.dtype)})
     return out
 
 
@@ -452,10 +547,14 @@ def add_arguments(p) -> None:
                         "test of the depth intervals; 'held-out' also fits on them (three times the blocks of "
                         "space, a steadier map) for a capture you will not score; eval then warns that its "
                         "depth scores are not independent.")
+    p.add_argument("--std-floor", action=argparse.BooleanOptionalAction, default=DEPTH_STD_FLOOR,
+                   help="Fit a depth std floor tau first, so that depth_std = s * sqrt(raw^2 + tau^2) "
+                        f"(docs/uncertainty.md, study 11; default: {'on' if DEPTH_STD_FLOOR else 'off'}).")
 
 
 def run(args) -> None:
-    cal = calibrate_run(Path(args.run), device=args.device, seed=args.seed, points=args.points)
+    cal = calibrate_run(Path(args.run), device=args.device, seed=args.seed, points=args.points,
+                        floor=args.std_floor)
     print(f"calibrated {args.run}: {describe(cal)}")
     print(f"written: {Path(args.run) / CALIBRATION_FILE} (render, eval and export apply it; raw stds as depth_std_raw "
           "and colour_std_raw)")

@@ -168,6 +168,7 @@ def plot_coverage_by_group(
     xlabel: str = "group",
     title: str | None = None,
     dpi: int = 110,
+    series: tuple[str, str] = ("recalibrated", "raw"),
 ) -> Path:
     """Interval coverage per group of points, one panel per scene: bars for each level (calibrated
     solid, raw hatched), the nominal level +- ``tolerance`` shaded, each group's point count on top.
@@ -176,6 +177,7 @@ def plot_coverage_by_group(
         groups: scene -> rows with "group" (label), "points", "coverage" [L], "coverage_raw" [L]
             (``benchmarks/coverage_by_views.coverage_table``).
         levels: [L] nominal central levels.
+        series: legend names of "coverage" and "coverage_raw".
     Returns:
         the written path.
     """
@@ -196,9 +198,9 @@ def plot_coverage_by_group(
             cal = [float(r["coverage"][j]) for r in rows]
             raw = [float(r["coverage_raw"][j]) for r in rows]
             ax.bar(x + (2 * j - len(levels)) * width + width / 2, cal, width, color=colour,
-                   label=f"{level:.0%} recalibrated")
+                   label=f"{level:.0%} {series[0]}")
             ax.bar(x + (2 * j + 1 - len(levels)) * width + width / 2, raw, width, color="none",
-                   edgecolor=colour, hatch="//", label=f"{level:.0%} raw")
+                   edgecolor=colour, hatch="//", label=f"{level:.0%} {series[1]}")
         for i, r in enumerate(rows):
             ax.text(i, 1.02, str(r["points"]), ha="center", va="bottom", fontsize="x-small")
         ax.set_xticks(x, [str(r["group"]) for r in rows])
