@@ -291,6 +291,28 @@ def test_calibration_views_lie_halfway_between_training_neighbours(tiny_scene):
         assert float(far[p]) == pytest.approx(max(float(ds.far[i]), float(ds.far[j])))
 
 
+def test_calibration_view_bounds_widest_or_interpolated(tiny_scene):
+    """Bounds of each virtual camera from its pair's, by hand: the nearer near and farther far
+    ("widest"), or both at the view's fraction ("interpolated"); an unknown choice is refused."""
+    from stochastic_fields.calibration import calibration_views
+    from stochastic_fields.data import load_dataset
+
+    ds = load_dataset(tiny_scene, split_every=5)
+    ds.near = torch.linspace(1.0, 2.0, ds.num_views)
+    ds.far = torch.linspace(9.0, 5.0, ds.num_views)
+    _, near, far, pairs = calibration_views(ds, fractions=(0.25, 0.5), bounds="widest")
+    _, near_i, far_i, pairs_i = calibration_views(ds, fractions=(0.25, 0.5), bounds="interpolated")
+    assert pairs_i == pairs and len(pairs) == 2 * len(set(pairs))
+    for p, (i, j) in enumerate(pairs):
+        f = (0.25, 0.5)[p % 2]
+        ni, nj, fi, fj = (float(x) for x in (ds.near[i], ds.near[j], ds.far[i], ds.far[j]))
+        assert float(near[p]) == pytest.approx(min(ni, nj)) and float(far[p]) == pytest.approx(max(fi, fj))
+        assert float(near_i[p]) == pytest.approx((1 - f) * ni + f * nj)
+        assert float(far_i[p]) == pytest.approx((1 - f) * fi + f * fj)
+    with pytest.raises(ValueError, match="bounds must be one of"):
+        calibration_views(ds, bounds="narrow")
+
+
 class _MeshDepthModel(torch.nn.Module):
     """Renders the exact mesh depth plus an error ``error_factor`` times larger than the std it reports,
     and (``abs_std`` > 0) an independent error of std ``abs_std`` that the reported std leaves out; the

@@ -290,17 +290,24 @@ def render_at_points(model, cameras, near, far, sparse: dict, *,
 CALIBRATION_NEIGHBOURS: int = 1
 #: Where calibration views sit along each pair's arc (0: the first view, 1: the second).
 CALIBRATION_FRACTIONS: tuple[float, ...] = (0.5,)
+#: A calibration view's render bounds from its pair's: "widest" (the nearer near, the farther far)
+#: or "interpolated" (both at the view's fraction). The grid's renders depend on the bounds (on
+#: flower a 3% nearer near plane quadruples the depth error of a training view's own pixels):
+#: docs/uncertainty.md, study 12.
+CALIBRATION_BOUNDS: str = "widest"
+BOUNDS_CHOICES: tuple[str, ...] = ("widest", "interpolated")
 
 
 def calibration_views(dataset, *, neighbours: int = CALIBRATION_NEIGHBOURS,
-                      fractions: tuple[float, ...] = CALIBRATION_FRACTIONS
+                      fractions: tuple[float, ...] = CALIBRATION_FRACTIONS, bounds: str = CALIBRATION_BOUNDS
                       ) -> tuple[object, torch.Tensor, torch.Tensor, list[tuple[int, int]]]:
     """Virtual cameras between each training view and its ``neighbours`` nearest other training
     views, at each of ``fractions`` of the way (default: halfway between nearest neighbours).
     Centre: along the arc around the scene box's centre o (at the pair's interpolated distance
     from o); rotation: slerp at the fraction; intrinsics and size of the first view; bounds: the
-    pair's widest. Novel viewpoints among the training ones, like the test views a user renders,
-    made without any test view. Returns (cameras [P], near [P], far [P], the (i, j) view pair of
+    pair's widest, or interpolated at the fraction (``bounds``, ``CALIBRATION_BOUNDS``). Novel
+    viewpoints among the training ones, like the test views a user renders, made without any test
+    view. Returns (cameras [P], near [P], far [P], the (i, j) view pair of
     each camera), the pairs (i < j) sorted and each pair's fractions in the given order."""
     from scipy.spatial.transform import Rotation, Slerp
 
@@ -311,6 +318,8 @@ def calibration_views(dataset, *, neighbours: int = CALIBRATION_NEIGHBOURS,
         raise ValueError(f"{dataset.root}: calibration views need at least 2 training views, got {len(train)}")
     if neighbours < 1:
         raise ValueError(f"calibration views need neighbours >= 1, got {neighbours}")
+    if bounds not in BOUNDS_CHOICES:
+        raise ValueError(f"calibration view bounds must be one of {BOUNDS_CHOICES}, got {bounds!r}")
     if not fractions or not all(0.0 < float(f) < 1.0 for f in fractions):
         raise ValueError(f"calibration view fractions must lie strictly between 0 and 1, got {tuple(fractions)}")
     centres = camera_centres(dataset.cameras).double()[train]
@@ -321,7 +330,7 @@ def calibration_views(dataset, *, neighbours: int = CALIBRATION_NEIGHBOURS,
     w2c = dataset.cameras.extrinsics.double()
     K = intrinsics_3x3(dataset.cameras).double()
     o = dataset.aabb.double().mean(0)
-    views, Ks, view_pairs = [], [], []
+    views, Ks, view_pairs, view_fractions = [], [], [], []
     for i, j in pairs:
         slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([w2c[i, :3, :3].numpy(), w2c[j, :3, :3].numpy()])))
         ci, cj = centres[train.index(i)] - o, centres[train.index(j)] - o
@@ -337,9 +346,16 @@ def calibration_views(dataset, *, neighbours: int = CALIBRATION_NEIGHBOURS,
             views.append(m)
             Ks.append(K[i])
             view_pairs.append((i, j))
+            view_fractions.append(f)
     cams = make_cameras(torch.stack(Ks).float(), torch.stack(views).float(), int(dataset.height), int(dataset.width))
-    near = torch.stack([torch.minimum(dataset.near[i], dataset.near[j]) for i, j in view_pairs]).float()
-    far = torch.stack([torch.maximum(dataset.far[i], dataset.far[j]) for i, j in view_pairs]).float()
+    if bounds == "widest":
+        near = torch.stack([torch.minimum(dataset.near[i], dataset.near[j]) for i, j in view_pairs]).float()
+        far = torch.stack([torch.maximum(dataset.far[i], dataset.far[j]) for i, j in view_pairs]).float()
+    else:
+        near = torch.stack([(1 - f) * dataset.near[i] + f * dataset.near[j]
+                            for (i, j), f in zip(view_pairs, view_fractions)]).float()
+        far = torch.stack([(1 - f) * dataset.far[i] + f * dataset.far[j]
+                           for (i, j), f in zip(view_pairs, view_fractions)]).float()
     return cams, near, far, view_pairs
 
 
@@ -356,14 +372,16 @@ def pair_visible_points(capture, pairs: list[tuple[int, int]], keep: np.ndarray)
 
 
 def depth_calibration_errors(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
-                             points: str = "calibrate", options=None) -> tuple[np.ndarray, np.ndarray, str]:
+                             points: str = "calibrate", options=None, bounds: str = CALIBRATION_BOUNDS
+                             ) -> tuple[np.ndarray, np.ndarray, str]:
     """What a depth map is fitted on: the absolute camera-z errors [N] and raw total stds [N] (> 0) at
     the CALIBRATE capture points (``points="held-out"``: CALIBRATE and SCORE, see
     ``CALIBRATION_POINTS``) seen from the calibration views (``calibration_views``: halfway between
     neighbouring training views; a point counts when both views of the pair observed it), at pixels
     with rendered opacity above ``opacity_mask`` (as the depth scores), rendered with ``options``
     (default: the model's; a map fits the std of the K and estimator it is fitted with, so fit it
-    with the options the run will render with); and the data, in words.
+    with the options the run will render with; ``bounds``: the views' render bounds,
+    ``calibration_views``); and the data, in words.
     ValueError when the scene has no capture points, or for an unknown ``points``."""
     from .capture_points import CALIBRATE, SCORE, load_capture_points
     from .sparse_depth import project_sparse_depth
@@ -375,7 +393,7 @@ def depth_calibration_errors(model, dataset, *, seed: int = 0, opacity_mask: flo
     capture = load_capture_points(dataset)
     if capture is None:
         raise ValueError(f"{dataset.root}: no capture points (sparse/0/points3D.bin or dense depth) to calibrate on")
-    cams, near, far, pairs = calibration_views(dataset)
+    cams, near, far, pairs = calibration_views(dataset, bounds=bounds)
     role = np.isin(capture.roles, [CALIBRATE] if points == "calibrate" else [CALIBRATE, SCORE])
     sparse = project_sparse_depth(cams, capture.xyz, range(len(pairs)), visible=pair_visible_points(capture, pairs, role),
                                   visibility_name="pair")
