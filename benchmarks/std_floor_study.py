@@ -79,7 +79,7 @@ def gap(rows: list[dict], which: str) -> float:
     return float(max(vals) - min(vals))
 
 
-def study_run(run_dir: Path, *, seed: int = 0) -> dict:
+def study_run(run_dir: Path, *, seed: int = 0, bounds: str | None = None) -> dict:
     from scipy.stats import spearmanr
 
     from stochastic_fields.calibration import QuantileCalibration, depth_calibration_errors
@@ -91,7 +91,8 @@ def study_run(run_dir: Path, *, seed: int = 0) -> dict:
     points = load_capture_points(dataset)
     if points is None:
         raise ValueError(f"{run_dir}: the scene has no capture points")
-    err, std, source = depth_calibration_errors(model, dataset, seed=seed)
+    err, std, source = depth_calibration_errors(model, dataset, seed=seed,
+                                                **({} if bounds is None else {"bounds": bounds}))
     plain = QuantileCalibration.fit_errors(err, std, quantity="depth_std", floor=False, source=source)
     floored = QuantileCalibration.fit_errors(err, std, quantity="depth_std", floor=True, source=source)
     views = [int(name.split("_")[-1]) for name in read_json(run_dir / "metrics.json", "metrics")["views"]]
@@ -172,6 +173,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="Trained and evaluated S-NeRF (default) runs; labels SCENE/SEED.")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/uncertainty_study/std_floor"))
     p.add_argument("--seed", type=int, default=0, help="Render seed (the draws).")
+    p.add_argument("--bounds", choices=("widest", "interpolated"), default=None,
+                   help="Calibration views' render bounds of both maps' fit (default: CALIBRATION_BOUNDS).")
     args = p.parse_args(argv)
     import torch
 
@@ -184,7 +187,7 @@ def main(argv: list[str] | None = None) -> int:
     results = {"command": command, "levels": list(LEVELS), "torch_threads": 1, "runs": {}}
     for label, run_dir in runs.items():
         print(f"{label}: {run_dir}", flush=True)
-        results["runs"][label] = r = study_run(run_dir, seed=args.seed)
+        results["runs"][label] = r = study_run(run_dir, seed=args.seed, bounds=args.bounds)
         print(f"  tau {r['floor']:.4g}, distance {r['distance']['plain']:.3f} -> {r['distance']['floored']:.3f}, "
               f"gap {r['gap']['plain']:.3f} -> {r['gap']['floored']:.3f}", flush=True)
     results["decision"] = decide(results)
