@@ -153,3 +153,49 @@ def test_calibrate_command_takes_the_floor_switch():
     assert p.parse_args(["--run", "r"]).std_floor is DEPTH_STD_FLOOR
     assert p.parse_args(["--run", "r", "--std-floor"]).std_floor is True
     assert p.parse_args(["--run", "r", "--no-std-floor"]).std_floor is False
+
+
+def test_floor_study_coverage_terciles_and_rule_by_hand(load_script):
+    """benchmarks/std_floor_study.py: coverage against z_p s(p) sqrt(std^2 + floor^2), the tercile table,
+    the distance and gap, and the rule on hand-made runs."""
+    script = load_script("benchmarks/std_floor_study.py")
+    ones = np.ones(CALIBRATION_LEVELS.shape)
+    plain = QuantileCalibration("depth_std", CALIBRATION_LEVELS, ones, 100)
+    floored = QuantileCalibration("depth_std", CALIBRATION_LEVELS, ones, 100, floor=3.0)
+    std = np.array([1.0, 1.0, 4.0, 4.0, 9.0, 9.0])
+    err = np.array([0.5, 2.0, 2.0, 6.0, 5.0, 20.0])
+    z68, z95 = stats.norm.ppf((1 + np.array(script.LEVELS)) / 2)
+    assert script.coverage(err, std, plain) == pytest.approx([np.mean(err <= z68 * std), np.mean(err <= z95 * std)])
+    wide = np.hypot(std, 3.0)
+    assert script.coverage(err, std, floored) == pytest.approx([np.mean(err <= z68 * wide), np.mean(err <= z95 * wide)])
+    rows = script.tercile_rows(err, std, floored, plain)
+    assert [r["group"] for r in rows] == [*script.STD_GROUPS, "all"] and [r["points"] for r in rows] == [2, 2, 2, 6]
+    assert rows[0]["coverage_raw"] == pytest.approx([0.5, 0.5])  # 0.5 <= 0.9998, 2.0 > 1.96
+    assert rows[0]["coverage"] == pytest.approx([1.0, 1.0])  # bounds 3.16, 6.2
+    assert script.gap(rows, "coverage_raw") == pytest.approx(0.0) and script.distance([0.6, 0.99]) == pytest.approx(0.0827, abs=1e-4)
+
+    def run(d_plain, d_floor, g_plain, g_floor):
+        return {"distance": {"plain": d_plain, "floored": d_floor}, "gap": {"plain": g_plain, "floored": g_floor},
+                "floor": 1.0, "groups": [{"coverage": [0.7, 0.95], "coverage_raw": [0.7, 0.95]}]}
+
+    good = {"runs": {"a/0": run(0.05, 0.05, 0.3, 0.1), "a/1": run(0.05, 0.06, 0.3, 0.1), "b/0": run(0.1, 0.1, 0.1, 0.1)}}
+    d = script.decide(good)
+    assert d["taken"] and d["scenes"]["a"]["seeds"] == 2 and d["mean_gap_gain"] == pytest.approx(0.1)
+    bad = {"runs": {**good["runs"], "b/0": run(0.1, 0.2, 0.1, 0.1)}}
+    assert not script.decide(bad)["taken"] and script.decide(bad)["worse_on"] == ["b"]
+
+
+def test_bounds_study_rule_by_hand(load_script):
+    """benchmarks/calibration_bounds_study.py: the mean distance gain and the per-scene tolerances."""
+    script = load_script("benchmarks/calibration_bounds_study.py")
+
+    def run(d_today, d_new, g_today=0.1, g_new=0.1):
+        return {"choices": {"interpolated": {
+            "distance": {"today": d_today, "new": d_new}, "gap": {"today": g_today, "new": g_new},
+            "groups": [{"coverage": [0.7, 0.95], "coverage_raw": [0.75, 0.97]}]}}}
+
+    d = script.decide({"runs": {"a/0": run(0.10, 0.05), "b/0": run(0.06, 0.05)}}, "interpolated")
+    assert d["taken"] and d["mean_distance_gain"] == pytest.approx(0.03)
+    assert not script.decide({"runs": {"a/0": run(0.10, 0.09), "b/0": run(0.06, 0.05)}}, "interpolated")["taken"]
+    worse = script.decide({"runs": {"a/0": run(0.10, 0.02), "b/0": run(0.06, 0.05, 0.1, 0.2)}}, "interpolated")
+    assert not worse["taken"] and worse["worse_on"] == ["b"]
