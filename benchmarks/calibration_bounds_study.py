@@ -31,7 +31,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from calibration_split_study import LEVELS, parse_runs, scored_points  # noqa: E402
-from std_floor_study import distance, gap, tercile_rows  # noqa: E402
+from std_floor_study import by_scene, distance, gap, tercile_rows  # noqa: E402
 
 #: Study 12's tolerances (fixed with the rule): no scene's coverage distance or conditional gap may
 #: grow by more than TOLERANCE, and the mean distance over scenes must fall by at least GAIN.
@@ -100,11 +100,9 @@ def study_run(run_dir: Path, *, seed: int = 0) -> dict:
 
 def decide(results: dict, choice: str) -> dict:
     """Study 12's rule for ``choice`` against today's bounds, on per-scene means over seeds."""
-    by_scene: dict[str, list[dict]] = {}
-    for label, res in results["runs"].items():
-        by_scene.setdefault(label.split("/")[0], []).append(res["choices"][choice])
     scenes = {}
-    for scene, runs in by_scene.items():
+    for scene, seeds in by_scene(results["runs"]).items():
+        runs = [r["choices"][choice] for r in seeds]
         mean = lambda key, which: float(np.mean([r[key][which] for r in runs]))  # noqa: E731
         scenes[scene] = {"seeds": len(runs),
                          "coverage_today": np.mean([r["groups"][-1]["coverage_raw"] for r in runs], axis=0).tolist(),

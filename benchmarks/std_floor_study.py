@@ -112,13 +112,18 @@ def study_run(run_dir: Path, *, seed: int = 0, bounds: str | None = None) -> dic
             "gap": {"plain": gap(rows, "coverage_raw"), "floored": gap(rows, "coverage")}}
 
 
+def by_scene(runs: dict[str, dict]) -> dict[str, list[dict]]:
+    """{SCENE/SEED label: result} -> {scene: [its seeds' results]}, in the given order."""
+    out: dict[str, list[dict]] = {}
+    for label, res in runs.items():
+        out.setdefault(label.split("/")[0], []).append(res)
+    return out
+
+
 def decide(results: dict) -> dict:
     """Study 11's rule on the per-scene means over seeds (module doc; docs/uncertainty.md)."""
-    by_scene: dict[str, list[dict]] = {}
-    for label, res in results["runs"].items():
-        by_scene.setdefault(label.split("/")[0], []).append(res)
     scenes = {}
-    for scene, runs in by_scene.items():
+    for scene, runs in by_scene(results["runs"]).items():
         mean = lambda key, which: float(np.mean([r[key][which] for r in runs]))  # noqa: E731
         scenes[scene] = {"seeds": len(runs),
                          "coverage_plain": np.mean([r["groups"][-1]["coverage_raw"] for r in runs], axis=0).tolist(),
@@ -168,12 +173,14 @@ def _markdown(results: dict, command: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from stochastic_fields.calibration import BOUNDS_CHOICES
+
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", nargs="+", required=True, metavar="SCENE/SEED=RUN_DIR",
                    help="Trained and evaluated S-NeRF (default) runs; labels SCENE/SEED.")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/uncertainty_study/std_floor"))
     p.add_argument("--seed", type=int, default=0, help="Render seed (the draws).")
-    p.add_argument("--bounds", choices=("widest", "interpolated"), default=None,
+    p.add_argument("--bounds", choices=BOUNDS_CHOICES, default=None,
                    help="Calibration views' render bounds of both maps' fit (default: CALIBRATION_BOUNDS).")
     args = p.parse_args(argv)
     import torch
