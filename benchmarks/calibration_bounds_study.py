@@ -23,14 +23,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from calibration_split_study import LEVELS, parse_runs, scored_points  # noqa: E402
+from calibration_split_study import LEVELS, begin_study, scored_points  # noqa: E402
 from std_floor_study import by_scene, distance, gap, tercile_rows  # noqa: E402
 
 #: Study 12's tolerances (fixed with the rule): no scene's coverage distance or conditional gap may
@@ -152,16 +151,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="Trained and evaluated S-NeRF (default) runs; labels SCENE/SEED.")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/uncertainty_study/calibration_bounds"))
     p.add_argument("--seed", type=int, default=0, help="Render seed (the draws).")
-    args = p.parse_args(argv)
-    import torch
-
+    args, runs, results = begin_study(p, argv, "calibration_bounds_study.py")
     from stochastic_fields.calibration import BOUNDS_CHOICES
     from stochastic_fields.io_utils import atomic_write_text
 
-    torch.set_num_threads(1)
-    runs = parse_runs(p, args.run)
-    command = "python benchmarks/calibration_bounds_study.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
-    results = {"command": command, "levels": list(LEVELS), "torch_threads": 1, "runs": {}}
+    results["runs"] = {}
     for label, run_dir in runs.items():
         print(f"{label}: {run_dir}", flush=True)
         results["runs"][label] = r = study_run(run_dir, seed=args.seed)
@@ -171,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     results["decisions"] = [decide(results, choice) for choice in BOUNDS_CHOICES[1:]]
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out / "study.json", json.dumps(results, indent=1))
-    text = _markdown(results, command)
+    text = _markdown(results, results["command"])
     atomic_write_text(args.out / "study.md", text)
     print(text)
     return 0

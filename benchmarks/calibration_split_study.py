@@ -203,6 +203,20 @@ def parse_runs(parser: argparse.ArgumentParser, items: list[str]) -> dict[str, P
     return runs
 
 
+def begin_study(parser: argparse.ArgumentParser, argv: list[str] | None, script: str
+                ) -> tuple[argparse.Namespace, dict[str, Path], dict]:
+    """What every renders-only study over ``--run LABEL=RUN_DIR`` starts with: parse ``argv``, put
+    torch on 1 thread, read the runs (``parse_runs``). Returns (args, {label: run folder}, the
+    results' header: the command that reproduces them, the levels, the thread count)."""
+    import torch
+
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    runs = parse_runs(parser, args.run)
+    command = f"python benchmarks/{script} " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
+    return args, runs, {"command": command, "levels": list(LEVELS), "torch_threads": 1}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", nargs="+", required=True, metavar="SCENE=RUN_DIR",
@@ -211,23 +225,18 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--splits", type=int, default=200, help="Random re-splits per scene and placement.")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true")
-    args = p.parse_args(argv)
-    import torch
-
+    args, runs, results = begin_study(p, argv, "calibration_split_study.py")
     from stochastic_fields.io_utils import atomic_write_text
     from stochastic_fields.plots import plot_resplit_coverage
 
-    torch.set_num_threads(1)
-    runs = parse_runs(p, args.run)
-    command = "python benchmarks/calibration_split_study.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
-    results = {"command": command, "levels": list(LEVELS), "splits": args.splits, "torch_threads": 1, "scenes": {}}
+    results.update({"splits": args.splits, "scenes": {}})
     for scene, run_dir in runs.items():
         if not args.quiet:
             print(f"{scene}: {run_dir}", flush=True)
         results["scenes"][scene] = study_scene(run_dir, splits=args.splits, seed=args.seed, quiet=args.quiet)
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out / "study.json", json.dumps(results, indent=1))
-    atomic_write_text(args.out / "study.md", _markdown(results, command))
+    atomic_write_text(args.out / "study.md", _markdown(results, results["command"]))
     placement = "midpoint"
     plot_resplit_coverage({s: np.asarray(r["placements"][placement]["resplit_coverages"]) for s, r in results["scenes"].items()},
                           {s: r["placements"][placement]["today"] for s, r in results["scenes"].items()}, LEVELS,

@@ -22,14 +22,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the re-split study's renders of the scored points
-from calibration_split_study import LEVELS, scored_points, parse_runs  # noqa: E402
+from calibration_split_study import LEVELS, begin_study, scored_points  # noqa: E402
 
 #: Groups of the training-view count: (label, lowest, highest).
 GROUPS: tuple[tuple[str, int, int], ...] = (("0", 0, 0), ("1", 1, 1), ("2", 2, 2), ("3-4", 3, 4), ("5+", 5, 10**9))
@@ -108,22 +107,17 @@ def main(argv: list[str] | None = None) -> int:
                    help="Trained, evaluated and calibrated runs, one per scene.")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/uncertainty_study/coverage_by_views"))
     p.add_argument("--seed", type=int, default=0, help="Render seed (the draws).")
-    args = p.parse_args(argv)
-    import torch
-
+    args, runs, results = begin_study(p, argv, "coverage_by_views.py")
     from stochastic_fields.io_utils import atomic_write_text
     from stochastic_fields.plots import plot_coverage_by_group
 
-    torch.set_num_threads(1)
-    runs = parse_runs(p, args.run)
-    command = "python benchmarks/coverage_by_views.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
-    results = {"command": command, "levels": list(LEVELS), "torch_threads": 1, "scenes": {}}
+    results["scenes"] = {}
     for scene, run_dir in runs.items():
         print(f"{scene}: {run_dir}", flush=True)
         results["scenes"][scene] = study_scene(run_dir, seed=args.seed)
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out / "study.json", json.dumps(results, indent=1))
-    text = _markdown(results, command)
+    text = _markdown(results, results["command"])
     atomic_write_text(args.out / "study.md", text)
     plot_coverage_by_group({s: r["groups"] for s, r in results["scenes"].items()}, LEVELS,
                            args.out / "coverage_by_views.png", xlabel="training views observing the point",

@@ -23,14 +23,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the re-split study's renders of the scored points
-from calibration_split_study import LEVELS, parse_runs, scored_points  # noqa: E402
+from calibration_split_study import LEVELS, begin_study, scored_points  # noqa: E402
 
 #: Groups of the scored points by raw sigma: equal-count terciles.
 STD_GROUPS: tuple[str, ...] = ("low sigma", "mid sigma", "high sigma")
@@ -42,14 +41,14 @@ GAP_GAIN: float = 0.05
 
 
 def coverage(abs_err: np.ndarray, std: np.ndarray, calibration, levels=LEVELS) -> np.ndarray:
-    """Share of ``abs_err`` [N] inside the central intervals at ``levels`` [L] of the map's calibrated
-    std: |err| <= z_p s(p) sqrt(std^2 + floor^2). [L]."""
+    """Share of ``abs_err`` [N] inside the central intervals at ``levels`` [L] that render, eval and
+    export draw from the map: |err| <= z_p calibrated_std(std) relative_scale(p), i.e.
+    z_p s(p) sqrt(std^2 + floor^2). [L]."""
     from scipy.special import ndtri
 
     levels = np.asarray(levels, np.float64)
-    bound = ndtri((1.0 + levels) / 2.0) * calibration.scale_at(levels)
-    scaled = np.hypot(np.asarray(std, np.float64), calibration.floor)
-    return (np.asarray(abs_err)[:, None] <= bound[None, :] * scaled[:, None]).mean(axis=0)
+    bound = ndtri((1.0 + levels) / 2.0) * calibration.relative_scale(levels)
+    return (np.asarray(abs_err)[:, None] <= bound[None, :] * calibration.calibrated_std(std)[:, None]).mean(axis=0)
 
 
 def tercile_rows(abs_err: np.ndarray, std: np.ndarray, floored, plain) -> list[dict]:
@@ -182,16 +181,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seed", type=int, default=0, help="Render seed (the draws).")
     p.add_argument("--bounds", choices=BOUNDS_CHOICES, default=None,
                    help="Calibration views' render bounds of both maps' fit (default: CALIBRATION_BOUNDS).")
-    args = p.parse_args(argv)
-    import torch
-
+    args, runs, results = begin_study(p, argv, "std_floor_study.py")
     from stochastic_fields.io_utils import atomic_write_text
     from stochastic_fields.plots import plot_coverage_by_group
 
-    torch.set_num_threads(1)
-    runs = parse_runs(p, args.run)
-    command = "python benchmarks/std_floor_study.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
-    results = {"command": command, "levels": list(LEVELS), "torch_threads": 1, "runs": {}}
+    results["runs"] = {}
     for label, run_dir in runs.items():
         print(f"{label}: {run_dir}", flush=True)
         results["runs"][label] = r = study_run(run_dir, seed=args.seed, bounds=args.bounds)
@@ -200,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     results["decision"] = decide(results)
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out / "study.json", json.dumps(results, indent=1))
-    text = _markdown(results, command)
+    text = _markdown(results, results["command"])
     atomic_write_text(args.out / "study.md", text)
     first = {}
     for label, r in results["runs"].items():  # one panel per scene: its first seed

@@ -330,7 +330,7 @@ def calibration_views(dataset, *, neighbours: int = CALIBRATION_NEIGHBOURS,
     w2c = dataset.cameras.extrinsics.double()
     K = intrinsics_3x3(dataset.cameras).double()
     o = dataset.aabb.double().mean(0)
-    views, Ks, view_pairs, view_fractions = [], [], [], []
+    views, Ks, view_pairs, nears, fars = [], [], [], [], []
     for i, j in pairs:
         slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([w2c[i, :3, :3].numpy(), w2c[j, :3, :3].numpy()])))
         ci, cj = centres[train.index(i)] - o, centres[train.index(j)] - o
@@ -346,17 +346,14 @@ def calibration_views(dataset, *, neighbours: int = CALIBRATION_NEIGHBOURS,
             views.append(m)
             Ks.append(K[i])
             view_pairs.append((i, j))
-            view_fractions.append(f)
+            if bounds == "widest":
+                nears.append(torch.minimum(dataset.near[i], dataset.near[j]))
+                fars.append(torch.maximum(dataset.far[i], dataset.far[j]))
+            else:
+                nears.append((1.0 - f) * dataset.near[i] + f * dataset.near[j])
+                fars.append((1.0 - f) * dataset.far[i] + f * dataset.far[j])
     cams = make_cameras(torch.stack(Ks).float(), torch.stack(views).float(), int(dataset.height), int(dataset.width))
-    if bounds == "widest":
-        near = torch.stack([torch.minimum(dataset.near[i], dataset.near[j]) for i, j in view_pairs]).float()
-        far = torch.stack([torch.maximum(dataset.far[i], dataset.far[j]) for i, j in view_pairs]).float()
-    else:
-        near = torch.stack([(1 - f) * dataset.near[i] + f * dataset.near[j]
-                            for (i, j), f in zip(view_pairs, view_fractions)]).float()
-        far = torch.stack([(1 - f) * dataset.far[i] + f * dataset.far[j]
-                           for (i, j), f in zip(view_pairs, view_fractions)]).float()
-    return cams, near, far, view_pairs
+    return cams, torch.stack(nears).float(), torch.stack(fars).float(), view_pairs
 
 
 def pair_visible_points(capture, pairs: list[tuple[int, int]], keep: np.ndarray) -> list[np.ndarray]:
@@ -410,9 +407,9 @@ def depth_calibration_errors(model, dataset, *, seed: int = 0, opacity_mask: flo
 def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
                           points: str = "calibrate", options=None, floor: bool = DEPTH_STD_FLOOR
                           ) -> QuantileCalibration:
-    """The depth map fitted on ``depth_calibration_errors`` (same arguments); with ``floor``, a std
-    floor first (``fit_std_floor``). ValueError when the scene has no capture points or too few of
-    those roles, or for an unknown ``points``."""
+    """The depth map fitted on ``depth_calibration_errors`` (same arguments, the default bounds);
+    with ``floor``, a std floor first (``fit_std_floor``). ValueError when the scene has no capture
+    points or too few of those roles, or for an unknown ``points``."""
     err, std, source = depth_calibration_errors(model, dataset, seed=seed, opacity_mask=opacity_mask,
                                                 points=points, options=options)
     return QuantileCalibration.fit_errors(err, std, quantity="depth_std", floor=floor, source=source)
