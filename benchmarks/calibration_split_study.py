@@ -60,10 +60,11 @@ def _standardised(model, cameras, near, far, sparse, seed: int) -> dict[str, np.
 
     r = render_at_points(model, cameras, near, far, sparse, generator=torch.Generator().manual_seed(seed))
     index = np.concatenate([sparse[v].point_index for v in sparse if len(sparse[v])] or [np.zeros(0, np.int64)])
+    view = np.concatenate([np.full(len(sparse[v]), v) for v in sparse if len(sparse[v])] or [np.zeros(0, np.int64)])
     keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(r["depth_std"]) & (r["depth_std"] > 0)
     abs_err = np.abs(r["gt"] - r["depth_mean"])[keep]
     return {"abs_z": abs_err / r["depth_std"][keep], "abs_err": abs_err, "std": r["depth_std"][keep],
-            "index": index[keep]}
+            "index": index[keep], "view": view[keep], "gt": r["gt"][keep], "depth_mean": r["depth_mean"][keep]}
 
 
 def scored_points(run_dir: Path, model, dataset, points, views: list[int], held: np.ndarray, seed: int):

@@ -369,8 +369,8 @@ def pair_visible_points(capture, pairs: list[tuple[int, int]], keep: np.ndarray)
 
 
 def depth_calibration_errors(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
-                             points: str = "calibrate", options=None, bounds: str = CALIBRATION_BOUNDS
-                             ) -> tuple[np.ndarray, np.ndarray, str]:
+                             points: str = "calibrate", options=None, bounds: str = CALIBRATION_BOUNDS,
+                             free_space=None) -> tuple[np.ndarray, np.ndarray, str]:
     """What a depth map is fitted on: the absolute camera-z errors [N] and raw total stds [N] (> 0) at
     the CALIBRATE capture points (``points="held-out"``: CALIBRATE and SCORE, see
     ``CALIBRATION_POINTS``) seen from the calibration views (``calibration_views``: halfway between
@@ -378,7 +378,9 @@ def depth_calibration_errors(model, dataset, *, seed: int = 0, opacity_mask: flo
     with rendered opacity above ``opacity_mask`` (as the depth scores), rendered with ``options``
     (default: the model's; a map fits the std of the K and estimator it is fitted with, so fit it
     with the options the run will render with; ``bounds``: the views' render bounds,
-    ``calibration_views``); and the data, in words.
+    ``calibration_views``); with ``free_space`` (``free_space.TrainingDepth``) the stds are the
+    checked ones, sqrt(sigma^2 + e^2) with e the rendered point's free-space violation
+    (``free_space.checked_std``); and the data, in words.
     ValueError when the scene has no capture points, or for an unknown ``points``."""
     from .capture_points import CALIBRATE, SCORE, load_capture_points
     from .sparse_depth import project_sparse_depth
@@ -401,7 +403,19 @@ def depth_calibration_errors(model, dataset, *, seed: int = 0, opacity_mask: flo
     roles = "calibrate role" if points == "calibrate" else "calibrate and score roles"
     source = (f"{int(keep.sum())} {capture.source} points of the {roles} seen from {len(pairs)} views halfway "
               f"between neighbouring training views (opacity > {mask})")
-    return np.abs(r["gt"][keep] - r["depth_mean"][keep]), r["depth_std"][keep], source
+    std = r["depth_std"]
+    if free_space is not None and len(std):
+        from .cameras import camera_to_world
+        from .free_space import checked_std, free_space_violation, rendered_points
+
+        views = [v for v, sd in sparse.items() if len(sd)]  # the order of render_at_points' rays
+        index = np.concatenate([sparse[v].point_index for v in views])
+        centres = camera_to_world(cams).double()[:, :3, 3].numpy()[np.concatenate(
+            [np.full(len(sparse[v]), v) for v in views])]
+        where = rendered_points(centres, capture.xyz[index], r["gt"], np.where(keep, r["depth_mean"], r["gt"]))
+        std = checked_std(std, free_space_violation(where, free_space))
+        source += ", std checked against the training views' free space"
+    return np.abs(r["gt"][keep] - r["depth_mean"][keep]), std[keep], source
 
 
 def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,

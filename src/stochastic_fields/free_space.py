@@ -1,0 +1,184 @@
+"""The free-space check: a rendered depth against what the training views saw (docs/uncertainty.md, study 13).
+
+A training ray whose rendered surface lies at camera depth D_j(u) passed through empty space before
+it: the colours of view j were fitted with that space empty. A depth rendered from any other view
+puts a surface point X somewhere in the scene; if X projects into training view j at pixel u in
+front of that surface, z_j(X) < D_j(u), the render claims a surface where view j saw none. The
+violation
+
+    e(X) = max_j max(0, D_j(u_j(X)) - z_j(X))
+
+over the training views j in front of which X lies inside the image, at pixels with rendered
+opacity above ``view_maps.OPACITY_MASK`` (a surface to compare with), is a distance in scene
+units (camera z of view j). A point behind view j's surface (occluded there) or on it gives 0, so
+occlusion raises nothing. It marks the errors S-NeRF's std misses most: floaters and surfaces
+rendered in front of the true one with a small std (docs/uncertainty.md, studies 11 and 12).
+
+The checked std adds it as an independent error component,
+
+    sigma_checked = sqrt(sigma^2 + e^2),
+
+which the depth recalibration then scales like any std (``calibration``). D_j is the model's own
+rendered depth of training view j (``render_training_depth``; stored in the run as
+``TRAINING_DEPTH_FILE``), not ground truth: a user's capture has none.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from .view_maps import OPACITY_MASK
+
+#: File of a run's rendered training-view depths (``save_training_depth``).
+TRAINING_DEPTH_FILE = "training_depth.npz"
+
+
+@dataclass
+class TrainingDepth:
+    """The model's rendered camera-z depth and opacity of the training views, with their cameras.
+
+    Attributes:
+        views: [T] dataset view indices.
+        intrinsics: [T, 3, 3] float64 (pixel centres at +0.5).
+        world_to_camera: [T, 4, 4] float64 (OpenCV).
+        depth: [T, H, W] rendered camera-z depth mean (scene units).
+        opacity: [T, H, W] rendered opacity.
+    """
+
+    views: np.ndarray
+    intrinsics: np.ndarray
+    world_to_camera: np.ndarray
+    depth: np.ndarray
+    opacity: np.ndarray
+
+    def __post_init__(self) -> None:
+        T = len(self.views)
+        if T == 0:
+            raise ValueError("training depth: no training view")
+        if self.intrinsics.shape != (T, 3, 3) or self.world_to_camera.shape != (T, 4, 4):
+            raise ValueError(f"training depth: cameras must be [{T}, 3, 3] and [{T}, 4, 4], got "
+                             f"{self.intrinsics.shape} and {self.world_to_camera.shape}")
+        if self.depth.ndim != 3 or self.depth.shape[0] != T or self.opacity.shape != self.depth.shape:
+            raise ValueError(f"training depth: depth and opacity must both be [{T}, H, W], got "
+                             f"{self.depth.shape} and {self.opacity.shape}")
+        for name in ("intrinsics", "world_to_camera", "depth", "opacity"):
+            if not np.isfinite(getattr(self, name)).all():
+                raise ValueError(f"training depth: {name} holds non-finite values")
+
+
+def render_training_depth(model, dataset, *, options=None, seed: int = 0, progress: bool = True) -> TrainingDepth:
+    """Render every training view of ``dataset`` with ``model`` (``options``: the model's render
+    options by default; draws seeded per view, as evaluation seeds them) and keep its camera-z
+    depth mean and opacity."""
+    from tqdm.auto import tqdm
+
+    from .cameras import intrinsics_3x3
+    from .renderer import seeded_chunks
+    from .view_maps import camera_z_maps
+
+    views = [int(v) for v in dataset.train_indices]
+    device = next(model.parameters()).device
+    depth, opacity = [], []
+    for v in tqdm(views, desc="render training views (free-space check)", disable=not progress, leave=False):
+        with torch.no_grad():
+            maps = camera_z_maps(model.render_view(dataset.rays(v).to(device), options,
+                                                   generator=seeded_chunks(seed, v, device)))
+        depth.append(maps["depth_mean"])
+        opacity.append(maps["opacity"])
+    idx = torch.as_tensor(views)
+    return TrainingDepth(np.asarray(views, np.int64), intrinsics_3x3(dataset.cameras)[idx].double().cpu().numpy(),
+                         dataset.cameras.extrinsics[idx].double().cpu().numpy(),
+                         np.stack(depth).astype(np.float32), np.stack(opacity).astype(np.float32))
+
+
+def save_training_depth(run_dir: str | Path, ref: TrainingDepth) -> Path:
+    """Write ``ref`` to ``RUN/TRAINING_DEPTH_FILE`` atomically."""
+    from .io_utils import atomic_write
+
+    path = Path(run_dir) / TRAINING_DEPTH_FILE
+
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, views=ref.views, intrinsics=ref.intrinsics, world_to_camera=ref.world_to_camera,
+                                depth=ref.depth, opacity=ref.opacity)
+
+    atomic_write(path, write)
+    return path
+
+
+def load_training_depth(run_dir: str | Path) -> TrainingDepth | None:
+    """The run's stored training-view depths, or None when it has none. ValueError naming the
+    file when it is malformed (no pickles are read)."""
+    path = Path(run_dir) / TRAINING_DEPTH_FILE
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as f:
+            data = {k: f[k] for k in ("views", "intrinsics", "world_to_camera", "depth", "opacity")}
+        return TrainingDepth(data["views"].astype(np.int64), data["intrinsics"].astype(np.float64),
+                             data["world_to_camera"].astype(np.float64), data["depth"].astype(np.float32),
+                             data["opacity"].astype(np.float32))
+    except (OSError, KeyError, ValueError) as exc:
+        raise ValueError(f"{path}: malformed training-view depths ({exc})") from exc
+
+
+def free_space_violation(points: np.ndarray, ref: TrainingDepth, *, exclude: Sequence[int] = ()) -> np.ndarray:
+    """e(X) [N] >= 0 of world points ``points`` [N, 3] (module doc): how far in front of a training
+    view's rendered surface the point lies, the largest over the training views (0 where no view
+    has it inside its image in front of the camera on an opaque pixel). ``exclude``: dataset views
+    left out of the check (none by default)."""
+    X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    out = np.zeros(len(X))
+    T, H, W = ref.depth.shape
+    for t in range(T):
+        if int(ref.views[t]) in exclude:
+            continue
+        cam = X @ ref.world_to_camera[t, :3, :3].T + ref.world_to_camera[t, :3, 3]
+        z = cam[:, 2]
+        front = z > 0
+        uv = cam[:, :2] / np.where(front, z, 1.0)[:, None] @ ref.intrinsics[t, :2, :2].T + ref.intrinsics[t, :2, 2]
+        inside = front & np.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        rows = np.clip(np.floor(np.where(inside, uv[:, 1], 0)).astype(np.int64), 0, H - 1)
+        cols = np.clip(np.floor(np.where(inside, uv[:, 0], 0)).astype(np.int64), 0, W - 1)
+        surface = ref.depth[t][rows, cols].astype(np.float64)
+        checked = inside & (ref.opacity[t][rows, cols] > OPACITY_MASK)
+        out = np.maximum(out, np.where(checked, np.maximum(surface - z, 0.0), 0.0))
+    return out
+
+
+def rendered_points(centres: np.ndarray, points: np.ndarray, point_z: np.ndarray, rendered_z: np.ndarray) -> np.ndarray:
+    """World points [N, 3] a render puts on the rays from camera ``centres`` [N, 3] through world
+    ``points`` [N, 3] (camera-z depth ``point_z`` [N] > 0): at camera-z depth ``rendered_z`` [N] along
+    the same ray, X = c + (p - c) rendered_z / point_z."""
+    c = np.asarray(centres, dtype=np.float64)
+    return c + (np.asarray(points, dtype=np.float64) - c) * (np.asarray(rendered_z, np.float64)
+                                                             / np.asarray(point_z, np.float64))[:, None]
+
+
+def violation_map(depth: np.ndarray, intrinsics: np.ndarray, world_to_camera: np.ndarray, ref: TrainingDepth,
+                  *, mask: np.ndarray | None = None, exclude: Sequence[int] = ()) -> np.ndarray:
+    """e [H, W] (float32) of a rendered camera-z ``depth`` map [H, W] of the camera ``intrinsics``
+    [3, 3], ``world_to_camera`` [4, 4]: each pixel centre back-projected to its depth, then
+    ``free_space_violation``; 0 where ``mask`` [H, W] is False (default: every pixel)."""
+    depth = np.asarray(depth, dtype=np.float64)
+    H, W = depth.shape
+    rows, cols = np.nonzero(np.ones((H, W), bool) if mask is None else np.asarray(mask, bool))
+    K = np.asarray(intrinsics, np.float64)
+    w2c = np.asarray(world_to_camera, np.float64)
+    rays = np.linalg.solve(K, np.stack([cols + 0.5, rows + 0.5, np.ones(len(rows))]))  # camera frame, z = 1
+    cam = rays.T * depth[rows, cols][:, None]
+    world = (cam - w2c[:3, 3]) @ w2c[:3, :3]  # R^T (x - t)
+    out = np.zeros((H, W), np.float32)
+    out[rows, cols] = free_space_violation(world, ref, exclude=exclude)
+    return out
+
+
+def checked_std(std: np.ndarray, violation: np.ndarray) -> np.ndarray:
+    """sqrt(std^2 + e^2) (float64), the std with the free-space violation ``violation`` as an
+    independent error component (module doc); same shapes."""
+    return np.hypot(np.asarray(std, np.float64), np.asarray(violation, np.float64))
