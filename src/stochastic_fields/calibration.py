@@ -71,6 +71,10 @@ CALIBRATION_FILE = "calibration.json"
 CALIBRATION_POINTS: tuple[str, ...] = ("calibrate", "held-out")
 #: Whether depth maps fit a std floor (``fit_std_floor``); docs/uncertainty.md, study 11.
 DEPTH_STD_FLOOR: bool = False
+#: Whether depth maps are fitted on the free-space-checked std sqrt(sigma^2 + e^2) (``free_space``;
+#: docs/uncertainty.md, study 13: it ranks depth errors better on every scene, but its map transfers
+#: badly on fern, so it is an option).
+DEPTH_FREE_SPACE: bool = False
 #: Relative precision of the fitted std floor (bisection in log tau stops there).
 STD_FLOOR_RTOL: float = 1e-4
 #: A floor is fitted only when the standardised errors fall with sigma at this one-sided significance
@@ -92,6 +96,9 @@ class QuantileCalibration:
         source: the data it was fitted on, in words.
         floor: the std floor tau (units of the quantity; 0: none): errors are standardised by
             sqrt(sigma^2 + tau^2) (module doc, ``fit_std_floor``).
+        free_space: the map was fitted on (and applies to) the free-space-checked std
+            sqrt(sigma^2 + e^2), e the rendered point's violation of the training views' free space
+            (``free_space``; depth only).
     """
 
     quantity: str
@@ -100,6 +107,7 @@ class QuantileCalibration:
     num_samples: int
     source: str = ""
     floor: float = 0.0
+    free_space: bool = False
 
     @classmethod
     def fit(cls, abs_z: np.ndarray, *, quantity: str, source: str = "",
@@ -133,9 +141,16 @@ class QuantileCalibration:
         out.floor = float(tau)
         return out
 
-    def calibrated_std(self, raw: np.ndarray) -> np.ndarray:
-        """s(0.6827) sqrt(raw^2 + floor^2) in float64: the calibrated one-sigma std of raw stds [...]."""
-        return self.std_scale * np.hypot(np.asarray(raw, dtype=np.float64), self.floor)
+    def calibrated_std(self, raw: np.ndarray, violation: np.ndarray | None = None) -> np.ndarray:
+        """s(0.6827) sqrt(raw^2 + floor^2 [+ violation^2]) in float64: the calibrated one-sigma std of
+        raw stds [...]; a ``free_space`` map needs the free-space ``violation`` [...] (same shape)."""
+        std = np.hypot(np.asarray(raw, dtype=np.float64), self.floor)
+        if self.free_space:
+            if violation is None:
+                raise ValueError(f"the {self.quantity} map was fitted on the free-space-checked std: it needs each "
+                                 "pixel's free-space violation (free_space.violation_map)")
+            std = np.hypot(std, np.asarray(violation, dtype=np.float64))
+        return self.std_scale * std
 
     def scale_at(self, p: float | np.ndarray) -> np.ndarray:
         """s(p), linear between fitted levels, constant beyond the first and last."""
@@ -153,7 +168,7 @@ class QuantileCalibration:
     def to_dict(self) -> dict[str, Any]:
         return {"quantity": self.quantity, "levels": self.levels.tolist(), "scales": self.scales.tolist(),
                 "num_samples": self.num_samples, "source": self.source, "std_scale": self.std_scale,
-                "floor": self.floor}
+                "floor": self.floor, "free_space": self.free_space}
 
     @classmethod
     def from_dict(cls, data: dict, *, where: str = "calibration") -> "QuantileCalibration":
@@ -161,9 +176,12 @@ class QuantileCalibration:
             levels = np.asarray(data["levels"], dtype=np.float64)
             scales = np.asarray(data["scales"], dtype=np.float64)
             out = cls(str(data["quantity"]), levels, scales, int(data["num_samples"]), str(data.get("source", "")),
-                      float(data.get("floor", 0.0)))  # files written before the floor: none
+                      float(data.get("floor", 0.0)),  # files written before the floor: none
+                      data.get("free_space", False))  # ... before the free-space check: none
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{where}: malformed quantile calibration ({exc!r})") from exc
+        if not isinstance(out.free_space, bool):
+            raise ValueError(f"{where}: free_space must be true or false, got {out.free_space!r}")
         if not (math.isfinite(out.floor) and out.floor >= 0.0):
             raise ValueError(f"{where}: the std floor must be finite and >= 0, got {out.floor}")
         if (levels.ndim != 1 or levels.shape != scales.shape or levels.size == 0 or not np.isfinite(levels).all()
@@ -419,14 +437,18 @@ def depth_calibration_errors(model, dataset, *, seed: int = 0, opacity_mask: flo
 
 
 def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
-                          points: str = "calibrate", options=None, floor: bool = DEPTH_STD_FLOOR
-                          ) -> QuantileCalibration:
+                          points: str = "calibrate", options=None, floor: bool = DEPTH_STD_FLOOR,
+                          free_space=None) -> QuantileCalibration:
     """The depth map fitted on ``depth_calibration_errors`` (same arguments, the default bounds);
-    with ``floor``, a std floor first (``fit_std_floor``). ValueError when the scene has no capture
-    points or too few of those roles, or for an unknown ``points``."""
+    with ``floor``, a std floor first (``fit_std_floor``); with ``free_space``
+    (``free_space.TrainingDepth``), on the free-space-checked std (the map's ``free_space``).
+    ValueError when the scene has no capture points or too few of those roles, or for an unknown
+    ``points``."""
     err, std, source = depth_calibration_errors(model, dataset, seed=seed, opacity_mask=opacity_mask,
-                                                points=points, options=options)
-    return QuantileCalibration.fit_errors(err, std, quantity="depth_std", floor=floor, source=source)
+                                                points=points, options=options, free_space=free_space)
+    out = QuantileCalibration.fit_errors(err, std, quantity="depth_std", floor=floor, source=source)
+    out.free_space = free_space is not None
+    return out
 
 
 def fit_colour_calibration(model, dataset, *, fraction: float, block: int, seed: int = 0) -> QuantileCalibration:
@@ -469,6 +491,9 @@ class RunCalibration:
     depth: QuantileCalibration | None = None
     points: str = "calibrate"
     colour: QuantileCalibration | None = None
+    training_depth: Any = None
+    """The training views' rendered depths (``free_space.TrainingDepth``) a ``free_space`` depth map
+    checks against, stored beside calibration.json (``free_space.TRAINING_DEPTH_FILE``)."""
 
     @property
     def saw_score_points(self) -> bool:
@@ -507,15 +532,26 @@ def load_run_calibration(run_dir: str | Path) -> RunCalibration | None:
     path = Path(run_dir) / CALIBRATION_FILE
     if not path.is_file():
         return None
-    return RunCalibration.from_dict(read_json(path, "calibration"), where=str(path))
+    out = RunCalibration.from_dict(read_json(path, "calibration"), where=str(path))
+    if out.depth is not None and out.depth.free_space:
+        from .free_space import TRAINING_DEPTH_FILE, load_training_depth
+
+        out.training_depth = load_training_depth(run_dir)
+        if out.training_depth is None:
+            raise ValueError(f"{path}: the depth map checks free space, but {Path(run_dir) / TRAINING_DEPTH_FILE} "
+                             f"is missing (run `stochastic-fields calibrate --run {run_dir} --free-space` again)")
+    return out
 
 
 def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int = 0, model=None,
-                  dataset=None, points: str = "calibrate", floor: bool = DEPTH_STD_FLOOR) -> RunCalibration:
+                  dataset=None, points: str = "calibrate", floor: bool = DEPTH_STD_FLOOR,
+                  free_space: bool = DEPTH_FREE_SPACE, progress: bool = True) -> RunCalibration:
     """Fit the run's calibration and write ``RUN/calibration.json``: the depth map from its capture
     points (``points``: ``CALIBRATION_POINTS``) and, when the run held pixels out of training
     (``train.holdout_fraction`` > 0 in its config.json), the colour map from them; ``floor``: whether
-    the depth map fits a std floor (``fit_std_floor``). ValueError
+    the depth map fits a std floor (``fit_std_floor``); ``free_space``: whether it is fitted on the
+    free-space-checked std (the training views are rendered once and stored first, as
+    ``free_space.TRAINING_DEPTH_FILE``; ``progress``: a bar over them). ValueError
     (the depth fit's reason) when neither can be fitted; a depth fit that fails beside a colour one
     leaves depth raw."""
     from .config import load_config
@@ -529,36 +565,65 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
     if cfg.train.holdout_fraction > 0:
         colour = fit_colour_calibration(model, dataset, fraction=cfg.train.holdout_fraction,
                                         block=cfg.train.holdout_block, seed=seed)
+    reference = None
+    if free_space:
+        from .free_space import render_training_depth, save_training_depth
+
+        reference = render_training_depth(model, dataset, seed=seed, progress=progress)
+        save_training_depth(run_dir, reference)  # before the calibration.json that names it
     try:
-        depth = fit_depth_calibration(model, dataset, seed=seed, points=points, floor=floor)
+        depth = fit_depth_calibration(model, dataset, seed=seed, points=points, floor=floor, free_space=reference)
     except ValueError:
         if colour is None:
             raise
         depth = None
-    calibration = RunCalibration(depth=depth, points=points, colour=colour)
+    calibration = RunCalibration(depth=depth, points=points, colour=colour,
+                                 training_depth=None if depth is None or not depth.free_space else reference)
     save_run_calibration(run_dir, calibration)
     return calibration
 
 
 def describe(calibration: RunCalibration) -> str:
     """A few lines for people: the fitted factors at 68% and 95%."""
-    parts = [f"{name} std: {'x' if not m.floor else f'sqrt(raw^2 + {m.floor:.3g}^2) x'}{m.std_scale:.3g} "
+    parts = [f"{name} std: {_std_formula(m)}{m.std_scale:.3g} "
              f"(one sigma, 68.3%), x{float(m.scale_at(0.95)):.3g} at 95% [{m.source}]"
              for name, m in (("depth", calibration.depth), ("colour", calibration.colour)) if m is not None]
     return "; ".join(parts) if parts else "no calibrated quantity"
 
 
-def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibration | None) -> dict[str, np.ndarray]:
+def _std_formula(m: QuantileCalibration) -> str:
+    terms = ["raw^2"] + ([f"{m.floor:.3g}^2"] if m.floor else []) + (["free-space violation^2"] if m.free_space else [])
+    return "x" if len(terms) == 1 else f"sqrt({' + '.join(terms)}) x"
+
+
+def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibration | None,
+                      camera: tuple[np.ndarray, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """Camera-z products (``view_maps.camera_z_maps``) with ``depth_std`` and ``colour_std``
     calibrated where the run has their maps (``QuantileCalibration.calibrated_std``, in float64,
-    stored in the raw one's dtype), the raw ones kept as ``depth_std_raw`` and ``colour_std_raw``. Returns a new dict (unchanged entries where a map is missing)."""
+    stored in the raw one's dtype), the raw ones kept as ``depth_std_raw`` and ``colour_std_raw``.
+    A ``free_space`` depth map also adds ``depth_free_space`` [H, W], each pixel's free-space
+    violation (``free_space.violation_map`` at pixels with opacity above ``OPACITY_MASK``), which
+    needs the view's ``camera`` (intrinsics [3, 3], OpenCV world-to-camera [4, 4]). Returns a new
+    dict (unchanged entries where a map is missing)."""
     out = dict(products)
     if calibration is None:
         return out
+    violation = None
+    if calibration.depth is not None and calibration.depth.free_space and "depth_std" in products:
+        from .free_space import violation_map
+        from .view_maps import OPACITY_MASK
+
+        if camera is None or calibration.training_depth is None:
+            raise ValueError("the depth map checks free space: applying it needs the view's camera and the run's "
+                             "training-view depths (load the calibration with load_run_calibration)")
+        violation = violation_map(products["depth_mean"], camera[0], camera[1], calibration.training_depth,
+                                  mask=products["opacity"] > OPACITY_MASK)
+        out["depth_free_space"] = violation
     for key, cal in (("depth_std", calibration.depth), ("colour_std", calibration.colour)):
         if cal is not None and key in products:
             raw = products[key]
-            out.update({f"{key}_raw": raw, key: cal.calibrated_std(raw).astype(raw.dtype)})
+            extra = violation if key == "depth_std" else None
+            out.update({f"{key}_raw": raw, key: cal.calibrated_std(raw, extra).astype(raw.dtype)})
     return out
 
 
@@ -579,11 +644,17 @@ def add_arguments(p) -> None:
     p.add_argument("--std-floor", action=argparse.BooleanOptionalAction, default=DEPTH_STD_FLOOR,
                    help="Fit a depth std floor tau first, so that depth_std = s * sqrt(raw^2 + tau^2) "
                         f"(docs/uncertainty.md, study 11; default: {'on' if DEPTH_STD_FLOOR else 'off'}).")
+    p.add_argument("--free-space", action=argparse.BooleanOptionalAction, default=DEPTH_FREE_SPACE,
+                   help="Check each rendered depth against the training views' free space: depth_std = "
+                        "s * sqrt(raw^2 + e^2), e how far the point lies in front of a training view's rendered "
+                        "surface, also written as depth_free_space (renders the training views once into "
+                        "RUN/training_depth.npz; docs/uncertainty.md, study 13: ranks depth errors better on every "
+                        f"scene, intervals transfer worse on fern; default: {'on' if DEPTH_FREE_SPACE else 'off'}).")
 
 
 def run(args) -> None:
     cal = calibrate_run(Path(args.run), device=args.device, seed=args.seed, points=args.points,
-                        floor=args.std_floor)
+                        floor=args.std_floor, free_space=args.free_space)
     print(f"calibrated {args.run}: {describe(cal)}")
     print(f"written: {Path(args.run) / CALIBRATION_FILE} (render, eval and export apply it; raw stds as depth_std_raw "
           "and colour_std_raw)")

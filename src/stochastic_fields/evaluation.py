@@ -286,12 +286,14 @@ def _evaluate_view(model, dataset, v: int, out_dir: Path, *, options: RenderOpti
     maps = model.render_view(rays, options, generator=seeded_chunks(seed, v, device))
     synchronize(device)
     render_s = time.perf_counter() - t0
-    products = apply_calibration(camera_z_maps(maps), calibration)
+    camera = view_camera_arrays(dataset, v)
+    products = apply_calibration(camera_z_maps(maps), calibration,
+                                 camera=(camera["intrinsics"], camera["world_to_camera"]))
     gt = dataset.images[v].numpy()
     gt_depth = gt_depths[v].numpy() if gt_depths is not None else None
     if write_products:
         write_view_products(out_dir / "views", f"view_{v:03d}", products, gt, gt_depth,
-                            camera=view_camera_arrays(dataset, v))
+                            camera=camera)
     if gt_depth is not None and dense_scored is not None:  # score the SCORE blocks' surfaces only
         gt_depth = np.where(dense_scored, gt_depth, 0.0)
     colour = ColourTerms.of(products, gt, interval_scale_of(calibration, "colour"))

@@ -79,17 +79,15 @@ def render_training_depth(model, dataset, *, options=None, seed: int = 0, progre
 
     from .cameras import intrinsics_3x3
     from .renderer import seeded_chunks
-    from .view_maps import camera_z_maps
 
     views = [int(v) for v in dataset.train_indices]
     device = next(model.parameters()).device
     depth, opacity = [], []
     for v in tqdm(views, desc="render training views (free-space check)", disable=not progress, leave=False):
         with torch.no_grad():
-            maps = camera_z_maps(model.render_view(dataset.rays(v).to(device), options,
-                                                   generator=seeded_chunks(seed, v, device)))
-        depth.append(maps["depth_mean"])
-        opacity.append(maps["opacity"])
+            maps = model.render_view(dataset.rays(v).to(device), options, generator=seeded_chunks(seed, v, device))
+        depth.append((maps["depth_mean"].double() * maps["z_scale"].double()).cpu().numpy())  # camera z
+        opacity.append(maps["opacity"].double().cpu().numpy())
     idx = torch.as_tensor(views)
     return TrainingDepth(np.asarray(views, np.int64), intrinsics_3x3(dataset.cameras)[idx].double().cpu().numpy(),
                          dataset.cameras.extrinsics[idx].double().cpu().numpy(),

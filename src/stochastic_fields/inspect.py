@@ -237,11 +237,12 @@ class RunInspector:
         if key not in self._cache:
             raw = self._render_maps(view, K, q)
             ds = self.dataset
+            camera = (intrinsics_3x3(ds.cameras)[view].double().cpu().numpy(),
+                      ds.cameras.extrinsics[view].double().cpu().numpy())
             self._depth_cache[key] = compute_depth_products(
-                raw, intrinsics_3x3(ds.cameras)[view].double().cpu().numpy(),
-                ds.cameras.extrinsics[view].double().cpu().numpy(), near=float(ds.near[view]),
+                raw, *camera, near=float(ds.near[view]),
                 far=float(ds.far[view]), min_opacity=OPACITY_MASK, calibration=self.calibration)
-            products = apply_calibration(camera_z_maps(raw), self.calibration)
+            products = apply_calibration(camera_z_maps(raw), self.calibration, camera=camera)
             gt, gt_depth = self.ground_truth(view)
             products["colour_abs_error"] = np.abs(products["colour_mean"] - gt).mean(axis=-1).astype(np.float32)
             if gt_depth is not None:

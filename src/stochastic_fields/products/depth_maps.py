@@ -237,7 +237,8 @@ def compute_depth_products(maps: dict[str, torch.Tensor], intrinsics: np.ndarray
     if "depth_draws" not in maps:
         raise ValueError("compute_depth_products needs per-draw depths: render with keep_draws=True")
     levels = np.unique(check_quantile_levels(quantiles))  # ascending, no duplicates
-    z = apply_calibration(camera_z_maps(maps), calibration)  # camera-z numpy float32
+    z = apply_calibration(camera_z_maps(maps), calibration,  # camera-z numpy float32
+                          camera=(np.asarray(intrinsics, np.float64), np.asarray(world_to_camera, np.float64)))
     depth_cal = None if calibration is None else calibration.depth
     draws = torch.from_numpy(z["depth_draws"]).double()  # [H, W, K]
     q = draw_quantiles(draws, levels).float().numpy()  # [Q, H, W]

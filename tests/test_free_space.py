@@ -1,0 +1,230 @@
+"""The free-space check (``free_space``): violations by hand (in front, behind, outside, behind the
+camera, transparent pixels, excluded views), a training view's own depth violating nothing, the
+points a render puts on its rays, the stored file (round trip, malformed and pickled files
+refused), and end to end on a mesh: the checked std ranks an error the reported std leaves out."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from stochastic_fields.free_space import (TRAINING_DEPTH_FILE, TrainingDepth, checked_std, free_space_violation,
+                                          load_training_depth, rendered_points, save_training_depth, violation_map)
+
+
+def _two_views() -> TrainingDepth:
+    """View 3: at the origin looking along +z, surface at z = 5, column 0 transparent. View 8: one
+    unit behind it (centre (0, 0, -1)), surface at its z = 4.5. Both 10 x 10 pixels, f = 10."""
+    K = np.array([[10.0, 0, 5.0], [0, 10.0, 5.0], [0, 0, 1]])
+    w2c = np.repeat(np.eye(4)[None], 2, 0)
+    w2c[1, 2, 3] = 1.0  # x_cam = x_world + (0, 0, 1)
+    depth = np.stack([np.full((10, 10), 5.0), np.full((10, 10), 4.5)]).astype(np.float32)
+    opacity = np.ones_like(depth)
+    opacity[0, :, 0] = 0.0
+    return TrainingDepth(np.array([3, 8]), np.stack([K, K]), w2c, depth, opacity)
+
+
+def test_free_space_violation_by_hand():
+    ref = _two_views()
+    points = np.array([
+        [0.0, 0.0, 3.0],    # in front of both surfaces: 5 - 3 = 2 (view 3), 4.5 - 4 = 0.5 (view 8)
+        [0.0, 0.0, 6.0],    # behind both: occluded, no violation
+        [0.0, 0.0, -2.0],   # behind both cameras
+        [-0.9, 0.0, 2.0],   # view 3's transparent column 0 (u = 0.5); view 8: u = 2, 4.5 - 3 = 1.5
+        [10.0, 0.0, 1.0],   # outside both images
+        [0.0, 0.0, 5.0],    # on view 3's surface: 0; view 8: 4.5 - 6 < 0
+    ])
+    np.testing.assert_allclose(free_space_violation(points, ref), [2.0, 0.0, 0.0, 1.5, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(free_space_violation(points, ref, exclude=[3]), [0.5, 0, 0, 1.5, 0, 0], atol=1e-12)
+    assert free_space_violation(np.zeros((0, 3)), ref).shape == (0,)
+
+
+def test_a_training_view_violates_nothing_on_its_own_depth_and_a_floater_by_its_distance():
+    rng = np.random.default_rng(0)
+    K = np.array([[50.0, 0, 16.0], [0, 50.0, 12.0], [0, 0, 1]])
+    a = np.deg2rad(20.0)
+    w2c = np.eye(4)
+    w2c[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+    w2c[:3, 3] = [0.3, -0.2, 1.0]
+    depth = rng.uniform(2.0, 6.0, size=(24, 32))
+    ref = TrainingDepth(np.array([0]), K[None], w2c[None], depth[None].astype(np.float32),
+                        np.ones((1, 24, 32), np.float32))
+    own = violation_map(depth.astype(np.float32), K, w2c, ref)
+    assert np.abs(own).max() < 1e-5 * depth.max()  # float32 depths; the same pixel centres
+    floater = depth.copy()
+    floater[5, 7] -= 1.25
+    got = violation_map(floater, K, w2c, ref, mask=np.arange(24 * 32).reshape(24, 32) % 2 == 1)
+    assert got[5, 7] == pytest.approx(1.25, abs=1e-5) and got.dtype == np.float32
+    assert np.abs(np.delete(got.reshape(-1), 5 * 32 + 7)).max() < 1e-5 * depth.max()
+    np.testing.assert_allclose(checked_std(np.array([3.0, 0.0]), np.array([4.0, 2.0])), [5.0, 2.0])
+
+
+def test_rendered_points_lie_on_the_ray_at_the_rendered_depth():
+    got = rendered_points(np.array([[0.0, 0, 0], [1, 1, 1]]), np.array([[1.0, 2, 4], [1, 1, 3]]),
+                          np.array([4.0, 2.0]), np.array([2.0, 3.0]))
+    np.testing.assert_allclose(got, [[0.5, 1.0, 2.0], [1.0, 1.0, 4.0]])
+
+
+def test_training_depth_file_round_trip_and_refusals(tmp_path):
+    assert load_training_depth(tmp_path) is None
+    ref = _two_views()
+    path = save_training_depth(tmp_path, ref)
+    assert path == tmp_path / TRAINING_DEPTH_FILE
+    back = load_training_depth(tmp_path)
+    for name in ("views", "intrinsics", "world_to_camera", "depth", "opacity"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(ref, name))
+    np.savez(path, views=ref.views, intrinsics=ref.intrinsics, world_to_camera=ref.world_to_camera,
+             depth=ref.depth)  # no opacity
+    with pytest.raises(ValueError, match=f"{TRAINING_DEPTH_FILE}.*malformed"):
+        load_training_depth(tmp_path)
+    np.savez(path, views=ref.views, intrinsics=ref.intrinsics, world_to_camera=ref.world_to_camera,
+             depth=np.full_like(ref.depth, np.nan), opacity=ref.opacity)
+    with pytest.raises(ValueError, match="non-finite"):
+        load_training_depth(tmp_path)
+    np.savez(path, views=np.array([object()]), intrinsics=ref.intrinsics, world_to_camera=ref.world_to_camera,
+             depth=ref.depth, opacity=ref.opacity)  # a pickled object is never loaded
+    with pytest.raises(ValueError, match="malformed"):
+        load_training_depth(tmp_path)
+    with pytest.raises(ValueError, match=r"depth and opacity must both be \[2, H, W\]"):
+        TrainingDepth(ref.views, ref.intrinsics, ref.world_to_camera, ref.depth, ref.opacity[:1])
+
+
+def test_checked_std_ranks_an_error_the_reported_std_misses(tmp_path):
+    """End to end on the synthetic mesh (training views rendered by the model, calibration views,
+    projection, camera z): the training views see the exact surface; the calibration renders add an
+    error the reported std leaves out. The points rendered in front of the surface violate the
+    training views' free space, so the checked std ranks the errors far better; an exact model's
+    checked std stays its reported one."""
+    from stochastic_fields.calibration import depth_calibration_errors
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.data.synthetic import make_synthetic_scene
+    from stochastic_fields.free_space import render_training_depth
+    from test_depth_likelihood_calibration import _MeshDepthModel
+
+    scene = make_synthetic_scene(tmp_path / "scene", num_views=20, width=192, height=144, seed=0)
+    ds = load_dataset(scene, split_every=5)
+    exact = _MeshDepthModel(scene / "scene.ply", 0.0)
+    ref = render_training_depth(exact, ds, progress=False)
+    assert ref.depth.shape == (4, 144, 192) and list(ref.views) == list(ds.train_indices)
+    err, raw, _ = depth_calibration_errors(exact, ds)
+    err_c, checked, source = depth_calibration_errors(exact, ds, free_space=ref)
+    np.testing.assert_array_equal(err, err_c)
+    assert "free space" in source and (checked >= raw).all()
+    assert np.median(checked / raw) < 1.05  # an exact surface violates (almost) nothing
+
+    missed = _MeshDepthModel(scene / "scene.ply", 1.0, abs_std=0.3, std_spread=0.5)
+    err, raw, _ = depth_calibration_errors(missed, ds)
+    _, checked, _ = depth_calibration_errors(missed, ds, free_space=ref)
+    assert stats.spearmanr(err, checked)[0] > stats.spearmanr(err, raw)[0] + 0.2
+
+
+@pytest.mark.parametrize("bad", ["intrinsics", "views"])
+def test_training_depth_refuses_mismatched_cameras(bad):
+    ref = _two_views()
+    kwargs = dict(views=ref.views, intrinsics=ref.intrinsics, world_to_camera=ref.world_to_camera,
+                  depth=ref.depth, opacity=ref.opacity)
+    kwargs[bad] = kwargs[bad][:1] if bad == "intrinsics" else np.zeros(0, np.int64)
+    with pytest.raises(ValueError, match="training depth"):
+        TrainingDepth(**kwargs)
+
+
+def _checked_run_calibration(scale: float = 2.0):
+    from stochastic_fields.calibration import CALIBRATION_LEVELS, QuantileCalibration, RunCalibration
+
+    depth = QuantileCalibration("depth_std", CALIBRATION_LEVELS, np.full(len(CALIBRATION_LEVELS), scale), 100, "test",
+                                free_space=True)
+    return RunCalibration(depth=depth, training_depth=_two_views())
+
+
+def test_apply_calibration_checks_each_pixel_against_the_training_views():
+    """View 3's own camera renders its surface (z = 5) except one pixel at z = 3: that pixel violates
+    view 3's free space by 2 (view 8's by 0.5), so its std is s sqrt(1 + 2^2); the rest keep s * 1.
+    Transparent pixels are not checked; without the camera the map cannot be applied."""
+    from stochastic_fields.calibration import apply_calibration
+
+    cal = _checked_run_calibration()
+    depth = np.full((10, 10), 5.0, np.float32)
+    depth[4, 6] = 3.0
+    opacity = np.ones((10, 10), np.float32)
+    opacity[7, 7], depth[7, 7] = 0.0, 1.0  # would violate, but transparent
+    products = {"depth_mean": depth, "depth_std": np.ones((10, 10), np.float32), "opacity": opacity}
+    ref = cal.training_depth
+    out = apply_calibration(products, cal, camera=(ref.intrinsics[0], ref.world_to_camera[0]))
+    expected_e = np.zeros((10, 10))
+    expected_e[4, 6] = 2.0
+    np.testing.assert_allclose(out["depth_free_space"], expected_e, atol=1e-6)
+    np.testing.assert_allclose(out["depth_std"], 2.0 * np.hypot(1.0, expected_e), rtol=1e-6)
+    assert out["depth_std_raw"] is products["depth_std"] and out["depth_std"].dtype == np.float32
+    with pytest.raises(ValueError, match="checks free space"):
+        apply_calibration(products, cal)
+    with pytest.raises(ValueError, match="free-space violation"):
+        cal.depth.calibrated_std(np.ones(3))
+    np.testing.assert_allclose(cal.depth.calibrated_std(np.array([3.0]), np.array([4.0])), [10.0])
+
+
+def test_checked_calibration_file_needs_its_training_depths(tmp_path):
+    from stochastic_fields.calibration import CALIBRATION_FILE, describe, load_run_calibration, save_run_calibration
+
+    cal = _checked_run_calibration()
+    save_training_depth(tmp_path, cal.training_depth)
+    save_run_calibration(tmp_path, cal)
+    back = load_run_calibration(tmp_path)
+    assert back.depth.free_space and back.training_depth.depth.shape == (2, 10, 10)
+    assert "free-space violation" in describe(back)
+    (tmp_path / TRAINING_DEPTH_FILE).unlink()
+    with pytest.raises(ValueError, match=f"{CALIBRATION_FILE}.*{TRAINING_DEPTH_FILE} is missing"):
+        load_run_calibration(tmp_path)
+    data = json.loads((tmp_path / CALIBRATION_FILE).read_text())
+    data["depth"]["free_space"] = "yes"
+    (tmp_path / CALIBRATION_FILE).write_text(json.dumps(data))
+    with pytest.raises(ValueError, match="free_space must be true or false"):
+        load_run_calibration(tmp_path)
+    del data["depth"]["free_space"]  # written before the check existed: none
+    (tmp_path / CALIBRATION_FILE).write_text(json.dumps(data))
+    assert not load_run_calibration(tmp_path).depth.free_space
+
+
+@pytest.mark.slow
+def test_a_run_calibrated_with_the_free_space_check_applies_it_in_eval_and_export(tmp_path):
+    """calibrate_run(free_space=True) stores the training views' depths first, then a map that says so;
+    eval writes each view's violation map and a depth std of s sqrt(raw^2 + e^2); the depth products
+    (export, notebook) apply the same."""
+    import torch
+
+    from stochastic_fields.calibration import calibrate_run, load_run_calibration
+    from stochastic_fields.config import preset
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.data.synthetic import make_synthetic_scene
+    from stochastic_fields.evaluation import evaluate
+    from stochastic_fields.products.depth_maps import compute_depth_products
+    from stochastic_fields.trainer import Trainer
+    from stochastic_fields.view_maps import view_camera_arrays
+
+    cfg = preset("tiny")
+    cfg.train.iterations = 200
+    cfg.train.rays_per_batch = 512
+    cfg.render.num_samples = 24
+    ds = load_dataset(make_synthetic_scene(tmp_path / "scene", num_views=20, width=192, height=144, seed=0),
+                      split_every=5)
+    model = Trainer(cfg, tmp_path, ds).train(progress=False)
+    cal = calibrate_run(tmp_path, model=model, dataset=ds, free_space=True, progress=False)
+    assert cal.depth.free_space and (tmp_path / TRAINING_DEPTH_FILE).is_file()
+    stored = load_run_calibration(tmp_path)
+    np.testing.assert_array_equal(stored.training_depth.depth, cal.training_depth.depth)
+    v = int(ds.test_indices[0])
+    evaluate(model, ds, tmp_path / "eval", views=[v], progress=False, calibration=stored)
+    with np.load(tmp_path / "eval" / "views" / f"view_{v:03d}.npz") as f:
+        e, std, raw = f["depth_free_space"], f["depth_std"], f["depth_std_raw"]
+    np.testing.assert_allclose(std, cal.depth.std_scale * np.hypot(raw.astype(np.float64), e), rtol=1e-5)
+    cam = view_camera_arrays(ds, v)
+    with torch.no_grad():
+        maps = model.render_view(ds.rays(v), model.render_options(keep_draws=True))
+    products = compute_depth_products(maps, cam["intrinsics"], cam["world_to_camera"], near=cam["near"],
+                                      far=cam["far"], calibration=stored)
+    e = violation_map(products.depth_mean, cam["intrinsics"], cam["world_to_camera"], stored.training_depth,
+                      mask=products.opacity > 0.5)
+    np.testing.assert_allclose(products.depth_std,
+                               cal.depth.std_scale * np.hypot(products.depth_std_raw.astype(np.float64), e), rtol=1e-5)
