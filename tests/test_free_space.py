@@ -228,3 +228,37 @@ def test_a_run_calibrated_with_the_free_space_check_applies_it_in_eval_and_expor
                       mask=products.opacity > 0.5)
     np.testing.assert_allclose(products.depth_std,
                                cal.depth.std_scale * np.hypot(products.depth_std_raw.astype(np.float64), e), rtol=1e-5)
+
+
+def test_free_space_study_scores_and_rule_by_hand(load_script):
+    """benchmarks/free_space_study.py: Spearman per view (mean) and pooled, and the rule on hand-made
+    runs (mean per-view gain, per-scene tolerances on both Spearmans and the distance), and the
+    committed study's decision recomputed from its runs."""
+    from pathlib import Path
+
+    script = load_script("benchmarks/free_space_study.py")
+    err = np.array([1.0, 2.0, 3.0, 4.0, 3.0, 2.0, 1.0, 0.5])
+    std = np.array([1.0, 2.0, 3.0, 4.0, 1.0, 2.0, 3.0, 4.0])
+    view = np.array([0, 0, 0, 0, 5, 5, 5, 5])
+    got = script.spearman_scores(err, std, view)
+    assert got["per_view"] == pytest.approx(0.0)  # +1 on view 0, -1 on view 5
+    assert got["pooled"] == pytest.approx(stats.spearmanr(err, std)[0])
+
+    def run(sp_plain, sp_checked, d_plain=0.05, d_checked=0.05, pooled_drop=0.0):
+        return {"spearman": {"plain": {"per_view": sp_plain, "pooled": sp_plain},
+                             "checked": {"per_view": sp_checked, "pooled": sp_checked - pooled_drop}},
+                "coverage": {"plain": [0.7, 0.95], "checked": [0.68, 0.95]},
+                "distance": {"plain": d_plain, "checked": d_checked}}
+
+    good = {"runs": {"a/0": run(0.6, 0.65), "a/1": run(0.6, 0.63), "b/0": run(0.5, 0.51)}}
+    d = script.decide(good)
+    assert d["taken"] and d["scenes"]["a"]["seeds"] == 2 and d["mean_spearman_gain"] == pytest.approx(0.025)
+    small = script.decide({"runs": {"a/0": run(0.6, 0.61), "b/0": run(0.5, 0.51)}})
+    assert not small["taken"] and small["worse_on"] == []
+    for bad_b in (run(0.5, 0.6, 0.05, 0.08), run(0.5, 0.6, pooled_drop=0.2)):
+        bad = script.decide({"runs": {"a/0": run(0.6, 0.7), "b/0": bad_b}})
+        assert not bad["taken"] and bad["worse_on"] == ["b"]
+    committed = json.loads((Path(__file__).resolve().parents[1] / "benchmarks/results/uncertainty_study/free_space"
+                            / "study.json").read_text())
+    again = script.decide(committed)
+    assert again == committed["decision"] and again["worse_on"] == ["fern"] and not again["taken"]
