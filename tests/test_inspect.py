@@ -274,6 +274,10 @@ def test_metric_figures_plot_the_metric_curves(inspector, view):
 
 @pytest.mark.parametrize("name", list(MAP_SPECS))
 def test_map_figures_have_colour_bars_with_units(inspector, view, name):
+    if name not in inspector.map_names():  # the free-space map: its run is below
+        with pytest.raises(KeyError, match="calibrate --run RUN --free-space"):
+            inspector.map_figure(view, name)
+        return
     fig = inspector.map_figure(view, name)
     assert isinstance(fig, Figure)
     image = fig.axes[0].images[0].get_array()
@@ -386,6 +390,23 @@ def test_inspector_applies_the_run_calibration_as_eval_does(inspector, view, tmp
     raw = inspector.render(view)
     np.testing.assert_allclose(calibrated["depth_std_raw"], raw["depth_std"], rtol=1e-6)
     np.testing.assert_allclose(calibrated["depth_std"], 3.0 * raw["depth_std"], rtol=1e-5)
+
+    # with the free-space check: the violation map shown, and depth_std = s sqrt(raw^2 + e^2)
+    from stochastic_fields.free_space import render_training_depth, save_training_depth, violation_map
+
+    ref = render_training_depth(inspector.model, inspector.dataset, progress=False)
+    save_training_depth(run, ref)
+    save_run_calibration(run, RunCalibration(depth=QuantileCalibration("depth_std", CALIBRATION_LEVELS, scales, 100,
+                                                                       free_space=True)))
+    checked = RunInspector(run)
+    assert "depth_free_space" in checked.map_names() and "depth_free_space" not in inspector.map_names()
+    maps = checked.render(view)
+    ds = inspector.dataset
+    e = violation_map(raw["depth_mean"], intrinsics_3x3(ds.cameras)[view].double().numpy(),
+                      ds.cameras.extrinsics[view].double().numpy(), ref, mask=raw["opacity"] > OPACITY_MASK)
+    np.testing.assert_allclose(maps["depth_free_space"], e, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(maps["depth_std"], 3.0 * np.hypot(raw["depth_std"].astype(np.float64), e), rtol=1e-5)
+    assert checked.map_figure(view, "depth_free_space").axes[1].get_ylabel() == MAP_SPECS["depth_free_space"].unit
 
 
 def test_notebook_maps_are_the_models_own_render(inspector, view):

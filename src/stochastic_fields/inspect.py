@@ -71,13 +71,15 @@ COLOUR_UNITS = "colour units [0, 1]"
 @dataclass(frozen=True)
 class MapSpec:
     """How one map is shown: label, colour-bar unit, colour map, and whether it is a depth
-    quantity (masked by opacity) or needs ground truth."""
+    quantity (masked by opacity), needs ground truth, or needs a depth map fitted with the
+    free-space check (``calibrate --free-space``)."""
 
     label: str
     unit: str
     cmap: str
     depth: bool = False
     needs_gt_depth: bool = False
+    needs_free_space: bool = False
 
 
 #: Every map ``RunInspector.render`` returns that can be shown, in the notebook's order.
@@ -88,6 +90,8 @@ MAP_SPECS: dict[str, MapSpec] = {
     "depth_std_epistemic": MapSpec("depth std, epistemic (over K draws)", DEPTH_UNITS, "magma", depth=True),
     "depth_std_spread": MapSpec("depth std, termination spread", DEPTH_UNITS, "magma", depth=True),
     "depth_std": MapSpec("depth std, total", DEPTH_UNITS, "magma", depth=True),
+    "depth_free_space": MapSpec("free-space violation (in front of a training view's surface)", DEPTH_UNITS,
+                                "magma", depth=True, needs_free_space=True),
     "opacity": MapSpec("opacity (accumulated)", "[0, 1]", "gray"),
     "colour_abs_error": MapSpec("|colour mean - GT| (mean over RGB)", COLOUR_UNITS, "inferno"),
     "depth_abs_error": MapSpec("|depth mean - GT depth|", DEPTH_UNITS, "inferno", depth=True, needs_gt_depth=True),
@@ -267,9 +271,13 @@ class RunInspector:
         self._depth_cache.clear()
 
     def map_names(self) -> list[str]:
-        """Names of the maps this run can show (error against GT depth only where it exists)."""
+        """Names of the maps this run can show (error against GT depth only where it exists, the
+        free-space violation only where the run's depth map checks it)."""
         has_depth = getattr(self.dataset, "depths", None) is not None
-        return [n for n, s in MAP_SPECS.items() if has_depth or not s.needs_gt_depth]
+        cal = self.calibration
+        checks = cal is not None and cal.depth is not None and cal.depth.free_space
+        return [n for n, s in MAP_SPECS.items()
+                if (has_depth or not s.needs_gt_depth) and (checks or not s.needs_free_space)]
 
     # ------------------------------------------------------------------ figures of maps
     def map_figure(self, view: int, name: str, num_draws: int | None = None, quadrature: Quadrature | None = None,
@@ -280,7 +288,9 @@ class RunInspector:
             raise KeyError(f"unknown map {name!r}; choose from {list(MAP_SPECS)}")
         products = self.render(view, num_draws, quadrature)
         if name not in products:
-            raise KeyError(f"map {name!r} needs ground-truth depth, which run {self.run_dir} has not")
+            need = ("a depth map fitted with the free-space check (stochastic-fields calibrate --run RUN --free-space)"
+                    if MAP_SPECS[name].needs_free_space else "ground-truth depth")
+            raise KeyError(f"map {name!r} needs {need}, which run {self.run_dir} has not")
         K, q = self._args(num_draws, quadrature)
         fig = Figure(figsize=figsize)
         ax = fig.add_subplot(1, 1, 1)
