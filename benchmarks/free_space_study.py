@@ -16,7 +16,8 @@ beside, deciding nothing.
 
 Labels are SCENE/SEED; the decision reads the means over a scene's seeds (docs/uncertainty.md,
 study 13, where the rule was fixed before this ran). Renders only (no training). Torch on 1 thread.
-Writes ``study.json`` and ``study.md``.
+Writes ``study.json``, ``study.md`` and ``coverage_by_seed.png`` (``--plot-only``: the figure again
+from ``OUT/study.json``).
 """
 
 from __future__ import annotations
@@ -143,6 +144,22 @@ def _markdown(results: dict) -> str:
     return "\n".join(lines)
 
 
+def coverage_groups(results: dict) -> dict[str, list[dict]]:
+    """{scene: one row per seed run} with the checked map's coverage as "coverage" and the plain
+    map's as "coverage_raw" (the rows ``plots.plot_coverage_by_group`` draws)."""
+    return {scene: [{"group": f"seed {r['label'].split('/')[-1]}", "points": r["scored_points"],
+                     "coverage": r["coverage"]["checked"], "coverage_raw": r["coverage"]["plain"]} for r in runs]
+            for scene, runs in by_scene({k: {**v, "label": k} for k, v in results["runs"].items()}).items()}
+
+
+def plot(results: dict, path: Path) -> Path:
+    from stochastic_fields.plots import plot_coverage_by_group
+
+    return plot_coverage_by_group(coverage_groups(results), LEVELS, path, xlabel="run",
+                                  title="Depth interval coverage on the SCORE points: free-space-checked map "
+                                        "against today's", series=("checked", "plain"))
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", nargs="+", required=True, metavar="SCENE/SEED=RUN_DIR",
@@ -151,7 +168,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="Reference runs (the deep ensemble), scored raw and checked, deciding nothing.")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/uncertainty_study/free_space"))
     p.add_argument("--seed", type=int, default=0, help="Render seed (the draws).")
+    p.add_argument("--plot-only", action="store_true", help="Only draw the figure again from OUT/study.json.")
     args, runs, results = begin_study(p, argv, "free_space_study.py")
+    if args.plot_only:
+        from stochastic_fields.io_utils import read_json
+
+        print(plot(read_json(args.out / "study.json", "study results"), args.out / "coverage_by_seed.png"))
+        return 0
     from calibration_split_study import parse_runs
 
     from stochastic_fields.io_utils import atomic_write_text
@@ -171,6 +194,7 @@ def main(argv: list[str] | None = None) -> int:
     atomic_write_text(args.out / "study.json", json.dumps(results, indent=1))
     text = _markdown(results)
     atomic_write_text(args.out / "study.md", text)
+    plot(results, args.out / "coverage_by_seed.png")
     print(text)
     return 0
 

@@ -262,3 +262,8 @@ def test_free_space_study_scores_and_rule_by_hand(load_script):
                             / "study.json").read_text())
     again = script.decide(committed)
     assert again == committed["decision"] and again["worse_on"] == ["fern"] and not again["taken"]
+    groups = script.coverage_groups(committed)  # the figure's bars: one per seed run and map
+    assert list(groups) == ["synthetic", "fern", "flower"] and [r["group"] for r in groups["fern"]] == [
+        "seed 0", "seed 1", "seed 2"]
+    assert groups["fern"][2]["coverage"] == committed["runs"]["fern/2"]["coverage"]["checked"]
+    assert groups["fern"][2]["coverage_raw"] == committed["runs"]["fern/2"]["coverage"]["plain"]
