@@ -219,6 +219,7 @@ def test_a_run_calibrated_with_the_free_space_check_applies_it_in_eval_and_expor
     with np.load(tmp_path / "eval" / "views" / f"view_{v:03d}.npz") as f:
         e, std, raw = f["depth_free_space"], f["depth_std"], f["depth_std_raw"]
     np.testing.assert_allclose(std, cal.depth.std_scale * np.hypot(raw.astype(np.float64), e), rtol=1e-5)
+    assert (tmp_path / "eval" / "views" / f"view_{v:03d}_depth_free_space.png").is_file()
     cam = view_camera_arrays(ds, v)
     with torch.no_grad():
         maps = model.render_view(ds.rays(v), model.render_options(keep_draws=True))

@@ -658,3 +658,8 @@ def run(args) -> None:
     print(f"calibrated {args.run}: {describe(cal)}")
     print(f"written: {Path(args.run) / CALIBRATION_FILE} (render, eval and export apply it; raw stds as depth_std_raw "
           "and colour_std_raw)")
+    if cal.training_depth is not None:
+        from .free_space import TRAINING_DEPTH_FILE
+
+        print(f"written: {Path(args.run) / TRAINING_DEPTH_FILE} (the training views' rendered depths the free-space "
+              "check compares with; each view's violation is written as depth_free_space)")

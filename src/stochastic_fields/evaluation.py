@@ -69,6 +69,9 @@ def write_view_products(out_dir: Path, name: str, products: dict[str, np.ndarray
     depth_img, lo, hi = colourise(products["depth_mean"], cmap="turbo", mask=mask)
     _save_png(out_dir / f"{name}_depth_mean.png", depth_img)
     _save_png(out_dir / f"{name}_depth_std.png", colourise(products["depth_std"], cmap="magma", mask=mask, vmin=0.0)[0])
+    if "depth_free_space" in products:  # the free-space check's violation (calibrate --free-space)
+        _save_png(out_dir / f"{name}_depth_free_space.png",
+                  colourise(products["depth_free_space"], cmap="magma", mask=mask, vmin=0.0)[0])
     if gt_colour is not None:
         _save_png(out_dir / f"{name}_gt_colour.png", to_uint8_rgb(gt_colour))
     if gt_depth is not None:
