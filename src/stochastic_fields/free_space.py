@@ -36,6 +36,16 @@ from .view_maps import OPACITY_MASK
 
 #: File of a run's rendered training-view depths (``save_training_depth``).
 TRAINING_DEPTH_FILE = "training_depth.npz"
+#: Carving (``carve_free_space``): a training pixel carves only where its ray ended sharply, with
+#: opacity above this ...
+CARVE_MIN_OPACITY: float = 0.9
+#: ... and a termination spread (std along the ray) below this share of its depth (a pixel that
+#: mixes a thin foreground and the background has a broad one), ...
+CARVE_MAX_SPREAD: float = 0.05
+#: ... and a cell is carved when its centre lies in front of D - 3 spread - CARVE_MARGIN D.
+CARVE_MARGIN: float = 0.05
+#: Cells per axis of the occupancy grid built for carving a model that keeps none.
+CARVE_RESOLUTION: int = 128
 
 
 @dataclass
@@ -48,6 +58,8 @@ class TrainingDepth:
         world_to_camera: [T, 4, 4] float64 (OpenCV).
         depth: [T, H, W] rendered camera-z depth mean (scene units).
         opacity: [T, H, W] rendered opacity.
+        spread: [T, H, W] camera-z termination spread (std of where each draw's ray ends, mean over
+            draws), or None (files written before it).
     """
 
     views: np.ndarray
@@ -55,6 +67,7 @@ class TrainingDepth:
     world_to_camera: np.ndarray
     depth: np.ndarray
     opacity: np.ndarray
+    spread: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         T = len(self.views)
@@ -66,7 +79,9 @@ class TrainingDepth:
         if self.depth.ndim != 3 or self.depth.shape[0] != T or self.opacity.shape != self.depth.shape:
             raise ValueError(f"training depth: depth and opacity must both be [{T}, H, W], got "
                              f"{self.depth.shape} and {self.opacity.shape}")
-        for name in ("intrinsics", "world_to_camera", "depth", "opacity"):
+        if self.spread is not None and self.spread.shape != self.depth.shape:
+            raise ValueError(f"training depth: spread must be {self.depth.shape}, got {self.spread.shape}")
+        for name in ("intrinsics", "world_to_camera", "depth", "opacity") + (() if self.spread is None else ("spread",)):
             if not np.isfinite(getattr(self, name)).all():
                 raise ValueError(f"training depth: {name} holds non-finite values")
 
@@ -82,16 +97,20 @@ def render_training_depth(model, dataset, *, options=None, seed: int = 0, progre
 
     views = [int(v) for v in dataset.train_indices]
     device = next(model.parameters()).device
-    depth, opacity = [], []
+    depth, opacity, spread = [], [], []
     for v in tqdm(views, desc="render training views (free-space check)", disable=not progress, leave=False):
         with torch.no_grad():
             maps = model.render_view(dataset.rays(v).to(device), options, generator=seeded_chunks(seed, v, device))
-        depth.append((maps["depth_mean"].double() * maps["z_scale"].double()).cpu().numpy())  # camera z
+        z = maps["z_scale"].double()
+        depth.append((maps["depth_mean"].double() * z).cpu().numpy())  # camera z
         opacity.append(maps["opacity"].double().cpu().numpy())
+        spread.append((maps["depth_var_spread"].double().clamp_min(0).sqrt() * z).cpu().numpy()
+                      if "depth_var_spread" in maps else np.zeros_like(depth[-1]))
     idx = torch.as_tensor(views)
     return TrainingDepth(np.asarray(views, np.int64), intrinsics_3x3(dataset.cameras)[idx].double().cpu().numpy(),
                          dataset.cameras.extrinsics[idx].double().cpu().numpy(),
-                         np.stack(depth).astype(np.float32), np.stack(opacity).astype(np.float32))
+                         np.stack(depth).astype(np.float32), np.stack(opacity).astype(np.float32),
+                         np.stack(spread).astype(np.float32))
 
 
 def save_training_depth(run_dir: str | Path, ref: TrainingDepth) -> Path:
@@ -103,7 +122,8 @@ def save_training_depth(run_dir: str | Path, ref: TrainingDepth) -> Path:
     def write(tmp: Path) -> None:
         with open(tmp, "wb") as f:
             np.savez_compressed(f, views=ref.views, intrinsics=ref.intrinsics, world_to_camera=ref.world_to_camera,
-                                depth=ref.depth, opacity=ref.opacity)
+                                depth=ref.depth, opacity=ref.opacity,
+                                **({} if ref.spread is None else {"spread": ref.spread}))
 
     atomic_write(path, write)
     return path
@@ -118,9 +138,10 @@ def load_training_depth(run_dir: str | Path) -> TrainingDepth | None:
     try:
         with np.load(path, allow_pickle=False) as f:
             data = {k: f[k] for k in ("views", "intrinsics", "world_to_camera", "depth", "opacity")}
+            spread = f["spread"].astype(np.float32) if "spread" in f.files else None
         return TrainingDepth(data["views"].astype(np.int64), data["intrinsics"].astype(np.float64),
                              data["world_to_camera"].astype(np.float64), data["depth"].astype(np.float32),
-                             data["opacity"].astype(np.float32))
+                             data["opacity"].astype(np.float32), spread)
     except (OSError, KeyError, ValueError) as exc:
         raise ValueError(f"{path}: malformed training-view depths ({exc})") from exc
 
@@ -180,3 +201,51 @@ def checked_std(std: np.ndarray, violation: np.ndarray) -> np.ndarray:
     """sqrt(std^2 + e^2) (float64), the std with the free-space violation ``violation`` as an
     independent error component (module doc); same shapes."""
     return np.hypot(np.asarray(std, np.float64), np.asarray(violation, np.float64))
+
+
+def carved_points(points: np.ndarray, ref: TrainingDepth, *, margin: float = CARVE_MARGIN,
+                  max_spread: float = CARVE_MAX_SPREAD, min_opacity: float = CARVE_MIN_OPACITY) -> np.ndarray:
+    """[N] bool: which world ``points`` [N, 3] lie clearly in the free space of a training view,
+    z_j(X) < D_j(u) - 3 s_j(u) - margin D_j(u), at a pixel u whose ray ended sharply (opacity above
+    ``min_opacity``, termination spread s_j below ``max_spread`` D_j). Needs ``ref.spread``."""
+    if ref.spread is None:
+        raise ValueError("carving needs the training views' termination spread (render_training_depth again)")
+    X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    out = np.zeros(len(X), bool)
+    T, H, W = ref.depth.shape
+    for t in range(T):
+        cam = X @ ref.world_to_camera[t, :3, :3].T + ref.world_to_camera[t, :3, 3]
+        z = cam[:, 2]
+        front = z > 0
+        uv = cam[:, :2] / np.where(front, z, 1.0)[:, None] @ ref.intrinsics[t, :2, :2].T + ref.intrinsics[t, :2, 2]
+        inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        rows = np.clip(np.floor(np.where(inside, uv[:, 1], 0)).astype(np.int64), 0, H - 1)
+        cols = np.clip(np.floor(np.where(inside, uv[:, 0], 0)).astype(np.int64), 0, W - 1)
+        d = ref.depth[t][rows, cols].astype(np.float64)
+        s = ref.spread[t][rows, cols].astype(np.float64)
+        sharp = inside & (ref.opacity[t][rows, cols] > min_opacity) & (s < max_spread * d)
+        out |= sharp & (z < d - 3.0 * s - margin * d)
+    return out
+
+
+def carve_free_space(model, ref: TrainingDepth, *, resolution: int = CARVE_RESOLUTION, **thresholds) -> float:
+    """Empty the cells of ``model``'s occupancy grid (built all-occupied at ``resolution`` if it
+    keeps none) whose centre ``carved_points`` marks, so renders skip them. Returns the share of
+    the occupied cells carved."""
+    from .models.snerf import UNIT_CUBE
+    from .occupancy import OccupancyGrid
+
+    if getattr(model, "occupancy", None) is None:
+        device = next(model.parameters()).device
+        model.occupancy = OccupancyGrid(UNIT_CUBE, resolution).to(device)
+    grid = model.occupancy
+    res = grid.resolution.tolist()
+    ijk = torch.stack(torch.meshgrid(*[torch.arange(r, device=grid.aabb.device) for r in res], indexing="ij"), -1)
+    unit = grid.aabb[0] + (ijk.reshape(-1, 3).to(grid.aabb.dtype) + 0.5) * grid.cell_size
+    with torch.no_grad():
+        world = model.region.from_unit(unit).double().cpu().numpy()
+    occupied = grid.occupancy.reshape(-1)
+    carve = torch.from_numpy(carved_points(world, ref, **thresholds)).to(occupied.device)
+    before = int(occupied.sum())
+    grid.occupancy.copy_((occupied & ~carve).reshape(res))
+    return float((before - int(grid.occupancy.sum())) / max(before, 1))
