@@ -9,6 +9,7 @@ import json
 
 import numpy as np
 import pytest
+import torch
 from scipy import stats
 
 from stochastic_fields.free_space import (TRAINING_DEPTH_FILE, TrainingDepth, checked_std, free_space_violation,
@@ -268,3 +269,50 @@ def test_free_space_study_scores_and_rule_by_hand(load_script):
         "seed 0", "seed 1", "seed 2"]
     assert groups["fern"][2]["coverage"] == committed["runs"]["fern/2"]["coverage"]["checked"]
     assert groups["fern"][2]["coverage_raw"] == committed["runs"]["fern/2"]["coverage"]["plain"]
+
+
+def test_carved_points_by_hand():
+    """View 3 of ``_two_views`` with a spread of 0.1: a point is carved in front of 5 - 0.3 - 0.25 = 4.45,
+    not behind it, not where the ray ended broadly or faintly, and never without the spread."""
+    from stochastic_fields.free_space import carved_points
+
+    ref = _two_views()
+    ref.views, ref.intrinsics, ref.world_to_camera = ref.views[:1], ref.intrinsics[:1], ref.world_to_camera[:1]
+    ref.depth, ref.opacity = ref.depth[:1], ref.opacity[:1].copy()
+    ref.spread = np.full_like(ref.depth, 0.1)
+    ref.spread[0, 2, 5] = 0.3  # broad: 0.3 >= 0.05 * 5
+    ref.opacity[0, 7, 5] = 0.8  # faint
+    points = np.array([[0.0, 0.0, 4.4], [0.0, 0.0, 4.5], [0.0, -1.0, 4.0], [0.0, 1.0, 4.0], [0.0, 0.0, -1.0]])
+    # pixels (row, col): (5, 5), (5, 5), (2, 5) broad, (7, 5) faint, behind the camera
+    np.testing.assert_array_equal(carved_points(points, ref), [True, False, False, False, False])
+    assert carved_points(points, ref, margin=0.0)[1]  # 4.5 < 5 - 0.3
+    ref.spread = None
+    with pytest.raises(ValueError, match="spread"):
+        carved_points(points, ref)
+
+
+def test_carve_free_space_empties_only_cells_in_front_of_the_surface():
+    """A model without a grid gets an all-occupied one; against one view looking along +z at a wall at
+    z = 5, exactly the cells whose centre lies in front of 5 - 0.3 - 0.25 = 4.45 are emptied."""
+    from stochastic_fields.free_space import carve_free_space
+    from stochastic_fields.scene_region import SceneRegion
+
+    class Model(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.anchor = torch.nn.Parameter(torch.zeros(1))
+            self.region = SceneRegion("aabb", torch.tensor([[-0.4, -0.4, 2.0], [0.4, 0.4, 6.0]]))
+            self.occupancy = None
+
+    ref = _two_views()
+    ref.views, ref.intrinsics, ref.world_to_camera = ref.views[:1], ref.intrinsics[:1], ref.world_to_camera[:1]
+    ref.depth, ref.opacity = ref.depth[:1], np.ones_like(ref.depth[:1])
+    ref.spread = np.full_like(ref.depth, 0.1)
+    model = Model()
+    share = carve_free_space(model, ref, resolution=8)
+    grid = model.occupancy
+    assert grid.resolution.tolist() == [8, 8, 8]
+    z_centres = 2.0 + (np.arange(8) + 0.5) * 0.5  # 2.25 ... 5.75
+    expected = np.broadcast_to(z_centres >= 4.45, (8, 8, 8))  # every cell projects inside the image
+    np.testing.assert_array_equal(grid.occupancy.numpy(), expected)
+    assert share == pytest.approx(1.0 - expected.mean())
