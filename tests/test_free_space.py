@@ -316,3 +316,30 @@ def test_carve_free_space_empties_only_cells_in_front_of_the_surface():
     expected = np.broadcast_to(z_centres >= 4.45, (8, 8, 8))  # every cell projects inside the image
     np.testing.assert_array_equal(grid.occupancy.numpy(), expected)
     assert share == pytest.approx(1.0 - expected.mean())
+
+
+def test_carve_study_rule_by_hand(load_script):
+    """benchmarks/carve_study.py: abs-rel must fall on every scene, the other measures stay within
+    study 8's tolerances; the committed decision recomputes from its runs."""
+    from pathlib import Path
+
+    script = load_script("benchmarks/carve_study.py")
+
+    def scores(psnr=20.0, nll=-1.0, colour=0.5, abs_rel=0.1, depth=0.6, distance=0.05):
+        return {"psnr": psnr, "nll": nll, "colour_spearman": colour, "depth_abs_rel": abs_rel,
+                "depth_spearman_view": depth, "depth_spearman_pooled": depth, "coverage": [0.7, 0.95],
+                "distance": distance}
+
+    def run(**carved):
+        return {"plain": scores(), "carved": scores(**{"abs_rel": 0.09, **carved})}
+
+    assert script.decide({"runs": {"a/0": run(), "b/0": run(psnr=19.85, nll=-0.96, depth=0.59)}})["taken"]
+    for bad, key in ((dict(abs_rel=0.1), "depth_abs_rel"), (dict(psnr=19.7), "psnr"), (dict(nll=-0.9), "nll"),
+                     (dict(colour=0.47), "colour_spearman"), (dict(depth=0.5), "depth_spearman_view"),
+                     (dict(distance=0.08), "distance")):
+        d = script.decide({"runs": {"a/0": run(), "b/0": run(**bad)}})
+        assert not d["taken"] and d["failed"] == {"b": [key]}
+    committed = json.loads((Path(__file__).resolve().parents[1] / "benchmarks/results/uncertainty_study/carve"
+                            / "study.json").read_text())
+    again = script.decide(committed)
+    assert again == committed["decision"] and again["failed"] == {"flower": ["depth_spearman_view", "distance"]}
