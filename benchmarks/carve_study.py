@@ -9,6 +9,11 @@ of the same model): *plain* (today) and *carved*.
 
     python benchmarks/carve_study.py --run fern/0=RUN flower/0=RUN ... --out OUT
     python benchmarks/carve_study.py --run ... --merge OUT_A OUT_B --out OUT   # runs made in parts
+    python benchmarks/carve_study.py --check --run ... --out OUT   # study 15: carved, then checked
+
+With ``--check`` (study 15) the carved arm also checks free space: the training views are rendered
+again from the carved model and the depth map is fitted on, and applies, the checked std
+(``calibrate --free-space``).
 
 Labels are SCENE/SEED; the decision reads the means over a scene's seeds (docs/uncertainty.md,
 study 14, where the rule was fixed before this ran). Renders only. Torch on 1 thread. Writes
@@ -51,7 +56,7 @@ def scores(metrics: dict) -> dict[str, float]:
             "distance": float(max(abs(c - n) for c, n in zip(cov, LEVELS)))}
 
 
-def study_run(run_dir: Path, out: Path, *, seed: int = 0) -> dict:
+def study_run(run_dir: Path, out: Path, *, seed: int = 0, check: bool = False) -> dict:
     from stochastic_fields.calibration import RunCalibration, fit_depth_calibration
     from stochastic_fields.capture_points import SCORE, load_capture_points, sparse_depth_for_role
     from stochastic_fields.evaluation import evaluate
@@ -67,9 +72,13 @@ def study_run(run_dir: Path, out: Path, *, seed: int = 0) -> dict:
     ref = render_training_depth(model, dataset, seed=seed, progress=False)
     result = {"run": str(run_dir), "views": views}
     for name in ("plain", "carved"):
+        reference = None
         if name == "carved":
             result["carved_share"] = carve_free_space(model, ref)
-        cal = RunCalibration(depth=fit_depth_calibration(model, dataset, seed=seed))
+            if check:  # the check against the carved model's own training renders
+                reference = render_training_depth(model, dataset, seed=seed, progress=False)
+        cal = RunCalibration(depth=fit_depth_calibration(model, dataset, seed=seed, free_space=reference),
+                             training_depth=reference)
         metrics = evaluate(model, dataset, out / name, views=views, seed=seed, sparse_depth=sparse, product_views=1,
                            calibration=cal, progress=False)
         result[name] = {**scores(metrics), "depth_scale": cal.depth.std_scale}
@@ -100,7 +109,9 @@ def decide(results: dict) -> dict:
 
 def _markdown(results: dict) -> str:
     d = results["decision"]
-    lines = ["# Study 14: carving the training views' free space", "", f"Command: `{results['command']}`", "",
+    title = ("Study 15: carving, then the free-space check" if "--check" in results["command"]
+             else "Study 14: carving the training views' free space")
+    lines = [f"# {title}", "", f"Command: `{results['command']}`", "",
              "Each run evaluated as the tables evaluate it (its test views, SCORE points; the depth map refitted on "
              "the CALIBRATE points of the same model), *plain* (today) and *carved* (occupancy cells clearly in "
              "front of a training view's sharply ended surface emptied). Means over seeds, plain -> carved.", "",
@@ -134,6 +145,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/uncertainty_study/carve"))
     p.add_argument("--work", type=Path, default=None, help="Where the evaluations go (default: OUT/work).")
     p.add_argument("--seed", type=int, default=0, help="Render seed (the draws).")
+    p.add_argument("--check", action="store_true",
+                   help="Study 15: the carved arm also fits and applies the free-space-checked depth map.")
     p.add_argument("--merge", nargs="*", type=Path, default=[],
                    help="Decide over the runs of these earlier outputs (their study.json) instead of running.")
     args, runs, results = begin_study(p, argv, "carve_study.py")
@@ -149,7 +162,8 @@ def main(argv: list[str] | None = None) -> int:
             results["runs"].update(part["runs"])
     for label, run_dir in runs.items():
         print(f"{label}: {run_dir}", flush=True)
-        results["runs"][label] = r = study_run(run_dir, work / label.replace("/", "_"), seed=args.seed)
+        results["runs"][label] = r = study_run(run_dir, work / label.replace("/", "_"), seed=args.seed,
+                                               check=args.check)
         print(f"  carved {r['carved_share']:.2f}; PSNR {r['plain']['psnr']:.2f} -> {r['carved']['psnr']:.2f}, abs-rel "
               f"{r['plain']['depth_abs_rel']:.3f} -> {r['carved']['depth_abs_rel']:.3f}", flush=True)
     results["decision"] = decide(results)
