@@ -114,7 +114,10 @@ def _markdown(results: dict) -> str:
     lines = [f"# {title}", "", f"Command: `{results['command']}`", "",
              "Each run evaluated as the tables evaluate it (its test views, SCORE points; the depth map refitted on "
              "the CALIBRATE points of the same model), *plain* (today) and *carved* (occupancy cells clearly in "
-             "front of a training view's sharply ended surface emptied). Means over seeds, plain -> carved.", "",
+             "front of a training view's sharply ended surface emptied"
+             + ("; then the depth map fitted on, and applying, the free-space-checked std against the carved "
+                "model's training renders" if "--check" in results["command"] else "")
+             + "). Means over seeds, plain -> carved.", "",
              "| scene | seeds | PSNR | colour NLL | colour Spearman | depth abs-rel | depth Spearman per view | "
              "coverage 68 / 95 | distance |", "|---|---|---|---|---|---|---|---|---|"]
     for scene, m in d["scenes"].items():

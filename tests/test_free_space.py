@@ -343,3 +343,7 @@ def test_carve_study_rule_by_hand(load_script):
                             / "study.json").read_text())
     again = script.decide(committed)
     assert again == committed["decision"] and again["failed"] == {"flower": ["depth_spearman_view", "distance"]}
+    with_check = json.loads((Path(__file__).resolve().parents[1] / "benchmarks/results/uncertainty_study"
+                             / "carve_check" / "study.json").read_text())  # study 15
+    assert script.decide(with_check) == with_check["decision"]
+    assert with_check["decision"]["failed"] == {"flower": ["depth_spearman_view"]}
