@@ -146,6 +146,20 @@ def load_training_depth(run_dir: str | Path) -> TrainingDepth | None:
         raise ValueError(f"{path}: malformed training-view depths ({exc})") from exc
 
 
+def _look_up(X: np.ndarray, ref: TrainingDepth, t: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """World points ``X`` [N, 3] in training view ``t``: their camera z [N], whether they lie in front
+    of the camera inside the image [N], and the row and column of their pixel [N] (0 where not)."""
+    T, H, W = ref.depth.shape
+    cam = X @ ref.world_to_camera[t, :3, :3].T + ref.world_to_camera[t, :3, 3]
+    z = cam[:, 2]
+    front = z > 0
+    uv = cam[:, :2] / np.where(front, z, 1.0)[:, None] @ ref.intrinsics[t, :2, :2].T + ref.intrinsics[t, :2, 2]
+    inside = front & np.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+    rows = np.clip(np.floor(np.where(inside, uv[:, 1], 0)).astype(np.int64), 0, H - 1)
+    cols = np.clip(np.floor(np.where(inside, uv[:, 0], 0)).astype(np.int64), 0, W - 1)
+    return z, inside, rows, cols
+
+
 def free_space_violation(points: np.ndarray, ref: TrainingDepth, *, exclude: Sequence[int] = ()) -> np.ndarray:
     """e(X) [N] >= 0 of world points ``points`` [N, 3] (module doc): how far in front of a training
     view's rendered surface the point lies, the largest over the training views (0 where no view
@@ -153,17 +167,10 @@ def free_space_violation(points: np.ndarray, ref: TrainingDepth, *, exclude: Seq
     left out of the check (none by default)."""
     X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     out = np.zeros(len(X))
-    T, H, W = ref.depth.shape
-    for t in range(T):
+    for t in range(len(ref.views)):
         if int(ref.views[t]) in exclude:
             continue
-        cam = X @ ref.world_to_camera[t, :3, :3].T + ref.world_to_camera[t, :3, 3]
-        z = cam[:, 2]
-        front = z > 0
-        uv = cam[:, :2] / np.where(front, z, 1.0)[:, None] @ ref.intrinsics[t, :2, :2].T + ref.intrinsics[t, :2, 2]
-        inside = front & np.isfinite(uv).all(1) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
-        rows = np.clip(np.floor(np.where(inside, uv[:, 1], 0)).astype(np.int64), 0, H - 1)
-        cols = np.clip(np.floor(np.where(inside, uv[:, 0], 0)).astype(np.int64), 0, W - 1)
+        z, inside, rows, cols = _look_up(X, ref, t)
         surface = ref.depth[t][rows, cols].astype(np.float64)
         checked = inside & (ref.opacity[t][rows, cols] > OPACITY_MASK)
         out = np.maximum(out, np.where(checked, np.maximum(surface - z, 0.0), 0.0))
@@ -184,16 +191,18 @@ def violation_map(depth: np.ndarray, intrinsics: np.ndarray, world_to_camera: np
     """e [H, W] (float32) of a rendered camera-z ``depth`` map [H, W] of the camera ``intrinsics``
     [3, 3], ``world_to_camera`` [4, 4]: each pixel centre back-projected to its depth, then
     ``free_space_violation``; 0 where ``mask`` [H, W] is False (default: every pixel)."""
-    depth = np.asarray(depth, dtype=np.float64)
+    from .cameras import invert_rigid
+    from .capture_points import backproject_pixels
+
+    depth = torch.as_tensor(np.asarray(depth, dtype=np.float64))
     H, W = depth.shape
-    rows, cols = np.nonzero(np.ones((H, W), bool) if mask is None else np.asarray(mask, bool))
-    K = np.asarray(intrinsics, np.float64)
-    w2c = np.asarray(world_to_camera, np.float64)
-    rays = np.linalg.solve(K, np.stack([cols + 0.5, rows + 0.5, np.ones(len(rows))]))  # camera frame, z = 1
-    cam = rays.T * depth[rows, cols][:, None]
-    world = (cam - w2c[:3, 3]) @ w2c[:3, :3]  # R^T (x - t)
+    rows, cols = torch.nonzero(torch.ones(H, W, dtype=torch.bool) if mask is None
+                               else torch.as_tensor(np.asarray(mask, bool)), as_tuple=True)
+    world = backproject_pixels(torch.as_tensor(np.asarray(intrinsics, np.float64)),
+                               invert_rigid(torch.as_tensor(np.asarray(world_to_camera, np.float64))),
+                               rows, cols, depth[rows, cols])
     out = np.zeros((H, W), np.float32)
-    out[rows, cols] = free_space_violation(world, ref, exclude=exclude)
+    out[rows.numpy(), cols.numpy()] = free_space_violation(world.numpy(), ref, exclude=exclude)
     return out
 
 
@@ -212,15 +221,8 @@ def carved_points(points: np.ndarray, ref: TrainingDepth, *, margin: float = CAR
         raise ValueError("carving needs the training views' termination spread (render_training_depth again)")
     X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     out = np.zeros(len(X), bool)
-    T, H, W = ref.depth.shape
-    for t in range(T):
-        cam = X @ ref.world_to_camera[t, :3, :3].T + ref.world_to_camera[t, :3, 3]
-        z = cam[:, 2]
-        front = z > 0
-        uv = cam[:, :2] / np.where(front, z, 1.0)[:, None] @ ref.intrinsics[t, :2, :2].T + ref.intrinsics[t, :2, 2]
-        inside = front & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
-        rows = np.clip(np.floor(np.where(inside, uv[:, 1], 0)).astype(np.int64), 0, H - 1)
-        cols = np.clip(np.floor(np.where(inside, uv[:, 0], 0)).astype(np.int64), 0, W - 1)
+    for t in range(len(ref.views)):
+        z, inside, rows, cols = _look_up(X, ref, t)
         d = ref.depth[t][rows, cols].astype(np.float64)
         s = ref.spread[t][rows, cols].astype(np.float64)
         sharp = inside & (ref.opacity[t][rows, cols] > min_opacity) & (s < max_spread * d)
