@@ -21,15 +21,13 @@ this ran). Renders only. Torch on 1 thread. Writes ``study.json`` and ``study.md
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from calibration_split_study import LEVELS, begin_study, scored_points  # noqa: E402
+from calibration_split_study import LEVELS, begin_study, scored_points, study_parser, write_study  # noqa: E402
 from std_floor_study import by_scene, distance, gap, tercile_rows  # noqa: E402
 
 #: Study 12's tolerances (fixed with the rule): no scene's coverage distance or conditional gap may
@@ -146,14 +144,9 @@ def _markdown(results: dict, command: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--run", nargs="+", required=True, metavar="SCENE/SEED=RUN_DIR",
-                   help="Trained and evaluated S-NeRF (default) runs; labels SCENE/SEED.")
-    p.add_argument("--out", type=Path, default=Path("benchmarks/results/uncertainty_study/calibration_bounds"))
-    p.add_argument("--seed", type=int, default=0, help="Render seed (the draws).")
+    p = study_parser(__doc__, "calibration_bounds", "Trained and evaluated S-NeRF (default) runs; labels SCENE/SEED.")
     args, runs, results = begin_study(p, argv, "calibration_bounds_study.py")
     from stochastic_fields.calibration import BOUNDS_CHOICES
-    from stochastic_fields.io_utils import atomic_write_text
 
     results["runs"] = {}
     for label, run_dir in runs.items():
@@ -163,10 +156,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"  {choice}: distance {c['distance']['today']:.3f} -> {c['distance']['new']:.3f}, "
                   f"gap {c['gap']['today']:.3f} -> {c['gap']['new']:.3f}", flush=True)
     results["decisions"] = [decide(results, choice) for choice in BOUNDS_CHOICES[1:]]
-    args.out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out / "study.json", json.dumps(results, indent=1))
     text = _markdown(results, results["command"])
-    atomic_write_text(args.out / "study.md", text)
+    write_study(args.out, results, text)
     print(text)
     return 0
 

@@ -204,6 +204,26 @@ def parse_runs(parser: argparse.ArgumentParser, items: list[str]) -> dict[str, P
     return runs
 
 
+def study_parser(doc: str, out_name: str, run_help: str, *, metavar: str = "SCENE/SEED=RUN_DIR",
+                 seed_help: str = "Render seed (the draws).") -> argparse.ArgumentParser:
+    """The options every renders-only study shares: ``--run`` (``metavar`` items, ``run_help``),
+    ``--out`` (default ``benchmarks/results/uncertainty_study/OUT_NAME``) and ``--seed``."""
+    p = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", nargs="+", required=True, metavar=metavar, help=run_help)
+    p.add_argument("--out", type=Path, default=Path("benchmarks/results/uncertainty_study") / out_name)
+    p.add_argument("--seed", type=int, default=0, help=seed_help)
+    return p
+
+
+def write_study(out: Path, results: dict, text: str) -> None:
+    """``OUT/study.json`` (``results``) and ``OUT/study.md`` (``text``), written atomically."""
+    from stochastic_fields.io_utils import atomic_write_text
+
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "study.json", json.dumps(results, indent=1))
+    atomic_write_text(out / "study.md", text)
+
+
 def begin_study(parser: argparse.ArgumentParser, argv: list[str] | None, script: str
                 ) -> tuple[argparse.Namespace, dict[str, Path], dict]:
     """What every renders-only study over ``--run LABEL=RUN_DIR`` starts with: parse ``argv``, put
@@ -219,15 +239,11 @@ def begin_study(parser: argparse.ArgumentParser, argv: list[str] | None, script:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--run", nargs="+", required=True, metavar="SCENE=RUN_DIR",
-                   help="Trained and evaluated runs (S-NeRF default), one per scene.")
-    p.add_argument("--out", type=Path, default=Path("benchmarks/results/uncertainty_study/calibration_split"))
+    p = study_parser(__doc__, "calibration_split", "Trained and evaluated runs (S-NeRF default), one per scene.",
+                     metavar="SCENE=RUN_DIR", seed_help="Render seed (the draws) and seed of the re-splits.")
     p.add_argument("--splits", type=int, default=200, help="Random re-splits per scene and placement.")
-    p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quiet", action="store_true")
     args, runs, results = begin_study(p, argv, "calibration_split_study.py")
-    from stochastic_fields.io_utils import atomic_write_text
     from stochastic_fields.plots import plot_resplit_coverage
 
     results.update({"splits": args.splits, "scenes": {}})
@@ -235,9 +251,7 @@ def main(argv: list[str] | None = None) -> int:
         if not args.quiet:
             print(f"{scene}: {run_dir}", flush=True)
         results["scenes"][scene] = study_scene(run_dir, splits=args.splits, seed=args.seed, quiet=args.quiet)
-    args.out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out / "study.json", json.dumps(results, indent=1))
-    atomic_write_text(args.out / "study.md", _markdown(results, results["command"]))
+    write_study(args.out, results, _markdown(results, results["command"]))
     placement = "midpoint"
     plot_resplit_coverage({s: np.asarray(r["placements"][placement]["resplit_coverages"]) for s, r in results["scenes"].items()},
                           {s: r["placements"][placement]["today"] for s, r in results["scenes"].items()}, LEVELS,

@@ -22,8 +22,6 @@ study 14, where the rule was fixed before this ran). Renders only. Torch on 1 th
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -31,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from calibration_split_study import LEVELS, begin_study  # noqa: E402
+from calibration_split_study import LEVELS, begin_study, study_parser, write_study  # noqa: E402
 from std_floor_study import by_scene  # noqa: E402
 
 #: Study 14's tolerances (fixed with the rule; study 8's): PSNR may drop by at most this (dB), ...
@@ -142,18 +140,14 @@ def _markdown(results: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--run", nargs="+", required=True, metavar="SCENE/SEED=RUN_DIR",
-                   help="Trained and evaluated S-NeRF (default) runs; labels SCENE/SEED.")
-    p.add_argument("--out", type=Path, default=Path("benchmarks/results/uncertainty_study/carve"))
+    p = study_parser(__doc__, "carve", "Trained and evaluated S-NeRF (default) runs; labels SCENE/SEED.")
     p.add_argument("--work", type=Path, default=None, help="Where the evaluations go (default: OUT/work).")
-    p.add_argument("--seed", type=int, default=0, help="Render seed (the draws).")
     p.add_argument("--check", action="store_true",
                    help="Study 15: the carved arm also fits and applies the free-space-checked depth map.")
     p.add_argument("--merge", nargs="*", type=Path, default=[],
                    help="Decide over the runs of these earlier outputs (their study.json) instead of running.")
     args, runs, results = begin_study(p, argv, "carve_study.py")
-    from stochastic_fields.io_utils import atomic_write_text, read_json
+    from stochastic_fields.io_utils import read_json
 
     work = args.work or args.out / "work"
     results["runs"] = {}
@@ -170,10 +164,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  carved {r['carved_share']:.2f}; PSNR {r['plain']['psnr']:.2f} -> {r['carved']['psnr']:.2f}, abs-rel "
               f"{r['plain']['depth_abs_rel']:.3f} -> {r['carved']['depth_abs_rel']:.3f}", flush=True)
     results["decision"] = decide(results)
-    args.out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out / "study.json", json.dumps(results, indent=1))
     text = _markdown(results)
-    atomic_write_text(args.out / "study.md", text)
+    write_study(args.out, results, text)
     print(text)
     return 0
 

@@ -20,15 +20,13 @@ Renders only (no training; test views choose nothing). Torch on 1 thread. Writes
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the re-split study's renders of the scored points
-from calibration_split_study import LEVELS, begin_study, scored_points  # noqa: E402
+from calibration_split_study import LEVELS, begin_study, scored_points, study_parser, write_study  # noqa: E402
 
 #: Groups of the training-view count: (label, lowest, highest).
 GROUPS: tuple[tuple[str, int, int], ...] = (("0", 0, 0), ("1", 1, 1), ("2", 2, 2), ("3-4", 3, 4), ("5+", 5, 10**9))
@@ -102,23 +100,16 @@ def _markdown(results: dict, command: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--run", nargs="+", required=True, metavar="SCENE=RUN_DIR",
-                   help="Trained, evaluated and calibrated runs, one per scene.")
-    p.add_argument("--out", type=Path, default=Path("benchmarks/results/uncertainty_study/coverage_by_views"))
-    p.add_argument("--seed", type=int, default=0, help="Render seed (the draws).")
+    p = study_parser(__doc__, "coverage_by_views", "Trained, evaluated and calibrated runs, one per scene.", metavar="SCENE=RUN_DIR")
     args, runs, results = begin_study(p, argv, "coverage_by_views.py")
-    from stochastic_fields.io_utils import atomic_write_text
     from stochastic_fields.plots import plot_coverage_by_group
 
     results["scenes"] = {}
     for scene, run_dir in runs.items():
         print(f"{scene}: {run_dir}", flush=True)
         results["scenes"][scene] = study_scene(run_dir, seed=args.seed)
-    args.out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out / "study.json", json.dumps(results, indent=1))
     text = _markdown(results, results["command"])
-    atomic_write_text(args.out / "study.md", text)
+    write_study(args.out, results, text)
     plot_coverage_by_group({s: r["groups"] for s, r in results["scenes"].items()}, LEVELS,
                            args.out / "coverage_by_views.png", xlabel="training views observing the point",
                            title="Recalibrated depth coverage by how many training views observe the point")

@@ -22,15 +22,13 @@ from ``OUT/study.json``).
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the re-split study's renders of the scored points
-from calibration_split_study import LEVELS, begin_study, scored_points  # noqa: E402
+from calibration_split_study import LEVELS, begin_study, scored_points, study_parser, write_study  # noqa: E402
 from std_floor_study import by_scene, coverage, distance  # noqa: E402
 
 #: Study 13's tolerances (fixed with the rule): on no scene may the per-view or pooled depth
@@ -161,13 +159,9 @@ def plot(results: dict, path: Path) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--run", nargs="+", required=True, metavar="SCENE/SEED=RUN_DIR",
-                   help="Trained and evaluated S-NeRF (default) runs; labels SCENE/SEED.")
+    p = study_parser(__doc__, "free_space", "Trained and evaluated S-NeRF (default) runs; labels SCENE/SEED.")
     p.add_argument("--reference", nargs="*", default=[], metavar="SCENE=RUN_DIR",
                    help="Reference runs (the deep ensemble), scored raw and checked, deciding nothing.")
-    p.add_argument("--out", type=Path, default=Path("benchmarks/results/uncertainty_study/free_space"))
-    p.add_argument("--seed", type=int, default=0, help="Render seed (the draws).")
     p.add_argument("--plot-only", action="store_true", help="Only draw the figure again from OUT/study.json.")
     args, runs, results = begin_study(p, argv, "free_space_study.py")
     if args.plot_only:
@@ -177,7 +171,6 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     from calibration_split_study import parse_runs
 
-    from stochastic_fields.io_utils import atomic_write_text
 
     references = parse_runs(p, args.reference) if args.reference else {}
     results["runs"], results["references"] = {}, {}
@@ -190,10 +183,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{label} (reference): {run_dir}", flush=True)
         results["references"][label] = study_run(run_dir, seed=args.seed, fit=False)
     results["decision"] = decide(results)
-    args.out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out / "study.json", json.dumps(results, indent=1))
     text = _markdown(results)
-    atomic_write_text(args.out / "study.md", text)
+    write_study(args.out, results, text)
     plot(results, args.out / "coverage_by_seed.png")
     print(text)
     return 0

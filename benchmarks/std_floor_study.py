@@ -21,15 +21,13 @@ Writes ``study.json``, ``study.md`` and ``coverage_by_std.png``.
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the re-split study's renders of the scored points
-from calibration_split_study import LEVELS, begin_study, scored_points  # noqa: E402
+from calibration_split_study import LEVELS, begin_study, scored_points, study_parser, write_study  # noqa: E402
 
 #: Groups of the scored points by raw sigma: equal-count terciles.
 STD_GROUPS: tuple[str, ...] = ("low sigma", "mid sigma", "high sigma")
@@ -174,15 +172,10 @@ def _markdown(results: dict, command: str) -> str:
 def main(argv: list[str] | None = None) -> int:
     from stochastic_fields.calibration import BOUNDS_CHOICES
 
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--run", nargs="+", required=True, metavar="SCENE/SEED=RUN_DIR",
-                   help="Trained and evaluated S-NeRF (default) runs; labels SCENE/SEED.")
-    p.add_argument("--out", type=Path, default=Path("benchmarks/results/uncertainty_study/std_floor"))
-    p.add_argument("--seed", type=int, default=0, help="Render seed (the draws).")
+    p = study_parser(__doc__, "std_floor", "Trained and evaluated S-NeRF (default) runs; labels SCENE/SEED.")
     p.add_argument("--bounds", choices=BOUNDS_CHOICES, default=None,
                    help="Calibration views' render bounds of both maps' fit (default: CALIBRATION_BOUNDS).")
     args, runs, results = begin_study(p, argv, "std_floor_study.py")
-    from stochastic_fields.io_utils import atomic_write_text
     from stochastic_fields.plots import plot_coverage_by_group
 
     results["runs"] = {}
@@ -192,10 +185,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  tau {r['floor']:.4g}, distance {r['distance']['plain']:.3f} -> {r['distance']['floored']:.3f}, "
               f"gap {r['gap']['plain']:.3f} -> {r['gap']['floored']:.3f}", flush=True)
     results["decision"] = decide(results)
-    args.out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out / "study.json", json.dumps(results, indent=1))
     text = _markdown(results, results["command"])
-    atomic_write_text(args.out / "study.md", text)
+    write_study(args.out, results, text)
     first = {}
     for label, r in results["runs"].items():  # one panel per scene: its first seed
         first.setdefault(label.split("/")[0], r["groups"])
