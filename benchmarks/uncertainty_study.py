@@ -152,12 +152,26 @@ ROWS_SCHEDULE: tuple[Row, ...] = (
     for seed in (1, 2)) + REFERENCE_ROWS
 
 
+#: Study 16: the KL terms (issue 19's "KL weights; the observed-ray prior"): one change of the default
+#: per row, each trained from seeds 0, 1 and 2 and judged on three-seed means against the default's.
+ROWS_KL: tuple[Row, ...] = ROWS_SEEDS[:3] + tuple(
+    (f"{name}{'' if seed == 0 else f'_seed{seed}'}", "snerf_default",
+     overrides + ((("train.seed", seed),) if seed else ()), f"{why}, seed {seed}")
+    for name, overrides, why in (
+        ("no_observed_prior", (("loss.kl", "fixed_prior"),),
+         "no observed-ray prior: the random-point KL only (the paper's 'fixed prior' ablation)"),
+        ("kl_random_4x", (("loss.lambda_random", 4e-2),), "4x the random-point KL weight (4e-2)"),
+        ("kl_random_quarter", (("loss.lambda_random", 2.5e-3),), "a quarter of the random-point KL weight (2.5e-3)"))
+    for seed in (0, 1, 2)) + REFERENCE_ROWS
+
+
 #: --study NAME -> its rows.
 STUDIES: dict[str, tuple[Row, ...]] = {"factors": ROWS, "noise_head": ROWS_NOISE_HEAD, "geometry": ROWS_GEOMETRY,
                                        "colour": ROWS_COLOUR, "depth_weight": ROWS_DEPTH_WEIGHT,
                                        "likelihood": ROWS_LIKELIHOOD, "training_samples": ROWS_TRAINING_SAMPLES,
                                        "seeds": ROWS_SEEDS, "draws4_seeds": ROWS_DRAWS4_SEEDS,
-                                       "split_draws": ROWS_SPLIT_DRAWS, "schedule": ROWS_SCHEDULE}
+                                       "split_draws": ROWS_SPLIT_DRAWS, "schedule": ROWS_SCHEDULE,
+                                       "kl": ROWS_KL}
 
 COLUMNS: tuple[tuple[str, str], ...] = (
     ("psnr", "PSNR"), ("nll", "NLL"), ("auce_colour", "AUCE"), ("nll_raw", "NLL raw"), ("auce_colour_raw", "AUCE raw"),
@@ -268,7 +282,8 @@ def main(argv: list[str] | None = None) -> int:
                         "'seeds' (today's default from seeds 0, 1 and 2: the spread of every metric by chance) or "
                         "'draws4_seeds' (study 9b: K = 4 against the default, seeds 0, 1 and 2 each) or "
                         "'split_draws' (study 9c: K = 4 for the colour rays and 8 for the depth rays, three seeds) or "
-                        "'schedule' (study 10: twice the learning rate or twice the steps, S-NeRF and deterministic NeRF).")
+                        "'schedule' (study 10: twice the learning rate or twice the steps, S-NeRF and deterministic NeRF) or "
+                        "'kl' (study 16: no observed-ray prior, or the random-point KL weight x4 or /4, three seeds).")
     p.add_argument("--rows", nargs="+", default=None, help="Rows of the study to run (default: all of them).")
     p.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
     p.add_argument("--cost", action="store_true",
@@ -300,7 +315,8 @@ def main(argv: list[str] | None = None) -> int:
                      "seeds": ("default", "deterministic"),
                      "draws4_seeds": ("draws4", "default", "deterministic"),
                      "split_draws": ("draws4_depth8", "default", "deterministic"),
-                     "schedule": ("default", "deterministic")}[args.study]
+                     "schedule": ("default", "deterministic"),
+                     "kl": ("no_observed_prior", "default", "deterministic")}[args.study]
         cost = measure_cost(out, "fern", args.data_root, rows=cost_rows, study=STUDIES[args.study])
         atomic_write_text(out / "cost.json", json.dumps(cost, indent=2))
         print(json.dumps(cost, indent=2))
