@@ -161,7 +161,9 @@ ROWS_KL: tuple[Row, ...] = ROWS_SEEDS[:3] + tuple(
         ("no_observed_prior", (("loss.kl", "fixed_prior"),),
          "no observed-ray prior: the random-point KL only (the paper's 'fixed prior' ablation)"),
         ("kl_random_4x", (("loss.lambda_random", 4e-2),), "4x the random-point KL weight (4e-2)"),
-        ("kl_random_quarter", (("loss.lambda_random", 2.5e-3),), "a quarter of the random-point KL weight (2.5e-3)"))
+        ("kl_random_quarter", (("loss.lambda_random", 2.5e-3),), "a quarter of the random-point KL weight (2.5e-3)"),
+        ("kl_observed_quarter", (("loss.lambda_observed", 1.25e-2),),
+         "a quarter of the observed-ray KL weight (1.25e-2; study 16b, added after the first three rows' result)"))
     for seed in (0, 1, 2)) + REFERENCE_ROWS
 
 
@@ -283,7 +285,7 @@ def main(argv: list[str] | None = None) -> int:
                         "'draws4_seeds' (study 9b: K = 4 against the default, seeds 0, 1 and 2 each) or "
                         "'split_draws' (study 9c: K = 4 for the colour rays and 8 for the depth rays, three seeds) or "
                         "'schedule' (study 10: twice the learning rate or twice the steps, S-NeRF and deterministic NeRF) or "
-                        "'kl' (study 16: no observed-ray prior, or the random-point KL weight x4 or /4, three seeds).")
+                        "'kl' (study 16: no observed-ray prior, or the random-point KL weight x4 or /4; 16b: the observed-ray KL weight /4; three seeds).")
     p.add_argument("--rows", nargs="+", default=None, help="Rows of the study to run (default: all of them).")
     p.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
     p.add_argument("--cost", action="store_true",
