@@ -186,6 +186,110 @@ COLUMNS: tuple[tuple[str, str], ...] = (
 )
 
 
+#: Study 8's tolerances, used by every training study since (docs/uncertainty.md): the most a row's
+#: three-seed mean may move the wrong way against the default's (signed: negative = may fall by).
+RULE_TOLERANCES: dict[str, float] = {"psnr": -0.2, "nll": 0.05, "spearman_mse_var": -0.02,
+                                     "depth_spearman_view": -0.02, "depth_abs_rel": 0.005,
+                                     "coverage_distance": 0.02}
+
+#: Study 16's gains on issue 19's unmet targets (mean over the scenes): a row must reach one of them.
+RULE_GAINS: dict[str, float] = {"depth_spearman_view": 0.02, "coverage_distance": -0.02, "psnr": 0.2}
+
+#: The nominal central levels the coverage distance is measured from.
+NOMINAL_COVERAGE: tuple[float, float] = (0.683, 0.95)
+
+#: The default's three seed rows (the ``seeds`` study's runs).
+DEFAULT_SEED_ROWS: tuple[str, str, str] = ("default", "seed1", "seed2")
+
+
+def coverage_distance(numbers: dict[str, float]) -> float:
+    """|cov68 - 0.683| + |cov95 - 0.95| of the recalibrated depth intervals (pooled)."""
+    return abs(numbers["cov68"] - NOMINAL_COVERAGE[0]) + abs(numbers["cov95"] - NOMINAL_COVERAGE[1])
+
+
+def seed_rows(name: str) -> tuple[str, str, str]:
+    """A row's three seed rows: ``name``, ``name_seed1``, ``name_seed2``."""
+    return (name, f"{name}_seed1", f"{name}_seed2")
+
+
+def seed_mean(by_row: dict[str, dict[str, float]], rows: tuple[str, ...], metric: str) -> float:
+    """Mean of ``metric`` (or the coverage distance) over ``rows``; every row must have run."""
+    missing = [r for r in rows if r not in by_row]
+    if missing:
+        raise ValueError(f"rows {missing} have no finished run (have {sorted(by_row)})")
+    values = [coverage_distance(by_row[r]) if metric == "coverage_distance" else by_row[r][metric] for r in rows]
+    return sum(values) / len(values)
+
+
+def judge_seeded(results: dict[str, dict[str, dict[str, float]]], candidates: tuple[str, ...]) -> dict:
+    """Study 16's rule on three-seed means (docs/uncertainty.md): each candidate row against the
+    default's three seeds, on every scene, within RULE_TOLERANCES; then, averaged over the scenes, a
+    gain of at least one of RULE_GAINS. Of the rows that pass, the largest mean per-view depth
+    Spearman gain is taken (None: the default stays).
+
+    Args:
+        results: scene -> row -> numbers (``study.json``'s "results").
+        candidates: row names whose seed rows (``seed_rows``) all ran on every scene.
+    Returns:
+        {"rows": {row: {"scenes": {scene: {"delta": {metric: d}, "failed": [metrics]}},
+                        "mean_delta": {metric: d}, "gains": [metrics], "passes": bool}}, "taken": row or None}
+    """
+    metrics = list(dict.fromkeys([*RULE_TOLERANCES, *RULE_GAINS]))
+    out: dict = {"rows": {}, "taken": None}
+    for row in candidates:
+        scenes = {}
+        for scene, by_row in results.items():
+            delta = {m: seed_mean(by_row, seed_rows(row), m) - seed_mean(by_row, DEFAULT_SEED_ROWS, m) for m in metrics}
+            failed = [m for m, tol in RULE_TOLERANCES.items() if (delta[m] < tol if tol < 0 else delta[m] > tol)]
+            scenes[scene] = {"delta": delta, "failed": failed}
+        mean_delta = {m: sum(s["delta"][m] for s in scenes.values()) / len(scenes) for m in metrics}
+        gains = [m for m, g in RULE_GAINS.items() if (mean_delta[m] <= g if g < 0 else mean_delta[m] >= g)]
+        passes = bool(gains) and not any(s["failed"] for s in scenes.values())
+        out["rows"][row] = {"scenes": scenes, "mean_delta": mean_delta, "gains": gains, "passes": passes}
+    passing = [r for r in candidates if out["rows"][r]["passes"]]
+    if passing:
+        out["taken"] = max(passing, key=lambda r: out["rows"][r]["mean_delta"]["depth_spearman_view"])
+    return out
+
+
+def rule_margins(decision: dict) -> dict[str, dict[str, dict[str, float]]]:
+    """scene -> row -> metric -> delta / |tolerance|, signed so that > 0 is better and <= -1 fails
+    (what ``plots.plot_rule_margins`` draws)."""
+    margins: dict[str, dict[str, dict[str, float]]] = {}
+    for row, judged in decision["rows"].items():
+        for scene, s in judged["scenes"].items():
+            margins.setdefault(scene, {})[row] = {
+                m: (s["delta"][m] / abs(tol)) * (1.0 if tol < 0 else -1.0) for m, tol in RULE_TOLERANCES.items()}
+    return margins
+
+
+def write_rule(out: Path, results: dict, candidates: tuple[str, ...], command: str) -> dict:
+    """Judge ``candidates`` (``judge_seeded``) and write ``rule.md``, ``rule.json`` and ``rule_margins.png``."""
+    from stochastic_fields.io_utils import atomic_write_text
+    from stochastic_fields.plots import plot_rule_margins
+
+    decision = judge_seeded(results, candidates)
+    lines = ["# The rule on three-seed means", "", f"Command: `{command}`", "",
+             "Each row's mean over seeds 0, 1, 2 minus the default's (seeds 0, 1, 2). Tolerances: "
+             + ", ".join(f"{m} {t:+g}" for m, t in RULE_TOLERANCES.items())
+             + "; a row must also gain, averaged over the scenes, one of "
+             + ", ".join(f"{m} {g:+g}" for m, g in RULE_GAINS.items()) + ".", "",
+             "| row | scene | " + " | ".join(RULE_TOLERANCES) + " | failed |", "|---|---|" + "---|" * (len(RULE_TOLERANCES) + 1)]
+    for row, judged in decision["rows"].items():
+        for scene, s in judged["scenes"].items():
+            lines.append(f"| {row} | {scene} | " + " | ".join(f"{s['delta'][m]:+.4f}" for m in RULE_TOLERANCES)
+                         + f" | {', '.join(s['failed']) or '-'} |")
+        lines.append(f"| {row} | **mean** | " + " | ".join(f"{judged['mean_delta'][m]:+.4f}" for m in RULE_TOLERANCES)
+                     + f" | gains: {', '.join(judged['gains']) or 'none'}; **{'passes' if judged['passes'] else 'fails'}** |")
+    lines += ["", f"Taken: **{decision['taken'] or 'none (the default stays)'}**.", ""]
+    atomic_write_text(out / "rule.md", "\n".join(lines))
+    atomic_write_text(out / "rule.json", json.dumps({"command": command, **decision}, indent=2, default=float))
+    plot_rule_margins(rule_margins(decision), out / "rule_margins.png",
+                      title="Three-seed mean change against the default, in tolerances (<= -1 fails)")
+    print("\n".join(lines))
+    return decision
+
+
 def _row_numbers(run_dir: Path) -> dict[str, float]:
     from stochastic_fields_bench.tables import load_method_result
 
@@ -294,6 +398,10 @@ def main(argv: list[str] | None = None) -> int:
                         "one process; needs those rows trained) into OUT/cost.json; the table run includes it.")
     p.add_argument("--collect-only", action="store_true",
                    help="Train and score nothing: rebuild study.md/json from the finished runs under OUT.")
+    p.add_argument("--judge", nargs="+", default=None, metavar="ROW",
+                   help="Train nothing: judge these rows' three seeds (ROW, ROW_seed1, ROW_seed2) against the "
+                        "default's from OUT/study.json by study 16's rule; writes OUT/rule.md, rule.json and "
+                        "rule_margins.png.")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
 
@@ -304,6 +412,12 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     out = Path(args.out)
+    if args.judge:
+        from stochastic_fields.io_utils import read_json
+
+        command = "python benchmarks/uncertainty_study.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
+        write_rule(out, read_json(out / "study.json", "study results")["results"], tuple(args.judge), command)
+        return 0
     if args.cost:
         from stochastic_fields.io_utils import atomic_write_text
 

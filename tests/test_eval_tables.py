@@ -477,6 +477,29 @@ def test_the_depth_weight_default_changes_retrain_only_snerf_default_runs():
     assert saved_config(old).loss.lambda_depth == 0.0
 
 
+def test_the_observed_kl_weight_default_change_keeps_every_stored_run():
+    """loss.lambda_observed went 5e-2 -> 1.25e-2 (study 16b): a run stored at 5e-2 keeps its
+    fingerprint, a run at the new default (the study's override) gets a new one, the paper S-NeRF
+    rows pin 5e-2 so their stored runs are not retrained, and the baselines (no KL) ignore it."""
+    from stochastic_fields.config import ExperimentConfig, flatten, to_dict
+    from stochastic_fields_bench.methods import METHOD_SPECS, method_config
+    from stochastic_fields_bench.runner import _semantic
+
+    assert ExperimentConfig().loss.lambda_observed == 1.25e-2
+    stored = ExperimentConfig()
+    stored.loss.lambda_observed = 5e-2
+    assert "loss.lambda_observed" not in _semantic(flatten(to_dict(stored)))
+    assert _semantic(flatten(to_dict(ExperimentConfig())))["loss.lambda_observed"] == 1.25e-2
+    assert T.config_fingerprint(ExperimentConfig()) != T.config_fingerprint(stored)
+    for name in ("snerf", "snerf_predictive", "snerf_kl_none", "snerf_kl_fixed_prior"):
+        assert method_config(METHOD_SPECS[name], ExperimentConfig(), Path("s")).loss.lambda_observed == 5e-2
+    assert method_config(METHOD_SPECS["snerf_default"], ExperimentConfig(), Path("s")).loss.lambda_observed == 1.25e-2
+    for method in ("ensemble", "deterministic", "mc_dropout", "nerfw"):
+        a, b = ExperimentConfig(method=method), ExperimentConfig(method=method)
+        b.loss.lambda_observed, b.loss.lambda_random, b.loss.kl = 5e-2, 0.5, "none"
+        assert T.config_fingerprint(a) == T.config_fingerprint(b)
+
+
 def test_render_only_options_rescore_a_stored_run_without_retraining(tmp_path):
     """Study 7 changed the render defaults (K 16 -> 8, Rao-Blackwellised colours): a run stored with
     the old values keeps its training fingerprint and is accepted for resuming (the differing

@@ -216,6 +216,51 @@ def plot_coverage_by_group(
     return _save_atomic(fig, path, dpi)
 
 
+def plot_rule_margins(
+    margins: Mapping[str, Mapping[str, Mapping[str, float]]],
+    path: str | os.PathLike,
+    title: str | None = None,
+    dpi: int = 110,
+) -> Path:
+    """A study's rule at a glance: one panel per scene, for each ruled metric one bar per row of its
+    change in tolerances (> 0 better, <= -1 fails the rule; failing bars drawn red-edged).
+
+    Args:
+        margins: scene -> row -> metric -> signed change / |tolerance|
+            (``benchmarks/uncertainty_study.rule_margins``).
+    Returns:
+        the written path.
+    """
+    if not margins:
+        raise ValueError("plot_rule_margins needs at least one scene")
+    scenes = list(margins)
+    rows = list(dict.fromkeys(r for scene in scenes for r in margins[scene]))
+    metrics = list(dict.fromkeys(m for scene in scenes for r in margins[scene].values() for m in r))
+    fig = Figure(figsize=(4.8 * len(scenes), 3.8))
+    colours = ("tab:blue", "tab:orange", "tab:green", "tab:purple", "tab:brown", "tab:pink")
+    width = 0.8 / max(len(rows), 1)
+    x = np.arange(len(metrics))
+    for c, scene in enumerate(scenes):
+        ax = fig.add_subplot(1, len(scenes), c + 1, sharey=fig.axes[0] if c else None)
+        ax.axhspan(-1.0, 1.0, color="0.5", alpha=0.08)
+        ax.axhline(-1.0, color="tab:red", linewidth=0.8, linestyle="--")
+        ax.axhline(0.0, color="0.3", linewidth=0.6)
+        for j, row in enumerate(rows):
+            values = [float(margins[scene].get(row, {}).get(m, np.nan)) for m in metrics]
+            edges = ["tab:red" if v <= -1.0 else colours[j % len(colours)] for v in values]
+            ax.bar(x + (j - (len(rows) - 1) / 2) * width, values, width, color=colours[j % len(colours)],
+                   edgecolor=edges, linewidth=1.5, label=row)
+        ax.set_xticks(x, metrics, rotation=30, ha="right", fontsize="small")
+        ax.set_ylabel("change / tolerance (> 0 better)")
+        ax.set_title(scene)
+    handles, labels = fig.axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=len(rows), fontsize="small")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout(rect=(0.0, 0.08, 1.0, 1.0))
+    return _save_atomic(fig, path, dpi)
+
+
 def plot_step_times(
     end_steps: Sequence[int],
     step_s: Mapping[str, Sequence[float]],

@@ -51,11 +51,16 @@ _DEPTH_OPTIONS = ("loss.lambda_depth", "loss.depth_rays_per_batch", "loss.depth_
 #: S-NeRF's training-likelihood estimator: the baselines' likelihoods draw no colours.
 _LIKELIHOOD_OPTIONS = ("loss.likelihood_estimator",)
 
+#: S-NeRF's KL terms (models/snerf.py only): the baselines have no prior.
+_KL_OPTIONS = ("loss.kl", "loss.kl_estimator", "loss.kl_mc_samples", "loss.lambda_random", "loss.lambda_observed",
+               "loss.random_points_per_axis", "loss.observed_kl_samples")
+
 #: Options whose default changed after fingerprints were stored: the value the stored fingerprints
-#: left out as "the default" (lambda_depth was 0.1 until study 4 made it 0.3, then study 6 1.0), so that a run at the
-#: new default gets a new fingerprint and one stored at the old value keeps its own.
+#: left out as "the default" (lambda_depth was 0.1 until study 4 made it 0.3, then study 6 1.0; lambda_observed
+#: 5e-2 until study 16b), so that a run at the new default gets a new fingerprint and one stored at the old value
+#: keeps its own.
 _FINGERPRINT_REFERENCE: dict[str, Any] = {"loss.lambda_depth": 0.1, "render.num_draws": 16,
-                                          "render.colour_estimator": "draws"}
+                                          "render.colour_estimator": "draws", "loss.lambda_observed": 5e-2}
 
 #: Render-time options a trained run may change (``trainer.RESUMABLE_OPTIONS``): they are left out
 #: of the training fingerprint (a new K or colour estimator re-calibrates and re-scores a stored run,
@@ -75,6 +80,7 @@ def _semantic(flat: dict[str, Any]) -> dict[str, Any]:
         ignored.update(_NOISE_HEAD_OPTIONS)  # S-NeRF's field only: the baselines build none
         ignored.update(_DEPTH_OPTIONS)  # nor do they take the depth likelihood
         ignored.update(_LIKELIHOOD_OPTIONS)
+        ignored.update(_KL_OPTIONS)  # nor any KL term
         # nor draw S-NeRF's trajectories: they render their own K (1, the ensemble's members,
         # MC-Dropout's passes) from deterministic passes, whatever K or colour estimator is set
         ignored.update(RENDER_ONLY_OPTIONS)
