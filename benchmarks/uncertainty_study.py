@@ -152,10 +152,15 @@ ROWS_SCHEDULE: tuple[Row, ...] = (
     for seed in (1, 2)) + REFERENCE_ROWS
 
 
+def seed_rows(name: str) -> tuple[str, str, str]:
+    """A row's three seed rows: ``name``, ``name_seed1``, ``name_seed2``."""
+    return (name, f"{name}_seed1", f"{name}_seed2")
+
+
 #: Study 16: the KL terms (issue 19's "KL weights; the observed-ray prior"): one change of the default
 #: per row, each trained from seeds 0, 1 and 2 and judged on three-seed means against the default's.
 ROWS_KL: tuple[Row, ...] = ROWS_SEEDS[:3] + tuple(
-    (f"{name}{'' if seed == 0 else f'_seed{seed}'}", "snerf_default",
+    (seed_rows(name)[seed], "snerf_default",
      overrides + ((("train.seed", seed),) if seed else ()), f"{why}, seed {seed}")
     for name, overrides, why in (
         ("no_observed_prior", (("loss.kl", "fixed_prior"),),
@@ -205,11 +210,6 @@ DEFAULT_SEED_ROWS: tuple[str, str, str] = ("default", "seed1", "seed2")
 def coverage_distance(numbers: dict[str, float]) -> float:
     """|cov68 - 0.683| + |cov95 - 0.95| of the recalibrated depth intervals (pooled)."""
     return abs(numbers["cov68"] - NOMINAL_COVERAGE[0]) + abs(numbers["cov95"] - NOMINAL_COVERAGE[1])
-
-
-def seed_rows(name: str) -> tuple[str, str, str]:
-    """A row's three seed rows: ``name``, ``name_seed1``, ``name_seed2``."""
-    return (name, f"{name}_seed1", f"{name}_seed2")
 
 
 def seed_mean(by_row: dict[str, dict[str, float]], rows: tuple[str, ...], metric: str) -> float:
