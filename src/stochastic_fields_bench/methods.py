@@ -23,7 +23,8 @@ class MethodSpec:
     training and score with it (raw scores kept as ``depth_raw/``)."""
 
 
-#: The paper's observed-ray KL weight (the package default is a quarter of it since study 16b).
+#: The observed-ray KL weight the paper S-NeRF rows were trained with: the package default until study 16b made it a
+#: quarter of that (the paper states no weight).
 PAPER_LAMBDA_OBSERVED: tuple[tuple[str, Any], ...] = (("loss.lambda_observed", 5e-2),)
 
 #: The paper's S-NeRF objective and colour variance (docs/definitions.md §3, §4): fixed pixel noise, the variance over
