@@ -28,7 +28,8 @@ class MethodSpec:
 PAPER_LAMBDA_OBSERVED: tuple[tuple[str, Any], ...] = (("loss.lambda_observed", 5e-2),)
 
 #: The paper's S-NeRF objective and colour variance (docs/definitions.md §3, §4): fixed pixel noise, the variance over
-#: the K trajectories, no depth likelihood, the paper's KL weights (explicit, since the package defaults differ).
+#: the K trajectories, no depth likelihood, the observed-ray KL weight those rows were trained with (explicit, since the
+#: package defaults differ).
 PAPER_SNERF: tuple[tuple[str, Any], ...] = (("loss.learn_likelihood_std", False),
                                             ("render.colour_variance", "epistemic"), ("loss.lambda_depth", 0.0),
                                             ("loss.per_point_noise", False)) + PAPER_LAMBDA_OBSERVED
