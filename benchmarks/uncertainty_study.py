@@ -125,13 +125,23 @@ ROWS_DRAWS4_SEEDS: tuple[Row, ...] = ROWS_SEEDS[:3] + (
 ) + REFERENCE_ROWS
 
 
+def seed_rows(name: str) -> tuple[str, str, str]:
+    """A row's three seed rows: ``name``, ``name_seed1``, ``name_seed2``."""
+    return (name, f"{name}_seed1", f"{name}_seed2")
+
+
+def seeded(name: str, overrides: tuple[tuple[str, object], ...], why: str) -> tuple[Row, Row, Row]:
+    """One change of S-NeRF (default) trained from seeds 0, 1 and 2: the rows ``seed_rows(name)``, each with
+    ``overrides`` (and ``train.seed`` but for seed 0), described as "``why``, seed N"."""
+    return tuple((seed_rows(name)[seed], "snerf_default", overrides + ((("train.seed", seed),) if seed else ()),
+                  f"{why}, seed {seed}") for seed in (0, 1, 2))
+
+
 #: Study 9c: K = 4 for the colour likelihood, 8 for the depth likelihood (study 9b found the depth
 #: ranking lost with K = 4 everywhere), three seeds each against the default's three.
-ROWS_SPLIT_DRAWS: tuple[Row, ...] = ROWS_SEEDS[:3] + tuple(
-    (f"draws4_depth8{suffix}", "snerf_default",
-     (("train.train_draws", 4), ("loss.depth_draws", 8)) + ((("train.seed", seed),) if seed else ()),
-     f"K = 4 training trajectories for the colour rays, 8 for the capture-point rays, seed {seed}")
-    for seed, suffix in ((0, ""), (1, "_seed1"), (2, "_seed2"))) + REFERENCE_ROWS
+ROWS_SPLIT_DRAWS: tuple[Row, ...] = ROWS_SEEDS[:3] + seeded(
+    "draws4_depth8", (("train.train_draws", 4), ("loss.depth_draws", 8)),
+    "K = 4 training trajectories for the colour rays, 8 for the capture-point rays") + REFERENCE_ROWS
 
 
 #: Study 10: the training schedule at the CPU budget (issue 19's first factor: is the reconstruction
@@ -152,24 +162,17 @@ ROWS_SCHEDULE: tuple[Row, ...] = (
     for seed in (1, 2)) + REFERENCE_ROWS
 
 
-def seed_rows(name: str) -> tuple[str, str, str]:
-    """A row's three seed rows: ``name``, ``name_seed1``, ``name_seed2``."""
-    return (name, f"{name}_seed1", f"{name}_seed2")
-
-
 #: Study 16: the KL terms (issue 19's "KL weights; the observed-ray prior"): one change of the default
 #: per row, each trained from seeds 0, 1 and 2 and judged on three-seed means against the default's.
 ROWS_KL: tuple[Row, ...] = ROWS_SEEDS[:3] + tuple(
-    (seed_rows(name)[seed], "snerf_default",
-     overrides + ((("train.seed", seed),) if seed else ()), f"{why}, seed {seed}")
-    for name, overrides, why in (
+    row for name, overrides, why in (
         ("no_observed_prior", (("loss.kl", "fixed_prior"),),
          "no observed-ray prior: the random-point KL only (the paper's 'fixed prior' ablation)"),
         ("kl_random_4x", (("loss.lambda_random", 4e-2),), "4x the random-point KL weight (4e-2)"),
         ("kl_random_quarter", (("loss.lambda_random", 2.5e-3),), "a quarter of the random-point KL weight (2.5e-3)"),
         ("kl_observed_quarter", (("loss.lambda_observed", 1.25e-2),),
          "a quarter of the observed-ray KL weight (1.25e-2; study 16b, added after the first three rows' result)"))
-    for seed in (0, 1, 2)) + REFERENCE_ROWS
+    for row in seeded(name, overrides, why)) + REFERENCE_ROWS
 
 
 #: --study NAME -> its rows.
@@ -204,7 +207,7 @@ RULE_GAINS: dict[str, float] = {"depth_spearman_view": 0.02, "coverage_distance"
 NOMINAL_COVERAGE: tuple[float, float] = (0.683, 0.95)
 
 #: The default's three seed rows (the ``seeds`` study's runs).
-DEFAULT_SEED_ROWS: tuple[str, str, str] = ("default", "seed1", "seed2")
+DEFAULT_SEED_ROWS: tuple[str, ...] = tuple(row[0] for row in ROWS_SEEDS[:3])
 
 
 def coverage_distance(numbers: dict[str, float]) -> float:
