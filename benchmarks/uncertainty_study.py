@@ -175,13 +175,24 @@ ROWS_KL: tuple[Row, ...] = ROWS_SEEDS[:3] + tuple(
     for row in seeded(name, overrides, why)) + REFERENCE_ROWS
 
 
+#: Study 17: the paper's MLP backbone at the grid's wall time (issue 19's "backbone" factor). The
+#: step count is the default's mean training time (158 s) over one MLP step of its objective (4.19 s).
+MLP_EQUAL_TIME_ITERATIONS: int = 38
+ROWS_BACKBONE: tuple[Row, ...] = (
+    ("default", "snerf_default", (), "S-NeRF default, seed 0 (study 16b's kl_observed_quarter run)"),
+    ("mlp_equal_time", "snerf_default",
+     (("field.backend", "mlp"), ("train.lr", 5e-4), ("train.iterations", MLP_EQUAL_TIME_ITERATIONS)),
+     f"the paper's 8 x 256 MLP at its learning rate (5e-4), {MLP_EQUAL_TIME_ITERATIONS} steps: the grid's wall time"),
+) + REFERENCE_ROWS
+
+
 #: --study NAME -> its rows.
 STUDIES: dict[str, tuple[Row, ...]] = {"factors": ROWS, "noise_head": ROWS_NOISE_HEAD, "geometry": ROWS_GEOMETRY,
                                        "colour": ROWS_COLOUR, "depth_weight": ROWS_DEPTH_WEIGHT,
                                        "likelihood": ROWS_LIKELIHOOD, "training_samples": ROWS_TRAINING_SAMPLES,
                                        "seeds": ROWS_SEEDS, "draws4_seeds": ROWS_DRAWS4_SEEDS,
                                        "split_draws": ROWS_SPLIT_DRAWS, "schedule": ROWS_SCHEDULE,
-                                       "kl": ROWS_KL}
+                                       "kl": ROWS_KL, "backbone": ROWS_BACKBONE}
 
 COLUMNS: tuple[tuple[str, str], ...] = (
     ("psnr", "PSNR"), ("nll", "NLL"), ("auce_colour", "AUCE"), ("nll_raw", "NLL raw"), ("auce_colour_raw", "AUCE raw"),
@@ -392,7 +403,8 @@ def main(argv: list[str] | None = None) -> int:
                         "'draws4_seeds' (study 9b: K = 4 against the default, seeds 0, 1 and 2 each) or "
                         "'split_draws' (study 9c: K = 4 for the colour rays and 8 for the depth rays, three seeds) or "
                         "'schedule' (study 10: twice the learning rate or twice the steps, S-NeRF and deterministic NeRF) or "
-                        "'kl' (study 16: no observed-ray prior, or the random-point KL weight x4 or /4; 16b: the observed-ray KL weight /4; three seeds).")
+                        "'kl' (study 16: no observed-ray prior, or the random-point KL weight x4 or /4; 16b: the observed-ray KL weight /4; three seeds) or "
+                        "'backbone' (study 17: the paper's MLP at the grid's wall time).")
     p.add_argument("--rows", nargs="+", default=None, help="Rows of the study to run (default: all of them).")
     p.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
     p.add_argument("--cost", action="store_true",
@@ -435,7 +447,8 @@ def main(argv: list[str] | None = None) -> int:
                      "draws4_seeds": ("draws4", "default", "deterministic"),
                      "split_draws": ("draws4_depth8", "default", "deterministic"),
                      "schedule": ("default", "deterministic"),
-                     "kl": ("no_observed_prior", "default", "deterministic")}[args.study]
+                     "kl": ("no_observed_prior", "default", "deterministic"),
+                     "backbone": ("mlp_equal_time", "default", "deterministic")}[args.study]
         cost = measure_cost(out, "fern", args.data_root, rows=cost_rows, study=STUDIES[args.study])
         atomic_write_text(out / "cost.json", json.dumps(cost, indent=2))
         print(json.dumps(cost, indent=2))
