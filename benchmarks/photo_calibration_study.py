@@ -1,0 +1,223 @@
+"""Study 18: the depth map fitted on real held-out photos instead of the virtual calibration views.
+
+Today's map (``calibration.fit_depth_calibration``) is fitted on the CALIBRATE capture points seen
+from virtual views halfway between neighbouring training views. A user could instead hold real
+photos out of training. At the CPU budget the benchmark scenes have such photos for free: the
+views that neither train nor are scored. This study fits the map (one factor per level) on the
+CALIBRATE points seen from them (*photos*), and from each one alone (*one photo*, at least
+``MIN_PHOTO_POINTS`` points), and scores every map on the SCORE points seen from the run's
+evaluated test views (``calibration_split_study.scored_points``), beside today's (*views*).
+
+    python benchmarks/photo_calibration_study.py --run fern/seed0=RUN flower/seed0=RUN ... \\
+        --out benchmarks/results/uncertainty_study/photo_calibration
+
+Labels are SCENE/SEED; the decision reads the means over a scene's seeds (docs/uncertainty.md,
+study 18, rule fixed before this ran). Renders only. Torch on 1 thread. Writes ``study.json``,
+``study.md`` and ``coverage_by_seed.png`` (``--plot-only``: the figure again from ``OUT/study.json``).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from calibration_split_study import LEVELS, begin_study, scored_points, study_parser, write_study  # noqa: E402
+from std_floor_study import by_scene, coverage, distance  # noqa: E402
+
+#: Study 18's rule (study 12's): no scene's coverage distance may grow by more than TOLERANCE, and the
+#: mean distance over the scenes must fall by at least GAIN.
+TOLERANCE: float = 0.02
+GAIN: float = 0.02
+#: A single photo's map is reported only when the photo holds at least this many calibration points.
+MIN_PHOTO_POINTS: int = 100
+
+
+def unused_views(dataset, evaluated: list[int]) -> list[int]:
+    """The views that neither train nor are evaluated, in order."""
+    used = set(int(v) for v in dataset.train_indices) | set(int(v) for v in evaluated)
+    return [v for v in range(dataset.num_views) if v not in used]
+
+
+def photo_points(dataset, points, views: list[int], role: int) -> dict:
+    """{view: SparseDepth} of the capture points of ``role`` that each of ``views`` observed: COLMAP
+    tracks, or on a dense-depth scene the stand-in points its exact depth map shows
+    (``capture_points.depth_map_observes``); one point per pixel, the nearest."""
+    from stochastic_fields.capture_points import depth_map_observes, restrict_sparse_depth
+    from stochastic_fields.sparse_depth import project_sparse_depth, sparse_depth_for_dataset
+
+    if points.colmap is not None:
+        full = sparse_depth_for_dataset(dataset, views, points=points.colmap)
+        return {v: restrict_sparse_depth(sd, points.roles[sd.point_index] == role) for v, sd in full.items()}
+    visible = [np.zeros(0, np.int64) for _ in range(dataset.num_views)]
+    for v in views:
+        visible[v] = np.flatnonzero(depth_map_observes(dataset, points.xyz, v) & (points.roles == role))
+    return project_sparse_depth(dataset.cameras, points.xyz, views, visible=visible, visibility_name="depth map")
+
+
+def photo_errors(model, dataset, sparse: dict, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """|d - d*| [N], raw sigma [N] and the view [N] of each point of {view: SparseDepth} rendered from
+    its photo (the photo's own bounds), opacity above the scores' mask."""
+    import torch
+
+    from stochastic_fields.calibration import render_at_points
+    from stochastic_fields.view_maps import OPACITY_MASK
+
+    r = render_at_points(model, dataset.cameras, dataset.near, dataset.far, sparse,
+                         generator=torch.Generator().manual_seed(seed))
+    view = np.concatenate([np.full(len(sd), v) for v, sd in sparse.items() if len(sd)] or [np.zeros(0, np.int64)])
+    keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(r["depth_std"]) & (r["depth_std"] > 0)
+    return np.abs(r["gt"] - r["depth_mean"])[keep], r["depth_std"][keep], view[keep]
+
+
+def study_run(run_dir: Path, *, seed: int = 0) -> dict:
+    from stochastic_fields.calibration import QuantileCalibration, depth_calibration_errors
+    from stochastic_fields.capture_points import CALIBRATE, FIT, SCORE, block_roles, load_capture_points
+    from stochastic_fields.io_utils import read_json
+    from stochastic_fields.trainer import load_trained_model
+
+    _, model, dataset = load_trained_model(run_dir)
+    points = load_capture_points(dataset)
+    if points is None:
+        raise ValueError(f"{run_dir}: the scene has no capture points")
+    views = [int(name.split("_")[-1]) for name in read_json(run_dir / "metrics.json", "metrics")["views"]]
+    photos = unused_views(dataset, views)
+    if not photos:
+        raise ValueError(f"{run_dir}: every view trains or is evaluated; no photo is left to calibrate on")
+    scored = scored_points(run_dir, model, dataset, points, views, points.roles != FIT, seed)
+    keep = (block_roles(scored["xyz"], points) if points.source == "synthetic" else scored["role"]) == SCORE
+    s_err, s_std = scored["abs_err"][keep], scored["std"][keep]
+
+    def fit(err, std, source):
+        return QuantileCalibration.fit_errors(err, std, quantity="depth_std", source=source)
+
+    err_v, std_v, source = depth_calibration_errors(model, dataset, seed=seed)
+    err_p, std_p, view_p = photo_errors(model, dataset, photo_points(dataset, points, photos, CALIBRATE), seed)
+    err_d, std_d, _ = photo_errors(model, dataset, photo_points(dataset, points, photos, SCORE), seed)
+    maps = {"views": fit(err_v, std_v, source),
+            "photos": fit(err_p, std_p, f"{len(err_p)} calibrate-role points seen from {len(photos)} unused photos"),
+            "photos_score_blocks": fit(err_d, std_d, f"{len(err_d)} score-role points seen from {len(photos)} unused photos")}
+    out = {"run": str(run_dir), "views": views, "photos": photos, "scored_points": int(keep.sum()),
+           "calibration_points": {"views": int(len(err_v)), "photos": int(len(err_p)),
+                                  "photos_score_blocks": int(len(err_d))},
+           "median_abs_z": {"views": float(np.median(err_v / std_v)), "photos": float(np.median(err_p / std_p)),
+                            "scored": float(np.median(s_err / s_std))},
+           "scales": {name: m.scale_at(np.asarray(LEVELS)).tolist() for name, m in maps.items()},
+           "coverage": {name: coverage(s_err, s_std, m).tolist() for name, m in maps.items()}}
+    out["distance"] = {name: distance(c) for name, c in out["coverage"].items()}
+    single = {}
+    for v in photos:
+        m = view_p == v
+        if m.sum() >= MIN_PHOTO_POINTS:
+            c = coverage(s_err, s_std, fit(err_p[m], std_p[m], f"photo {v}"))
+            single[int(v)] = {"points": int(m.sum()), "coverage": c.tolist(), "distance": distance(c)}
+    out["one_photo"] = single
+    return out
+
+
+def decide(results: dict) -> dict:
+    """Study 18's rule: *photos* against *views* on per-scene means over seeds."""
+    scenes = {}
+    for scene, seeds in by_scene(results["runs"]).items():
+        mean = lambda f: np.mean([f(r) for r in seeds], axis=0)  # noqa: E731
+        one = [p for r in seeds for p in r["one_photo"].values()]
+        scenes[scene] = {"seeds": len(seeds),
+                         "coverage_views": mean(lambda r: r["coverage"]["views"]).tolist(),
+                         "coverage_photos": mean(lambda r: r["coverage"]["photos"]).tolist(),
+                         "distance_views": float(mean(lambda r: r["distance"]["views"])),
+                         "distance_photos": float(mean(lambda r: r["distance"]["photos"])),
+                         "coverage_photos_score_blocks": mean(lambda r: r["coverage"]["photos_score_blocks"]).tolist(),
+                         "distance_photos_score_blocks": float(mean(lambda r: r["distance"]["photos_score_blocks"])),
+                         "one_photo_maps": len(one),
+                         "one_photo_distance_mean": float(np.mean([p["distance"] for p in one])) if one else None,
+                         "one_photo_distance_range": [float(min(p["distance"] for p in one)),
+                                                      float(max(p["distance"] for p in one))] if one else None}
+    worse = [s for s, m in scenes.items() if m["distance_photos"] > m["distance_views"] + TOLERANCE]
+    gain = float(np.mean([m["distance_views"] - m["distance_photos"] for m in scenes.values()]))
+    return {"scenes": scenes, "worse_on": worse, "mean_distance_gain": gain, "passes": not worse and gain >= GAIN}
+
+
+def _markdown(results: dict) -> str:
+    d = results["decision"]
+    lines = ["# Study 18: the depth map fitted on real held-out photos", "", f"Command: `{results['command']}`", "",
+             "Maps (one factor per level) fitted on the CALIBRATE capture points seen from the virtual calibration "
+             "views (*views*, today) or from the photos that neither train nor are scored (*photos*), scored on the "
+             f"SCORE points seen from the test views: share inside the central {LEVELS[0]:.1%} / {LEVELS[1]:.0%} "
+             "intervals. Distance: the larger |coverage - nominal| of the two levels.", "",
+             "## Per run", "",
+             "| run | photos | calibration points views / photos | median abs z views / photos / scored | "
+             "s(68%) views / photos | coverage views | coverage photos | one photo: maps, mean distance |",
+             "|---|---|---|---|---|---|---|---|"]
+    for label, r in results["runs"].items():
+        one = list(r["one_photo"].values())
+        one_txt = f"{len(one)}, {np.mean([p['distance'] for p in one]):.3f}" if one else "0, -"
+        cv, cp = r["coverage"]["views"], r["coverage"]["photos"]
+        lines.append(f"| {label} | {len(r['photos'])} | {r['calibration_points']['views']} / "
+                     f"{r['calibration_points']['photos']} | {r['median_abs_z']['views']:.2f} / "
+                     f"{r['median_abs_z']['photos']:.2f} / {r['median_abs_z']['scored']:.2f} | "
+                     f"{r['scales']['views'][0]:.2f} / {r['scales']['photos'][0]:.2f} | "
+                     f"{cv[0]:.3f} / {cv[1]:.3f} | {cp[0]:.3f} / {cp[1]:.3f} | {one_txt} |")
+    lines += ["", "## Decision (means over seeds)", "",
+              "| scene | seeds | views 68 / 95 | photos 68 / 95 | distance views -> photos | one photo: distance mean (range) |",
+              "|---|---|---|---|---|---|"]
+    for scene, m in d["scenes"].items():
+        one = (f"{m['one_photo_distance_mean']:.3f} ({m['one_photo_distance_range'][0]:.3f}-"
+               f"{m['one_photo_distance_range'][1]:.3f}, {m['one_photo_maps']} maps)" if m["one_photo_maps"] else "-")
+        lines.append(f"| {scene} | {m['seeds']} | {m['coverage_views'][0]:.3f} / {m['coverage_views'][1]:.3f} | "
+                     f"{m['coverage_photos'][0]:.3f} / {m['coverage_photos'][1]:.3f} | {m['distance_views']:.3f} -> "
+                     f"{m['distance_photos']:.3f} | {one} |")
+    lines += ["", "Diagnostic, deciding nothing (added after the rows above were seen): the map fitted on the "
+              "SCORE-role points seen from the same unused photos, i.e. on the scored surfaces from other "
+              "viewpoints. It is not independent of the scores; it separates the viewpoints from the blocks.", "",
+              "| scene | photos, CALIBRATE blocks: 68 / 95 | photos, SCORE blocks: 68 / 95 | distance |", "|---|---|---|---|"]
+    for scene, m in d["scenes"].items():
+        cs = m["coverage_photos_score_blocks"]
+        lines.append(f"| {scene} | {m['coverage_photos'][0]:.3f} / {m['coverage_photos'][1]:.3f} | {cs[0]:.3f} / "
+                     f"{cs[1]:.3f} | {m['distance_photos']:.3f} -> {m['distance_photos_score_blocks']:.3f} |")
+    verdict = ("**passes**: the next study trains without the held-out photos" if d["passes"]
+               else "**fails**: real photos calibrate no better than the virtual views")
+    lines += ["", f"Mean distance gain over scenes: {d['mean_distance_gain']:+.3f} (rule: >= {GAIN}); scenes where "
+              f"the distance grows by more than {TOLERANCE}: {', '.join(d['worse_on']) or 'none'}. Verdict: {verdict}.", ""]
+    return "\n".join(lines)
+
+
+def coverage_groups(results: dict) -> dict[str, list[dict]]:
+    """{scene: [{"group": seed label, "coverage_raw": views' coverage, "coverage": photos'}]}, the
+    rows ``plots.plot_coverage_by_group`` draws."""
+    return {scene: [{"group": f"seed {r['label']}", "points": r["scored_points"], "coverage_raw": r["coverage"]["views"],
+                     "coverage": r["coverage"]["photos"]} for r in seeds]
+            for scene, seeds in by_scene(results["runs"]).items()}
+
+
+def plot(results: dict, path: Path) -> Path:
+    from stochastic_fields.plots import plot_coverage_by_group
+
+    return plot_coverage_by_group(coverage_groups(results), LEVELS, path, xlabel="run", series=("held-out photos", "virtual views"),
+                                  title="Depth interval coverage on the SCORE points: map fitted on held-out photos "
+                                        "against today's")
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = study_parser(__doc__, "photo_calibration", "Trained and evaluated runs (S-NeRF default), labelled SCENE/SEED.")
+    p.add_argument("--plot-only", action="store_true", help="Only draw the figure again from OUT/study.json.")
+    args, runs, results = begin_study(p, argv, "photo_calibration_study.py")
+    if args.plot_only:
+        from stochastic_fields.io_utils import read_json
+
+        print(f"written: {plot(read_json(args.out / 'study.json', 'study results'), args.out / 'coverage_by_seed.png')}")
+        return 0
+    results["runs"] = {}
+    for label, run_dir in runs.items():
+        print(f"{label}: {run_dir}", flush=True)
+        results["runs"][label] = {"label": label.split("/")[-1], **study_run(run_dir, seed=args.seed)}
+    results["decision"] = decide(results)
+    write_study(args.out, results, _markdown(results))
+    print(_markdown(results))
+    print(f"written: {plot(results, args.out / 'coverage_by_seed.png')}, {args.out / 'study.json'}, study.md")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

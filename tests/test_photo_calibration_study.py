@@ -1,0 +1,94 @@
+"""Study 18 (benchmarks/photo_calibration_study.py): the depth map fitted on the photos that neither
+train nor are scored. Which photos, which points they see, the rule by hand, and the committed
+decision recomputed (docs/uncertainty.md)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from stochastic_fields.capture_points import CALIBRATE, SCORE, depth_map_observes, load_capture_points
+
+RESULTS = Path(__file__).resolve().parents[1] / "benchmarks/results/uncertainty_study/photo_calibration"
+
+
+def test_unused_views_are_those_that_neither_train_nor_are_evaluated(load_script):
+    script = load_script("benchmarks/photo_calibration_study.py")
+    dataset = SimpleNamespace(train_indices=[0, 5, 10], num_views=12)
+    assert script.unused_views(dataset, [1, 11]) == [2, 3, 4, 6, 7, 8, 9]
+    assert script.unused_views(SimpleNamespace(train_indices=[0], num_views=2), [1]) == []
+
+
+def test_photo_points_are_the_roles_points_each_depth_map_shows(tiny_scene, load_script):
+    """On a dense-depth scene a photo's points are exactly the stand-in points of the role that its
+    depth map observes, each at its projection (continuous uv) with its camera depth."""
+    from stochastic_fields.cameras import project_points, select_cameras
+    from stochastic_fields.data import load_dataset
+
+    script = load_script("benchmarks/photo_calibration_study.py")
+    ds = load_dataset(tiny_scene)
+    capture = load_capture_points(ds)
+    photos = [v for v in range(ds.num_views) if v not in set(ds.train_indices)][:3]
+    for role in (CALIBRATE, SCORE):
+        sparse = script.photo_points(ds, capture, photos, role)
+        assert sorted(sparse) == photos
+        for v in photos:
+            sd = sparse[v]
+            seen = set(np.flatnonzero(depth_map_observes(ds, capture.xyz, v) & (capture.roles == role)).tolist())
+            got = sd.point_index.tolist()
+            assert set(got) <= seen and len(got) == len(set(got))  # one point per pixel: a subset at most
+            assert len(got) >= 0.5 * len(seen)
+            assert (capture.roles[sd.point_index] == role).all()
+            if len(sd):
+                import torch
+
+                cam = select_cameras(ds.cameras, [v])
+                cam = type(cam)(cam.intrinsics.double(), cam.extrinsics.double(), cam.height.double(), cam.width.double())
+                uv, z = project_points(cam, torch.from_numpy(capture.xyz[sd.point_index]))
+                np.testing.assert_allclose(sd.uv, uv[0].numpy(), atol=1e-4)
+                np.testing.assert_allclose(sd.depth, z[0].numpy(), rtol=1e-6)
+
+
+def _run(views: float, photos: float, score_blocks: float = 0.0, one=(0.05,)) -> dict:
+    cov = lambda d: [0.683 + d, 0.95]  # noqa: E731  (distance = d)
+    return {"coverage": {"views": cov(views), "photos": cov(photos), "photos_score_blocks": cov(score_blocks)},
+            "distance": {"views": views, "photos": photos, "photos_score_blocks": score_blocks},
+            "one_photo": {str(i): {"points": 100, "coverage": cov(d), "distance": d} for i, d in enumerate(one)}}
+
+
+def test_rule_by_hand(load_script):
+    """Means over a scene's seeds; each scene may lose at most 0.02 of distance, and the mean over
+    scenes must gain at least 0.02."""
+    script = load_script("benchmarks/photo_calibration_study.py")
+    good = script.decide({"runs": {"a/0": _run(0.10, 0.04), "a/1": _run(0.08, 0.04), "b/0": _run(0.05, 0.06)}})
+    assert good["passes"] and good["worse_on"] == []
+    assert good["scenes"]["a"]["distance_views"] == pytest.approx(0.09)
+    assert good["mean_distance_gain"] == pytest.approx((0.05 - 0.01) / 2)
+    small = script.decide({"runs": {"a/0": _run(0.10, 0.09), "b/0": _run(0.05, 0.04)}})
+    assert not small["passes"] and small["worse_on"] == []
+    worse = script.decide({"runs": {"a/0": _run(0.20, 0.02), "b/0": _run(0.05, 0.08)}})
+    assert not worse["passes"] and worse["worse_on"] == ["b"] and worse["mean_distance_gain"] > 0.02
+    one = script.decide({"runs": {"a/0": _run(0.1, 0.1, one=(0.02, 0.08)), "a/1": _run(0.1, 0.1, one=(0.05,))}})
+    assert one["scenes"]["a"]["one_photo_maps"] == 3
+    assert one["scenes"]["a"]["one_photo_distance_mean"] == pytest.approx(0.05)
+    assert one["scenes"]["a"]["one_photo_distance_range"] == pytest.approx([0.02, 0.08])
+
+
+def test_committed_decision_recomputed(load_script):
+    """The committed study: the photos fail the rule (flower's distance grows), and the same photos'
+    map fitted on the SCORE blocks holds on every scene (the viewpoints transfer; the blocks do not)."""
+    script = load_script("benchmarks/photo_calibration_study.py")
+    committed = json.loads((RESULTS / "study.json").read_text())
+    again = script.decide(committed)
+    assert again == committed["decision"]
+    assert not again["passes"] and again["worse_on"] == ["flower"]
+    for m in again["scenes"].values():
+        assert m["seeds"] == 3 and m["distance_photos_score_blocks"] < m["distance_photos"]
+    groups = script.coverage_groups(committed)
+    assert list(groups) == ["synthetic", "fern", "flower"]
+    assert groups["flower"][1]["coverage"] == committed["runs"]["flower/1"]["coverage"]["photos"]
+    assert groups["flower"][1]["coverage_raw"] == committed["runs"]["flower/1"]["coverage"]["views"]
