@@ -186,13 +186,21 @@ ROWS_BACKBONE: tuple[Row, ...] = (
 ) + REFERENCE_ROWS
 
 
+#: Study 18b: the default trained from two seeds no study had used, to confirm study 18's cross-fitted
+#: diagnostic on runs it has not seen (renders of benchmarks/photo_calibration_study.py).
+ROWS_FRESH_SEEDS: tuple[Row, ...] = tuple(
+    (f"seed{seed}", "snerf_default", (("train.seed", seed),), f"S-NeRF default, seed {seed} (study 18b)")
+    for seed in (3, 4)) + REFERENCE_ROWS
+
+
 #: --study NAME -> its rows.
 STUDIES: dict[str, tuple[Row, ...]] = {"factors": ROWS, "noise_head": ROWS_NOISE_HEAD, "geometry": ROWS_GEOMETRY,
                                        "colour": ROWS_COLOUR, "depth_weight": ROWS_DEPTH_WEIGHT,
                                        "likelihood": ROWS_LIKELIHOOD, "training_samples": ROWS_TRAINING_SAMPLES,
                                        "seeds": ROWS_SEEDS, "draws4_seeds": ROWS_DRAWS4_SEEDS,
                                        "split_draws": ROWS_SPLIT_DRAWS, "schedule": ROWS_SCHEDULE,
-                                       "kl": ROWS_KL, "backbone": ROWS_BACKBONE}
+                                       "kl": ROWS_KL, "backbone": ROWS_BACKBONE,
+                                       "fresh_seeds": ROWS_FRESH_SEEDS}
 
 COLUMNS: tuple[tuple[str, str], ...] = (
     ("psnr", "PSNR"), ("nll", "NLL"), ("auce_colour", "AUCE"), ("nll_raw", "NLL raw"), ("auce_colour_raw", "AUCE raw"),
@@ -404,7 +412,8 @@ def main(argv: list[str] | None = None) -> int:
                         "'split_draws' (study 9c: K = 4 for the colour rays and 8 for the depth rays, three seeds) or "
                         "'schedule' (study 10: twice the learning rate or twice the steps, S-NeRF and deterministic NeRF) or "
                         "'kl' (study 16: no observed-ray prior, or the random-point KL weight x4 or /4; 16b: the observed-ray KL weight /4; three seeds) or "
-                        "'backbone' (study 17: the paper's MLP at the grid's wall time).")
+                        "'backbone' (study 17: the paper's MLP at the grid's wall time) or 'fresh_seeds' (study 18b: "
+                        "the default from seeds 3 and 4).")
     p.add_argument("--rows", nargs="+", default=None, help="Rows of the study to run (default: all of them).")
     p.add_argument("--data-root", type=Path, default=DEFAULT_DATA_ROOT)
     p.add_argument("--cost", action="store_true",
@@ -448,7 +457,8 @@ def main(argv: list[str] | None = None) -> int:
                      "split_draws": ("draws4_depth8", "default", "deterministic"),
                      "schedule": ("default", "deterministic"),
                      "kl": ("no_observed_prior", "default", "deterministic"),
-                     "backbone": ("mlp_equal_time", "default", "deterministic")}[args.study]
+                     "backbone": ("mlp_equal_time", "default", "deterministic"),
+                     "fresh_seeds": ("seed3", "deterministic")}[args.study]
         cost = measure_cost(out, "fern", args.data_root, rows=cost_rows, study=STUDIES[args.study])
         atomic_write_text(out / "cost.json", json.dumps(cost, indent=2))
         print(json.dumps(cost, indent=2))
