@@ -53,11 +53,35 @@ def test_photo_points_are_the_roles_points_each_depth_map_shows(tiny_scene, load
                 np.testing.assert_allclose(sd.depth, z[0].numpy(), rtol=1e-6)
 
 
-def _run(views: float, photos: float, score_blocks: float = 0.0, one=(0.05,)) -> dict:
+def test_cross_fitted_coverage_judges_each_block_by_the_others(load_script):
+    """Two blocks whose fitting points have |z| = 1 (block 0) and 3 (block 1); every scored point
+    has |z| = 2. Cross-fitted in two folds, block 0's points get block 1's map (bound 3: inside at
+    every level) and block 1's get block 0's (bound 1: outside): half inside at every level. Fitted
+    on both blocks, the same points would all fall inside the 95% interval."""
+    from stochastic_fields.calibration import QuantileCalibration
+
+    script = load_script("benchmarks/photo_calibration_study.py")  # puts benchmarks/ on the path
+    from std_floor_study import coverage
+    n = 60
+    fitting = {"abs_err": np.r_[np.ones(n), 3 * np.ones(n)], "std": np.ones(2 * n), "block": np.r_[np.zeros(n), np.ones(n)]}
+    scored = {"abs_err": 2 * np.ones(4), "std": np.ones(4), "block": np.array([0, 0, 1, 1])}
+    for seed in (0, 1, 2):
+        assert script.cross_fitted_coverage(scored, fitting, folds=2, seed=seed) == pytest.approx([0.5, 0.5])
+    pooled = QuantileCalibration.fit_errors(fitting["abs_err"], fitting["std"], quantity="depth_std")
+    assert coverage(scored["abs_err"], scored["std"], pooled)[1] == 1.0
+    # a block with no scored point is skipped; the coverage is over the scored points only
+    three = {"abs_err": np.r_[fitting["abs_err"], np.ones(n)], "std": np.ones(3 * n),
+             "block": np.r_[fitting["block"], 2 * np.ones(n)]}
+    got = script.cross_fitted_coverage({**scored, "block": np.array([2, 2, 2, 2])}, three, folds=3)
+    assert got == pytest.approx([1.0, 1.0])  # block 2 judged by blocks 0 and 1: bound Q_p of {1, 3}
+
+
+def _run(views: float, photos: float, score_blocks: float = 0.0, one=(0.05,), cross=(0.0, 0.0)) -> dict:
     cov = lambda d: [0.683 + d, 0.95]  # noqa: E731  (distance = d)
     return {"coverage": {"views": cov(views), "photos": cov(photos), "photos_score_blocks": cov(score_blocks)},
             "distance": {"views": views, "photos": photos, "photos_score_blocks": score_blocks},
-            "one_photo": {str(i): {"points": 100, "coverage": cov(d), "distance": d} for i, d in enumerate(one)}}
+            "one_photo": {str(i): {"points": 100, "coverage": cov(d), "distance": d} for i, d in enumerate(one)},
+            "cross_fitted": {"views": cov(cross[0]), "photos": cov(cross[1])}}
 
 
 def test_rule_by_hand(load_script):
@@ -76,6 +100,9 @@ def test_rule_by_hand(load_script):
     assert one["scenes"]["a"]["one_photo_maps"] == 3
     assert one["scenes"]["a"]["one_photo_distance_mean"] == pytest.approx(0.05)
     assert one["scenes"]["a"]["one_photo_distance_range"] == pytest.approx([0.02, 0.08])
+    cross = script.decide({"runs": {"a/0": _run(0.1, 0.1, cross=(0.02, 0.04)), "a/1": _run(0.1, 0.1, cross=(0.04, 0.0))}})
+    assert cross["scenes"]["a"]["coverage_cross_fitted"]["views"] == pytest.approx([0.683 + 0.03, 0.95])
+    assert cross["scenes"]["a"]["coverage_cross_fitted"]["photos"] == pytest.approx([0.683 + 0.02, 0.95])
 
 
 def test_committed_decision_recomputed(load_script):
@@ -88,6 +115,8 @@ def test_committed_decision_recomputed(load_script):
     assert not again["passes"] and again["worse_on"] == ["flower"]
     for m in again["scenes"].values():
         assert m["seeds"] == 3 and m["distance_photos_score_blocks"] < m["distance_photos"]
+        # the cross-fitted virtual-view map holds within 5 points at both levels (study 18's diagnostic)
+        assert np.abs(np.subtract(m["coverage_cross_fitted"]["views"], [0.6827, 0.95])).max() <= 0.05
     groups = script.coverage_groups(committed)
     assert list(groups) == ["synthetic", "fern", "flower"]
     assert groups["flower"][1]["coverage"] == committed["runs"]["flower/1"]["coverage"]["photos"]
