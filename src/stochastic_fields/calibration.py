@@ -2,11 +2,12 @@
 
 The rendered depth standard deviation sigma ranks errors but its scale (and the shape of the
 error distribution) need not match what happens on real scenes. Quantile recalibration
-(Kuleshov et al. 2018) fixes this with data a user has: the capture points of the CALIBRATE role
-(``capture_points``: structure-from-motion points split by blocks of space, disjoint from the
-points that train the depth likelihood and from those that score), rendered from calibration
-views: virtual cameras halfway between neighbouring training views (novel viewpoints, as the
-test views are, made without them; ``calibration_views``).
+(Kuleshov et al. 2018) fixes this with data a user has: the capture points that training did not
+fit (``capture_points``: structure-from-motion points split by blocks of space; by default the
+CALIBRATE and SCORE roles, ``CALIBRATION_POINTS``), rendered from calibration views: virtual
+cameras halfway between neighbouring training views (novel viewpoints, as the test views are,
+made without them; ``calibration_views``). A map fitted on the SCORE points too is scored on them
+by its cross-fitted fold maps (``DepthFolds``), each fitted without the blocks it judges.
 
 With standardised errors |z| = |d - d*| / sigma on those points and z_p = Phi^-1((1 + p) / 2),
 the map stores, for nominal central levels p,
@@ -64,11 +65,17 @@ MIN_CALIBRATION_SAMPLES: int = 50
 MIN_CALIBRATION_SCALE: float = 1e-3
 #: File of a run's calibration.
 CALIBRATION_FILE = "calibration.json"
-#: Which capture points a depth map may be fitted on (``--points``): "calibrate", the CALIBRATE role
-#: only (the default; the SCORE points stay an independent test), or "held-out", every point the
-#: training did not fit (CALIBRATE and SCORE: three times the blocks, less luck of the split, for a
-#: user who does not score the run against its SfM points; docs/uncertainty.md, study 3).
-CALIBRATION_POINTS: tuple[str, ...] = ("calibrate", "held-out")
+#: Which capture points a depth map may be fitted on (``--points``): "held-out", every point the
+#: training did not fit (CALIBRATE and SCORE: three times the blocks, so the map sees most of the
+#: scene's surfaces; the default, docs/uncertainty.md, studies 18 and 18b), scored independently by
+#: its cross-fitted fold maps (``DepthFolds``); or "calibrate", the CALIBRATE role only (the SCORE
+#: points then score the map itself; the protocol of studies 1 to 18).
+CALIBRATION_POINTS: tuple[str, ...] = ("held-out", "calibrate")
+DEFAULT_CALIBRATION_POINTS: str = "held-out"
+#: Folds the SCORE blocks are dealt into when a map is fitted on them too (``DepthFolds``), and the
+#: seed of the deal (study 18's diagnostic: 5 folds, seed 0).
+CROSS_FIT_FOLDS: int = 5
+CROSS_FIT_SEED: int = 0
 #: Whether depth maps fit a std floor (``fit_std_floor``); docs/uncertainty.md, study 11.
 DEPTH_STD_FLOOR: bool = False
 #: Whether depth maps are fitted on the free-space-checked std sqrt(sigma^2 + e^2) (``free_space``;
@@ -190,6 +197,118 @@ class QuantileCalibration:
             raise ValueError(f"{where}: levels must increase inside (0, 1) and scales be positive and finite, "
                              f"with one scale per level")
         return out
+
+
+@dataclass
+class DepthFolds:
+    """Cross-fitted fold maps that score a depth map fitted on the SCORE capture points too
+    (``points="held-out"``) without letting it judge the points it saw.
+
+    The SCORE role's blocks of space (``capture_points.block_keys``) are dealt into folds; fold f's
+    map is fitted, like the run's map, on every held-out calibration render whose point lies outside
+    fold f's blocks. A scored depth whose surface lies in a block of fold f is judged by map f
+    (``cross_fitted_depth_scores``): no map sees the block of a point it scores. Each fold map is
+    fitted on about (1 - 1 / (3 folds)) of the held-out points, so the scores estimate how the run's
+    map (fitted on all of them) holds on surfaces it did not see. Render, export and every ranking
+    score use the run's map; only the scores of its intervals (coverage, AUCE, NLL) use the folds.
+
+    Attributes:
+        blocks: per fold, its block keys [B_f] int64.
+        maps: per fold, its map.
+        seed: seed of the deal.
+    """
+
+    blocks: list[np.ndarray]
+    maps: list[QuantileCalibration]
+    seed: int = CROSS_FIT_SEED
+
+    def fold_of(self, keys: np.ndarray) -> np.ndarray:
+        """Fold of each block key [N] -> [N] int64 (-1: a block in no fold)."""
+        keys = np.asarray(keys, dtype=np.int64).reshape(-1)
+        out = np.full(keys.shape, -1, dtype=np.int64)
+        for f, blocks in enumerate(self.blocks):
+            out[np.isin(keys, blocks)] = f
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"seed": self.seed, "blocks": [b.tolist() for b in self.blocks], "maps": [m.to_dict() for m in self.maps]}
+
+    @classmethod
+    def from_dict(cls, data: dict, *, where: str) -> "DepthFolds":
+        try:
+            blocks = [np.asarray(b, dtype=np.int64).reshape(-1) for b in data["blocks"]]
+            maps = [QuantileCalibration.from_dict(m, where=f"{where}: fold {f}") for f, m in enumerate(data["maps"])]
+            seed = int(data.get("seed", CROSS_FIT_SEED))
+        except (KeyError, TypeError, ValueError) as exc:
+            if isinstance(exc, ValueError) and str(exc).startswith(where):
+                raise
+            raise ValueError(f"{where}: malformed depth folds ({exc!r})") from exc
+        if not blocks or len(blocks) != len(maps):
+            raise ValueError(f"{where}: depth folds need one map per fold, got {len(blocks)} folds and {len(maps)} maps")
+        every = np.concatenate(blocks)
+        if len(np.unique(every)) != len(every):
+            raise ValueError(f"{where}: a block belongs to more than one fold")
+        return cls(blocks, maps, seed)
+
+
+def fit_depth_folds(abs_err: np.ndarray, std: np.ndarray, keys: np.ndarray, score_blocks: np.ndarray, *,
+                    folds: int = CROSS_FIT_FOLDS, seed: int = CROSS_FIT_SEED, floor: bool = False,
+                    source: str = "") -> DepthFolds:
+    """``DepthFolds`` from the held-out calibration renders: absolute errors ``abs_err`` [N], their
+    stds ``std`` [N] (> 0) and the block key of each point ``keys`` [N]; ``score_blocks`` [B]: the
+    SCORE role's block keys, shuffled (``seed``) and dealt round-robin into ``folds`` folds; fold f's
+    map is fitted (``QuantileCalibration.fit_errors``, ``floor`` as the run's map) on the renders
+    outside fold f's blocks. ValueError for fewer than 2 folds or blocks, or a fold map with too few
+    points."""
+    score_blocks = np.unique(np.asarray(score_blocks, dtype=np.int64))
+    if folds < 2 or len(score_blocks) < 2:
+        raise ValueError(f"cross-fitting needs at least 2 folds and 2 SCORE blocks, got {folds} folds and "
+                         f"{len(score_blocks)} blocks")
+    order = np.random.default_rng(seed).permutation(score_blocks)
+    blocks = [np.sort(order[f::folds]) for f in range(min(folds, len(order)))]
+    keys = np.asarray(keys, dtype=np.int64)
+    maps = [QuantileCalibration.fit_errors(abs_err[~np.isin(keys, b)], std[~np.isin(keys, b)], quantity="depth_std",
+                                           floor=floor, source=f"{source}, outside fold {f}'s {len(b)} SCORE blocks")
+            for f, b in enumerate(blocks)]
+    return DepthFolds(blocks, maps, seed)
+
+
+def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, base_std: np.ndarray, fold: np.ndarray,
+                              folds: DepthFolds, *, var_floor: float | None = None) -> dict[str, Any]:
+    """The interval scores of depths judged by their folds' maps (``DepthFolds``): each depth i of
+    fold f = ``fold`` [N] gets std_i = map_f.calibrated_std(base_std_i) and the interval at level p
+    pred_i +- z_p std_i s_f(p) / s_f(0.6827). ``base_std`` [N]: the std the maps calibrate (the raw
+    total std, or the free-space-checked one). Pooled over the folds:
+    {"nll": mean Gaussian NLL (``metrics.depth_nll``), "coverage_68", "coverage_95", "auce",
+    "calibration": ``metrics.CalibrationResult`` at the default levels}. ValueError when a depth lies
+    in no fold."""
+    from . import metrics as M
+    from .constants import DEPTH_NLL_VARIANCE_FLOOR
+    from .sparse_depth import COVERAGE_LEVELS
+
+    gt, pred, base_std = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (gt, pred, base_std))
+    fold = np.asarray(fold, dtype=np.int64).reshape(-1)
+    if (fold < 0).any() or (fold >= len(folds.maps)).any():
+        raise ValueError(f"cross-fitted depth scores: {int(((fold < 0) | (fold >= len(folds.maps))).sum())} of "
+                         f"{fold.size} depths lie in no fold's SCORE blocks")
+    floor = DEPTH_NLL_VARIANCE_FLOOR if var_floor is None else var_floor
+    levels = M.DEFAULT_CALIBRATION_LEVELS
+    inside, inside_cov, nll_sum = np.zeros(len(levels)), np.zeros(len(COVERAGE_LEVELS)), 0.0
+    for f, m in enumerate(folds.maps):
+        i = fold == f
+        if not i.any():
+            continue
+        std = m.calibrated_std(base_std[i])
+        inside += M.calibration_curve(gt[i], pred[i], std, interval_scale=m.relative_scale).coverage * i.sum()
+        inside_cov += M.calibration_curve(gt[i], pred[i], std, levels=list(COVERAGE_LEVELS),
+                                          interval_scale=m.relative_scale).coverage * i.sum()
+        nll_sum += M.depth_nll(gt[i], pred[i], std ** 2, var_floor=floor) * int(i.sum())
+    n = max(1, gt.size)
+    cov = inside / n
+    curve = M.CalibrationResult(levels=np.asarray(levels), coverage=cov, auce=float(np.abs(cov - levels).mean()),
+                                signed_gap=float((cov - levels).mean()), num_values=int(gt.size))
+    return {"nll": nll_sum / n, "coverage_68": float(inside_cov[0] / n), "coverage_95": float(inside_cov[1] / n),
+            "auce": curve.auce, "calibration": curve}
 
 
 def fit_std_floor(abs_err: np.ndarray, std: np.ndarray) -> float:
@@ -389,8 +508,18 @@ def pair_visible_points(capture, pairs: list[tuple[int, int]], keep: np.ndarray)
 def depth_calibration_errors(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
                              points: str = "calibrate", options=None, bounds: str = CALIBRATION_BOUNDS,
                              free_space=None) -> tuple[np.ndarray, np.ndarray, str]:
-    """What a depth map is fitted on: the absolute camera-z errors [N] and raw total stds [N] (> 0) at
-    the CALIBRATE capture points (``points="held-out"``: CALIBRATE and SCORE, see
+    """``depth_calibration_renders`` (same arguments) as (absolute errors [N], stds [N], source)."""
+    r = depth_calibration_renders(model, dataset, seed=seed, opacity_mask=opacity_mask, points=points,
+                                  options=options, bounds=bounds, free_space=free_space)
+    return r["abs_err"], r["std"], r["source"]
+
+
+def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
+                              points: str = "calibrate", options=None, bounds: str = CALIBRATION_BOUNDS,
+                              free_space=None) -> dict[str, Any]:
+    """What a depth map is fitted on: the absolute camera-z errors "abs_err" [N] and raw total stds
+    "std" [N] (> 0), with the capture point of each ("index" [N] int64) and the data in words
+    ("source"), at the CALIBRATE capture points (``points="held-out"``: CALIBRATE and SCORE, see
     ``CALIBRATION_POINTS``) seen from the calibration views (``calibration_views``: halfway between
     neighbouring training views; a point counts when both views of the pair observed it), at pixels
     with rendered opacity above ``opacity_mask`` (as the depth scores), rendered with ``options``
@@ -398,7 +527,7 @@ def depth_calibration_errors(model, dataset, *, seed: int = 0, opacity_mask: flo
     with the options the run will render with; ``bounds``: the views' render bounds,
     ``calibration_views``); with ``free_space`` (``free_space.TrainingDepth``) the stds are the
     checked ones, sqrt(sigma^2 + e^2) with e the rendered point's free-space violation
-    (``free_space.checked_std``); and the data, in words.
+    (``free_space.checked_std``).
     ValueError when the scene has no capture points, or for an unknown ``points``."""
     from .capture_points import CALIBRATE, SCORE, load_capture_points
     from .sparse_depth import project_sparse_depth
@@ -422,18 +551,19 @@ def depth_calibration_errors(model, dataset, *, seed: int = 0, opacity_mask: flo
     source = (f"{int(keep.sum())} {capture.source} points of the {roles} seen from {len(pairs)} views halfway "
               f"between neighbouring training views (opacity > {mask})")
     std = r["depth_std"]
+    views = [v for v, sd in sparse.items() if len(sd)]  # the order of render_at_points' rays
+    index = np.concatenate([sparse[v].point_index for v in views] or [np.zeros(0, np.int64)])
     if free_space is not None and len(std):
         from .cameras import camera_to_world
         from .free_space import checked_std, free_space_violation, rendered_points
 
-        views = [v for v, sd in sparse.items() if len(sd)]  # the order of render_at_points' rays
-        index = np.concatenate([sparse[v].point_index for v in views])
         centres = camera_to_world(cams).double()[:, :3, 3].numpy()[np.concatenate(
             [np.full(len(sparse[v]), v) for v in views])]
         where = rendered_points(centres, capture.xyz[index], r["gt"], np.where(keep, r["depth_mean"], r["gt"]))
         std = checked_std(std, free_space_violation(where, free_space))
         source += ", std checked against the training views' free space"
-    return np.abs(r["gt"][keep] - r["depth_mean"][keep]), std[keep], source
+    return {"abs_err": np.abs(r["gt"][keep] - r["depth_mean"][keep]), "std": std[keep], "index": index[keep],
+            "source": source}
 
 
 def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
@@ -444,11 +574,44 @@ def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float 
     (``free_space.TrainingDepth``), on the free-space-checked std (the map's ``free_space``).
     ValueError when the scene has no capture points or too few of those roles, or for an unknown
     ``points``."""
-    err, std, source = depth_calibration_errors(model, dataset, seed=seed, opacity_mask=opacity_mask,
-                                                points=points, options=options, free_space=free_space)
-    out = QuantileCalibration.fit_errors(err, std, quantity="depth_std", floor=floor, source=source)
-    out.free_space = free_space is not None
+    r = depth_calibration_renders(model, dataset, seed=seed, opacity_mask=opacity_mask, points=points,
+                                  options=options, free_space=free_space)
+    return _fit_depth_map(r, floor=floor, free_space=free_space is not None)
+
+
+def _fit_depth_map(renders: dict[str, Any], *, floor: bool, free_space: bool) -> QuantileCalibration:
+    """The depth map of ``depth_calibration_renders``' output."""
+    out = QuantileCalibration.fit_errors(renders["abs_err"], renders["std"], quantity="depth_std", floor=floor,
+                                         source=renders["source"])
+    out.free_space = free_space
     return out
+
+
+def fit_depth_calibration_and_folds(model, dataset, *, seed: int = 0, points: str = DEFAULT_CALIBRATION_POINTS,
+                                    options=None, floor: bool = DEPTH_STD_FLOOR, free_space=None,
+                                    folds: int = CROSS_FIT_FOLDS) -> tuple[QuantileCalibration, DepthFolds | None]:
+    """The depth map (as ``fit_depth_calibration``) and, when it is fitted on the SCORE points too
+    (``points="held-out"``), its cross-fitted ``DepthFolds`` from the same renders; None otherwise,
+    or with a warning when the scene has too few SCORE blocks or points to fit them. ValueError as
+    ``fit_depth_calibration``."""
+    from .capture_points import SCORE, block_keys, load_capture_points
+
+    r = depth_calibration_renders(model, dataset, seed=seed, points=points, options=options, free_space=free_space)
+    out = _fit_depth_map(r, floor=floor, free_space=free_space is not None)
+    if points == "calibrate":
+        return out, None
+    capture = load_capture_points(dataset)
+    keys = block_keys(capture.xyz, capture.xyz)
+    try:
+        folded = fit_depth_folds(r["abs_err"], r["std"], keys[r["index"]], keys[capture.roles == SCORE], folds=folds,
+                                 floor=floor, source=r["source"])
+    except ValueError as exc:  # a scene too small to cross-fit: the map stands, its scores are not independent
+        warnings.warn(f"{dataset.root}: the depth map's cross-fitted folds were not fitted ({exc}); depth interval "
+                      "scores on the SCORE points will not be independent", stacklevel=2)
+        return out, None
+    for m in folded.maps:
+        m.free_space = out.free_space
+    return out, folded
 
 
 def fit_colour_calibration(model, dataset, *, fraction: float, block: int, seed: int = 0) -> QuantileCalibration:
@@ -494,15 +657,24 @@ class RunCalibration:
     training_depth: Any = None
     """The training views' rendered depths (``free_space.TrainingDepth``) a ``free_space`` depth map
     checks against, stored beside calibration.json (``free_space.TRAINING_DEPTH_FILE``)."""
+    depth_folds: DepthFolds | None = None
+    """The depth map's cross-fitted fold maps (``points="held-out"``): what its interval scores use."""
 
     @property
     def saw_score_points(self) -> bool:
-        """Whether the SCORE points were fitted on (their depth scores are then not independent)."""
+        """Whether the SCORE points were fitted on."""
         return self.points != "calibrate"
+
+    @property
+    def independent_depth_scores(self) -> bool:
+        """Whether depth scores on the SCORE points are an independent test: the map never saw them,
+        or its cross-fitted folds judge them."""
+        return not self.saw_score_points or self.depth_folds is not None
 
     def to_dict(self) -> dict[str, Any]:
         return {"depth": None if self.depth is None else self.depth.to_dict(), "points": self.points,
-                "colour": None if self.colour is None else self.colour.to_dict()}
+                "colour": None if self.colour is None else self.colour.to_dict(),
+                "depth_folds": None if self.depth_folds is None else self.depth_folds.to_dict()}
 
     @classmethod
     def from_dict(cls, data: dict, *, where: str) -> "RunCalibration":
@@ -511,10 +683,13 @@ class RunCalibration:
         points = data.get("points", "calibrate")
         if points not in CALIBRATION_POINTS:
             raise ValueError(f"{where}: points must be one of {CALIBRATION_POINTS}, got {points!r}")
-        depth, colour = data.get("depth"), data.get("colour")
+        depth, colour, folds = data.get("depth"), data.get("colour"), data.get("depth_folds")
+        if folds is not None and not isinstance(folds, dict):
+            raise ValueError(f"{where}: depth_folds must be a JSON object, got {type(folds).__name__}")
         return cls(depth=None if depth is None else QuantileCalibration.from_dict(depth, where=f"{where}: depth"),
                    points=points,
-                   colour=None if colour is None else QuantileCalibration.from_dict(colour, where=f"{where}: colour"))
+                   colour=None if colour is None else QuantileCalibration.from_dict(colour, where=f"{where}: colour"),
+                   depth_folds=None if folds is None else DepthFolds.from_dict(folds, where=f"{where}: depth_folds"))
 
 
 def save_run_calibration(run_dir: str | Path, calibration: RunCalibration) -> Path:
@@ -544,10 +719,11 @@ def load_run_calibration(run_dir: str | Path) -> RunCalibration | None:
 
 
 def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int = 0, model=None,
-                  dataset=None, points: str = "calibrate", floor: bool = DEPTH_STD_FLOOR,
+                  dataset=None, points: str = DEFAULT_CALIBRATION_POINTS, floor: bool = DEPTH_STD_FLOOR,
                   free_space: bool = DEPTH_FREE_SPACE, progress: bool = True) -> RunCalibration:
     """Fit the run's calibration and write ``RUN/calibration.json``: the depth map from its capture
-    points (``points``: ``CALIBRATION_POINTS``) and, when the run held pixels out of training
+    points (``points``: ``CALIBRATION_POINTS``; "held-out" adds the cross-fitted ``DepthFolds``
+    that score it) and, when the run held pixels out of training
     (``train.holdout_fraction`` > 0 in its config.json), the colour map from them; ``floor``: whether
     the depth map fits a std floor (``fit_std_floor``); ``free_space``: whether it is fitted on the
     free-space-checked std (the training views are rendered once and stored first, as
@@ -572,13 +748,15 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
         reference = render_training_depth(model, dataset, seed=seed, progress=progress)
         save_training_depth(run_dir, reference)  # before the calibration.json that names it
     try:
-        depth = fit_depth_calibration(model, dataset, seed=seed, points=points, floor=floor, free_space=reference)
+        depth, folds = fit_depth_calibration_and_folds(model, dataset, seed=seed, points=points, floor=floor,
+                                                       free_space=reference)
     except ValueError:
         if colour is None:
             raise
-        depth = None
+        depth = folds = None
     calibration = RunCalibration(depth=depth, points=points, colour=colour,
-                                 training_depth=None if depth is None or not depth.free_space else reference)
+                                 training_depth=None if depth is None or not depth.free_space else reference,
+                                 depth_folds=folds)
     save_run_calibration(run_dir, calibration)
     return calibration
 
@@ -588,6 +766,10 @@ def describe(calibration: RunCalibration) -> str:
     parts = [f"{name} std: {_std_formula(m)}{m.std_scale:.3g} "
              f"(one sigma, 68.3%), x{float(m.scale_at(0.95)):.3g} at 95% [{m.source}]"
              for name, m in (("depth", calibration.depth), ("colour", calibration.colour)) if m is not None]
+    if calibration.depth_folds is not None:
+        scales = [m.std_scale for m in calibration.depth_folds.maps]
+        parts.append(f"depth interval scores cross-fitted over {len(scales)} folds of the SCORE blocks "
+                     f"(fold factors x{min(scales):.3g} to x{max(scales):.3g})")
     return "; ".join(parts) if parts else "no calibrated quantity"
 
 
@@ -636,11 +818,11 @@ def add_arguments(p) -> None:
     p.add_argument("--run", required=True, help="Trained run folder.")
     p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
     p.add_argument("--seed", type=int, default=0, help="Seed of the K draws of the calibration renders.")
-    p.add_argument("--points", choices=CALIBRATION_POINTS, default="calibrate",
-                   help="Capture points to fit on: 'calibrate' (default) keeps the SCORE points an independent "
-                        "test of the depth intervals; 'held-out' also fits on them (three times the blocks of "
-                        "space, a steadier map) for a capture you will not score; eval then warns that its "
-                        "depth scores are not independent.")
+    p.add_argument("--points", choices=CALIBRATION_POINTS, default=DEFAULT_CALIBRATION_POINTS,
+                   help="Capture points to fit on: 'held-out' (default) fits every point the training did not "
+                        "fit, so the map sees most of the scene's surfaces, and stores its cross-fitted fold "
+                        f"maps ({CROSS_FIT_FOLDS} folds of the SCORE blocks) that eval scores its intervals with; "
+                        "'calibrate' fits the CALIBRATE points only (docs/uncertainty.md, studies 18 and 18b).")
     p.add_argument("--std-floor", action=argparse.BooleanOptionalAction, default=DEPTH_STD_FLOOR,
                    help="Fit a depth std floor tau first, so that depth_std = s * sqrt(raw^2 + tau^2) "
                         f"(docs/uncertainty.md, study 11; default: {'on' if DEPTH_STD_FLOOR else 'off'}).")

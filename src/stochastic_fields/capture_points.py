@@ -83,21 +83,37 @@ def block_roles(xyz: np.ndarray, capture: "CapturePoints") -> np.ndarray:
     return np.where(blocks[pos] == query, capture.roles[first[pos]], NO_ROLE).astype(np.int8)
 
 
-def dense_depth_score_mask(dataset, capture: "CapturePoints", view: int) -> np.ndarray:
-    """[H, W] bool: the pixels of ``view``'s exact depth map (``dataset.depths``, > 0 on a surface)
-    whose surface point, back-projected, lies in a SCORE block of ``capture``'s split: the dense
-    counterpart of scoring the SCORE capture points only (module doc)."""
+def _dense_surface_points(dataset, view: int) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
+    """The pixels of ``view``'s exact depth map with a surface (depth > 0): rows [N], cols [N] and
+    their back-projected world points [N, 3] (float64)."""
     from .cameras import camera_to_world, intrinsics_3x3
 
     depth = dataset.depths[view].double()
     rows, cols = torch.nonzero(depth > 0, as_tuple=True)
-    mask = np.zeros(tuple(depth.shape), dtype=bool)
-    if rows.numel() == 0:
-        return mask
     xyz = backproject_pixels(intrinsics_3x3(dataset.cameras)[view], camera_to_world(dataset.cameras)[view],
                              rows, cols, depth[rows, cols])
-    mask[rows.numpy(), cols.numpy()] = block_roles(xyz.numpy(), capture) == SCORE
+    return rows, cols, xyz.numpy()
+
+
+def dense_depth_score_mask(dataset, capture: "CapturePoints", view: int) -> np.ndarray:
+    """[H, W] bool: the pixels of ``view``'s exact depth map (``dataset.depths``, > 0 on a surface)
+    whose surface point, back-projected, lies in a SCORE block of ``capture``'s split: the dense
+    counterpart of scoring the SCORE capture points only (module doc)."""
+    rows, cols, xyz = _dense_surface_points(dataset, view)
+    mask = np.zeros(tuple(dataset.depths[view].shape), dtype=bool)
+    if len(xyz):
+        mask[rows.numpy(), cols.numpy()] = block_roles(xyz, capture) == SCORE
     return mask
+
+
+def dense_depth_block_keys(dataset, capture: "CapturePoints", view: int) -> np.ndarray:
+    """[H, W] int64: the block of space (``block_keys`` on ``capture``'s split) of each pixel's
+    surface point in ``view``'s exact depth map; -1 where there is no surface."""
+    rows, cols, xyz = _dense_surface_points(dataset, view)
+    keys = np.full(tuple(dataset.depths[view].shape), -1, dtype=np.int64)
+    if len(xyz):
+        keys[rows.numpy(), cols.numpy()] = block_keys(xyz, capture.xyz)
+    return keys
 
 
 def split_points_by_blocks(xyz: np.ndarray, *, blocks_per_axis: int = SPLIT_BLOCKS_PER_AXIS,

@@ -90,24 +90,34 @@ class DepthSamples:
     """The std before recalibration (equal to ``std`` without a calibration)."""
     parts: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
     """The std of each part of the total variance (``DEPTH_STD_PARTS``) where the maps have it."""
+    std_uncalibrated: np.ndarray | None = None
+    """What the depth map calibrates: the raw std, or sqrt(raw^2 + e^2) with the free-space check."""
+    block: np.ndarray | None = None
+    """Block of space of each sample's surface (``capture_points.block_keys``), where the run's
+    calibration has cross-fitted folds that judge the samples by block."""
 
 
 def depth_samples(products: dict[str, np.ndarray], gt_depth: np.ndarray | None = None,
-                  sparse=None) -> DepthSamples | None:
+                  sparse=None, blocks: np.ndarray | None = None) -> DepthSamples | None:
     """The view's depth ground truth and the rendered depth there: the ``sparse`` points
     (``sparse_depth.SparseDepth``) or the pixels of ``gt_depth`` [H, W] (> 0 where a surface is),
-    in both cases only where the rendered opacity exceeds ``OPACITY_MASK``; None without either."""
+    in both cases only where the rendered opacity exceeds ``OPACITY_MASK``; None without either.
+    ``blocks``: the block key of each sparse point [M] or pixel [H, W], kept as ``DepthSamples.block``."""
     d, op, s = products["depth_mean"], products["opacity"], products["depth_std"]
     s_raw = products.get("depth_std_raw", s)
+    s_base = (np.hypot(s_raw.astype(np.float64), products["depth_free_space"]) if "depth_free_space" in products
+              else s_raw)
     parts = {name: products[key] for name, key in DEPTH_STD_PARTS.items() if key in products}
     if sparse is not None:
         keep = sparse.sample(op) > OPACITY_MASK
         return DepthSamples(sparse.depth[keep], sparse.sample(d)[keep], sparse.sample(s)[keep],
-                            sparse.sample(s_raw)[keep], {k: sparse.sample(v)[keep] for k, v in parts.items()})
+                            sparse.sample(s_raw)[keep], {k: sparse.sample(v)[keep] for k, v in parts.items()},
+                            sparse.sample(s_base)[keep], None if blocks is None else np.asarray(blocks)[keep])
     if gt_depth is None:
         return None
     mask = (gt_depth > 0) & (op > OPACITY_MASK)
-    return DepthSamples(gt_depth[mask], d[mask], s[mask], s_raw[mask], {k: v[mask] for k, v in parts.items()})
+    return DepthSamples(gt_depth[mask], d[mask], s[mask], s_raw[mask], {k: v[mask] for k, v in parts.items()},
+                        s_base[mask], None if blocks is None else np.asarray(blocks)[mask])
 
 
 def _pool_depth_samples(pool: Sequence[DepthSamples]) -> DepthSamples:
@@ -116,8 +126,12 @@ def _pool_depth_samples(pool: Sequence[DepthSamples]) -> DepthSamples:
         return np.concatenate(list(arrays)).astype(np.float64) if pool else np.zeros(0)
 
     names = sorted(set.intersection(*(set(p.parts) for p in pool))) if pool else []
+    blocks = None
+    if pool and all(p.block is not None for p in pool):
+        blocks = np.concatenate([p.block for p in pool]).astype(np.int64)
     return DepthSamples(*(cat(getattr(p, k) for p in pool) for k in ("gt", "pred", "std", "std_raw")),
-                        {k: cat(p.parts[k] for p in pool) for k in names})
+                        {k: cat(p.parts[k] for p in pool) for k in names},
+                        cat(p.std_raw if p.std_uncalibrated is None else p.std_uncalibrated for p in pool), blocks)
 
 
 def depth_part_rankings(samples: DepthSamples) -> dict[str, M.CorrelationResult]:
@@ -135,12 +149,30 @@ def interval_scale_of(calibration, quantity: str = "depth"):
     return None if cal is None else cal.relative_scale
 
 
+#: The interval scores that a calibration's cross-fitted folds replace (``cross_fitted_interval_scores``).
+CROSS_FITTED_KEYS: tuple[str, ...] = ("nll", "coverage_68", "coverage_95", "auce", "calibration")
+
+
+def calibrated_depth_scores(samples: DepthSamples, calibration=None) -> dict[str, Any]:
+    """``sparse_depth.paired_depth_scores`` of the calibrated std, with the interval scores
+    (``CROSS_FITTED_KEYS``) cross-fitted where the calibration has folds and the samples their
+    blocks (``calibration.cross_fitted_depth_scores``); ranking and error scores are the run's map's."""
+    scores = paired_depth_scores(samples.gt, samples.pred, samples.std, interval_scale=interval_scale_of(calibration))
+    folds = None if calibration is None else calibration.depth_folds
+    if folds is not None and samples.block is not None and samples.gt.size >= 2:
+        from .calibration import cross_fitted_depth_scores
+
+        base = samples.std_raw if samples.std_uncalibrated is None else samples.std_uncalibrated
+        scores.update(cross_fitted_depth_scores(samples.gt, samples.pred, base, folds.fold_of(samples.block), folds))
+    return scores
+
+
 def score_depth(samples: DepthSamples, calibration=None, scores: dict | None = None) -> dict[str, Any]:
     """``depth/<score>`` (and, with a calibration, the raw std's ``depth_raw/<score>``) of
-    ``sparse_depth.paired_depth_scores``, ``DEPTH_SCORE_KEYS`` only. ``scores``: the recalibrated
-    std's ``paired_depth_scores`` if already computed (with ``interval_scale_of(calibration)``)."""
+    ``calibrated_depth_scores``, ``DEPTH_SCORE_KEYS`` only. ``scores``: those scores if already
+    computed."""
     if scores is None:
-        scores = paired_depth_scores(samples.gt, samples.pred, samples.std, interval_scale=interval_scale_of(calibration))
+        scores = calibrated_depth_scores(samples, calibration)
     out = {f"depth/{k}": scores[k] for k in DEPTH_SCORE_KEYS}
     out.update(depth_part_rankings(samples))
     if calibration is not None and calibration.depth is not None:
@@ -240,10 +272,14 @@ def _plain_scores(scores: dict) -> dict[str, Any]:
             for k, v in scores.items() if k not in ("calibration", "sparsification")}
 
 
-#: What eval says when the run's calibration was fitted on the SCORE points too (``calibrate --points held-out``).
-SCORE_POINTS_SEEN = ("the depth calibration was fitted on the SCORE capture points too (calibrate --points "
-                     "held-out): depth coverage, AUCE and NLL are not an independent test; refit with "
-                     "--points calibrate to score")
+#: What eval says when the run's calibration was fitted on the SCORE points too without cross-fitted folds.
+SCORE_POINTS_SEEN = ("the depth calibration was fitted on the SCORE capture points too and has no cross-fitted "
+                     "folds: depth coverage, AUCE and NLL are not an independent test; refit with "
+                     "`stochastic-fields calibrate` to score")
+#: How the interval scores of a map fitted on every held-out point are made independent.
+CROSS_FITTED_SCORES = ("depth coverage, AUCE and NLL cross-fitted: the map was fitted on every held-out capture "
+                       "point (CALIBRATE and SCORE); each scored depth is judged by the fold map fitted without "
+                       "its SCORE block's fold (calibration.json depth_folds); ranking scores use the run's map")
 
 
 #: How dense (exact) depth is scored when the scene has capture points (capture_points.dense_depth_score_mask).
@@ -270,18 +306,21 @@ def _conventions(depth_source: str | None, calibration, *, dense_scored_blocks: 
     if calibration is not None and calibration.depth is not None:
         out["depth_calibration"] = ("depth_std recalibrated (calibration.json), intervals at level p scaled by "
                                     "s(p)/s(0.683); raw scores under depth_raw/")
-        if depth_source is not None and calibration.saw_score_points:
+        if depth_source is not None and not calibration.independent_depth_scores:
             out["depth_calibration_independence"] = SCORE_POINTS_SEEN
+        elif depth_source is not None and calibration.depth_folds is not None:
+            out["depth_calibration_independence"] = CROSS_FITTED_SCORES
     return out
 
 
 def _evaluate_view(model, dataset, v: int, out_dir: Path, *, options: RenderOptions, seed: int,
                    device: torch.device, write_products: bool, sparse, calibration,
-                   dense_scored: np.ndarray | None = None) -> dict[str, Any]:
+                   dense_scored: np.ndarray | None = None, blocks: np.ndarray | None = None) -> dict[str, Any]:
     """Render, write and score dataset view ``v``: its scores
     and what the pooled scores need (its ``ColourTerms`` and depth samples), CPU/numpy only (sent
     between ranks as is). ``dense_scored`` [H, W]: the pixels of the exact depth map that score
-    depth (None: every pixel with a surface)."""
+    depth (None: every pixel with a surface); ``blocks``: the block key of each ``sparse`` point
+    [M] or pixel [H, W] (``depth_samples``)."""
     gt_depths = getattr(dataset, "depths", None)
     rays = dataset.rays(v).to(device)
     synchronize(device)
@@ -304,7 +343,7 @@ def _evaluate_view(model, dataset, v: int, out_dir: Path, *, options: RenderOpti
     if "colour_std_raw" in products:  # the raw std's calibration, beside the recalibrated one
         raw = ColourTerms.of({"colour_mean": products["colour_mean"], "colour_std": products["colour_std_raw"]}, gt)
         scores.update(nll_raw=float(raw.nll.mean()), auce_colour_raw=raw.calibration.auce)
-    samples = depth_samples(products, gt_depth, sparse)
+    samples = depth_samples(products, gt_depth, sparse, blocks)
     if samples is not None:
         scores.update(score_depth(samples, calibration))
     scores.update(render_s=render_s, **draws_summary(maps["num_draws"]))
@@ -345,26 +384,38 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
     device = next(model.parameters()).device
     gt_depths = getattr(dataset, "depths", None)
     depth_source = "sparse" if sparse_depth is not None else ("dense" if gt_depths is not None else None)
-    capture = None
-    if depth_source == "dense":
-        from .capture_points import dense_depth_score_mask, load_capture_points
+    from .capture_points import block_keys, dense_depth_block_keys, dense_depth_score_mask, load_capture_points
 
+    capture = load_capture_points(dataset) if depth_source == "dense" else None
+    folds = None if depth_source is None or calibration is None else calibration.depth_folds
+    if folds is not None and capture is None:
         capture = load_capture_points(dataset)
-    if depth_source is not None and calibration is not None and calibration.saw_score_points:
+    if depth_source is not None and calibration is not None and not calibration.independent_depth_scores:
         warnings.warn(f"{SCORE_POINTS_SEEN} (evaluating into {out_dir})", stacklevel=2)
+
+    def blocks_of(v: int) -> np.ndarray | None:
+        """The block keys ``_evaluate_view`` judges view ``v``'s depths by (cross-fitted folds only)."""
+        if folds is None or capture is None:
+            return None
+        if depth_source == "dense":
+            return dense_depth_block_keys(dataset, capture, v)
+        return block_keys(capture.xyz[sparse_depth[v].point_index], capture.xyz)
+
     ctx = distributed
     records = map_sharded(lambda i: _evaluate_view(model, dataset, views[i], out_dir, options=options, seed=seed,
                                                    device=device, write_products=i < product_views,
                                                    calibration=calibration,
                                                    sparse=None if sparse_depth is None else sparse_depth[views[i]],
-                                                   dense_scored=None if capture is None
-                                                   else dense_depth_score_mask(dataset, capture, views[i])),
+                                                   dense_scored=None if depth_source != "dense" or capture is None
+                                                   else dense_depth_score_mask(dataset, capture, views[i]),
+                                                   blocks=blocks_of(views[i])),
                           len(views), ctx, what="evaluation's per-view results to rank 0", desc="evaluate",
                           progress=progress)
     if records is None:  # not rank 0: rank 0 pools and writes; its result (or its failure) ends every rank's call
         return ctx.broadcast_object(None, what="evaluation's metrics from rank 0")
     report = M.MetricReport()
-    report.conventions.update(_conventions(depth_source, calibration, dense_scored_blocks=capture is not None))
+    report.conventions.update(_conventions(depth_source, calibration,
+                                           dense_scored_blocks=depth_source == "dense" and capture is not None))
     report.conventions.update(conventions or {})
     depth_pool: list[DepthSamples] = []
     for rec in records:  # in the order of ``views``, whichever rank rendered them
@@ -404,7 +455,7 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
             curves.update(_pack(f"colour_sparsification_{metric}", ranking[metric]))
     if depth_source is not None:
         pooled = _pool_depth_samples(depth_pool)
-        ds = paired_depth_scores(pooled.gt, pooled.pred, pooled.std, interval_scale=interval_scale_of(calibration))
+        ds = calibrated_depth_scores(pooled, calibration)
         pooled_out["depth"] = _plain_scores(ds)
         pooled_out["depth_parts"] = {k.split("/", 1)[1]: v.value for k, v in depth_part_rankings(pooled).items()}
         if calibration is not None and calibration.depth is not None:

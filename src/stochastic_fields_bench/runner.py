@@ -35,7 +35,8 @@ SCORED_PIXELS = "score-role blocks of the exact depth"
 
 
 #: How the depth recalibration is fitted (part of the calibrate fingerprint: a new protocol refits).
-CALIBRATION_PROTOCOL = "calibrate-role capture points from views halfway between neighbouring training views"
+CALIBRATION_PROTOCOL = ("held-out (calibrate and score role) capture points from views halfway between neighbouring "
+                        "training views, interval scores cross-fitted over 5 folds of the score blocks")
 
 
 #: Config entries that do not change what a run computes (left out of fingerprints).
@@ -296,7 +297,7 @@ def run_method(spec: MethodSpec, dataset, scene_path: Path, run_dir: Path, setti
 
         calibration = load_run_calibration(run_dir)
         if (stages.get("calibrate", {}).get("fingerprint") != fp_cal
-                or (calibration is not None and calibration.saw_score_points)):  # benchmarks score: refit
+                or (calibration is not None and not calibration.independent_depth_scores)):  # benchmarks score: refit
             t0 = time.perf_counter()
             try:
                 calibration = calibrate_run(run_dir, model=loaded(), dataset=dataset, seed=settings.seed)
