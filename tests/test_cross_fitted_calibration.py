@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.special import ndtri
 
-from stochastic_fields.calibration import (CROSS_FIT_FOLDS, DepthFolds, QuantileCalibration, RunCalibration,
+from stochastic_fields.calibration import (CROSS_FIT_FOLDS, QuantileCalibration, RunCalibration,
                                            cross_fitted_depth_scores, fit_depth_folds, load_run_calibration,
                                            save_run_calibration)
 from stochastic_fields.constants import DEPTH_NLL_VARIANCE_FLOOR
