@@ -129,7 +129,10 @@ def build_tables(results: dict[str, dict[str, dict]], *, methods: Sequence[str] 
              for m in present}
     depth_sources = sorted({rows[s][m]["depth"]["source"] for s in scenes for m in rows[s] if "depth" in rows[s][m]})
     any_result = next(iter(next(iter(results.values())).values())) if results else None
+    from .runner import TABLE_CONVENTIONS  # today's words, whichever run's metrics.json is older
+
     conventions = dict(any_result["metrics"]["conventions"]) if any_result else M.default_conventions()
+    conventions.update(TABLE_CONVENTIONS)
     conventions.update({
         "view_means": "table entries are means over test views of per-view values; 'average' is the mean over scenes",
         "pooled": "pooled_* entries score every test pixel of a scene at once",
