@@ -46,9 +46,29 @@ def spearman_scores(abs_err: np.ndarray, std: np.ndarray, view: np.ndarray) -> d
     return {"per_view": float(np.mean(per_view)), "pooled": float(spearmanr(abs_err, std)[0])}
 
 
-def study_run(run_dir: Path, *, seed: int = 0, fit: bool = True) -> dict:
-    """Both maps of one run (``fit``: False for a reference run, scored raw and checked only)."""
-    from stochastic_fields.calibration import QuantileCalibration, depth_calibration_errors
+def cross_fitted_coverage(renders: dict, scored: dict, capture, *, floor: bool = False) -> list[float]:
+    """Coverage at ``LEVELS`` of the ``scored`` points ("abs_err", "std" [N], "xyz" [N, 3]) by the
+    cross-fitted fold maps (``calibration.fit_depth_folds``, as eval scores a held-out map) of the
+    held-out calibration ``renders`` (``calibration.depth_calibration_renders``)."""
+    from stochastic_fields.calibration import fit_depth_folds
+    from stochastic_fields.capture_points import SCORE, block_keys
+
+    keys = block_keys(capture.xyz, capture.xyz)
+    folds = fit_depth_folds(renders["abs_err"], renders["std"], keys[renders["index"]], keys[capture.roles == SCORE],
+                            floor=floor)
+    fold = folds.fold_of(block_keys(scored["xyz"], capture.xyz))
+    if (fold < 0).any():
+        raise ValueError(f"{int((fold < 0).sum())} scored points lie in no SCORE block")
+    inside = sum(coverage(scored["abs_err"][fold == f], scored["std"][fold == f], m) * int((fold == f).sum())
+                 for f, m in enumerate(folds.maps))
+    return (np.asarray(inside) / len(fold)).tolist()
+
+
+def study_run(run_dir: Path, *, seed: int = 0, fit: bool = True, fit_points: str = "calibrate") -> dict:
+    """Both maps of one run (``fit``: False for a reference run, scored raw and checked only), fitted
+    on the ``fit_points`` of ``calibration.CALIBRATION_POINTS``; "held-out" maps are scored
+    cross-fitted (``cross_fitted_coverage``)."""
+    from stochastic_fields.calibration import QuantileCalibration, depth_calibration_errors, depth_calibration_renders
     from stochastic_fields.cameras import camera_to_world
     from stochastic_fields.capture_points import FIT, SCORE, block_roles, load_capture_points
     from stochastic_fields.free_space import checked_std, free_space_violation, render_training_depth, rendered_points
@@ -72,13 +92,21 @@ def study_run(run_dir: Path, *, seed: int = 0, fit: bool = True) -> dict:
            "median_std": float(np.median(s["std"])),
            "spearman": {"plain": spearman_scores(s["abs_err"], s["std"], s["view"]),
                         "checked": spearman_scores(s["abs_err"], std_checked, s["view"])}}
-    if fit:
+    if fit and fit_points == "held-out":
+        r = depth_calibration_renders(model, dataset, seed=seed, points=fit_points)
+        r_c = depth_calibration_renders(model, dataset, seed=seed, points=fit_points, free_space=ref)
+        err, std, source, err_c, std_c = r["abs_err"], r["std"], r["source"], r_c["abs_err"], r_c["std"]
+        cov = {"plain": cross_fitted_coverage(r, s, points),
+               "checked": cross_fitted_coverage(r_c, {**s, "std": std_checked}, points)}
+    elif fit:
         err, std, source = depth_calibration_errors(model, dataset, seed=seed)
         err_c, std_c, _ = depth_calibration_errors(model, dataset, seed=seed, free_space=ref)
+    if fit:
         plain = QuantileCalibration.fit_errors(err, std, quantity="depth_std", source=source)
         checked = QuantileCalibration.fit_errors(err_c, std_c, quantity="depth_std", source=source)
-        cov = {"plain": coverage(s["abs_err"], s["std"], plain).tolist(),
-               "checked": coverage(s["abs_err"], std_checked, checked).tolist()}
+        if fit_points != "held-out":
+            cov = {"plain": coverage(s["abs_err"], s["std"], plain).tolist(),
+                   "checked": coverage(s["abs_err"], std_checked, checked).tolist()}
         out.update(calibration_points=int(len(err)), source=source, coverage=cov,
                    distance={k: distance(v) for k, v in cov.items()},
                    scales={"plain": plain.scale_at(np.asarray(LEVELS)).tolist(),
@@ -109,8 +137,11 @@ def decide(results: dict) -> dict:
 def _markdown(results: dict) -> str:
     d = results["decision"]
     lines = ["# Study 13: the free-space check", "", f"Command: `{results['command']}`", "",
-             "Both maps fitted on the same CALIBRATE renders (calibration views), scored on the SCORE points seen "
-             "from the test views. *plain*: today's std sigma; *checked*: sqrt(sigma^2 + e^2), e the rendered "
+             ("Both maps fitted on the same CALIBRATE renders (calibration views), scored on the SCORE points seen "
+              "from the test views." if results.get("points", "calibrate") == "calibrate" else
+              "Both maps fitted on the same renders of every held-out (CALIBRATE and SCORE) point (calibration "
+              "views), scored cross-fitted on the SCORE points seen from the test views (5 folds of the SCORE "
+              "blocks, each judged by maps fitted without them).") + " *plain*: today's std sigma; *checked*: sqrt(sigma^2 + e^2), e the rendered "
              "point's free-space violation against the training views' rendered depth. Spearman |err| against "
              f"the std per test view (mean) and pooled; coverage of the central {LEVELS[0]:.1%} / {LEVELS[1]:.0%} "
              "intervals; distance: the largest |coverage - nominal|.", "",
@@ -163,7 +194,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--reference", nargs="*", default=[], metavar="SCENE=RUN_DIR",
                    help="Reference runs (the deep ensemble), scored raw and checked, deciding nothing.")
     p.add_argument("--plot-only", action="store_true", help="Only draw the figure again from OUT/study.json.")
+    p.add_argument("--points", choices=("calibrate", "held-out"), default="calibrate",
+                   help="Fit both maps on the CALIBRATE points (studies 13 and 13b) or on every held-out point, "
+                        "scored cross-fitted (study 13c, today's protocol).")
     args, runs, results = begin_study(p, argv, "free_space_study.py")
+    results["points"] = args.points
     if args.plot_only:
         from stochastic_fields.io_utils import read_json
 
@@ -176,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     results["runs"], results["references"] = {}, {}
     for label, run_dir in runs.items():
         print(f"{label}: {run_dir}", flush=True)
-        results["runs"][label] = r = study_run(run_dir, seed=args.seed)
+        results["runs"][label] = r = study_run(run_dir, seed=args.seed, fit_points=args.points)
         print(f"  Spearman per view {r['spearman']['plain']['per_view']:.3f} -> {r['spearman']['checked']['per_view']:.3f}, "
               f"distance {r['distance']['plain']:.3f} -> {r['distance']['checked']:.3f}", flush=True)
     for label, run_dir in references.items():
