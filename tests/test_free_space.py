@@ -348,3 +348,34 @@ def test_carve_study_rule_by_hand(load_script):
                              / "carve_check" / "study.json").read_text())  # study 15
     assert script.decide(with_check) == with_check["decision"]
     assert with_check["decision"]["failed"] == {"flower": ["depth_spearman_view"]}
+
+
+def test_free_space_study_cross_fitted_coverage_by_hand(load_script):
+    """Study 13c's coverage of a held-out map: two blocks of space (two clusters of capture points,
+    both SCORE), renders with |z| = 1 in one and 3 in the other; every scored point has |z| = 2.
+    Cross-fitted, each cluster is judged by the other's map: half inside at either level."""
+    from types import SimpleNamespace
+
+    from stochastic_fields.capture_points import SCORE
+
+    script = load_script("benchmarks/free_space_study.py")
+    n = 100
+    xyz = np.r_[np.zeros((n, 3)), np.ones((n, 3))] + np.random.default_rng(0).uniform(0, 0.01, (2 * n, 3))
+    capture = SimpleNamespace(xyz=xyz, roles=np.full(2 * n, SCORE, np.int8))
+    renders = {"abs_err": np.r_[np.ones(n), 3 * np.ones(n)], "std": np.ones(2 * n), "index": np.arange(2 * n)}
+    scored = {"abs_err": np.full(4, 2.0), "std": np.ones(4), "xyz": xyz[[0, 1, n, n + 1]]}
+    assert script.cross_fitted_coverage(renders, scored, capture) == pytest.approx([0.5, 0.5])
+
+
+def test_study_13c_decision_recomputed(load_script):
+    """Study 13c (the check under the held-out map, scored cross-fitted): ranking up on every scene,
+    but flower's intervals move away from nominal by more than the tolerance; not taken."""
+    from pathlib import Path
+
+    script = load_script("benchmarks/free_space_study.py")
+    path = Path(__file__).resolve().parents[1] / "benchmarks/results/uncertainty_study/free_space_13c/study.json"
+    committed = json.loads(path.read_text())
+    again = script.decide(committed)
+    assert committed["points"] == "held-out"
+    assert again == committed["decision"] and again["worse_on"] == ["flower"] and not again["taken"]
+    assert all(m["spearman_per_view_checked"] > m["spearman_per_view_plain"] for m in again["scenes"].values())
