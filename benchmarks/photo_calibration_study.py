@@ -86,26 +86,15 @@ def photo_errors(model, dataset, sparse: dict, seed: int) -> dict[str, np.ndarra
     return rendered_errors(model, dataset.cameras, dataset.near, dataset.far, sparse, seed)
 
 
-def virtual_view_errors(model, dataset, points, roles: list[int], seed: int) -> dict[str, np.ndarray]:
-    """``rendered_errors`` of the capture points of ``roles`` seen from today's calibration views
-    (as ``calibration.depth_calibration_errors``, with each point's index kept)."""
-    from stochastic_fields.calibration import calibration_views, pair_visible_points
-    from stochastic_fields.sparse_depth import project_sparse_depth
-
-    cams, near, far, pairs = calibration_views(dataset)
-    sparse = project_sparse_depth(cams, points.xyz, range(len(pairs)),
-                                  visible=pair_visible_points(points, pairs, np.isin(points.roles, roles)),
-                                  visibility_name="pair")
-    return rendered_errors(model, cams, near, far, sparse, seed)
-
-
 def cross_fitted_coverage(scored: dict[str, np.ndarray], fitting: dict[str, np.ndarray], *,
                           folds: int = CROSS_FOLDS, seed: int = 0) -> list[float]:
     """Coverage [L] of the ``scored`` points ("abs_err", "std", "block" [N]) when each is judged by a
     map fitted on the ``fitting`` points ("abs_err", "std", "block" [M]) outside its fold: the
     scored points' blocks are shuffled (``seed``) and dealt into ``folds`` folds; fold f's points
     are scored with the map of every fitting point whose block is not in fold f. No map sees the
-    block of a point it scores."""
+    block of a point it scores. (Eval's ``calibration.DepthFolds`` deal the SCORE role's blocks,
+    seen or not by the test views, so the two deals differ; study 18b and the sensitivity study
+    measured how little a deal matters.)"""
     from stochastic_fields.calibration import QuantileCalibration
 
     blocks = np.random.default_rng(seed).permutation(np.unique(scored["block"]))
@@ -121,7 +110,7 @@ def cross_fitted_coverage(scored: dict[str, np.ndarray], fitting: dict[str, np.n
 
 
 def study_run(run_dir: Path, *, seed: int = 0, sensitivity: bool = False) -> dict:
-    from stochastic_fields.calibration import QuantileCalibration, depth_calibration_errors
+    from stochastic_fields.calibration import QuantileCalibration, depth_calibration_errors, depth_calibration_renders
     from stochastic_fields.capture_points import CALIBRATE, FIT, SCORE, block_keys, block_roles, load_capture_points
     from stochastic_fields.io_utils import read_json
     from stochastic_fields.trainer import load_trained_model
@@ -168,7 +157,7 @@ def study_run(run_dir: Path, *, seed: int = 0, sensitivity: bool = False) -> dic
     key = block_keys(points.xyz, points.xyz)
     scored_blocks = {"abs_err": s_err, "std": s_std, "block": scored["block"][keep]}
     fitting = {"photos": {k: np.concatenate([cal[k], sco[k]]) for k in ("abs_err", "std", "index")},
-               "views": virtual_view_errors(model, dataset, points, [CALIBRATE, SCORE], seed)}
+               "views": depth_calibration_renders(model, dataset, seed=seed, points="held-out")}
     out["cross_fitted"] = {name: cross_fitted_coverage(scored_blocks, {**f, "block": key[f["index"]]}, seed=seed)
                            for name, f in fitting.items()}
     if sensitivity:
