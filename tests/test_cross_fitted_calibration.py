@@ -91,6 +91,20 @@ def test_cross_fitted_scores_against_a_float64_loop():
     with pytest.raises(ValueError, match="1 of 300 depths lie in no fold"):
         cross_fitted_depth_scores(gt, pred, base, np.r_[fold[:-1], -1], folds)
 
+    # maps fitted with the free-space check: std_i = s_f(0.6827) sqrt(raw_i^2 + floor_f^2 + e_i^2)
+    import copy
+
+    checked = copy.deepcopy(folds)
+    for m in checked.maps:
+        m.free_space = True
+    e = rng.uniform(0.0, 0.2, n)
+    with pytest.raises(ValueError, match="free-space violation"):
+        cross_fitted_depth_scores(gt, pred, base, fold, checked)
+    got_checked = cross_fitted_depth_scores(gt, pred, base, fold, checked, violation=e)
+    plain_again = cross_fitted_depth_scores(gt, pred, np.sqrt(base ** 2 + e ** 2), fold, folds)
+    for k in ("coverage_68", "coverage_95", "auce", "nll"):
+        assert got_checked[k] == pytest.approx(plain_again[k], rel=1e-12)
+
 
 def test_a_block_judged_by_the_others_not_by_itself():
     """Two blocks: one whose errors are 1 std, one whose errors are 3. Fitted on both, a map would
@@ -155,7 +169,7 @@ def test_eval_scores_intervals_with_the_folds_and_ranks_with_the_run_map():
     raw = rng.uniform(0.05, 0.2, n)
     pred = gt + rng.normal(size=n) * raw * 2
     block = rng.choice(np.unique(keys), n)
-    samples = DepthSamples(gt, pred, full.calibrated_std(raw), raw, {}, raw, block)
+    samples = DepthSamples(gt, pred, full.calibrated_std(raw), raw, {}, None, block)
     cal = RunCalibration(depth=full, points="held-out", depth_folds=folds)
     got = calibrated_depth_scores(samples, cal)
     plain = paired_depth_scores(gt, pred, full.calibrated_std(raw), interval_scale=full.relative_scale)
@@ -166,7 +180,7 @@ def test_eval_scores_intervals_with_the_folds_and_ranks_with_the_run_map():
     for k in ("abs_rel", "ause_rmse"):
         assert got[k] == plain[k]
     assert got["spearman"].value == plain["spearman"].value
-    no_blocks = calibrated_depth_scores(DepthSamples(gt, pred, full.calibrated_std(raw), raw, {}, raw, None), cal)
+    no_blocks = calibrated_depth_scores(DepthSamples(gt, pred, full.calibrated_std(raw), raw, {}, None, None), cal)
     assert no_blocks["coverage_68"] == plain["coverage_68"] and no_blocks["nll"] == plain["nll"]
 
 

@@ -273,12 +273,14 @@ def fit_depth_folds(abs_err: np.ndarray, std: np.ndarray, keys: np.ndarray, scor
     return DepthFolds(blocks, maps, seed)
 
 
-def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, base_std: np.ndarray, fold: np.ndarray,
-                              folds: DepthFolds, *, var_floor: float | None = None) -> dict[str, Any]:
+def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, raw_std: np.ndarray, fold: np.ndarray,
+                              folds: DepthFolds, *, violation: np.ndarray | None = None,
+                              var_floor: float | None = None) -> dict[str, Any]:
     """The interval scores of depths judged by their folds' maps (``DepthFolds``): each depth i of
-    fold f = ``fold`` [N] gets std_i = map_f.calibrated_std(base_std_i) and the interval at level p
-    pred_i +- z_p std_i s_f(p) / s_f(0.6827). ``base_std`` [N]: the std the maps calibrate (the raw
-    total std, or the free-space-checked one). Pooled over the folds:
+    fold f = ``fold`` [N] gets std_i = map_f.calibrated_std(raw_std_i, violation_i) and the interval
+    at level p pred_i +- z_p std_i s_f(p) / s_f(0.6827). ``raw_std`` [N]: the raw total std;
+    ``violation`` [N]: each depth's free-space violation, which maps fitted with the free-space
+    check need (``QuantileCalibration.calibrated_std``). Pooled over the folds:
     {"nll": mean Gaussian NLL (``metrics.depth_nll``), "coverage_68", "coverage_95", "auce",
     "calibration": ``metrics.CalibrationResult`` at the default levels}. ValueError when a depth lies
     in no fold."""
@@ -286,7 +288,8 @@ def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, base_std: np.nda
     from .constants import DEPTH_NLL_VARIANCE_FLOOR
     from .sparse_depth import COVERAGE_LEVELS
 
-    gt, pred, base_std = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (gt, pred, base_std))
+    gt, pred, raw_std = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (gt, pred, raw_std))
+    violation = None if violation is None else np.asarray(violation, dtype=np.float64).reshape(-1)
     fold = np.asarray(fold, dtype=np.int64).reshape(-1)
     if (fold < 0).any() or (fold >= len(folds.maps)).any():
         raise ValueError(f"cross-fitted depth scores: {int(((fold < 0) | (fold >= len(folds.maps))).sum())} of "
@@ -298,7 +301,7 @@ def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, base_std: np.nda
         i = fold == f
         if not i.any():
             continue
-        std = m.calibrated_std(base_std[i])
+        std = m.calibrated_std(raw_std[i], None if violation is None else violation[i])
         inside += M.calibration_curve(gt[i], pred[i], std, interval_scale=m.relative_scale).coverage * i.sum()
         inside_cov += M.calibration_curve(gt[i], pred[i], std, levels=list(COVERAGE_LEVELS),
                                           interval_scale=m.relative_scale).coverage * i.sum()

@@ -90,8 +90,8 @@ class DepthSamples:
     """The std before recalibration (equal to ``std`` without a calibration)."""
     parts: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
     """The std of each part of the total variance (``DEPTH_STD_PARTS``) where the maps have it."""
-    std_uncalibrated: np.ndarray | None = None
-    """What the depth map calibrates: the raw std, or sqrt(raw^2 + e^2) with the free-space check."""
+    violation: np.ndarray | None = None
+    """Each sample's free-space violation, where the products have it (``depth_free_space``)."""
     block: np.ndarray | None = None
     """Block of space of each sample's surface (``capture_points.block_keys``), where the run's
     calibration has cross-fitted folds that judge the samples by block."""
@@ -105,19 +105,19 @@ def depth_samples(products: dict[str, np.ndarray], gt_depth: np.ndarray | None =
     ``blocks``: the block key of each sparse point [M] or pixel [H, W], kept as ``DepthSamples.block``."""
     d, op, s = products["depth_mean"], products["opacity"], products["depth_std"]
     s_raw = products.get("depth_std_raw", s)
-    s_base = (np.hypot(s_raw.astype(np.float64), products["depth_free_space"]) if "depth_free_space" in products
-              else s_raw)
+    e = products.get("depth_free_space")
     parts = {name: products[key] for name, key in DEPTH_STD_PARTS.items() if key in products}
     if sparse is not None:
         keep = sparse.sample(op) > OPACITY_MASK
         return DepthSamples(sparse.depth[keep], sparse.sample(d)[keep], sparse.sample(s)[keep],
                             sparse.sample(s_raw)[keep], {k: sparse.sample(v)[keep] for k, v in parts.items()},
-                            sparse.sample(s_base)[keep], None if blocks is None else np.asarray(blocks)[keep])
+                            None if e is None else sparse.sample(e)[keep],
+                            None if blocks is None else np.asarray(blocks)[keep])
     if gt_depth is None:
         return None
     mask = (gt_depth > 0) & (op > OPACITY_MASK)
     return DepthSamples(gt_depth[mask], d[mask], s[mask], s_raw[mask], {k: v[mask] for k, v in parts.items()},
-                        s_base[mask], None if blocks is None else np.asarray(blocks)[mask])
+                        None if e is None else e[mask], None if blocks is None else np.asarray(blocks)[mask])
 
 
 def _pool_depth_samples(pool: Sequence[DepthSamples]) -> DepthSamples:
@@ -126,12 +126,11 @@ def _pool_depth_samples(pool: Sequence[DepthSamples]) -> DepthSamples:
         return np.concatenate(list(arrays)).astype(np.float64) if pool else np.zeros(0)
 
     names = sorted(set.intersection(*(set(p.parts) for p in pool))) if pool else []
-    blocks = None
-    if pool and all(p.block is not None for p in pool):
-        blocks = np.concatenate([p.block for p in pool]).astype(np.int64)
+    every = lambda key: pool and all(getattr(p, key) is not None for p in pool)  # noqa: E731
     return DepthSamples(*(cat(getattr(p, k) for p in pool) for k in ("gt", "pred", "std", "std_raw")),
                         {k: cat(p.parts[k] for p in pool) for k in names},
-                        cat(p.std_raw if p.std_uncalibrated is None else p.std_uncalibrated for p in pool), blocks)
+                        cat(p.violation for p in pool) if every("violation") else None,
+                        np.concatenate([p.block for p in pool]).astype(np.int64) if every("block") else None)
 
 
 def depth_part_rankings(samples: DepthSamples) -> dict[str, M.CorrelationResult]:
@@ -162,8 +161,8 @@ def calibrated_depth_scores(samples: DepthSamples, calibration=None) -> dict[str
     if folds is not None and samples.block is not None and samples.gt.size >= 2:
         from .calibration import cross_fitted_depth_scores
 
-        base = samples.std_raw if samples.std_uncalibrated is None else samples.std_uncalibrated
-        scores.update(cross_fitted_depth_scores(samples.gt, samples.pred, base, folds.fold_of(samples.block), folds))
+        scores.update(cross_fitted_depth_scores(samples.gt, samples.pred, samples.std_raw, folds.fold_of(samples.block),
+                                                folds, violation=samples.violation))
     return scores
 
 
