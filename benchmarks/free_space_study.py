@@ -47,21 +47,19 @@ def spearman_scores(abs_err: np.ndarray, std: np.ndarray, view: np.ndarray) -> d
 
 
 def cross_fitted_coverage(renders: dict, scored: dict, capture, *, floor: bool = False) -> list[float]:
-    """Coverage at ``LEVELS`` of the ``scored`` points ("abs_err", "std" [N], "xyz" [N, 3]) by the
-    cross-fitted fold maps (``calibration.fit_depth_folds``, as eval scores a held-out map) of the
-    held-out calibration ``renders`` (``calibration.depth_calibration_renders``)."""
-    from stochastic_fields.calibration import fit_depth_folds
+    """Coverage at ``LEVELS`` of the ``scored`` points ("gt", "depth_mean", "std" [N], "xyz" [N, 3]) by
+    the cross-fitted fold maps (``calibration.fit_depth_folds``, as eval scores a held-out map) of the
+    held-out calibration ``renders`` (``calibration.depth_calibration_renders``), scored as eval
+    does (``calibration.cross_fitted_depth_scores``)."""
+    from stochastic_fields.calibration import cross_fitted_depth_scores, fit_depth_folds
     from stochastic_fields.capture_points import SCORE, block_keys
 
     keys = block_keys(capture.xyz, capture.xyz)
     folds = fit_depth_folds(renders["abs_err"], renders["std"], keys[renders["index"]], keys[capture.roles == SCORE],
                             floor=floor)
     fold = folds.fold_of(block_keys(scored["xyz"], capture.xyz))
-    if (fold < 0).any():
-        raise ValueError(f"{int((fold < 0).sum())} scored points lie in no SCORE block")
-    inside = sum(coverage(scored["abs_err"][fold == f], scored["std"][fold == f], m) * int((fold == f).sum())
-                 for f, m in enumerate(folds.maps))
-    return (np.asarray(inside) / len(fold)).tolist()
+    return cross_fitted_depth_scores(scored["gt"], scored["depth_mean"], scored["std"], fold, folds,
+                                     coverage_levels=LEVELS)["coverage"]
 
 
 def study_run(run_dir: Path, *, seed: int = 0, fit: bool = True, fit_points: str = "calibrate") -> dict:

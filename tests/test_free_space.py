@@ -363,7 +363,8 @@ def test_free_space_study_cross_fitted_coverage_by_hand(load_script):
     xyz = np.r_[np.zeros((n, 3)), np.ones((n, 3))] + np.random.default_rng(0).uniform(0, 0.01, (2 * n, 3))
     capture = SimpleNamespace(xyz=xyz, roles=np.full(2 * n, SCORE, np.int8))
     renders = {"abs_err": np.r_[np.ones(n), 3 * np.ones(n)], "std": np.ones(2 * n), "index": np.arange(2 * n)}
-    scored = {"abs_err": np.full(4, 2.0), "std": np.ones(4), "xyz": xyz[[0, 1, n, n + 1]]}
+    scored = {"gt": np.full(4, 5.0), "depth_mean": np.full(4, 7.0), "abs_err": np.full(4, 2.0), "std": np.ones(4),
+              "xyz": xyz[[0, 1, n, n + 1]]}
     assert script.cross_fitted_coverage(renders, scored, capture) == pytest.approx([0.5, 0.5])
 
 

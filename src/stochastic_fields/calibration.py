@@ -275,15 +275,16 @@ def fit_depth_folds(abs_err: np.ndarray, std: np.ndarray, keys: np.ndarray, scor
 
 def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, raw_std: np.ndarray, fold: np.ndarray,
                               folds: DepthFolds, *, violation: np.ndarray | None = None,
-                              var_floor: float | None = None) -> dict[str, Any]:
+                              var_floor: float | None = None, coverage_levels=None) -> dict[str, Any]:
     """The interval scores of depths judged by their folds' maps (``DepthFolds``): each depth i of
     fold f = ``fold`` [N] gets std_i = map_f.calibrated_std(raw_std_i, violation_i) and the interval
     at level p pred_i +- z_p std_i s_f(p) / s_f(0.6827). ``raw_std`` [N]: the raw total std;
     ``violation`` [N]: each depth's free-space violation, which maps fitted with the free-space
     check need (``QuantileCalibration.calibrated_std``). Pooled over the folds:
-    {"nll": mean Gaussian NLL (``metrics.depth_nll``), "coverage_68", "coverage_95", "auce",
-    "calibration": ``metrics.CalibrationResult`` at the default levels}. ValueError when a depth lies
-    in no fold."""
+    {"nll": mean Gaussian NLL (``metrics.depth_nll``), "coverage_68", "coverage_95", "coverage" (at
+    ``coverage_levels`` [L], default ``sparse_depth.COVERAGE_LEVELS``: +-1 and +-2 std; the first two
+    are "coverage_68" and "coverage_95"), "auce", "calibration": ``metrics.CalibrationResult`` at the
+    default levels}. ValueError when a depth lies in no fold."""
     from . import metrics as M
     from .constants import DEPTH_NLL_VARIANCE_FLOOR
     from .sparse_depth import COVERAGE_LEVELS
@@ -296,14 +297,15 @@ def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, raw_std: np.ndar
                          f"{fold.size} depths lie in no fold's SCORE blocks")
     floor = DEPTH_NLL_VARIANCE_FLOOR if var_floor is None else var_floor
     levels = M.DEFAULT_CALIBRATION_LEVELS
-    inside, inside_cov, nll_sum = np.zeros(len(levels)), np.zeros(len(COVERAGE_LEVELS)), 0.0
+    coverage_levels = list(COVERAGE_LEVELS if coverage_levels is None else coverage_levels)
+    inside, inside_cov, nll_sum = np.zeros(len(levels)), np.zeros(len(coverage_levels)), 0.0
     for f, m in enumerate(folds.maps):
         i = fold == f
         if not i.any():
             continue
         std = m.calibrated_std(raw_std[i], None if violation is None else violation[i])
         inside += M.calibration_curve(gt[i], pred[i], std, interval_scale=m.relative_scale).coverage * i.sum()
-        inside_cov += M.calibration_curve(gt[i], pred[i], std, levels=list(COVERAGE_LEVELS),
+        inside_cov += M.calibration_curve(gt[i], pred[i], std, levels=coverage_levels,
                                           interval_scale=m.relative_scale).coverage * i.sum()
         nll_sum += M.depth_nll(gt[i], pred[i], std ** 2, var_floor=floor) * int(i.sum())
     n = max(1, gt.size)
@@ -311,7 +313,7 @@ def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, raw_std: np.ndar
     curve = M.CalibrationResult(levels=np.asarray(levels), coverage=cov, auce=float(np.abs(cov - levels).mean()),
                                 signed_gap=float((cov - levels).mean()), num_values=int(gt.size))
     return {"nll": nll_sum / n, "coverage_68": float(inside_cov[0] / n), "coverage_95": float(inside_cov[1] / n),
-            "auce": curve.auce, "calibration": curve}
+            "coverage": (inside_cov / n).tolist(), "auce": curve.auce, "calibration": curve}
 
 
 def fit_std_floor(abs_err: np.ndarray, std: np.ndarray) -> float:

@@ -14,6 +14,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
+from stochastic_fields.calibration import CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS
 from stochastic_fields.config import (LEGACY_VALUES, ExperimentConfig, flatten, save_config, saved_config,
                                      set_dotted, to_dict)
 from stochastic_fields.io_utils import atomic_write_text
@@ -35,8 +36,9 @@ SCORED_PIXELS = "score-role blocks of the exact depth"
 
 
 #: How the depth recalibration is fitted (part of the calibrate fingerprint: a new protocol refits).
-CALIBRATION_PROTOCOL = ("held-out (calibrate and score role) capture points from views halfway between neighbouring "
-                        "training views, interval scores cross-fitted over 5 folds of the score blocks")
+CALIBRATION_PROTOCOL = (f"{DEFAULT_CALIBRATION_POINTS} (calibrate and score role) capture points from views halfway "
+                        "between neighbouring training views, interval scores cross-fitted over "
+                        f"{CROSS_FIT_FOLDS} folds of the score blocks")
 
 
 #: Config entries that do not change what a run computes (left out of fingerprints).
