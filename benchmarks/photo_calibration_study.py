@@ -64,7 +64,8 @@ def photo_points(dataset, points, views: list[int], role: int) -> dict:
 
 
 def rendered_errors(model, cameras, near, far, sparse: dict, seed: int) -> dict[str, np.ndarray]:
-    """"abs_err" |d - d*| [N], raw "std" sigma [N], "view" [N] and capture "index" [N] of each point of
+    """"abs_err" |d - d*| [N], raw "std" sigma [N], "view" [N], capture "index" [N], "gt" d* and
+    "depth_mean" d [N] of each point of
     {view: SparseDepth} rendered from ``cameras`` (bounds ``near``/``far``), opacity above the scores'
     mask."""
     import torch
@@ -78,7 +79,7 @@ def rendered_errors(model, cameras, near, far, sparse: dict, seed: int) -> dict[
     index = np.concatenate([sparse[v].point_index for v in filled] or [np.zeros(0, np.int64)])
     keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(r["depth_std"]) & (r["depth_std"] > 0)
     return {"abs_err": np.abs(r["gt"] - r["depth_mean"])[keep], "std": r["depth_std"][keep], "view": view[keep],
-            "index": index[keep]}
+            "index": index[keep], "gt": r["gt"][keep], "depth_mean": r["depth_mean"][keep]}
 
 
 def photo_errors(model, dataset, sparse: dict, seed: int) -> dict[str, np.ndarray]:
@@ -109,7 +110,26 @@ def cross_fitted_coverage(scored: dict[str, np.ndarray], fitting: dict[str, np.n
     return (inside / len(scored["block"])).tolist()
 
 
-def study_run(run_dir: Path, *, seed: int = 0, sensitivity: bool = False) -> dict:
+def photo_validation(model, dataset, points, photos: list[int], seed: int) -> dict:
+    """Study 18c: the coverage at ``LEVELS`` of the SCORE-role points seen from the unused ``photos``
+    (no test view) by the CALIBRATE-only map ("calibrate") and by the held-out map scored with its
+    cross-fitted folds as eval scores it ("held-out"), both fitted on the virtual views."""
+    from stochastic_fields.calibration import (QuantileCalibration, cross_fitted_depth_scores,
+                                               depth_calibration_renders, fit_depth_calibration_and_folds)
+    from stochastic_fields.capture_points import SCORE, block_keys
+
+    scored = photo_errors(model, dataset, photo_points(dataset, points, photos, SCORE), seed)
+    only = depth_calibration_renders(model, dataset, seed=seed, points="calibrate")
+    plain = QuantileCalibration.fit_errors(only["abs_err"], only["std"], quantity="depth_std")
+    _, folds = fit_depth_calibration_and_folds(model, dataset, seed=seed, points="held-out")
+    fold = folds.fold_of(block_keys(points.xyz, points.xyz)[scored["index"]])
+    held = cross_fitted_depth_scores(scored["gt"], scored["depth_mean"], scored["std"], fold, folds,
+                                     coverage_levels=LEVELS)
+    cov = {"calibrate": coverage(scored["abs_err"], scored["std"], plain).tolist(), "held-out": held["coverage"]}
+    return {"scored_points": int(len(fold)), "coverage": cov, "distance": {k: distance(c) for k, c in cov.items()}}
+
+
+def study_run(run_dir: Path, *, seed: int = 0, sensitivity: bool = False, validate: bool = False) -> dict:
     from stochastic_fields.calibration import QuantileCalibration, depth_calibration_errors, depth_calibration_renders
     from stochastic_fields.capture_points import CALIBRATE, FIT, SCORE, block_keys, block_roles, load_capture_points
     from stochastic_fields.io_utils import read_json
@@ -160,6 +180,8 @@ def study_run(run_dir: Path, *, seed: int = 0, sensitivity: bool = False) -> dic
                "views": depth_calibration_renders(model, dataset, seed=seed, points="held-out")}
     out["cross_fitted"] = {name: cross_fitted_coverage(scored_blocks, {**f, "block": key[f["index"]]}, seed=seed)
                            for name, f in fitting.items()}
+    if validate:
+        out["photo_validation"] = photo_validation(model, dataset, points, photos, seed)
     if sensitivity:
         views = {**fitting["views"], "block": key[fitting["views"]["index"]]}
         out["cross_fitted_sensitivity"] = {
@@ -189,6 +211,21 @@ def decide(results: dict) -> dict:
                                                       float(max(p["distance"] for p in one))] if one else None}
     worse = [s for s, m in scenes.items() if m["distance_photos"] > m["distance_views"] + TOLERANCE]
     gain = float(np.mean([m["distance_views"] - m["distance_photos"] for m in scenes.values()]))
+    return {"scenes": scenes, "worse_on": worse, "mean_distance_gain": gain, "passes": not worse and gain >= GAIN}
+
+
+def decide_validation(results: dict) -> dict:
+    """Study 18c's rule: the held-out map against the CALIBRATE-only map on the unused photos'
+    SCORE points, per-scene means over seeds (docs/uncertainty.md)."""
+    scenes = {}
+    for scene, seeds in by_scene(results["runs"]).items():
+        v = [r["photo_validation"] for r in seeds]
+        scenes[scene] = {"seeds": len(v), "points": int(np.mean([x["scored_points"] for x in v])),
+                         **{f"coverage_{k}": np.mean([x["coverage"][k] for x in v], axis=0).tolist()
+                            for k in ("calibrate", "held-out")},
+                         **{f"distance_{k}": float(np.mean([x["distance"][k] for x in v])) for k in ("calibrate", "held-out")}}
+    worse = [s for s, m in scenes.items() if m["distance_held-out"] > m["distance_calibrate"] + TOLERANCE]
+    gain = float(np.mean([m["distance_calibrate"] - m["distance_held-out"] for m in scenes.values()]))
     return {"scenes": scenes, "worse_on": worse, "mean_distance_gain": gain, "passes": not worse and gain >= GAIN}
 
 
@@ -248,6 +285,21 @@ def _markdown(results: dict) -> str:
                 c = np.array([cov for r in seeds for cov in r["cross_fitted_sensitivity"][str(folds)]])
                 lines.append(f"| {scene} | {folds} | {c[:, 0].mean():.3f} ({c[:, 0].min():.3f}-{c[:, 0].max():.3f}) | "
                              f"{c[:, 1].mean():.3f} ({c[:, 1].min():.3f}-{c[:, 1].max():.3f}) |")
+    if "validation" in results:
+        v = results["validation"]
+        lines += ["", "## Study 18c: the default judged on the unused photos (no test view)", "",
+                  "SCORE-role points seen from the photos that neither train nor are scored. *calibrate*: the map "
+                  "fitted on the CALIBRATE points; *held-out*: the map fitted on every held-out point, scored with "
+                  "its cross-fitted folds as eval does. Means over seeds.", "",
+                  "| scene | seeds | points | calibrate 68 / 95 | held-out 68 / 95 | distance calibrate -> held-out |",
+                  "|---|---|---|---|---|---|"]
+        for scene, m in v["scenes"].items():
+            a, b = m["coverage_calibrate"], m["coverage_held-out"]
+            lines.append(f"| {scene} | {m['seeds']} | {m['points']} | {a[0]:.3f} / {a[1]:.3f} | {b[0]:.3f} / {b[1]:.3f} | "
+                         f"{m['distance_calibrate']:.3f} -> {m['distance_held-out']:.3f} |")
+        lines += ["", f"Mean distance gain: {v['mean_distance_gain']:+.3f} (rule: >= {GAIN}); scenes worse by more than "
+                  f"{TOLERANCE}: {', '.join(v['worse_on']) or 'none'}. The held-out default "
+                  f"**{'stands' if v['passes'] else 'is reverted'}**."]
     verdict = ("**passes**: the next study trains without the held-out photos" if d["passes"]
                else "**fails**: real photos calibrate no better than the virtual views")
     lines += ["", f"Mean distance gain over scenes: {d['mean_distance_gain']:+.3f} (rule: >= {GAIN}); scenes where "
@@ -274,6 +326,8 @@ def plot(results: dict, path: Path) -> Path:
 def main(argv: list[str] | None = None) -> int:
     p = study_parser(__doc__, "photo_calibration", "Trained and evaluated runs (S-NeRF default), labelled SCENE/SEED.")
     p.add_argument("--plot-only", action="store_true", help="Only draw the figure again from OUT/study.json.")
+    p.add_argument("--validate", action="store_true",
+                   help="Study 18c: judge the held-out map against the CALIBRATE-only map on the unused photos only.")
     p.add_argument("--sensitivity", action="store_true",
                    help="Also compute the virtual views' cross-fitted coverage for other fold counts and deal seeds.")
     args, runs, results = begin_study(p, argv, "photo_calibration_study.py")
@@ -286,8 +340,11 @@ def main(argv: list[str] | None = None) -> int:
     for label, run_dir in runs.items():
         print(f"{label}: {run_dir}", flush=True)
         results["runs"][label] = {"label": label.split("/")[-1],
-                                  **study_run(run_dir, seed=args.seed, sensitivity=args.sensitivity)}
+                                  **study_run(run_dir, seed=args.seed, sensitivity=args.sensitivity,
+                                              validate=args.validate)}
     results["decision"] = decide(results)
+    if args.validate:
+        results["validation"] = decide_validation(results)
     write_study(args.out, results, _markdown(results))
     print(_markdown(results))
     print(f"written: {plot(results, args.out / 'coverage_by_seed.png')}, {args.out / 'study.json'}, study.md")

@@ -136,3 +136,30 @@ def test_study_18b_confirms_the_cross_fitted_map_on_fresh_seeds(load_script):
         assert m["seeds"] == 2
         assert np.abs(np.subtract(m["coverage_cross_fitted"]["views"], [0.6827, 0.95])).max() <= 0.05, scene
     assert again["scenes"]["synthetic"]["distance_views"] > 0.05 and again["scenes"]["flower"]["distance_views"] > 0.05
+
+
+def _validation_run(calibrate: float, held: float) -> dict:
+    cov = lambda d: [0.6827 + d, 0.95]  # noqa: E731  (distance = d)
+    return {"photo_validation": {"scored_points": 10, "coverage": {"calibrate": cov(calibrate), "held-out": cov(held)},
+                                 "distance": {"calibrate": calibrate, "held-out": held}}}
+
+
+def test_study_18c_rule_by_hand_and_its_committed_decision(load_script):
+    """Study 18c judges the held-out default on the unused photos only: each scene's seed mean may lose
+    at most 0.02 of distance and the mean over scenes must gain 0.02. The committed study (seeds 0-4,
+    no test view rendered) keeps the default."""
+    script = load_script("benchmarks/photo_calibration_study.py")
+    keep = script.decide_validation({"runs": {"a/0": _validation_run(0.10, 0.03), "a/1": _validation_run(0.08, 0.03),
+                                              "b/0": _validation_run(0.04, 0.05)}})
+    assert keep["passes"] and keep["scenes"]["a"]["distance_held-out"] == pytest.approx(0.03)
+    assert keep["mean_distance_gain"] == pytest.approx((0.06 - 0.01) / 2)
+    close = script.decide_validation({"runs": {"a/0": _validation_run(0.07, 0.03), "b/0": _validation_run(0.04, 0.05)}})
+    assert not close["passes"] and close["mean_distance_gain"] == pytest.approx(0.015)
+    worse = script.decide_validation({"runs": {"a/0": _validation_run(0.20, 0.0), "b/0": _validation_run(0.02, 0.05)}})
+    assert not worse["passes"] and worse["worse_on"] == ["b"]
+    small = script.decide_validation({"runs": {"a/0": _validation_run(0.05, 0.04)}})
+    assert not small["passes"] and small["worse_on"] == []
+    committed = json.loads((RESULTS.parent / "photo_validation" / "study.json").read_text())
+    again = script.decide_validation(committed)
+    assert again == committed["validation"] and again["passes"]
+    assert all(m["seeds"] == 5 for m in again["scenes"].values())
