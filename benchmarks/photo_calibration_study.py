@@ -110,23 +110,21 @@ def cross_fitted_coverage(scored: dict[str, np.ndarray], fitting: dict[str, np.n
     return (inside / len(scored["block"])).tolist()
 
 
-def photo_validation(model, dataset, points, photos: list[int], seed: int) -> dict:
+def photo_validation(model, dataset, points, photos: list[int], seed: int, calibrate_map, held_out: dict) -> dict:
     """Study 18c: the coverage at ``LEVELS`` of the SCORE-role points seen from the unused ``photos``
-    (no test view) by the CALIBRATE-only map ("calibrate") and by the held-out map scored with its
-    cross-fitted folds as eval scores it ("held-out"), both fitted on the virtual views."""
-    from stochastic_fields.calibration import (QuantileCalibration, cross_fitted_depth_scores,
-                                               depth_calibration_renders, fit_depth_calibration_and_folds)
+    (no test view) by ``calibrate_map`` (fitted on the CALIBRATE points, "calibrate") and by the map of
+    the ``held_out`` renders (``calibration.depth_calibration_renders(points="held-out")``) scored with
+    its cross-fitted folds as eval scores it ("held-out")."""
+    from stochastic_fields.calibration import cross_fitted_depth_scores, fit_depth_folds
     from stochastic_fields.capture_points import SCORE, block_keys
 
     scored = photo_errors(model, dataset, photo_points(dataset, points, photos, SCORE), seed)
-    only = depth_calibration_renders(model, dataset, seed=seed, points="calibrate")
-    plain = QuantileCalibration.fit_errors(only["abs_err"], only["std"], quantity="depth_std")
-    _, folds = fit_depth_calibration_and_folds(model, dataset, seed=seed, points="held-out")
-    fold = folds.fold_of(block_keys(points.xyz, points.xyz)[scored["index"]])
-    held = cross_fitted_depth_scores(scored["gt"], scored["depth_mean"], scored["std"], fold, folds,
-                                     coverage_levels=LEVELS)
-    cov = {"calibrate": coverage(scored["abs_err"], scored["std"], plain).tolist(), "held-out": held["coverage"]}
-    return {"scored_points": int(len(fold)), "coverage": cov, "distance": {k: distance(c) for k, c in cov.items()}}
+    keys = block_keys(points.xyz, points.xyz)
+    folds = fit_depth_folds(held_out["abs_err"], held_out["std"], keys[held_out["index"]], keys[points.roles == SCORE])
+    held = cross_fitted_depth_scores(scored["gt"], scored["depth_mean"], scored["std"], folds.fold_of(keys[scored["index"]]),
+                                     folds, coverage_levels=LEVELS)
+    cov = {"calibrate": coverage(scored["abs_err"], scored["std"], calibrate_map).tolist(), "held-out": held["coverage"]}
+    return {"scored_points": int(len(scored["gt"])), "coverage": cov, "distance": {k: distance(c) for k, c in cov.items()}}
 
 
 def study_run(run_dir: Path, *, seed: int = 0, sensitivity: bool = False, validate: bool = False) -> dict:
@@ -181,7 +179,7 @@ def study_run(run_dir: Path, *, seed: int = 0, sensitivity: bool = False, valida
     out["cross_fitted"] = {name: cross_fitted_coverage(scored_blocks, {**f, "block": key[f["index"]]}, seed=seed)
                            for name, f in fitting.items()}
     if validate:
-        out["photo_validation"] = photo_validation(model, dataset, points, photos, seed)
+        out["photo_validation"] = photo_validation(model, dataset, points, photos, seed, maps["views"], fitting["views"])
     if sensitivity:
         views = {**fitting["views"], "block": key[fitting["views"]["index"]]}
         out["cross_fitted_sensitivity"] = {
