@@ -316,6 +316,37 @@ def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, raw_std: np.ndar
             "coverage": (inside_cov / n).tolist(), "auce": curve.auce, "calibration": curve}
 
 
+def cross_fitted_depth_quantiles(pred: np.ndarray, raw_std: np.ndarray, fold: np.ndarray, folds: DepthFolds, *,
+                                 violation: np.ndarray | None = None):
+    """The predictive quantile function of depths judged by their folds' maps: t [Q] -> [N, Q], depth i
+    of fold f = ``fold`` [N] getting ``metrics.gaussian_quantiles`` of (pred_i, map_f's calibrated
+    std of raw_std_i, map_f's interval scale): the distribution whose intervals
+    ``cross_fitted_depth_scores`` counts, for the width, interval score and CRPS
+    (``metrics.interval_sharpness``). ValueError when a depth lies in no fold."""
+    from . import metrics as M
+
+    pred, raw_std = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (pred, raw_std))
+    fold = np.asarray(fold, dtype=np.int64).reshape(-1)
+    if (fold < 0).any() or (fold >= len(folds.maps)).any():
+        raise ValueError(f"cross-fitted depth quantiles: {int(((fold < 0) | (fold >= len(folds.maps))).sum())} of "
+                         f"{fold.size} depths lie in no fold's SCORE blocks")
+    stds = np.zeros_like(raw_std)
+    for f, m in enumerate(folds.maps):
+        i = fold == f
+        if i.any():
+            stds[i] = m.calibrated_std(raw_std[i], None if violation is None else np.asarray(violation)[i])
+
+    def quantiles(levels: np.ndarray) -> np.ndarray:
+        out = np.zeros((pred.size, np.asarray(levels).size))
+        for f, m in enumerate(folds.maps):
+            i = fold == f
+            if i.any():
+                out[i] = M.gaussian_quantiles(pred[i], stds[i], levels, m.relative_scale)
+        return out
+
+    return quantiles
+
+
 def fit_std_floor(abs_err: np.ndarray, std: np.ndarray) -> float:
     """The std floor tau >= 0 of ``abs_err`` [N] against raw stds ``std`` [N] (> 0): the smallest
     tau for which Spearman(std, |err| / sqrt(std^2 + tau^2)) = 0, i.e. the standardised errors

@@ -299,6 +299,16 @@ def sparse_depth_for_role(dataset, points: CapturePoints, views: Sequence[int], 
     return {v: restrict_sparse_depth(sd, points.roles[sd.point_index] == role) for v, sd in full.items()}
 
 
+def score_sparse_depth(dataset, views: Sequence[int]) -> dict | None:
+    """What scores the depth of ``views`` of a scene without exact depth maps: {view: SparseDepth}
+    of its SCORE capture points (``sparse_depth_for_role``), or None when the scene has exact depth
+    maps (they score instead) or no SfM points. The one rule eval and the benchmark runner use."""
+    if getattr(dataset, "depths", None) is not None:
+        return None
+    points = load_capture_points(dataset)
+    return None if points is None else sparse_depth_for_role(dataset, points, views, SCORE)
+
+
 def restrict_sparse_depth(sd, keep: np.ndarray):
     """A SparseDepth with only the entries where ``keep`` [M] is True."""
     from dataclasses import replace

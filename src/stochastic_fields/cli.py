@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 import time
@@ -147,6 +148,7 @@ def _render_and_score(args: argparse.Namespace, default_out: Path, product_views
     """What ``render`` and ``eval`` share: the run loaded, its views rendered and scored by
     ``evaluation.evaluate`` into ``--out`` (default ``default_out``), sharded over the ranks of a
     torchrun launch. Returns (config, dataset, views, metrics, out folder, DistContext or None)."""
+    from .capture_points import score_sparse_depth
     from .evaluation import evaluate
     from .io_utils import check_no_symlinks, check_output_folder
     from .trainer import load_trained_model
@@ -159,7 +161,8 @@ def _render_and_score(args: argparse.Namespace, default_out: Path, product_views
         views = _parse_views(args.views, dataset)
         result = evaluate(model, dataset, out, views=views, options=_render_options(model, args),
                           progress=not args.quiet, product_views=product_views,
-                          calibration=_run_calibration(args), distributed=ctx)
+                          calibration=_run_calibration(args), distributed=ctx,
+                          sparse_depth=score_sparse_depth(dataset, views))
     return cfg, dataset, views, result, out, ctx
 
 
@@ -190,6 +193,18 @@ def _print_summary(result: dict, title: str) -> None:
     if depth:
         print(f"  pooled depth |err| vs std: Pearson {depth['pearson']:.3f}, Spearman {depth['spearman']:.3f} over "
               f"{depth['num_used']} px; coverage 68% {depth['coverage_68']:.3f}, 95% {depth['coverage_95']:.3f}")
+    iv = result.get("pooled", {}).get("depth_intervals")
+    if iv and math.isfinite(iv.get("coverage_95", math.nan)):
+        from .evaluation import INTERVAL_PLOT
+        from .metrics import INTERVAL_LEVELS, level_name
+
+        names = [level_name(p) for p in INTERVAL_LEVELS]
+        print("  depth intervals " + "/".join(names) + "%: coverage "
+              + "/".join(f"{100 * iv[f'coverage_{n}']:.1f}" for n in names)
+              + f"; 95% half-width / depth: median {100 * iv['halfwidth_median_95']:.1f}%, "
+              f"90th percentile {100 * iv['halfwidth_p90_95']:.1f}%; interval score / depth 68% "
+              f"{iv['interval_score_68']:.3f}, 95% {iv['interval_score_95']:.3f}; CRPS / depth {iv['crps']:.4f} "
+              f"(plot: {INTERVAL_PLOT})")
 
 
 def set_aside_run(run_dir: Path) -> Path:

@@ -148,6 +148,10 @@ def interval_scale_of(calibration, quantity: str = "depth"):
     return None if cal is None else cal.relative_scale
 
 
+#: The reliability diagram and sharpness histogram of the pooled depth intervals, in eval's folder.
+INTERVAL_PLOT = "depth_intervals.png"
+
+
 #: The interval scores that a calibration's cross-fitted folds replace (``cross_fitted_interval_scores``).
 CROSS_FITTED_KEYS: tuple[str, ...] = ("nll", "coverage_68", "coverage_95", "auce", "calibration")
 
@@ -156,13 +160,19 @@ def calibrated_depth_scores(samples: DepthSamples, calibration=None) -> dict[str
     """``sparse_depth.paired_depth_scores`` of the calibrated std, with the interval scores
     (``CROSS_FITTED_KEYS``) cross-fitted where the calibration has folds and the samples their
     blocks (``calibration.cross_fitted_depth_scores``); ranking and error scores are the run's map's."""
-    scores = paired_depth_scores(samples.gt, samples.pred, samples.std, interval_scale=interval_scale_of(calibration))
+    scale = interval_scale_of(calibration)
+    scores = paired_depth_scores(samples.gt, samples.pred, samples.std, interval_scale=scale)
+    quantiles = lambda t: M.gaussian_quantiles(samples.pred, samples.std, t, scale)  # noqa: E731
     folds = None if calibration is None else calibration.depth_folds
     if folds is not None and samples.block is not None and samples.gt.size >= 2:
-        from .calibration import cross_fitted_depth_scores
+        from .calibration import cross_fitted_depth_quantiles, cross_fitted_depth_scores
 
-        scores.update(cross_fitted_depth_scores(samples.gt, samples.pred, samples.std_raw, folds.fold_of(samples.block),
-                                                folds, violation=samples.violation))
+        fold = folds.fold_of(samples.block)
+        scores.update(cross_fitted_depth_scores(samples.gt, samples.pred, samples.std_raw, fold, folds,
+                                                violation=samples.violation))
+        quantiles = cross_fitted_depth_quantiles(samples.pred, samples.std_raw, fold, folds,
+                                                 violation=samples.violation)
+    scores["intervals"] = M.interval_sharpness(samples.gt, quantiles) if samples.gt.size >= 2 else None
     return scores
 
 
@@ -173,6 +183,7 @@ def score_depth(samples: DepthSamples, calibration=None, scores: dict | None = N
     if scores is None:
         scores = calibrated_depth_scores(samples, calibration)
     out = {f"depth/{k}": scores[k] for k in DEPTH_SCORE_KEYS}
+    out.update({f"depth_intervals/{k}": v for k, v in interval_summary(scores.get("intervals")).items()})
     out.update(depth_part_rankings(samples))
     if calibration is not None and calibration.depth is not None:
         raw = paired_depth_scores(samples.gt, samples.pred, samples.std_raw)
@@ -266,9 +277,23 @@ def _pack(prefix: str, result) -> dict[str, np.ndarray]:
 
 
 def _plain_scores(scores: dict) -> dict[str, Any]:
-    """Depth scores as JSON-ready numbers (correlations by value, no curves)."""
+    """Depth scores as JSON-ready numbers (correlations by value, no curves; the interval scores under
+    ``depth_intervals``)."""
     return {k: (v.value if isinstance(v, M.CorrelationResult) else v)
-            for k, v in scores.items() if k not in ("calibration", "sparsification")}
+            for k, v in scores.items() if k not in ("calibration", "sparsification", "intervals")}
+
+
+#: The scalar interval scores (``metrics.interval_sharpness``) each view and the pool report.
+INTERVAL_KEYS: tuple[str, ...] = tuple(
+    [f"coverage_{M.level_name(p)}" for p in M.INTERVAL_LEVELS]
+    + [f"halfwidth_median_{M.level_name(p)}" for p in M.INTERVAL_LEVELS]
+    + [f"halfwidth_p90_{M.level_name(p)}" for p in M.INTERVAL_LEVELS]
+    + [f"interval_score_{M.level_name(p)}" for p in M.INTERVAL_SCORE_LEVELS] + ["crps"])
+
+
+def interval_summary(intervals: dict | None) -> dict[str, float]:
+    """The ``INTERVAL_KEYS`` of ``metrics.interval_sharpness``' output (NaN each when it is None)."""
+    return {k: (math.nan if intervals is None else float(intervals[k])) for k in INTERVAL_KEYS}
 
 
 #: What eval says when the run's calibration was fitted on the SCORE points too without cross-fitted folds.
@@ -456,6 +481,16 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
         pooled = _pool_depth_samples(depth_pool)
         ds = calibrated_depth_scores(pooled, calibration)
         pooled_out["depth"] = _plain_scores(ds)
+        pooled_out["depth_intervals"] = interval_summary(ds.get("intervals"))
+        if ds.get("intervals") is not None:
+            iv = ds["intervals"]
+            curves.update({"depth_intervals.levels": np.asarray(iv["levels"]),
+                           "depth_intervals.coverage": np.asarray(iv["coverage"]),
+                           "depth_intervals.halfwidth": np.asarray(iv["halfwidth"], dtype=np.float32)})
+            from .plots import plot_interval_reliability
+
+            plot_interval_reliability(out_dir / INTERVAL_PLOT, iv, title=f"depth intervals ({iv['num_values']} "
+                                      f"{'points' if depth_source == 'sparse' else 'pixels'})")
         pooled_out["depth_parts"] = {k.split("/", 1)[1]: v.value for k, v in depth_part_rankings(pooled).items()}
         if calibration is not None and calibration.depth is not None:
             pooled_out["depth_raw"] = _plain_scores(paired_depth_scores(pooled.gt, pooled.pred, pooled.std_raw))

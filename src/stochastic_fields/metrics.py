@@ -633,6 +633,128 @@ def depth_nll(
 
 
 # --------------------------------------------------------------------------------------------
+# interval sharpness: width, interval score and CRPS of a predictive distribution
+# --------------------------------------------------------------------------------------------
+
+#: Central levels whose coverage and width are reported (docs/definitions.md §6.6).
+INTERVAL_LEVELS: tuple[float, ...] = (0.5, 0.682689492137086, 0.9, 0.95, 0.99)
+#: Levels whose interval score is reported (one sigma and 95%).
+INTERVAL_SCORE_LEVELS: tuple[float, ...] = (0.682689492137086, 0.95)
+#: Quantile levels of the CRPS quadrature: the midpoints (j + 1/2) / CRPS_NUM_LEVELS.
+CRPS_NUM_LEVELS: int = 99
+
+
+def crps_levels(num: int = CRPS_NUM_LEVELS) -> np.ndarray:
+    """[Q] the quantile levels (j + 1/2) / Q, j = 0..Q-1, of ``crps_from_quantiles``."""
+    return (np.arange(num, dtype=np.float64) + 0.5) / num
+
+
+def level_name(level: float) -> str:
+    """Key suffix of a central level: 0.95 -> "95", 0.6827 -> "68", 0.5 -> "50"."""
+    return f"{int(math.floor(100.0 * float(level) + 1e-9))}"
+
+
+def interval_score(gt: Any, lower: Any, upper: Any, level: float) -> Tensor:
+    """Interval score of central intervals (Gneiting & Raftery 2007, Eq. 43), per value [N]:
+
+        IS_a(l, u; y) = (u - l) + (2 / a) (l - y) 1{y < l} + (2 / a) (y - u) 1{y > u},  a = 1 - level.
+
+    Negatively oriented (smaller is better) and proper for the (a/2, 1 - a/2) quantiles: the width
+    is paid always, a miss by 2/a times its distance. Shapes: gt, lower, upper [N] (lower <= upper)."""
+    g, lo, hi = _f64_all(gt=gt, lower=lower, upper=upper)
+    _same_shape(gt=g, lower=lo, upper=hi)
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"interval_score: level must lie in (0, 1), got {level}")
+    a = 1.0 - level
+    return (hi - lo) + (2.0 / a) * (lo - g).clamp_min(0) + (2.0 / a) * (g - hi).clamp_min(0)
+
+
+def crps_from_quantiles(gt: Any, quantiles: Any, levels: Any = None) -> Tensor:
+    """CRPS of predictive distributions given by their quantiles, per value [N]:
+
+        CRPS(F, y) = 2 int_0^1 QS_t(F^-1(t), y) dt,   QS_t(q, y) = (1{y < q} - t) (q - y)
+
+    (the pinball-loss form, Gneiting & Ranjan 2011), by the midpoint rule over ``levels`` [Q]
+    (default ``crps_levels()``: Q midpoints of equal cells). Exact as Q grows; for a Gaussian the
+    99-level rule is within 0.5% of the closed form (``gaussian_crps``, tested). Units of gt.
+    Shapes: gt [N], quantiles [N, Q] (non-decreasing along Q)."""
+    g, q = _f64_all(gt=gt, quantiles=quantiles)
+    t = _f64(crps_levels() if levels is None else levels, "levels").to(g.device).reshape(1, -1)
+    if q.ndim != 2 or q.shape[0] != g.reshape(-1).shape[0] or q.shape[1] != t.shape[1]:
+        raise ValueError(f"crps_from_quantiles: quantiles must be [{g.numel()}, {t.shape[1]}], got {tuple(q.shape)}")
+    y = g.reshape(-1, 1)
+    return (2.0 * ((y < q).to(q.dtype) - t) * (q - y)).mean(dim=1)
+
+
+def gaussian_crps(gt: Any, mean: Any, std: Any) -> Tensor:
+    """Closed-form CRPS of N(mean, std^2) at gt, per value (Gneiting et al. 2005):
+    std (z (2 Phi(z) - 1) + 2 phi(z) - 1 / sqrt(pi)), z = (gt - mean) / std (std > 0)."""
+    g, m, s = _f64_all(gt=gt, mean=mean, std=std)
+    _same_shape(gt=g, mean=m, std=s)
+    z = (g - m) / s
+    cdf = 0.5 * torch.erfc(-z / math.sqrt(2.0))
+    pdf = torch.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)
+    return s * (z * (2.0 * cdf - 1.0) + 2.0 * pdf - 1.0 / math.sqrt(math.pi))
+
+
+def interval_sharpness(gt: Any, quantile_fn, levels: Sequence[float] = INTERVAL_LEVELS,
+                       score_levels: Sequence[float] = INTERVAL_SCORE_LEVELS) -> dict[str, Any]:
+    """Coverage, width, interval score and CRPS of predictive depth distributions at gt [N] (> 0).
+
+    ``quantile_fn(t)``: the predictive quantiles at levels t [Q] numpy -> [N, Q] (non-decreasing
+    in t). The central interval at level p is [q((1 - p) / 2), q((1 + p) / 2)]. Everything is
+    relative to the true depth y (scale-free, comparable over scenes):
+        coverage_<p>            share of y inside the level-p interval,
+        halfwidth_median_<p>    median over values of (upper - lower) / (2 y),
+        halfwidth_p90_<p>       its 90th percentile,
+        interval_score_<p>      mean of IS_(1-p)(lower, upper; y) / y (``interval_score``),
+        crps                    mean of CRPS(F, y) / y (``crps_from_quantiles``),
+    with "coverage", "halfwidth_median", "halfwidth_p90" also as lists over ``levels`` and
+    "halfwidth" [N, L] the per-value relative half-widths (for histograms)."""
+    g = _f64(gt, "gt").reshape(-1)
+    if g.numel() == 0 or not bool((torch.isfinite(g) & (g > 0)).all()):
+        raise ValueError("interval_sharpness: needs at least one ground-truth depth, all finite and > 0")
+    lv = np.asarray(levels, dtype=np.float64)
+    lo = _f64(quantile_fn((1.0 - lv) / 2.0), "lower quantiles")
+    hi = _f64(quantile_fn((1.0 + lv) / 2.0), "upper quantiles")
+    y = g.reshape(-1, 1)
+    inside = ((y >= lo) & (y <= hi)).to(torch.float64).mean(dim=0)
+    half = (hi - lo) / (2.0 * y)
+    out: dict[str, Any] = {"levels": lv.tolist(), "coverage": inside.tolist(),
+                           "halfwidth_median": torch.quantile(half, 0.5, dim=0).tolist(),
+                           "halfwidth_p90": torch.quantile(half, 0.9, dim=0).tolist(),
+                           "halfwidth": half.cpu().numpy(), "num_values": int(g.numel())}
+    for i, p in enumerate(lv):
+        name = level_name(p)
+        out[f"coverage_{name}"] = out["coverage"][i]
+        out[f"halfwidth_median_{name}"] = out["halfwidth_median"][i]
+        out[f"halfwidth_p90_{name}"] = out["halfwidth_p90"][i]
+    for p in score_levels:
+        bounds = _f64(quantile_fn(np.array([(1.0 - p) / 2.0, (1.0 + p) / 2.0])), "interval")
+        out[f"interval_score_{level_name(p)}"] = float((interval_score(g, bounds[:, 0], bounds[:, 1], p) / g).mean())
+    out["crps"] = float((crps_from_quantiles(g, quantile_fn(crps_levels())) / g).mean())
+    return out
+
+
+def gaussian_quantiles(mean: Any, std: Any, levels: Any, interval_scale: Any = None) -> np.ndarray:
+    """Quantiles [N, Q] at ``levels`` t [Q] of N(mean, std^2) [N], with central intervals widened by
+    ``interval_scale(p)`` (a recalibrated std's level-dependent multiplier, ``calibration``):
+
+        q(t) = mean + sign(t - 1/2) z_p std m(p),   p = |2 t - 1|, z_p = Phi^-1((1 + p) / 2),
+
+    so that [q((1 - p) / 2), q((1 + p) / 2)] is the interval the coverage of ``calibration_curve``
+    counts. m = 1 without a scale (the Gaussian's own quantiles)."""
+    m = np.asarray(mean, dtype=np.float64).reshape(-1, 1)
+    s = np.asarray(std, dtype=np.float64).reshape(-1, 1)
+    t = np.asarray(levels, dtype=np.float64).reshape(1, -1)
+    p = np.abs(2.0 * t - 1.0)
+    z = math.sqrt(2.0) * torch.erfinv(torch.from_numpy(p)).numpy()
+    if interval_scale is not None:
+        z = z * np.asarray(interval_scale(p.reshape(-1)), dtype=np.float64).reshape(p.shape)
+    return m + np.sign(t - 0.5) * z * s
+
+
+# --------------------------------------------------------------------------------------------
 # reports
 # --------------------------------------------------------------------------------------------
 

@@ -117,6 +117,53 @@ def plot_calibration(
     return _save_atomic(calibration_figure(curves, title), path, dpi)
 
 
+def interval_reliability_figure(intervals: Mapping[str, Mapping], title: str | None = None) -> Figure:
+    """Left: coverage of the central intervals against their nominal level (reliability diagram);
+    right: the distribution of their 95% half-widths relative to depth (sharpness), per name, from
+    ``metrics.interval_sharpness`` outputs {name: result} (a Figure)."""
+    if not intervals:
+        raise ValueError("interval_reliability_figure needs at least one result")
+    fig = Figure(figsize=(10.0, 4.5))
+    ax, bx = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
+    ax.plot([0.0, 1.0], [0.0, 1.0], color="0.5", linestyle=":", label="ideal")
+    for i, (name, r) in enumerate(intervals.items()):
+        levels = np.asarray(r["levels"])
+        ax.plot(levels, r["coverage"], "o-", color=f"C{i % 10}", label=name)
+        at95 = int(np.argmin(np.abs(levels - 0.95)))
+        half = np.asarray(r["halfwidth"])[:, at95]
+        half = half[np.isfinite(half) & (half > 0)]
+        if half.size:
+            bins = np.logspace(np.log10(max(half.min(), 1e-4)), np.log10(max(half.max(), 2e-4)), 40)
+            bx.hist(half, bins=bins, histtype="step", color=f"C{i % 10}",
+                    label=f"{name}: median {100 * np.median(half):.0f}%")
+    ax.set_xlabel("nominal level of the central interval")
+    ax.set_ylabel("share of true depths inside")
+    ax.set_xlim(0.0, 1.0)
+    ax.set_ylim(0.0, 1.0)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize="small", loc="upper left")
+    ax.set_title("reliability")
+    bx.axvline(0.15, color="0.5", linestyle=":")
+    bx.set_xscale("log")
+    bx.set_xlabel("95% half-width / true depth")
+    bx.set_ylabel("values")
+    bx.set_title("sharpness")
+    bx.legend(fontsize="small")
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def plot_interval_reliability(path: str | os.PathLike, intervals: Mapping, title: str | None = None,
+                              dpi: int = 110) -> Path:
+    """Write ``interval_reliability_figure`` to ``path`` (atomic); ``intervals``: one
+    ``metrics.interval_sharpness`` output, or {name: output}."""
+    if "levels" in intervals:
+        intervals = {"depth": intervals}
+    return _save_atomic(interval_reliability_figure(intervals, title), path, dpi)
+
+
 def plot_resplit_coverage(
     coverages: Mapping[str, np.ndarray],
     today: Mapping[str, Sequence[float]],

@@ -364,15 +364,11 @@ def scene_inputs(scene: str, settings: BenchmarkSettings, data_root: Path | None
     else:
         dataset = load_dataset(scene_path, split_every=5)
     views = select_views(list(dataset.test_indices), settings)
-    sparse = None
-    if getattr(dataset, "depths", None) is None:
-        from stochastic_fields.capture_points import SCORE, load_capture_points, sparse_depth_for_role
+    from stochastic_fields.capture_points import score_sparse_depth
 
-        points = load_capture_points(dataset)
-        if points is None:
-            log(f"[{dataset.name}] no sparse depth ground truth: the scene has no COLMAP points")
-        else:
-            sparse = sparse_depth_for_role(dataset, points, views, SCORE)
+    sparse = score_sparse_depth(dataset, views)
+    if sparse is None and getattr(dataset, "depths", None) is None:
+        log(f"[{dataset.name}] no sparse depth ground truth: the scene has no COLMAP points")
     return scene_path, dataset, views, sparse
 
 

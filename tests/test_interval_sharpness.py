@@ -1,0 +1,107 @@
+"""Width, interval score and CRPS of predictive depth distributions (metrics.interval_sharpness)."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import integrate
+from scipy.stats import norm
+
+from stochastic_fields import metrics as M
+from stochastic_fields.calibration import DepthFolds, QuantileCalibration, cross_fitted_depth_quantiles
+
+
+def test_interval_score_by_hand():
+    # alpha = 0.1: width + 20 x the miss
+    gt = np.array([5.0, 0.0, 12.0])
+    lo, hi = np.array([4.0, 1.0, 8.0]), np.array([6.0, 3.0, 10.0])
+    got = M.interval_score(gt, lo, hi, 0.9).numpy()
+    np.testing.assert_allclose(got, [2.0, 2.0 + 20.0 * 1.0, 2.0 + 20.0 * 2.0])
+
+
+def test_gaussian_crps_against_quadrature():
+    for y, mu, s in ((0.3, 0.0, 1.0), (5.0, 1.0, 0.2), (-2.0, 0.5, 3.0)):
+        ref = integrate.quad(lambda x: (norm.cdf(x, mu, s) - (x >= y)) ** 2, mu - 40 * s, mu + 40 * s,
+                             points=[y], limit=200)[0]
+        assert float(M.gaussian_crps([y], [mu], [s])[0]) == pytest.approx(ref, rel=1e-6)
+
+
+def test_quantile_crps_matches_the_closed_form():
+    rng = np.random.default_rng(0)
+    mu, s = rng.normal(10, 1, 200), rng.uniform(0.1, 2.0, 200)
+    y = mu + s * rng.standard_normal(200) * 2.0
+    q = mu[:, None] + s[:, None] * norm.ppf(M.crps_levels())[None]
+    got = M.crps_from_quantiles(y, q).numpy()
+    ref = M.gaussian_crps(y, mu, s).numpy()
+    np.testing.assert_allclose(got, ref, rtol=5e-3)
+
+
+def test_quantile_crps_of_a_point_mass_is_the_absolute_error():
+    q = np.full((3, M.CRPS_NUM_LEVELS), 2.0)
+    np.testing.assert_allclose(M.crps_from_quantiles([1.0, 2.0, 4.5], q).numpy(), [1.0, 0.0, 2.5], atol=1e-12)
+
+
+def test_gaussian_quantiles_without_scale_are_the_normal_quantiles():
+    t = np.array([0.01, 0.25, 0.5, 0.9, 0.995])
+    got = M.gaussian_quantiles([2.0, -1.0], [0.5, 3.0], t)
+    ref = np.stack([norm.ppf(t, 2.0, 0.5), norm.ppf(t, -1.0, 3.0)])
+    np.testing.assert_allclose(got, ref, rtol=1e-10, atol=1e-12)
+
+
+def _heavy_tailed_case(n=4000, seed=1):
+    rng = np.random.default_rng(seed)
+    gt = rng.uniform(2.0, 10.0, n)
+    std = rng.uniform(0.05, 0.5, n)
+    pred = gt + std * rng.standard_t(2.0, n)
+    cal = QuantileCalibration.fit(np.abs(pred - gt)[: n // 2] / std[: n // 2], quantity="depth_std")
+    return gt, pred, std, cal
+
+
+def test_sharpness_coverage_agrees_with_the_calibration_curve():
+    gt, pred, std, cal = _heavy_tailed_case()
+    calibrated = cal.calibrated_std(std)
+    iv = M.interval_sharpness(gt, lambda t: M.gaussian_quantiles(pred, calibrated, t, cal.relative_scale))
+    ref = M.calibration_curve(gt, pred, calibrated, levels=list(M.INTERVAL_LEVELS),
+                              interval_scale=cal.relative_scale).coverage
+    np.testing.assert_allclose(iv["coverage"], ref, atol=1e-12)
+    assert iv["coverage_95"] == pytest.approx(ref[3])
+    # the width by hand: half-width = z_p s(p) raw std, relative to the truth
+    z95 = norm.ppf(0.975)
+    half = z95 * cal.scale_at(0.95) * std / gt
+    assert iv["halfwidth_median_95"] == pytest.approx(float(np.median(half)), rel=1e-9)
+    assert iv["halfwidth_p90_95"] == pytest.approx(float(np.quantile(half, 0.9)), rel=1e-9)
+    lo, hi = pred - z95 * cal.scale_at(0.95) * std, pred + z95 * cal.scale_at(0.95) * std
+    is95 = (hi - lo) + 40.0 * np.clip(lo - gt, 0, None) + 40.0 * np.clip(gt - hi, 0, None)
+    assert iv["interval_score_95"] == pytest.approx(float(np.mean(is95 / gt)), rel=1e-9)
+
+
+def test_sharpness_of_an_exact_gaussian():
+    rng = np.random.default_rng(3)
+    n = 20000
+    mu, s = np.full(n, 10.0), np.full(n, 0.5)
+    gt = mu + s * rng.standard_normal(n)
+    iv = M.interval_sharpness(gt, lambda t: M.gaussian_quantiles(mu, s, t))
+    for p, c in zip(M.INTERVAL_LEVELS, iv["coverage"]):
+        assert c == pytest.approx(p, abs=0.01)
+    # E CRPS of the true Gaussian = s / sqrt(pi)
+    assert iv["crps"] == pytest.approx(float(np.mean(0.5 / math.sqrt(math.pi) / gt)), rel=0.02)
+
+
+def test_interval_sharpness_rejects_bad_truth():
+    with pytest.raises(ValueError, match="finite and > 0"):
+        M.interval_sharpness([1.0, 0.0], lambda t: np.zeros((2, len(t))))
+
+
+def test_cross_fitted_quantiles_use_each_fold_map():
+    gt, pred, std, _ = _heavy_tailed_case(n=600)
+    z = np.abs(pred - gt) / std
+    maps = [QuantileCalibration.fit(z[:300] * f, quantity="depth_std") for f in (1.0, 3.0)]
+    folds = DepthFolds([np.array([0]), np.array([1])], maps)
+    fold = np.arange(600) % 2
+    q = cross_fitted_depth_quantiles(pred, std, fold, folds)(np.array([0.025, 0.975]))
+    for f, m in enumerate(maps):
+        i = fold == f
+        ref = M.gaussian_quantiles(pred[i], m.calibrated_std(std[i]), [0.025, 0.975], m.relative_scale)
+        np.testing.assert_allclose(q[i], ref, rtol=1e-12)
+    with pytest.raises(ValueError, match="no fold"):
+        cross_fitted_depth_quantiles(pred, std, np.full(600, 2), folds)
