@@ -112,6 +112,23 @@ def collect(run_dir: Path) -> dict[str, dict[str, np.ndarray]]:
     return out
 
 
+def collect_cached(run_dir: Path, cache: Path) -> dict[str, dict[str, np.ndarray]]:
+    """``collect``, stored in ``cache`` (npz) and read from it when present: a re-run (another scene
+    added, the report rewritten) renders nothing twice."""
+    if cache.is_file():
+        with np.load(cache) as f:
+            out: dict = {}
+            for key in f.files:
+                group, name = key.split("/", 1)
+                out.setdefault(group, {})[name] = f[key]
+            return out
+    out = collect(run_dir)
+    tmp = cache.with_suffix(".tmp.npz")
+    np.savez_compressed(tmp, **{f"{g}/{k}": v for g, r in out.items() for k, v in r.items()})
+    tmp.replace(cache)
+    return out
+
+
 def components(r: dict[str, np.ndarray], shape: str):
     """(means, stds, weights) [N, M] of a candidate's distribution F."""
     if shape == "gaussian":
@@ -168,7 +185,7 @@ def main(argv=None) -> None:
     from stochastic_fields.plots import plot_interval_reliability
 
     for scene, run in runs.items():
-        data = collect(Path(run))
+        data = collect_cached(Path(run), args.out / f"renders_{scene}_snerf.npz")
         res: dict = {"points": {k: int(len(v["gt"])) for k, v in data.items()}}
         curves = {}
         for name, cand in CANDIDATES.items():
@@ -180,7 +197,7 @@ def main(argv=None) -> None:
             print(f"[{scene}] {name}: unused IS95 {res[name]['unused']['interval_score_95']:.3f}, test IS95 "
                   f"{res[name]['test']['interval_score_95']:.3f}", flush=True)
         if scene in ensembles:
-            ens = collect(Path(ensembles[scene]))
+            ens = collect_cached(Path(ensembles[scene]), args.out / f"renders_{scene}_ensemble.npz")
             for target in ("unused", "test"):
                 r = ens[target]
                 res.setdefault("D. Ens. (Gaussian, as the tables)", {})[target], iv = score(

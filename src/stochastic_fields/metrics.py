@@ -636,7 +636,7 @@ def depth_nll(
 # interval sharpness: width, interval score and CRPS of a predictive distribution
 # --------------------------------------------------------------------------------------------
 
-#: Central levels whose coverage and width are reported (docs/definitions.md §6.6).
+#: Central levels whose coverage and width are reported (docs/definitions.md §6.7).
 INTERVAL_LEVELS: tuple[float, ...] = (0.5, 0.682689492137086, 0.9, 0.95, 0.99)
 #: Levels whose interval score is reported (one sigma and 95%).
 INTERVAL_SCORE_LEVELS: tuple[float, ...] = (0.682689492137086, 0.95)

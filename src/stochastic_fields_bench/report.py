@@ -11,6 +11,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from stochastic_fields import metrics as M
+from stochastic_fields.evaluation import INTERVAL_KEYS
 
 from .budget import BenchmarkSettings
 from .methods import DEFAULT_METHODS, METHOD_SPECS, PAPER_TABLE1, PAPER_TABLE2, PAPER_TABLE3, TABLE1_METHODS, TABLE3_METHODS
@@ -53,6 +54,7 @@ def _scene_row(result: dict) -> dict[str, Any]:
         row["depth"] = {k: _summary(result, f"depth/{k}")["mean"] for k in depth_keys}
         row["depth"]["source"] = metrics["depth_source"]
         row["depth"]["pooled"] = pooled.get("depth", {})
+        row["depth"]["intervals"] = pooled.get("depth_intervals", {})  # metrics.json before them: none
     stages = result["stages"]
     train = stages.get("train", {})
     row["train_s"] = train.get("train_s", math.nan)
@@ -127,6 +129,10 @@ def build_tables(results: dict[str, dict[str, dict]], *, methods: Sequence[str] 
                     for k in ("abs_rel", "rmse", "nll", "ause_rmse", "ause_rmse_normalised", "pearson", "spearman",
                               "coverage_68", "coverage_95", "auce", "num_used")}}
              for m in present}
+    intervals = {m: {"label": METHOD_SPECS[m].label,
+                     **{k: per_scene(m, lambda r, k=k: r.get("depth", {}).get("intervals", {}).get(k, math.nan))
+                        for k in INTERVAL_KEYS}}
+                 for m in present}
     depth_sources = sorted({rows[s][m]["depth"]["source"] for s in scenes for m in rows[s] if "depth" in rows[s][m]})
     any_result = next(iter(next(iter(results.values())).values())) if results else None
     from .runner import TABLE_CONVENTIONS  # today's words, whichever run's metrics.json is older
@@ -152,7 +158,8 @@ def build_tables(results: dict[str, dict[str, dict]], *, methods: Sequence[str] 
                   "grid_max_cells": cfg["field"]["grid_max_cells"]}
     return {"scenes": scenes, "methods": present, "budget": budget, "command": command,
             "settings": dataclasses.asdict(settings) if settings else None, "table1": table1, "table2": table2,
-            "table3": table3, "quality": quality, "depth": depth, "depth_sources": depth_sources,
+            "table3": table3, "quality": quality, "depth": depth, "depth_intervals": intervals,
+            "depth_sources": depth_sources,
             "per_scene": rows, "conventions": conventions}
 
 
@@ -255,6 +262,19 @@ def format_markdown(tables: dict[str, Any]) -> str:
                                                              "coverage_68", "coverage_95", "auce")]
                 + [_fmt(e["num_used"][s], 0)] for e in tables["depth"].values() for s in cols]
         L += _md_table(header, rows) + [""]
+        if any(math.isfinite(v) for e in tables.get("depth_intervals", {}).values()
+               for k, per in e.items() if k != "label" for v in per.values()):
+            names = [M.level_name(p) for p in M.INTERVAL_LEVELS]
+            L += ["## Table 6: depth intervals, coverage and width per level (pooled over the scored depths)", "",
+                  "Half-widths, interval scores (Gneiting & Raftery 2007) and CRPS are relative to the true depth "
+                  "(docs/definitions.md §6.7); S-NeRF (default) is cross-fitted as in Table 5.", ""]
+            header = (["method", "scene"] + [f"cov. {n}%" for n in names] + [f"median half-width {n}%" for n in names[1:4]]
+                      + ["p90 half-width 95%", "IS 68%", "IS 95%", "CRPS"])
+            keys = ([f"coverage_{n}" for n in names] + [f"halfwidth_median_{n}" for n in names[1:4]]
+                    + ["halfwidth_p90_95", "interval_score_68", "interval_score_95", "crps"])
+            rows = [[e["label"], s] + [_fmt(e[k][s], 3) for k in keys] for e in tables["depth_intervals"].values()
+                    for s in cols]
+            L += _md_table(header, rows) + [""]
     L += ["## Conventions", ""] + [f"- **{k}**: {v}" for k, v in tables["conventions"].items()] + [""]
     return "\n".join(L)
 
