@@ -24,14 +24,15 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from stochastic_fields import metrics as M
-from stochastic_fields.calibration import QuantileCalibration, calibration_views, pair_visible_points
-from stochastic_fields.cameras import generate_rays_at
+from stochastic_fields.calibration import (QuantileCalibration, calibration_views, pair_visible_points,
+                                          render_at_points)
 from stochastic_fields.capture_points import CALIBRATE, SCORE, load_capture_points, sparse_depth_for_role
 from stochastic_fields.predictive import (PitCalibration, mixture_cdf, neighbourhood_weights,
                                           recalibrated_mixture_quantiles)
@@ -61,28 +62,23 @@ def stencil() -> np.ndarray:
 
 
 def render_stencil(model, cams, near, far, sparse: dict, seed: int = 0) -> dict[str, np.ndarray]:
-    """Depth mean, total std and opacity [N, S] at the stencil around every point of {view: SparseDepth}."""
-    views = [v for v, sd in sparse.items() if len(sd)]
-    if not views:
-        raise ValueError("no points to render")
+    """Depth mean, total std and opacity [N, S] (and the points' depths "gt" [N]) at the stencil
+    around every point of {view: SparseDepth}: each point repeated once per stencil offset, rendered
+    by ``calibration.render_at_points``."""
     offsets = stencil()
-    idx = np.concatenate([np.full(len(sparse[v]), v) for v in views])
-    uv = np.concatenate([sparse[v].uv for v in views])
     width, height = float(cams.width.reshape(-1)[0]), float(cams.height.reshape(-1)[0])
-    uvs = (uv[:, None, :] + offsets[None]).reshape(-1, 2)
-    uvs[:, 0] = np.clip(uvs[:, 0], 0.01, width - 0.01)
-    uvs[:, 1] = np.clip(uvs[:, 1], 0.01, height - 0.01)
-    n, s = len(uv), len(offsets)
-    rays = generate_rays_at(cams, torch.from_numpy(np.repeat(idx, s)), torch.from_numpy(uvs).float(), near, far)
+    moved = {}
+    for v, sd in sparse.items():
+        uv = (sd.uv[:, None, :] + offsets[None]).reshape(-1, 2)
+        uv = np.stack([np.clip(uv[:, 0], 0.01, width - 0.01), np.clip(uv[:, 1], 0.01, height - 0.01)], 1)
+        moved[v] = replace(sd, uv=uv, depth=np.repeat(sd.depth, len(offsets)))
     device = next(model.parameters()).device
-    with torch.no_grad():
-        maps = model.render_view(rays.reshape(1, n * s).to(device),
-                                 generator=torch.Generator(device=device).manual_seed(seed))
-    z = maps["z_scale"].double().cpu().reshape(n, s)
-    return {"gt": np.concatenate([sparse[v].depth for v in views]),
-            "mean": (maps["depth_mean"].double().cpu().reshape(n, s) * z).numpy(),
-            "std": (maps["depth_var_total"].double().cpu().clamp_min(0).sqrt().reshape(n, s) * z).numpy(),
-            "opacity": maps["opacity"].double().cpu().reshape(n, s).numpy()}
+    r = render_at_points(model, cams, near, far, moved, generator=torch.Generator(device=device).manual_seed(seed))
+    if not len(r["gt"]):
+        raise ValueError("no points to render")
+    out = {k: r[k].reshape(-1, len(offsets)) for k in ("depth_mean", "depth_std", "opacity")}
+    return {"gt": r["gt"].reshape(-1, len(offsets))[:, 0], "mean": out["depth_mean"], "std": out["depth_std"],
+            "opacity": out["opacity"]}
 
 
 def masked(r: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -156,7 +152,7 @@ def quantile_fn(data: dict, candidate: tuple[str, str, str], target: str):
     cal = data[f"cal_{bounds}"]
     r = data[target]
     if recal == "level map":
-        m = QuantileCalibration.fit(np.abs(cal["mean"][:, 0] - cal["gt"]) / cal["std"][:, 0], quantity="depth_std")
+        m = QuantileCalibration.fit_errors(np.abs(cal["mean"][:, 0] - cal["gt"]), cal["std"][:, 0], quantity="depth_std")
         return lambda t: M.gaussian_quantiles(r["mean"][:, 0], m.calibrated_std(r["std"][:, 0]), t, m.relative_scale)
     pit = PitCalibration.fit(mixture_cdf(cal["gt"], *components(cal, shape)))
     comps = components(r, shape)

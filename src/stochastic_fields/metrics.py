@@ -699,7 +699,8 @@ def gaussian_crps(gt: Any, mean: Any, std: Any) -> Tensor:
 
 def interval_sharpness(gt: Any, quantile_fn, levels: Sequence[float] = INTERVAL_LEVELS,
                        score_levels: Sequence[float] = INTERVAL_SCORE_LEVELS) -> dict[str, Any]:
-    """Coverage, width, interval score and CRPS of predictive depth distributions at gt [N] (> 0).
+    """Coverage, width, interval score and CRPS of predictive depth distributions at gt [N] (> 0);
+    ``score_levels`` must be among ``levels``.
 
     ``quantile_fn(t)``: the predictive quantiles at levels t [Q] numpy -> [N, Q] (non-decreasing
     in t). The central interval at level p is [q((1 - p) / 2), q((1 + p) / 2)]. Everything is
@@ -715,8 +716,12 @@ def interval_sharpness(gt: Any, quantile_fn, levels: Sequence[float] = INTERVAL_
     if g.numel() == 0 or not bool((torch.isfinite(g) & (g > 0)).all()):
         raise ValueError("interval_sharpness: needs at least one ground-truth depth, all finite and > 0")
     lv = np.asarray(levels, dtype=np.float64)
-    lo = _f64(quantile_fn((1.0 - lv) / 2.0), "lower quantiles")
-    hi = _f64(quantile_fn((1.0 + lv) / 2.0), "upper quantiles")
+    at = [int(np.flatnonzero(np.isclose(lv, p))[0]) if np.isclose(lv, p).any() else -1 for p in score_levels]
+    if min(at, default=0) < 0:
+        raise ValueError(f"interval_sharpness: score levels {list(score_levels)} must be among the levels {lv.tolist()}")
+    # one call for every level: a mixture's quantiles cost a bisection each call
+    q = _f64(quantile_fn(np.concatenate([(1.0 - lv) / 2.0, (1.0 + lv) / 2.0, crps_levels()])), "quantiles")
+    lo, hi, q_crps = q[:, :lv.size], q[:, lv.size:2 * lv.size], q[:, 2 * lv.size:]
     y = g.reshape(-1, 1)
     inside = ((y >= lo) & (y <= hi)).to(torch.float64).mean(dim=0)
     half = (hi - lo) / (2.0 * y)
@@ -729,10 +734,9 @@ def interval_sharpness(gt: Any, quantile_fn, levels: Sequence[float] = INTERVAL_
         out[f"coverage_{name}"] = out["coverage"][i]
         out[f"halfwidth_median_{name}"] = out["halfwidth_median"][i]
         out[f"halfwidth_p90_{name}"] = out["halfwidth_p90"][i]
-    for p in score_levels:
-        bounds = _f64(quantile_fn(np.array([(1.0 - p) / 2.0, (1.0 + p) / 2.0])), "interval")
-        out[f"interval_score_{level_name(p)}"] = float((interval_score(g, bounds[:, 0], bounds[:, 1], p) / g).mean())
-    out["crps"] = float((crps_from_quantiles(g, quantile_fn(crps_levels())) / g).mean())
+    for p, i in zip(score_levels, at):
+        out[f"interval_score_{level_name(p)}"] = float((interval_score(g, lo[:, i], hi[:, i], p) / g).mean())
+    out["crps"] = float((crps_from_quantiles(g, q_crps) / g).mean())
     return out
 
 
