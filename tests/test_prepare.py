@@ -17,22 +17,12 @@ import torch
 
 from stochastic_fields.cameras import camera_centres, camera_to_world
 from stochastic_fields.data import DatasetError, load_dataset
-from stochastic_fields.data.prepare import extract_video_frames, prepare, sharpness
+from stochastic_fields.data.prepare import (FAILURES_LISTED, extract_video_frames, failure_summary,
+                                               mapping_report, prepare, sharpness)
+from stochastic_fields.pose_alignment import pose_errors, similarity_align
 
 #: Threads for pycolmap in tests (the test machine has 2 cores shared with other work).
 THREADS = 1
-
-
-def similarity_align(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Umeyama (1991): (s, R, t) minimising sum |s R src_i + t - dst_i|^2. Shapes: [N, 3] each."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    U, S, Vt = np.linalg.svd(xd.T @ xs / len(src))
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    R = U @ D @ Vt
-    s = float(np.trace(np.diag(S) @ D) / (xs ** 2).sum(1).mean())
-    return s, R, mu_d - s * R @ mu_s
 
 
 def test_similarity_align_recovers_a_known_transform():
@@ -44,6 +34,34 @@ def test_similarity_align_recovers_a_known_transform():
     assert s == pytest.approx(2.5, rel=1e-12)
     np.testing.assert_allclose(R_hat, R, atol=1e-12)
     np.testing.assert_allclose(t, [1.0, -2.0, 3.0], atol=1e-12)
+
+
+def _rotation(axis, degrees: float) -> np.ndarray:
+    """Rodrigues: the rotation by ``degrees`` about ``axis``."""
+    k = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    a = np.radians(degrees)
+    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+
+
+def test_pose_errors_are_zero_up_to_a_similarity_and_measure_a_known_perturbation():
+    rng = np.random.default_rng(1)
+    ref = np.tile(np.eye(4), (6, 1, 1))
+    for i in range(6):
+        ref[i, :3, :3] = _rotation(rng.normal(size=3), rng.uniform(0, 90))
+        ref[i, :3, 3] = rng.normal(size=3)
+    Rs, s, t = _rotation([1.0, 2.0, 0.5], 40.0), 0.3, np.array([2.0, -1.0, 0.5])
+    ours = ref.copy()  # the same cameras in another frame: x -> (Rs^T (x - t)) / s
+    ours[:, :3, :3] = Rs.T @ ref[:, :3, :3]
+    ours[:, :3, 3] = (ref[:, :3, 3] - t) @ Rs / s
+    exact = pose_errors(ours, ref)
+    assert exact["scale"] == pytest.approx(s, rel=1e-12)
+    assert exact["centre_error_max"] < 1e-12 and exact["rotation_error_max_deg"] < 1e-5
+    ours[2, :3, :3] = ours[2, :3, :3] @ _rotation([0.0, 1.0, 1.0], 0.3)  # one camera turned by 0.3 degrees
+    assert pose_errors(ours, ref)["rotation_error_max_deg"] == pytest.approx(0.3, rel=1e-6)
+    assert pose_errors(ours, ref)["centre_error_max"] < 1e-12
+    with pytest.raises(ValueError, match="same cameras"):
+        pose_errors(ours[:5], ref)
 
 
 def test_sharpness_ranks_blur_below_the_original():
@@ -116,19 +134,85 @@ def test_bad_input_is_named(tmp_path):
 
 
 def test_unmatchable_photos_fail_with_reasons(tmp_path):
-    """Independent noise images share no geometry: nothing registers, each image gets a reason."""
+    """Independent noise images share no geometry: nothing registers, whatever the mapping strategy.
+
+    The error counts the reasons, names at most FAILURES_LISTED images, and points at a file with
+    every image and its reason.
+    """
     photos = tmp_path / "noise"
     photos.mkdir()
     rng = np.random.default_rng(0)
-    for i in range(4):
+    for i in range(5):
         iio.imwrite(photos / f"n{i}.png", rng.integers(0, 256, size=(96, 128, 3), dtype=np.uint8))
     with pytest.raises(DatasetError) as info:
         prepare(photos, tmp_path / "scene", num_threads=THREADS, progress=False)
     msg = str(info.value)
-    assert "noise: only 0 of 4 images registered (need 3)" in msg
-    for i in range(4):
-        assert f"n{i}.png: " in msg
-    assert "too few matches" in msg or "SIFT features" in msg
+    assert "noise: only 0 of 5 images registered (need 3; mapping tried: incremental (incremental 0/5, " \
+           "incremental-relaxed 0/5, global 0/5))" in msg
+    assert sum(f"n{i}.png: " in msg for i in range(5)) == FAILURES_LISTED == 3
+    assert "(and 2 more)" in msg and ("5 x too few matches" in msg or "5 x few SIFT features" in msg)
+    listing = json.loads((tmp_path / "scene" / "colmap" / "failures.json").read_text())
+    assert sorted(listing["failed"]) == [f"n{i}.png" for i in range(5)]
+    assert listing["mapping_attempts"] == {"incremental": 0, "incremental-relaxed": 0, "global": 0}
+    assert all(why.startswith(("too few matches: ", "few SIFT features: ")) for why in listing["failed"].values())
+
+
+def test_failure_summary_counts_kinds_and_lists_a_few():
+    failed = {"a.png": "too few matches: x", "b.png": "few SIFT features: only 3", "c.png": "too few matches: y",
+              "d.png": "too few matches: z"}
+    assert failure_summary(failed, listed=2) == ("3 x too few matches; 1 x few SIFT features. For example a.png: too "
+                                                 "few matches: x; b.png: few SIFT features: only 3 (and 2 more)")
+    assert mapping_report("global", {"incremental": 0, "global": 7}, 8) == "global (incremental 0/8, global 7/8)"
+
+
+def _textured_planes(camera_x: float, H: int = 120, W: int = 160, focal: float = 150.0) -> np.ndarray:
+    """A pinhole view (OpenCV axes, looking down +z) from (camera_x, 0, 0) of two textured planes:
+    a wall at z = 8 and a card at z = 5 (x in [-1.5, 1], y in [-1.2, 1.2]). uint8 RGB [H, W, 3]."""
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    dx, dy = (u + 0.5 - W / 2) / focal, (v + 0.5 - H / 2) / focal
+    image, nearest = np.zeros((H, W, 3)), np.full((H, W), np.inf)
+    for seed, z, half_size, rect in ((1, 8.0, 8.0, None), (2, 5.0, 3.0, (-1.5, 1.0, -1.2, 1.2))):
+        rng = np.random.default_rng(seed)
+        texture = np.kron(rng.uniform(0, 1, size=(64, 64, 3)), np.ones((4, 4, 1)))
+        for _ in range(2):  # blur the blocks into blobs SIFT finds at several scales
+            texture = (texture + np.roll(texture, 1, 0) + np.roll(texture, 1, 1) + np.roll(texture, (1, 1), (0, 1))) / 4
+        x, y = camera_x + dx * z, dy * z
+        hit = z < nearest
+        if rect is not None:
+            hit &= (x > rect[0]) & (x < rect[1]) & (y > rect[2]) & (y < rect[3])
+        n = texture.shape[0]
+        tu = np.clip((x / half_size * 0.5 + 0.5) * (n - 1), 0, n - 1).astype(int)
+        tv = np.clip((y / half_size * 0.5 + 0.5) * (n - 1), 0, n - 1).astype(int)
+        image[hit], nearest[hit] = texture[tv[hit], tu[hit]], z
+    return (image * 255).round().astype(np.uint8)
+
+
+def test_small_baseline_capture_registers_through_the_fallback(tmp_path):
+    """Eight views along a 0.3-unit line of a scene 5-8 units away: the widest pair sees its points
+    at about 2.6 degrees, below what COLMAP's default initial pair accepts even after its own two
+    halvings of 16 degrees, so the default mapper does not register them all; the relaxed initial
+    pair does, and prepare says so."""
+    photos = tmp_path / "walk"
+    photos.mkdir()
+    for i, x in enumerate(np.linspace(-0.15, 0.15, 8)):
+        iio.imwrite(photos / f"v{i}.png", _textured_planes(float(x)))
+    with pytest.raises(DatasetError, match=r"only \d of 8 images registered .*mapping tried: incremental "
+                                           r"\(incremental \d/8\)"):
+        prepare(photos, tmp_path / "default_only", mapping="incremental", num_threads=THREADS, progress=False)
+    result = prepare(photos, tmp_path / "scene", num_threads=THREADS, progress=False)
+    assert result.num_registered == 8 and result.mapping == "incremental-relaxed"
+    assert list(result.mapping_attempts) == ["incremental", "incremental-relaxed"]
+    assert result.mapping_attempts["incremental"] < 8 and result.mapping_attempts["incremental-relaxed"] == 8
+    assert "mapping: incremental-relaxed (incremental " in result.summary()
+    recorded = json.loads((tmp_path / "scene" / "prepare.json").read_text())
+    assert recorded["mapping"] == "incremental-relaxed" and recorded["mapping_attempts"] == result.mapping_attempts
+    # the recovered centres lie on one line, evenly spaced, as the views were taken (within 3% of the
+    # 0.3-unit line: the texture is looked up at the nearest texel, so the views are not exact projections)
+    centres = camera_centres(load_dataset(tmp_path / "scene").cameras).double().numpy()
+    s, R, t = similarity_align(centres, np.stack([np.linspace(-0.15, 0.15, 8), np.zeros(8), np.zeros(8)], 1))
+    aligned = s * centres @ R.T + t
+    assert np.abs(aligned[:, 0] - np.linspace(-0.15, 0.15, 8)).max() < 0.03 * 0.3
+    assert np.abs(aligned[:, 1:]).max() < 0.03 * 0.3
 
 
 @pytest.mark.slow

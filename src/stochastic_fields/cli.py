@@ -77,7 +77,7 @@ def add_dist_timeout_argument(p: argparse.ArgumentParser) -> None:
 
 def cmd_train(args: argparse.Namespace) -> None:
     from .models.registry import resolve_device
-    from .scenes import load_run_dataset
+    from .scenes import describe_split, load_run_dataset
     from .trainer import Trainer
 
     from .io_utils import check_output_folder
@@ -91,6 +91,7 @@ def cmd_train(args: argparse.Namespace) -> None:
     check_resume(run_dir, cfg)  # before anything is written or generated
     resolve_device(cfg.train.device)  # an absent CUDA device is refused before the scene is generated
     dataset = load_run_dataset(cfg, run_dir)
+    print(describe_split(dataset, cfg))
     model = Trainer(cfg, run_dir, dataset).train(progress=not args.quiet)
     print(f"trained: {run_dir / 'checkpoint.pt'}")
     _calibrate_after_training(run_dir, model, dataset)

@@ -31,8 +31,12 @@ class DataConfig:
     """Scene folder: LLFF (poses_bounds.npy + images_N/), Blender/nerfstudio (transforms*.json). Empty: the embedded synthetic scene, generated into the run folder. Stored resolved (absolute) in the run's config.json."""
     images: str = "images_8"
     """LLFF image folder to read (images_8 is 504x378 for fern): a folder name inside the scene, no path separators. Range: a folder name (no '/', not '.' or '..')."""
+    split: Literal["capture", "paper"] = "capture"
+    """Which photos train. 'capture': every photo trains except every holdout_every-th (index % holdout_every == 0: photos 0, 8, 16, ... as LLFF's convention), which validate. 'paper': the paper's protocol (docs/definitions.md §7), about 20% train (index % split_every == 0) and the rest are test views; the benchmark tables use it (--preset paper). Scenes whose files give the split (Blender's transforms_train/test.json) keep it."""
+    holdout_every: int = 8
+    """Capture split: views with index % holdout_every == 0 validate, the rest train. Range: an integer >= 2 and <= 1000000."""
     split_every: int = 5
-    """Training views are those with index % split_every == 0 (docs/definitions.md §7); the rest are test views. Range: an integer >= 1 and <= 1000000."""
+    """Paper split: training views are those with index % split_every == 0 (docs/definitions.md §7); the rest are test views. Range: an integer >= 1 and <= 1000000."""
     downscale: int = 1
     """Integer downscale of Blender images (lego: 8 gives 100x100). LLFF scenes refuse values other than 1: choose data.images instead. Range: an integer >= 1 and <= 1024."""
     undistort: bool = True
@@ -139,6 +143,8 @@ def _device_name(s: str) -> bool:
 DATA_CHECKS: dict[str, V.Checker] = {
     "path": V.text(),
     "images": V.text(pattern_rule="a folder name (no '/', not '.' or '..')", accept=_folder_name),
+    "split": V.choice("capture", "paper"),
+    "holdout_every": V.integer(2, 10**6),
     "split_every": V.integer(1, 10**6),
     "downscale": V.integer(1, 1024),
     "undistort": V.boolean(),
@@ -204,15 +210,18 @@ def validate_experiment(cfg: "ExperimentConfig") -> None:
 
 #: Named presets as data: dotted option -> value, applied on top of the defaults (``--help``
 #: lists them). ``demo``: the embedded synthetic scene in a few minutes on 2 CPU cores; ``llff``:
-#: forward-facing LLFF scenes (disparity spacing); ``tiny``: seconds, for tests.
+#: forward-facing LLFF scenes (disparity spacing); ``paper``: the paper's split (about 20% of the
+#: views train, the benchmark tables' protocol); ``tiny``: seconds, for tests.
 PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
     "default": {},
-    "demo": {"train.iterations": 2000, "render.background": (1.0, 1.0, 1.0), "data.split_every": 4},
+    "demo": {"train.iterations": 2000, "render.background": (1.0, 1.0, 1.0), "data.split": "paper",
+             "data.split_every": 4},
     "llff": {"data.images": "images_8", "render.spacing": "disparity", "render.num_samples": 64,
              "train.iterations": 3000},
     "tiny": {"train.iterations": 150, "train.rays_per_batch": 256, "train.eval_every": 0,
              "train.checkpoint_every": 100, "render.num_samples": 32, "render.num_draws": 8,
-             "render.background": (1.0, 1.0, 1.0), "data.split_every": 4},
+             "render.background": (1.0, 1.0, 1.0), "data.split": "paper", "data.split_every": 4},
+    "paper": {"data.split": "paper", "data.split_every": 5},
 }
 PRESETS = tuple(PRESET_OVERRIDES)
 
@@ -338,7 +347,7 @@ def save_config(cfg: ExperimentConfig, path: Path) -> None:
 #: the benchmark fingerprints count these values, not the defaults, as "unchanged", except where
 #: ``stochastic_fields_bench.runner._FINGERPRINT_REFERENCE`` names the value stored runs left out).
 LEGACY_VALUES: dict[str, Any] = {"loss.per_point_noise": False, "loss.noise_head_decoupled": False,
-                                 "loss.lambda_depth": 0.0}
+                                 "loss.lambda_depth": 0.0, "data.split": "paper"}
 
 
 def saved_config(data: dict) -> ExperimentConfig:

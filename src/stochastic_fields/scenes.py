@@ -15,7 +15,8 @@ def scene_path(cfg: ExperimentConfig, run_dir: Path) -> Path:
 
 
 def load_run_dataset(cfg: ExperimentConfig, run_dir: Path, *, generate: bool = True):
-    """Load the run's dataset; generate the embedded synthetic scene first if needed."""
+    """Load the run's dataset, split by ``cfg.data.split`` (:func:`apply_split`); generate the
+    embedded synthetic scene first if needed."""
     from .data import detect_format, load_dataset
 
     path = scene_path(cfg, run_dir)
@@ -33,9 +34,33 @@ def load_run_dataset(cfg: ExperimentConfig, run_dir: Path, *, generate: bool = T
         if cfg.data.downscale != 1:
             raise ValueError(f"option data.downscale={cfg.data.downscale} applies to Blender/nerfstudio scenes; "
                              f"{path} is an LLFF scene: choose its resolution with data.images (images_4, images_8)")
-        return load_dataset(path, images=cfg.data.images, split_every=cfg.data.split_every,
-                            undistort=cfg.data.undistort)
+        return apply_split(load_dataset(path, images=cfg.data.images, split_every=cfg.data.split_every,
+                                        undistort=cfg.data.undistort), cfg)
     if not cfg.data.undistort:
         raise ValueError(f"option data.undistort=false applies to LLFF scenes; {path} is a "
                          f"{detect_format(path)} capture, whose distorted cameras are always undistorted")
-    return load_dataset(path, split_every=cfg.data.split_every, downscale=cfg.data.downscale)
+    return apply_split(load_dataset(path, split_every=cfg.data.split_every, downscale=cfg.data.downscale), cfg)
+
+
+def apply_split(dataset, cfg: ExperimentConfig):
+    """The run's split of a loaded dataset (``data.split``): 'paper' keeps the loader's
+    ``index % split_every == 0`` training views; 'capture' holds out every ``holdout_every``-th view
+    (index % holdout_every == 0) and trains on the rest. A split given by the scene's files
+    (``dataset.split_source == "files"``) is kept either way."""
+    if cfg.data.split == "capture" and dataset.split_source != "files":
+        return dataset.hold_out_every(cfg.data.holdout_every)
+    return dataset
+
+
+def describe_split(dataset, cfg: ExperimentConfig) -> str:
+    """One line: how many photos train and how many validate/test, and by which rule."""
+    n_train, n_test = len(dataset.train_indices), len(dataset.test_indices)
+    if dataset.split_source == "files":
+        rule = "the scene's own train/test files"
+    elif dataset.split_source == "holdout_every":
+        rule = (f"capture split: every {cfg.data.holdout_every}th photo validates (index % {cfg.data.holdout_every} "
+                "== 0); --preset paper for the paper's 20% split")
+    else:
+        rule = f"paper split: index % {cfg.data.split_every} == 0 trains"
+    role = "validate" if dataset.split_source == "holdout_every" else "test"
+    return f"{dataset.name}: {n_train} photos train, {n_test} {role} ({rule})"

@@ -69,6 +69,7 @@ def base_config(settings: BenchmarkSettings, dataset=None) -> ExperimentConfig:
         if hasattr(cfg.render, key):
             setattr(cfg.render, key, False)
     cfg.data.images = settings.images
+    cfg.data.split = "paper"  # the paper's protocol, explicitly (not the capture default)
     cfg.data.split_every = 5
     cfg.train.seed = settings.seed
     cfg.train.device = settings.device

@@ -77,6 +77,7 @@ def _scene_config(scene: str, backend: str, budget: dict, scene_path: Path):
 
     cfg = preset("llff" if scene == "fern" else "demo")
     cfg.data.path = str(scene_path)
+    cfg.data.split = "paper"  # the paper's protocol, explicitly (not the capture default)
     cfg.data.split_every = 5
     cfg.field.backend = backend
     cfg.field.mlp_width = budget["mlp_width"]

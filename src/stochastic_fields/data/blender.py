@@ -35,7 +35,9 @@ that it is a guess.
 
 Splits: a folder with ``transforms_train.json`` and ``transforms_test.json`` loads both, and
 the files give the split; a single json (``transforms.json`` or one named file) is split with
-``split_every`` (the file's own ``split_every`` hint wins when the caller passes none).
+``split_every`` (the file's own ``split_every`` hint wins when the caller passes none). The
+dataset's ``split_source`` says which (``"files"`` or ``"split_every"``): a run's capture split
+(``data.split``) re-splits the second only.
 """
 
 from __future__ import annotations
@@ -489,6 +491,7 @@ def load_blender(
         points3d_rgb=None if sparse is None else torch.from_numpy(sparse[3]).float() / 255.0,
         points3d_visible=None if sparse is None or not sparse[4] else sparse[1],
         bounds_source=bounds_source,
+        split_source="split_every" if files[0][1] == "all" else "files",
     )
 
 

@@ -82,6 +82,7 @@ class SceneDataset:
     points3d_visible: list[np.ndarray] | None = None
     bounds_source: str = "file"
     lens: dict | None = None
+    split_source: str = "split_every"
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -142,7 +143,12 @@ class SceneDataset:
     def split_every(self, n: int) -> "SceneDataset":
         """Re-split: views with ``index % n == 0`` train, the rest test (docs/definitions.md §7 uses n = 5)."""
         train, test = split_every_indices(self.num_views, n, self.root)
-        return replace(self, train_indices=train, test_indices=test)
+        return replace(self, train_indices=train, test_indices=test, split_source="split_every")
+
+    def hold_out_every(self, n: int) -> "SceneDataset":
+        """Re-split for a capture: views with ``index % n == 0`` validate (test), the rest train."""
+        train, test = holdout_every_indices(self.num_views, n, self.root)
+        return replace(self, train_indices=train, test_indices=test, split_source="holdout_every")
 
 
 def parse_views(spec: str, num_views: int, train: Sequence[int], test: Sequence[int]) -> list[int]:
@@ -174,6 +180,17 @@ def split_every_indices(num_views: int, n: int, path: str | Path) -> tuple[list[
         raise DatasetError(path, f"split_every must be >= 1, got {n}")
     train = [i for i in range(num_views) if i % n == 0]
     test = [i for i in range(num_views) if i % n != 0]
+    check_split(train, test, path)
+    return train, test
+
+
+def holdout_every_indices(num_views: int, n: int, path: str | Path) -> tuple[list[int], list[int]]:
+    """(train, test) indices with test = ``index % n == 0`` (LLFF's convention with n = 8: views 0, 8,
+    16, ... validate); DatasetError if either is empty."""
+    if int(n) < 2:
+        raise DatasetError(path, f"holdout_every must be >= 2, got {n}")
+    test = [i for i in range(num_views) if i % n == 0]
+    train = [i for i in range(num_views) if i % n != 0]
     check_split(train, test, path)
     return train, test
 

@@ -7,8 +7,23 @@ Stages (each with a progress bar):
    ``video_fps / fps`` consecutive frames the sharpest (largest variance of the Laplacian) is
    kept, so the frames are both sharp and spread out; at most ``max_frames`` are kept.
 2. Structure from motion with pycolmap (COLMAP's SIFT features, exhaustive matching for photos or
-   sequential matching for video frames, incremental mapping; one shared camera; CPU, or CUDA
-   where pycolmap is built with it). The largest reconstruction is kept.
+   sequential matching for video frames; one shared camera; CPU, or CUDA where pycolmap is built
+   with it). Mapping tries the strategies of :data:`MAPPING_STRATEGIES` in order, on the same
+   features and matches, and stops at the first that registers every image (else the one that
+   registered most is kept):
+
+   - ``incremental``: COLMAP's incremental mapper with its default options. Its initial image pair
+     must triangulate its points at a median angle of 16 degrees (COLMAP halves the thresholds
+     twice when no pair qualifies).
+   - ``incremental-relaxed``: the same mapper whose initial pair needs only
+     :data:`RELAXED_INIT_MIN_TRI_ANGLE_DEG` degrees. A forward-facing capture taken from one spot
+     (LLFF's flower: 34 photos with 1300-2300 verified matches each) has no pair that wide, and the
+     default mapper then registers no image at all.
+   - ``global``: pycolmap's global mapper (GLOMAP): rotation averaging then global positioning,
+     no initial pair.
+
+   The largest reconstruction of the chosen strategy is kept; ``prepare.json`` records every
+   strategy tried and how many images it registered.
 3. Output, next to the images::
 
        SCENE/sparse/0/{cameras,images,points3D}.bin   COLMAP model (+ rigs/frames.bin of COLMAP 3.12+)
@@ -24,7 +39,8 @@ near/far from there (docs/capture.md).
 
 Bad input raises :class:`~stochastic_fields.data.errors.DatasetError` naming the file: no
 images, unreadable photos or frames, a video that cannot be decoded, photos of different sizes,
-or fewer registered images than ``min_registered`` (listing each failed image and why).
+or fewer registered images than ``min_registered`` (a summary of the reasons, the first
+:data:`FAILURES_LISTED` failed images, and the whole list in ``SCENE/colmap/failures.json``).
 """
 
 from __future__ import annotations
@@ -66,8 +82,15 @@ CAMERA_MODELS: dict[str, str] = {
     "OPENCV": "OPENCV", "SIMPLE_RADIAL_FISHEYE": "OPENCV_FISHEYE", "RADIAL_FISHEYE": "OPENCV_FISHEYE",
     "OPENCV_FISHEYE": "OPENCV_FISHEYE",
 }
-#: pycolmap's glog level while it runs (2 = errors only; its INFO lines would bury the progress bars).
-PYCOLMAP_LOG_LEVEL: int = 2
+#: Mapping strategies, tried in this order until one registers every image (module doc).
+MAPPING_STRATEGIES: tuple[str, ...] = ("incremental", "incremental-relaxed", "global")
+#: Median triangulation angle (degrees) the initial pair needs in ``incremental-relaxed`` (COLMAP: 16).
+RELAXED_INIT_MIN_TRI_ANGLE_DEG: float = 4.0
+#: Failed images named in a registration error (the rest are counted, and listed in failures.json).
+FAILURES_LISTED: int = 3
+#: pycolmap's glog level while it runs (3 = fatal only: its INFO lines would bury the progress bars, and a
+#: strategy that fails is reported in prepare's own summary and error).
+PYCOLMAP_LOG_LEVEL: int = 3
 
 
 @dataclass
@@ -82,13 +105,35 @@ class PrepareResult:
     camera_model: str
     failed: dict[str, str] = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)
+    mapping: str = "incremental"
+    mapping_attempts: dict[str, int] = field(default_factory=dict)
 
     def summary(self) -> str:
         lines = [f"registered {self.num_registered}/{self.num_images} images, {self.num_points} points, "
                  f"mean reprojection error {self.mean_reprojection_error_px:.3f} px ({self.camera_model})",
+                 "mapping: " + mapping_report(self.mapping, self.mapping_attempts, self.num_images),
                  "time: " + ", ".join(f"{k} {v:.1f} s" for k, v in self.timings_s.items())]
         lines += [f"  not registered: {name}: {why}" for name, why in self.failed.items()]
         return "\n".join(lines)
+
+
+def mapping_report(chosen: str, attempts: dict[str, int], num_images: int) -> str:
+    """One line: the strategy kept and what each tried registered, e.g.
+    ``incremental-relaxed (incremental 0/34, incremental-relaxed 34/34)``."""
+    tried = ", ".join(f"{name} {n}/{num_images}" for name, n in attempts.items())
+    return f"{chosen} ({tried})" if len(attempts) > 1 else f"{chosen} ({tried or 'not run'})"
+
+
+def failure_summary(failed: dict[str, str], listed: int = FAILURES_LISTED) -> str:
+    """The reasons counted by kind, then the first ``listed`` images with theirs."""
+    kinds: dict[str, int] = {}
+    for why in failed.values():
+        kind = why.split(":")[0]  # every reason of _failure_reasons reads "kind: detail"
+        kinds[kind] = kinds.get(kind, 0) + 1
+    counts = "; ".join(f"{n} x {kind}" for kind, n in sorted(kinds.items(), key=lambda kv: -kv[1]))
+    first = "; ".join(f"{name}: {why}" for name, why in list(failed.items())[:listed])
+    more = f" (and {len(failed) - listed} more)" if len(failed) > listed else ""
+    return f"{counts}. For example {first}{more}"
 
 
 # ---------------------------------------------------------------------- input
@@ -220,7 +265,11 @@ def _device(name: str):
 
 
 def _failure_reasons(database: Path, names: list[str], registered: set[str], min_matches: int) -> dict[str, str]:
-    """Why each image of ``names`` not in ``registered`` failed, from the database's counts."""
+    """Why each image of ``names`` not in ``registered`` failed, from the database's counts.
+
+    Each reason reads ``"<kind>: <detail>"``; the kinds are ``not imported by COLMAP``, ``few SIFT
+    features``, ``too few matches`` and ``not placed by the mapper``.
+    """
     import pycolmap
 
     db = pycolmap.Database.open(database)
@@ -240,35 +289,73 @@ def _failure_reasons(database: Path, names: list[str], registered: set[str], min
                 continue
             iid = ids.get(name)
             if iid is None:
-                reasons[name] = "not imported by COLMAP (unreadable for it)"
+                reasons[name] = "not imported by COLMAP: unreadable for it"
                 continue
             feats = int(db.num_keypoints_for_image(iid))
             if feats < FEW_FEATURES:
-                reasons[name] = f"only {feats} SIFT features (blurred, dark or textureless?)"
+                reasons[name] = f"few SIFT features: only {feats} (blurred, dark or textureless?)"
             elif partners.get(iid, 0) == 0:
                 reasons[name] = (f"too few matches: no other image shares {min_matches} geometrically verified "
                                  f"matches with it (best {best.get(iid, 0)}; {feats} features)")
             else:
-                reasons[name] = (f"{partners[iid]} images share >= {min_matches} verified matches with it (best "
-                                 f"{best.get(iid, 0)}), but the mapper could not place it in the model")
+                reasons[name] = (f"not placed by the mapper: {partners[iid]} images share >= {min_matches} "
+                                 f"verified matches with it (best {best.get(iid, 0)})")
         return reasons
     finally:
         db.close()
 
 
-def run_sfm(image_dir: Path, work_dir: Path, names: list[str], *, camera_model: str = "SIMPLE_RADIAL",
-            matcher: str = "exhaustive", num_threads: int = -1, device: str = "auto", seed: int = 0,
-            progress: bool = True):
-    """Features, matches and incremental mapping with pycolmap.
+def map_images(database: Path, image_dir: Path, out: Path, strategy: str, *, num_images: int,
+               num_threads: int = -1, seed: int = 0, progress: bool = True) -> dict:
+    """One mapping strategy of :data:`MAPPING_STRATEGIES` on the database's features and matches.
 
-    Returns (the largest pycolmap.Reconstruction or None, the database path, per-stage seconds).
+    Writes its models under ``out`` (emptied first) and returns pycolmap's {index: Reconstruction}.
     """
-    import pycolmap
+    import pycolmap  # heavy optional dependency, loaded only when prepare runs
+
+    if strategy not in MAPPING_STRATEGIES:
+        raise ValueError(f"mapping strategy must be one of {', '.join(MAPPING_STRATEGIES)}, got {strategy!r}")
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    pycolmap.set_random_seed(int(seed))
+    if strategy == "global":
+        options = pycolmap.GlobalPipelineOptions()
+        options.num_threads = int(num_threads)
+        options.random_seed = int(seed)
+        return pycolmap.global_mapping(database, image_dir, out, options=options)
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = int(num_threads)
+    options.random_seed = int(seed)
+    if strategy == "incremental-relaxed":
+        options.mapper.init_min_tri_angle = RELAXED_INIT_MIN_TRI_ANGLE_DEG
+    bar = tqdm(total=num_images, desc=f"registering ({strategy})", unit="img", disable=not progress, leave=False)
+    try:
+        return pycolmap.incremental_mapping(database, image_dir, out, options=options,
+                                            initial_image_pair_callback=lambda: bar.update(2),
+                                            next_image_callback=lambda: bar.update(1))
+    finally:
+        bar.close()
+
+
+def run_sfm(image_dir: Path, work_dir: Path, names: list[str], *, camera_model: str = "SIMPLE_RADIAL",
+            matcher: str = "exhaustive", mapping: str = "auto", num_threads: int = -1, device: str = "auto",
+            seed: int = 0, progress: bool = True):
+    """Features, matches and mapping with pycolmap (module doc, stage 2).
+
+    ``mapping`` is one strategy of :data:`MAPPING_STRATEGIES`, or ``"auto"``: each in turn until one
+    registers every image. Returns (the largest pycolmap.Reconstruction of the strategy kept, or
+    None; the database path; per-stage seconds; the strategy kept; {strategy tried: images it
+    registered}).
+    """
+    import pycolmap  # heavy optional dependency, loaded only when prepare runs
 
     if camera_model not in CAMERA_MODELS:
         raise ValueError(f"camera_model must be one of {', '.join(CAMERA_MODELS)}, got {camera_model!r}")
     if matcher not in ("exhaustive", "sequential"):
         raise ValueError(f"matcher must be 'exhaustive' or 'sequential', got {matcher!r}")
+    if mapping != "auto" and mapping not in MAPPING_STRATEGIES:
+        raise ValueError(f"mapping must be 'auto' or one of {', '.join(MAPPING_STRATEGIES)}, got {mapping!r}")
     dev = _device(device)
     work_dir.mkdir(parents=True, exist_ok=True)
     database = work_dir / "database.db"
@@ -276,9 +363,12 @@ def run_sfm(image_dir: Path, work_dir: Path, names: list[str], *, camera_model: 
         database.unlink()  # a new run: COLMAP would otherwise add to the old features
     pycolmap.set_random_seed(int(seed))
     timings: dict[str, float] = {}
+    strategies = MAPPING_STRATEGIES if mapping == "auto" else (mapping,)
     old_level = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = PYCOLMAP_LOG_LEVEL
     stages = tqdm(total=3, desc="SfM", unit="stage", disable=not progress)
+    attempts: dict[str, int] = {}
+    best, best_strategy = None, strategies[0]
     try:
         t0 = time.perf_counter()
         stages.set_postfix_str("features")
@@ -303,26 +393,22 @@ def run_sfm(image_dir: Path, work_dir: Path, names: list[str], *, camera_model: 
         stages.update(1)
 
         t0 = time.perf_counter()
-        stages.set_postfix_str("mapping")
-        mapping = pycolmap.IncrementalPipelineOptions()
-        mapping.num_threads = int(num_threads)
-        mapping.random_seed = int(seed)
-        out = work_dir / "sparse"
-        if out.exists():
-            shutil.rmtree(out)
-        out.mkdir(parents=True)
-        bar = tqdm(total=len(names), desc="registering", unit="img", disable=not progress, leave=False)
-        recs = pycolmap.incremental_mapping(database, image_dir, out, options=mapping,
-                                           initial_image_pair_callback=lambda: bar.update(2),
-                                           next_image_callback=lambda: bar.update(1))
-        bar.close()
+        for strategy in strategies:
+            stages.set_postfix_str(f"{strategy} mapping")
+            recs = map_images(database, image_dir, work_dir / "sparse", strategy, num_images=len(names),
+                              num_threads=num_threads, seed=seed, progress=progress)
+            rec = max(recs.values(), key=lambda r: r.num_reg_images()) if recs else None
+            attempts[strategy] = rec.num_reg_images() if rec is not None else 0
+            if rec is not None and (best is None or attempts[strategy] > best.num_reg_images()):
+                best, best_strategy = rec, strategy
+            if attempts[strategy] == len(names):
+                break
         timings["mapping"] = time.perf_counter() - t0
         stages.update(1)
     finally:
         stages.close()
         pycolmap.logging.minloglevel = old_level
-    rec = max(recs.values(), key=lambda r: r.num_reg_images()) if recs else None
-    return rec, database, timings
+    return best, database, timings, best_strategy, attempts
 
 
 # ---------------------------------------------------------------------- output
@@ -410,7 +496,8 @@ def write_downscaled(images: list[Path], scene_dir: Path, factors=DOWNSCALE_FACT
 
 
 def prepare(source: str | Path, scene_dir: str | Path, *, camera_model: str = "SIMPLE_RADIAL",
-            matcher: str | None = None, num_threads: int = -1, device: str = "auto", fps: float = DEFAULT_VIDEO_FPS,
+            matcher: str | None = None, mapping: str = "auto", num_threads: int = -1, device: str = "auto",
+            fps: float = DEFAULT_VIDEO_FPS,
             max_frames: int = DEFAULT_MAX_FRAMES, min_registered_fraction: float = DEFAULT_MIN_REGISTERED_FRACTION,
             downscale_factors=DOWNSCALE_FACTORS, seed: int = 0, progress: bool = True) -> PrepareResult:
     """Photos folder or video -> posed scene folder (module doc). Returns what was done."""
@@ -438,9 +525,9 @@ def prepare(source: str | Path, scene_dir: str | Path, *, camera_model: str = "S
     if len(names) < MIN_REGISTERED_IMAGES:
         raise DatasetError(source, f"only {len(names)} images: structure from motion needs at least "
                            f"{MIN_REGISTERED_IMAGES}, and a radiance field many more")
-    rec, database, sfm_times = run_sfm(image_dir, scene_dir / "colmap", names, camera_model=camera_model,
-                                       matcher=matcher, num_threads=num_threads, device=device, seed=seed,
-                                       progress=progress)
+    rec, database, sfm_times, strategy, attempts = run_sfm(
+        image_dir, scene_dir / "colmap", names, camera_model=camera_model, matcher=matcher, mapping=mapping,
+        num_threads=num_threads, device=device, seed=seed, progress=progress)
     timings.update(sfm_times)
     registered = {rec.images[i].name for i in rec.reg_image_ids()} if rec is not None else set()
     import pycolmap
@@ -449,9 +536,11 @@ def prepare(source: str | Path, scene_dir: str | Path, *, camera_model: str = "S
                               int(pycolmap.TwoViewGeometryOptions().min_num_inliers))
     need = max(MIN_REGISTERED_IMAGES, math.ceil(min_registered_fraction * len(names)))
     if len(registered) < need:
-        listing = "; ".join(f"{n}: {why}" for n, why in failed.items())
-        raise DatasetError(source, f"only {len(registered)} of {len(names)} images registered (need {need}). "
-                           f"Not registered: {listing}")
+        listing = scene_dir / "colmap" / "failures.json"
+        atomic_write_text(listing, json.dumps({"mapping_attempts": attempts, "failed": failed}, indent=2))
+        raise DatasetError(source, f"only {len(registered)} of {len(names)} images registered (need {need}; "
+                           f"mapping tried: {mapping_report(strategy, attempts, len(names))}). Not registered: "
+                           f"{failure_summary(failed)}. Every image and its reason: {listing}")
     t0 = time.perf_counter()
     model_dir = scene_dir / "sparse" / "0"
     if model_dir.exists():
@@ -469,7 +558,8 @@ def prepare(source: str | Path, scene_dir: str | Path, *, camera_model: str = "S
     result = PrepareResult(scene_dir=str(scene_dir), num_images=len(names), num_registered=len(model.images),
                            num_points=len(model.points), mean_reprojection_error_px=model.mean_reprojection_error,
                            camera_model=camera.model, failed=failed,
-                           timings_s={k: round(v, 2) for k, v in timings.items()})
+                           timings_s={k: round(v, 2) for k, v in timings.items()}, mapping=strategy,
+                           mapping_attempts=attempts)
     atomic_write_text(scene_dir / "prepare.json", json.dumps(asdict(result), indent=2))
     return result
 
@@ -485,6 +575,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "one radial term; OPENCV for stronger lens distortion, OPENCV_FISHEYE for fisheyes).")
     p.add_argument("--matcher", default=None, choices=("exhaustive", "sequential"),
                    help="Feature matching: every pair (default for photos) or neighbours in order (default for video).")
+    p.add_argument("--mapping", default="auto", choices=("auto",) + MAPPING_STRATEGIES,
+                   help="SfM mapping: auto (default) tries incremental, then incremental-relaxed (an initial pair "
+                        f"needing {RELAXED_INIT_MIN_TRI_ANGLE_DEG:g} instead of 16 degrees of triangulation angle, for "
+                        "captures taken from one spot), then global (GLOMAP), until one registers every image.")
     p.add_argument("--fps", type=float, default=DEFAULT_VIDEO_FPS,
                    help="Video only: frames kept per second of footage (the sharpest of each window).")
     p.add_argument("--max-frames", type=int, default=DEFAULT_MAX_FRAMES, help="Video only: at most this many frames.")
@@ -501,7 +595,7 @@ def run(args: argparse.Namespace) -> None:
     if args.threads == 0 or args.threads < -1:
         raise ValueError(f"--threads must be -1 (all cores) or >= 1, got {args.threads}")
     result = prepare(args.source, args.out, camera_model=args.camera_model, matcher=args.matcher,
-                     num_threads=args.threads, device=args.device, fps=args.fps, max_frames=args.max_frames,
+                     mapping=args.mapping, num_threads=args.threads, device=args.device, fps=args.fps, max_frames=args.max_frames,
                      min_registered_fraction=args.min_registered, seed=args.seed, progress=not args.quiet)
     print(result.summary())
     print(f"scene: {args.out} (train with: stochastic-fields train --data.path {args.out} --out RUN)")

@@ -1,0 +1,221 @@
+"""Quality per CPU-minute on a capture: test PSNR and depth abs-rel against training minutes.
+
+S-NeRF (default) and the deterministic NeRF train on fern and flower with the capture split
+(train's default: every 8th photo validates, the rest train) under the ``llff`` preset. The
+number of steps is set from the machine's speed so that the whole schedule (learning-rate decay,
+coarse-to-fine) fits ``--minutes`` of training: a short probe measures steps/s, then
+``iterations = steps/s x minutes x 60``. Along the way, at fractions ``--marks`` of the schedule,
+the validation photos are rendered and scored by ``evaluation.evaluate`` (colour PSNR; depth
+abs-rel at the capture's own SfM points, SCORE role, ``capture_points.score_sparse_depth``, as
+``stochastic-fields eval`` does). Minutes are training wall-clock only (``Trainer.elapsed``).
+After training, an S-NeRF run is recalibrated (``calibration.calibrate_run``, as ``train`` does)
+and its depth intervals are scored on the validation photos.
+
+Targets (issue 40) after 10 minutes: flower >= 26.0 dB, fern >= 24.5 dB, depth abs-rel <= 0.05,
+S-NeRF within 0.3 dB of the deterministic NeRF.
+
+    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/capture_quality.py --out benchmarks/results/capture_quality
+
+Resumes: a finished (scene, method) is read from ``--work``; ``results.json``, ``README.md`` and
+``capture_quality.png`` are rewritten in ``--out`` after each.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from stochastic_fields.calibration import calibrate_run
+from stochastic_fields.capture_points import score_sparse_depth
+from stochastic_fields.config import preset
+from stochastic_fields.evaluation import evaluate
+from stochastic_fields.io_utils import atomic_write_text
+from stochastic_fields.scenes import describe_split, load_run_dataset
+from stochastic_fields.trainer import Trainer
+
+#: Where the shared LLFF scenes live, relative to the repository.
+LLFF_ROOT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "nerf_llff_data"
+#: Issue 40's targets after 10 minutes (dB, abs-rel, dB gap S-NeRF may lose to the deterministic NeRF).
+PSNR_TARGETS_DB = {"flower": 26.0, "fern": 24.5}
+ABS_REL_TARGET, SNERF_GAP_DB = 0.05, 0.3
+#: Steps timed to set the schedule (after a few warm-up steps).
+PROBE_STEPS, WARMUP_STEPS = 40, 5
+
+
+def config_for(scene: str, method: str, iterations: int, seed: int):
+    cfg = preset("llff")
+    cfg.method = method
+    cfg.data.path = str((LLFF_ROOT / scene).resolve())
+    cfg.train.iterations = int(iterations)
+    cfg.train.eval_every = 0
+    cfg.train.checkpoint_every = 0
+    cfg.train.seed = seed
+    return cfg
+
+
+def steps_per_second(scene: str, method: str, seed: int, work: Path) -> float:
+    """Training speed of this machine on this scene and method, from a short throwaway run."""
+    cfg = config_for(scene, method, WARMUP_STEPS + PROBE_STEPS, seed)
+    run_dir = work / f"probe_{scene}_{method}"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        dataset = load_run_dataset(cfg, run_dir)
+    trainer = Trainer(cfg, run_dir, dataset)
+    trainer.train(progress=False, max_steps=WARMUP_STEPS)
+    before = trainer.elapsed
+    trainer.train(progress=False, max_steps=PROBE_STEPS)
+    return PROBE_STEPS / max(trainer.elapsed - before, 1e-9)
+
+
+def scores_of(result: dict) -> dict:
+    summary = result["summary"]
+    depth = (result.get("pooled") or {}).get("depth") or {}
+    intervals = (result.get("pooled") or {}).get("depth_intervals") or {}
+    return {"psnr": summary["psnr"]["mean"], "ssim": summary["ssim"]["mean"],
+            "depth_abs_rel": depth.get("abs_rel", summary.get("depth/abs_rel", {}).get("mean")),
+            "depth_points": depth.get("num_used"),
+            "coverage_68": intervals.get("coverage_68"), "coverage_95": intervals.get("coverage_95"),
+            "halfwidth_median_95": intervals.get("halfwidth_median_95")}
+
+
+def run_one(scene: str, method: str, args) -> dict:
+    record = args.work / scene / method / "record.json"
+    if record.exists():
+        return json.loads(record.read_text())
+    rate = steps_per_second(scene, method, args.seed, args.work)
+    iterations = max(100, int(round(rate * args.minutes * 60)))
+    cfg = config_for(scene, method, iterations, args.seed)
+    run_dir = args.work / scene / method / "run"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        dataset = load_run_dataset(cfg, run_dir)
+    views = list(dataset.test_indices)
+    sparse = score_sparse_depth(dataset, views)
+    trainer = Trainer(cfg, run_dir, dataset)
+    marks = sorted({max(1, int(round(f * iterations))) for f in args.marks})
+    curve = []
+    print(f"{scene} {method}: {describe_split(dataset, cfg)}; {rate:.2f} steps/s -> {iterations} steps", flush=True)
+    for mark in marks:
+        model = trainer.train(progress=not args.quiet, max_steps=mark - trainer.step)
+        t0 = time.perf_counter()
+        with torch.no_grad():
+            result = evaluate(model, dataset, run_dir / f"eval_{mark:06d}", views=views, sparse_depth=sparse,
+                              product_views=0, progress=False)
+        curve.append({"step": trainer.step, "minutes": trainer.elapsed / 60.0, **scores_of(result),
+                      "eval_s": time.perf_counter() - t0})
+        print(f"  step {trainer.step}: {trainer.elapsed / 60:.1f} min, PSNR {curve[-1]['psnr']:.2f} dB, depth "
+              f"abs-rel {curve[-1]['depth_abs_rel']:.4f}", flush=True)
+    calibrated = None
+    if getattr(model, "accepts_depth", False):
+        calibration = calibrate_run(run_dir, model=model, dataset=dataset)
+        with torch.no_grad():
+            result = evaluate(model, dataset, run_dir / "eval_calibrated", views=views, sparse_depth=sparse,
+                              product_views=0, progress=False, calibration=calibration)
+        calibrated = scores_of(result)
+    out = {"scene": scene, "method": method, "train_views": len(dataset.train_indices), "validation_views": views,
+           "steps_per_s_probe": rate, "iterations": iterations, "curve": curve, "calibrated": calibrated,
+           "threads": torch.get_num_threads()}
+    atomic_write_text(record, json.dumps(out, indent=2))
+    return out
+
+
+def verdict(records: list[dict]) -> dict:
+    """Each target met or not, at the end of the schedule (the ``--minutes`` budget; each record's
+    last curve point states the minutes it actually took)."""
+    out = {}
+    for scene in sorted({r["scene"] for r in records}):
+        by = {r["method"]: r["curve"][-1] for r in records if r["scene"] == scene}
+        snerf, det = by.get("snerf"), by.get("deterministic")
+        row = {}
+        if snerf is not None:
+            row["snerf_minutes"] = snerf["minutes"]
+            row["snerf_psnr"] = snerf["psnr"]
+            row["psnr_target_met"] = snerf["psnr"] >= PSNR_TARGETS_DB.get(scene, float("inf"))
+            row["snerf_abs_rel"] = snerf["depth_abs_rel"]
+            row["abs_rel_target_met"] = snerf["depth_abs_rel"] is not None and snerf["depth_abs_rel"] <= ABS_REL_TARGET
+        if snerf is not None and det is not None:
+            row["deterministic_psnr"] = det["psnr"]
+            row["gap_target_met"] = det["psnr"] - snerf["psnr"] <= SNERF_GAP_DB
+        out[scene] = row
+    return out
+
+
+def plot(records: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = sorted({r["scene"] for r in records})
+    fig, axes = plt.subplots(len(scenes), 2, figsize=(10, 3.6 * len(scenes)), squeeze=False)
+    for row, scene in zip(axes, scenes):
+        for r in (r for r in records if r["scene"] == scene):
+            t = [c["minutes"] for c in r["curve"]]
+            row[0].plot(t, [c["psnr"] for c in r["curve"]], "o-", label=r["method"])
+            row[1].plot(t, [c["depth_abs_rel"] for c in r["curve"]], "o-", label=r["method"])
+        row[0].axhline(PSNR_TARGETS_DB.get(scene, np.nan), color="grey", ls="--", lw=1, label="target")
+        row[1].axhline(ABS_REL_TARGET, color="grey", ls="--", lw=1, label="target")
+        row[0].set(title=f"{scene}: validation PSNR", xlabel="training minutes", ylabel="dB")
+        row[1].set(title=f"{scene}: depth abs-rel at SfM points", xlabel="training minutes", ylabel="abs-rel")
+        for ax in row:
+            ax.grid(alpha=0.3)
+            ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def write_report(records: list[dict], args) -> None:
+    args.out.mkdir(parents=True, exist_ok=True)
+    v = verdict(records)
+    atomic_write_text(args.out / "results.json", json.dumps({"records": records, "targets": v,
+                                                             "minutes": args.minutes}, indent=2))
+    plot(records, args.out / "capture_quality.png")
+    lines = ["# Quality per CPU-minute on a capture (capture split: every 8th photo validates)", "",
+             "Command: `OMP_NUM_THREADS=1 .venv/bin/python benchmarks/capture_quality.py --out "
+             "benchmarks/results/capture_quality` (one torch thread per training; the machine: 2 CPU cores).", "",
+             "| scene | method | train / val photos | steps (steps/s) | minutes | PSNR dB | SSIM | depth abs-rel "
+             "(points) | cov 68 / 95 after recal. | median 95% half-width |", "|" + "---|" * 10]
+    for r in records:
+        last, cal = r["curve"][-1], r["calibrated"] or {}
+        cov = (f"{100 * cal['coverage_68']:.1f} / {100 * cal['coverage_95']:.1f}"
+               if cal.get("coverage_68") is not None else "-")
+        width = f"{100 * cal['halfwidth_median_95']:.1f}%" if cal.get("halfwidth_median_95") is not None else "-"
+        lines.append(f"| {r['scene']} | {r['method']} | {r['train_views']} / {len(r['validation_views'])} "
+                     f"| {r['iterations']} ({r['steps_per_s_probe']:.2f}) | {last['minutes']:.1f} | {last['psnr']:.2f} "
+                     f"| {last['ssim']:.3f} | {last['depth_abs_rel']:.4f} ({last['depth_points']}) | {cov} | {width} |")
+    lines += ["", f"Targets after {args.minutes:g} minutes:", "```", json.dumps(v, indent=1), "```", "",
+              "![curves](capture_quality.png)", ""]
+    atomic_write_text(args.out / "README.md", "\n".join(lines))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", nargs="+", default=["fern", "flower"])
+    ap.add_argument("--methods", nargs="+", default=["snerf", "deterministic"])
+    ap.add_argument("--minutes", type=float, default=10.0, help="Training budget in wall-clock minutes.")
+    ap.add_argument("--marks", nargs="+", type=float, default=[0.1, 0.25, 0.5, 0.75, 1.0],
+                    help="Fractions of the schedule at which the validation photos are scored.")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (stated in the results).")
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/capture_quality"))
+    ap.add_argument("--work", type=Path, default=Path("runs/capture_quality"), help="Runs (large).")
+    ap.add_argument("--quiet", action="store_true")
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    records = []
+    for scene in args.scenes:
+        for method in args.methods:
+            records.append(run_one(scene, method, args))
+            write_report(records, args)
+    print(json.dumps(verdict(records), indent=1))
+
+
+if __name__ == "__main__":
+    main()
