@@ -192,8 +192,10 @@ def _print_summary(result: dict, title: str) -> None:
         print(f"  {name:<26s} {s['mean']:>10.4f}" + (f"  ({s['num_undefined']} undefined)" if s["num_undefined"] else ""))
     depth = result.get("pooled", {}).get("depth")
     if depth:
-        print(f"  pooled depth |err| vs std: Pearson {depth['pearson']:.3f}, Spearman {depth['spearman']:.3f} over "
-              f"{depth['num_used']} px; coverage 68% {depth['coverage_68']:.3f}, 95% {depth['coverage_95']:.3f}")
+        scored = "SfM points (SCORE role)" if result.get("depth_source") == "sparse" else "px"
+        print(f"  pooled depth: abs-rel {depth['abs_rel']:.4f}; |err| vs std: Pearson {depth['pearson']:.3f}, Spearman "
+              f"{depth['spearman']:.3f} over {depth['num_used']} {scored}; coverage 68% {depth['coverage_68']:.3f}, "
+              f"95% {depth['coverage_95']:.3f}")
     iv = result.get("pooled", {}).get("depth_intervals")
     if iv and math.isfinite(iv.get("coverage_95", math.nan)):
         from .evaluation import INTERVAL_PLOT
