@@ -8,6 +8,7 @@ saved before the option existed were trained with the paper's split and keep it.
 from __future__ import annotations
 
 import json
+import warnings
 from dataclasses import replace
 
 import pytest
@@ -68,3 +69,28 @@ def test_a_split_given_by_the_scene_files_is_kept(tiny_scene, tmp_path):
     given = replace(dataset, split_source="files")
     assert apply_split(given, cfg) is given
     assert "the scene's own train/test files" in describe_split(given, cfg)
+
+
+@pytest.mark.slow
+def test_train_prints_the_split_and_eval_scores_depth_at_the_capture_points(shared_data, tmp_path, capsys):
+    """A user's LLFF capture: train says how many photos train and validate; eval scores depth at
+    the capture's own SfM points of the SCORE role, the same points the benchmark scores."""
+    from stochastic_fields.capture_points import score_sparse_depth
+    from stochastic_fields.cli import main
+
+    fern, run = shared_data / "nerf_llff_data" / "fern", tmp_path / "run"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # fern's lens-distortion notice
+        assert main(["train", "--preset", "tiny", "--data.split", "capture", "--data.path", str(fern),
+                     "--train.iterations", "10", "--out", str(run), "--quiet"]) in (0, None)
+        printed = capsys.readouterr().out
+        assert "fern: 17 photos train, 3 validate (capture split: every 8th photo validates" in printed
+        assert main(["eval", "--run", str(run), "--views", "8", "--no-products", "--quiet"]) in (0, None)
+        printed = capsys.readouterr().out
+        metrics = json.loads((run / "metrics.json").read_text())
+        expected = score_sparse_depth(load_run_dataset(C.load_config(run / "config.json"), run), [8])[8]
+    assert metrics["depth_source"] == "sparse" and metrics["views"] == ["view_008"]
+    used = metrics["pooled"]["depth"]["num_used"]
+    assert 0 < used <= len(expected.depth)
+    assert f"over {used} SfM points (SCORE role)" in printed and "pooled depth: abs-rel " in printed
+    assert "depth intervals 50/68/90/95/99%: coverage" in printed
