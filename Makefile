@@ -49,7 +49,7 @@ eval-tables: $(STAMP)
 
 # the one-factor-at-a-time uncertainty study (about 1.5 hours on 2 CPU cores; resumable)
 uncertainty-study: $(STAMP)
-	$(PY) benchmarks/uncertainty_study.py --out benchmarks/results/uncertainty_study
+	$(PY) benchmarks/studies/uncertainty_study.py --out benchmarks/results/uncertainty_study
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache

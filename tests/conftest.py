@@ -32,7 +32,7 @@ def tiny_scene(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="session")
 def load_script():
-    """``load_script("benchmarks/train_cost.py")``: a script of the repository (not a package
+    """``load_script("benchmarks/studies/train_cost.py")``: a script of the repository (not a package
     module) imported by path, as its command line would run it."""
     import importlib.util
 

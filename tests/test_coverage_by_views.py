@@ -1,5 +1,5 @@
 """Which training views observe a point (tracks, or the depth-map test of dense-depth scenes) and the
-coverage-by-group table and plot of benchmarks/coverage_by_views.py (docs/uncertainty.md)."""
+coverage-by-group table and plot of benchmarks/studies/coverage_by_views.py (docs/uncertainty.md)."""
 
 from __future__ import annotations
 
@@ -55,7 +55,7 @@ def test_depth_map_observes_surface_points_and_not_occluded_or_outside_ones(tiny
 
 def test_coverage_table_by_hand_and_its_plot(tmp_path, load_script):
     """Shares inside the bounds per group, by hand; empty groups are left out; 'all' pools every point."""
-    script = load_script("benchmarks/coverage_by_views.py")
+    script = load_script("benchmarks/studies/coverage_by_views.py")
     abs_z = np.array([0.5, 1.5, 2.5, 0.2, 3.0, 0.9])
     counts = np.array([0, 0, 0, 2, 2, 7])
     rows = script.coverage_table(abs_z, counts, bounds=np.array([1.0, 2.0]), raw_bounds=np.array([0.6, 2.6]))

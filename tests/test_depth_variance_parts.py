@@ -1,4 +1,4 @@
-"""benchmarks/depth_variance_parts.py: a trained run re-scored, the total's and each part's ranking."""
+"""benchmarks/studies/depth_variance_parts.py: a trained run re-scored, the total's and each part's ranking."""
 
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ def test_parts_of_a_trained_run_are_scored_as_the_tables_score(tiny_scene, tmp_p
     run = tmp_path / "run"
     Trainer(cfg, run, load_dataset(tiny_scene, split_every=5)).train(progress=False)
     out = tmp_path / "parts"
-    script = load_script("benchmarks/depth_variance_parts.py")
+    script = load_script("benchmarks/studies/depth_variance_parts.py")
     assert script.main(["--run", f"{tiny_scene}={run}", "--out", str(out), "--quiet"]) == 0
     row = json.loads((out / "depth_variance_parts.json").read_text())["rows"][0]
     metrics = json.loads(next(out.glob("*/0/metrics.json")).read_text())
@@ -42,7 +42,7 @@ def test_parts_of_a_trained_run_are_scored_as_the_tables_score(tiny_scene, tmp_p
 
 
 def test_refuses_what_is_not_a_run(tmp_path, load_script):
-    script = load_script("benchmarks/depth_variance_parts.py")
+    script = load_script("benchmarks/studies/depth_variance_parts.py")
     with pytest.raises(SystemExit):
         script.main(["--run", "fern", "--out", str(tmp_path)])
     with pytest.raises(SystemExit):

@@ -233,12 +233,12 @@ def test_a_run_calibrated_with_the_free_space_check_applies_it_in_eval_and_expor
 
 
 def test_free_space_study_scores_and_rule_by_hand(load_script):
-    """benchmarks/free_space_study.py: Spearman per view (mean) and pooled, and the rule on hand-made
+    """benchmarks/studies/free_space_study.py: Spearman per view (mean) and pooled, and the rule on hand-made
     runs (mean per-view gain, per-scene tolerances on both Spearmans and the distance), and the
     committed studies' decisions (13 and 13b) recomputed from their runs."""
     from pathlib import Path
 
-    script = load_script("benchmarks/free_space_study.py")
+    script = load_script("benchmarks/studies/free_space_study.py")
     err = np.array([1.0, 2.0, 3.0, 4.0, 3.0, 2.0, 1.0, 0.5])
     std = np.array([1.0, 2.0, 3.0, 4.0, 1.0, 2.0, 3.0, 4.0])
     view = np.array([0, 0, 0, 0, 5, 5, 5, 5])
@@ -320,11 +320,11 @@ def test_carve_free_space_empties_only_cells_in_front_of_the_surface():
 
 
 def test_carve_study_rule_by_hand(load_script):
-    """benchmarks/carve_study.py: abs-rel must fall on every scene, the other measures stay within
+    """benchmarks/studies/carve_study.py: abs-rel must fall on every scene, the other measures stay within
     study 8's tolerances; the committed decision recomputes from its runs."""
     from pathlib import Path
 
-    script = load_script("benchmarks/carve_study.py")
+    script = load_script("benchmarks/studies/carve_study.py")
 
     def scores(psnr=20.0, nll=-1.0, colour=0.5, abs_rel=0.1, depth=0.6, distance=0.05):
         return {"psnr": psnr, "nll": nll, "colour_spearman": colour, "depth_abs_rel": abs_rel,
@@ -358,7 +358,7 @@ def test_free_space_study_cross_fitted_coverage_by_hand(load_script):
 
     from stochastic_fields.capture_points import SCORE
 
-    script = load_script("benchmarks/free_space_study.py")
+    script = load_script("benchmarks/studies/free_space_study.py")
     n = 100
     xyz = np.r_[np.zeros((n, 3)), np.ones((n, 3))] + np.random.default_rng(0).uniform(0, 0.01, (2 * n, 3))
     capture = SimpleNamespace(xyz=xyz, roles=np.full(2 * n, SCORE, np.int8))
@@ -373,7 +373,7 @@ def test_study_13c_decision_recomputed(load_script):
     but flower's intervals move away from nominal by more than the tolerance; not taken."""
     from pathlib import Path
 
-    script = load_script("benchmarks/free_space_study.py")
+    script = load_script("benchmarks/studies/free_space_study.py")
     path = Path(__file__).resolve().parents[1] / "benchmarks/results/uncertainty_study/free_space_13c/study.json"
     committed = json.loads(path.read_text())
     again = script.decide(committed)

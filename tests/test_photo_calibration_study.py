@@ -1,4 +1,4 @@
-"""Study 18 (benchmarks/photo_calibration_study.py): the depth map fitted on the photos that neither
+"""Study 18 (benchmarks/studies/photo_calibration_study.py): the depth map fitted on the photos that neither
 train nor are scored. Which photos, which points they see, the rule by hand, and the committed
 decision recomputed (docs/uncertainty.md)."""
 
@@ -17,7 +17,7 @@ RESULTS = Path(__file__).resolve().parents[1] / "benchmarks/results/uncertainty_
 
 
 def test_unused_views_are_those_that_neither_train_nor_are_evaluated(load_script):
-    script = load_script("benchmarks/photo_calibration_study.py")
+    script = load_script("benchmarks/studies/photo_calibration_study.py")
     dataset = SimpleNamespace(train_indices=[0, 5, 10], num_views=12)
     assert script.unused_views(dataset, [1, 11]) == [2, 3, 4, 6, 7, 8, 9]
     assert script.unused_views(SimpleNamespace(train_indices=[0], num_views=2), [1]) == []
@@ -29,7 +29,7 @@ def test_photo_points_are_the_roles_points_each_depth_map_shows(tiny_scene, load
     from stochastic_fields.cameras import project_points, select_cameras
     from stochastic_fields.data import load_dataset
 
-    script = load_script("benchmarks/photo_calibration_study.py")
+    script = load_script("benchmarks/studies/photo_calibration_study.py")
     ds = load_dataset(tiny_scene)
     capture = load_capture_points(ds)
     photos = [v for v in range(ds.num_views) if v not in set(ds.train_indices)][:3]
@@ -60,8 +60,8 @@ def test_cross_fitted_coverage_judges_each_block_by_the_others(load_script):
     on both blocks, the same points would all fall inside the 95% interval."""
     from stochastic_fields.calibration import QuantileCalibration
 
-    script = load_script("benchmarks/photo_calibration_study.py")  # puts benchmarks/ on the path
-    from std_floor_study import coverage
+    script = load_script("benchmarks/studies/photo_calibration_study.py")  # puts benchmarks/ on the path
+    from study_helpers import coverage
     n = 60
     fitting = {"abs_err": np.r_[np.ones(n), 3 * np.ones(n)], "std": np.ones(2 * n), "block": np.r_[np.zeros(n), np.ones(n)]}
     scored = {"abs_err": 2 * np.ones(4), "std": np.ones(4), "block": np.array([0, 0, 1, 1])}
@@ -87,7 +87,7 @@ def _run(views: float, photos: float, score_blocks: float = 0.0, one=(0.05,), cr
 def test_rule_by_hand(load_script):
     """Means over a scene's seeds; each scene may lose at most 0.02 of distance, and the mean over
     scenes must gain at least 0.02."""
-    script = load_script("benchmarks/photo_calibration_study.py")
+    script = load_script("benchmarks/studies/photo_calibration_study.py")
     good = script.decide({"runs": {"a/0": _run(0.10, 0.04), "a/1": _run(0.08, 0.04), "b/0": _run(0.05, 0.06)}})
     assert good["passes"] and good["worse_on"] == []
     assert good["scenes"]["a"]["distance_views"] == pytest.approx(0.09)
@@ -108,7 +108,7 @@ def test_rule_by_hand(load_script):
 def test_committed_decision_recomputed(load_script):
     """The committed study: the photos fail the rule (flower's distance grows), and the same photos'
     map fitted on the SCORE blocks holds on every scene (the viewpoints transfer; the blocks do not)."""
-    script = load_script("benchmarks/photo_calibration_study.py")
+    script = load_script("benchmarks/studies/photo_calibration_study.py")
     committed = json.loads((RESULTS / "study.json").read_text())
     again = script.decide(committed)
     assert again == committed["decision"]
@@ -127,7 +127,7 @@ def test_study_18b_confirms_the_cross_fitted_map_on_fresh_seeds(load_script):
     """Study 18b's rule, recomputed from its committed runs (seeds 3 and 4, never looked at before):
     on each scene's mean over the two seeds the cross-fitted virtual-view map holds both levels within
     5 points of nominal, while today's CALIBRATE-only map does not on the synthetic scene and flower."""
-    script = load_script("benchmarks/photo_calibration_study.py")
+    script = load_script("benchmarks/studies/photo_calibration_study.py")
     committed = json.loads((RESULTS.parent / "photo_calibration_18b" / "study.json").read_text())
     again = script.decide(committed)
     assert again == committed["decision"]
@@ -148,7 +148,7 @@ def test_study_18c_rule_by_hand_and_its_committed_decision(load_script):
     """Study 18c judges the held-out default on the unused photos only: each scene's seed mean may lose
     at most 0.02 of distance and the mean over scenes must gain 0.02. The committed study (seeds 0-4,
     no test view rendered) keeps the default."""
-    script = load_script("benchmarks/photo_calibration_study.py")
+    script = load_script("benchmarks/studies/photo_calibration_study.py")
     keep = script.decide_validation({"runs": {"a/0": _validation_run(0.10, 0.03), "a/1": _validation_run(0.08, 0.03),
                                               "b/0": _validation_run(0.04, 0.05)}})
     assert keep["passes"] and keep["scenes"]["a"]["distance_held-out"] == pytest.approx(0.03)

@@ -1,4 +1,4 @@
-"""benchmarks/uncertainty_study.py's three-seed rule (studies 16 and 16b): by hand, and the committed
+"""benchmarks/studies/uncertainty_study.py's three-seed rule (studies 16 and 16b): by hand, and the committed
 decision recomputed from the committed study results."""
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ def _scene(**row_changes):
 
 
 def test_coverage_distance_and_seed_mean_by_hand(load_script):
-    study = load_script("benchmarks/uncertainty_study.py")
+    study = load_script("benchmarks/studies/uncertainty_study.py")
     assert study.coverage_distance({"cov68": 0.60, "cov95": 0.99}) == pytest.approx(0.083 + 0.04)
     by_row = _scene()
     assert study.seed_mean(by_row, study.DEFAULT_SEED_ROWS, "depth_spearman_view") == pytest.approx(0.61)
@@ -33,7 +33,7 @@ def test_coverage_distance_and_seed_mean_by_hand(load_script):
 
 
 def test_judge_seeded_by_hand(load_script):
-    study = load_script("benchmarks/uncertainty_study.py")
+    study = load_script("benchmarks/studies/uncertainty_study.py")
     # a: depth Spearman +0.03 against the default's mean 0.61 (0.64) everywhere: gain 0.03 >= 0.02, passes.
     # b: coverage closer (cov68 0.75 -> 0.70: distance -0.05) but NLL +0.06 on one scene: fails there.
     # c: PSNR +0.1 only: within every tolerance but no gain: fails.
@@ -61,7 +61,7 @@ def test_judge_seeded_by_hand(load_script):
 
 
 def test_write_rule_and_figure(load_script, tmp_path):
-    study = load_script("benchmarks/uncertainty_study.py")
+    study = load_script("benchmarks/studies/uncertainty_study.py")
     results = {"s1": _scene(a={"depth_spearman_view": 0.04}), "s2": _scene(a={"depth_spearman_view": 0.04})}
     d = study.write_rule(tmp_path, results, ("a",), "cmd")
     assert d["taken"] == "a" and "Taken: **a**" in (tmp_path / "rule.md").read_text()
@@ -71,7 +71,7 @@ def test_write_rule_and_figure(load_script, tmp_path):
 
 def test_committed_kl_study_decision_recomputes(load_script):
     """Studies 16 and 16b: the committed rule.json is what the rule gives on the committed results."""
-    study = load_script("benchmarks/uncertainty_study.py")
+    study = load_script("benchmarks/studies/uncertainty_study.py")
     folder = REPO_ROOT / "benchmarks" / "results" / "uncertainty_study" / "kl"
     committed = json.loads((folder / "rule.json").read_text())
     results = json.loads((folder / "study.json").read_text())["results"]
@@ -87,7 +87,7 @@ def test_study_17_the_mlp_at_the_grids_wall_time_fails_every_scene(load_script):
     """Study 17's committed row (benchmarks/results/uncertainty_study/backbone): at about the grid's
     training time the paper's MLP misses study 8's PSNR tolerance against the default on every
     scene, by far more than the seed spread, and its per-view depth ranking tolerance too."""
-    study = load_script("benchmarks/uncertainty_study.py")
+    study = load_script("benchmarks/studies/uncertainty_study.py")
     results = json.loads((REPO_ROOT / "benchmarks/results/uncertainty_study/backbone/study.json").read_text())["results"]
     overrides = dict(dict((r[0], r[2]) for r in study.ROWS_BACKBONE)["mlp_equal_time"])
     assert overrides == {"field.backend": "mlp", "train.lr": 5e-4, "train.iterations": study.MLP_EQUAL_TIME_ITERATIONS}

@@ -156,9 +156,9 @@ def test_calibrate_command_takes_the_floor_switch():
 
 
 def test_floor_study_coverage_terciles_and_rule_by_hand(load_script):
-    """benchmarks/std_floor_study.py: coverage against z_p s(p) sqrt(std^2 + floor^2), the tercile table,
+    """benchmarks/studies/std_floor_study.py: coverage against z_p s(p) sqrt(std^2 + floor^2), the tercile table,
     the distance and gap, and the rule on hand-made runs."""
-    script = load_script("benchmarks/std_floor_study.py")
+    script = load_script("benchmarks/studies/std_floor_study.py")
     ones = np.ones(CALIBRATION_LEVELS.shape)
     plain = QuantileCalibration("depth_std", CALIBRATION_LEVELS, ones, 100)
     floored = QuantileCalibration("depth_std", CALIBRATION_LEVELS, ones, 100, floor=3.0)
@@ -186,8 +186,8 @@ def test_floor_study_coverage_terciles_and_rule_by_hand(load_script):
 
 
 def test_bounds_study_rule_by_hand(load_script):
-    """benchmarks/calibration_bounds_study.py: the mean distance gain and the per-scene tolerances."""
-    script = load_script("benchmarks/calibration_bounds_study.py")
+    """benchmarks/studies/calibration_bounds_study.py: the mean distance gain and the per-scene tolerances."""
+    script = load_script("benchmarks/studies/calibration_bounds_study.py")
 
     def run(d_today, d_new, g_today=0.1, g_new=0.1):
         return {"choices": {"interpolated": {

@@ -1,4 +1,4 @@
-"""benchmarks/train_cost.py: the interleaved step cost and the tensor operations per step."""
+"""benchmarks/studies/train_cost.py: the interleaved step cost and the tensor operations per step."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ def test_operations_per_step_are_those_of_one_step(tiny_scene, tmp_path, load_sc
 
     torch.set_num_threads(1)
     ds = load_dataset(tiny_scene, split_every=5)
-    script = load_script("benchmarks/train_cost.py")
+    script = load_script("benchmarks/studies/train_cost.py")
     counts = {}
     for method in ("snerf", "deterministic"):
         cfg = preset("tiny")
@@ -38,7 +38,7 @@ def test_operations_per_step_are_those_of_one_step(tiny_scene, tmp_path, load_sc
 
 
 def test_command_refuses_a_reference_it_does_not_measure(tiny_scene, capsys, load_script):
-    script = load_script("benchmarks/train_cost.py")
+    script = load_script("benchmarks/studies/train_cost.py")
     assert script.main(["--scene", str(tiny_scene), "--methods", "snerf_default", "--reference", "deterministic"]) == 2
     assert "--reference" in capsys.readouterr().err
     with pytest.raises(SystemExit):
@@ -46,7 +46,7 @@ def test_command_refuses_a_reference_it_does_not_measure(tiny_scene, capsys, loa
 
 
 def test_variant_is_parsed_into_typed_overrides(load_script):
-    script = load_script("benchmarks/train_cost.py")
+    script = load_script("benchmarks/studies/train_cost.py")
     assert script.parse_variant("k4=snerf_default:train.train_draws=4,loss.kl=none,loss.lambda_depth=0.5") == (
         "k4", "snerf_default", (("train.train_draws", 4), ("loss.kl", "none"), ("loss.lambda_depth", 0.5)))
     assert script.parse_variant("s=snerf:render.shared_noise=true")[2] == (("render.shared_noise", True),)
@@ -56,7 +56,7 @@ def test_variant_is_parsed_into_typed_overrides(load_script):
 
 
 def test_command_refuses_a_variant_outside_its_range(tiny_scene, capsys, load_script):
-    script = load_script("benchmarks/train_cost.py")
+    script = load_script("benchmarks/studies/train_cost.py")
     assert script.main(["--scene", str(tiny_scene), "--variant", "k0=snerf_default:train.train_draws=0"]) == 2
     assert "train.train_draws" in capsys.readouterr().err
     assert script.main(["--scene", str(tiny_scene), "--variant", "k4=snerf_default:train.no_such=1"]) == 2
@@ -76,7 +76,7 @@ def test_whole_training_is_timed_in_interleaved_chunks(tiny_scene, tmp_path, mon
     from stochastic_fields_bench import budget, runner
 
     torch.set_num_threads(1)
-    script = load_script("benchmarks/train_cost.py")
+    script = load_script("benchmarks/studies/train_cost.py")
     monkeypatch.setattr(budget, "CPU_BUDGET_OVERRIDES", (("train.iterations", 7), ("field.grid_max_cells", 4096)))
     timed = runner.time_training_interleaved
     draws = {}

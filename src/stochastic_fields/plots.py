@@ -317,7 +317,7 @@ def plot_step_times(
     dpi: int = 110,
 ) -> Path:
     """Training step time (ms) against the training step, one line per method
-    (``benchmarks/train_cost.py``: each point a chunk of steps, at the chunk's last step).
+    (``benchmarks/studies/train_cost.py``: each point a chunk of steps, at the chunk's last step).
 
     Args:
         end_steps: [C] the last step of each chunk.

@@ -8,7 +8,7 @@ only (``capture_points``); each S-NeRF row reports its depth intervals raw and r
 the CALIBRATE points (``calibration``), so the recalibration factor is measured on every row.
 Test views choose nothing: the rows are fixed before the run.
 
-    python benchmarks/uncertainty_study.py --out benchmarks/results/uncertainty_study
+    python benchmarks/studies/uncertainty_study.py --out benchmarks/results/uncertainty_study
 
 Resumable like the tables (finished stages are skipped). Writes ``study.md`` and ``study.json``.
 """
@@ -23,7 +23,7 @@ import sys
 import time
 from pathlib import Path
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_DATA_ROOT = REPO_ROOT / ".." / "shared" / "data" / "nerf_llff_data"
 
 Row = tuple[str, str, tuple[tuple[str, object], ...], str]
@@ -187,7 +187,7 @@ ROWS_BACKBONE: tuple[Row, ...] = (
 
 
 #: Study 18b: the default trained from two seeds no study had used, to confirm study 18's cross-fitted
-#: diagnostic on runs it has not seen (renders of benchmarks/photo_calibration_study.py).
+#: diagnostic on runs it has not seen (renders of benchmarks/studies/photo_calibration_study.py).
 ROWS_FRESH_SEEDS: tuple[Row, ...] = tuple(
     (f"seed{seed}", "snerf_default", (("train.seed", seed),), f"S-NeRF default, seed {seed} (study 18b)")
     for seed in (3, 4)) + REFERENCE_ROWS
@@ -439,7 +439,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.judge:
         from stochastic_fields.io_utils import read_json
 
-        command = "python benchmarks/uncertainty_study.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
+        command = "python benchmarks/studies/uncertainty_study.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
         write_rule(out, read_json(out / "study.json", "study results")["results"], tuple(args.judge), command)
         return 0
     if args.cost:
@@ -490,7 +490,7 @@ def main(argv: list[str] | None = None) -> int:
             if (run_dir / "metrics.json").exists():
                 results.setdefault(Path(scene).name, {})[name] = _row_numbers(run_dir)
     cost = json.loads((out / "cost.json").read_text()) if (out / "cost.json").exists() else None
-    command = "python benchmarks/uncertainty_study.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
+    command = "python benchmarks/studies/uncertainty_study.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
     lines = ["# Uncertainty study: one factor at a time", "", f"Command: `{command}`", "",
              "Rows (fixed before the run):", ""]
     lines += [f"- **{n}** ({m}): {why}" + (f"; overrides {dict(o)}" if o else "") for n, m, o, why in rows]

@@ -7,7 +7,7 @@ geometry), plus the colour noise WITHIN them, mean_k Var[C_k | w_k] (the per-poi
 scales). This script renders one test view of a trained run and prints Spearman's rank correlation
 of per-pixel MSE (mean over RGB) with each part, their sum, and the between part's share.
 
-    python benchmarks/colour_variance_parts.py --run RUN [--data SCENE] [--view 1] [--raw-images]
+    python benchmarks/studies/colour_variance_parts.py --run RUN [--data SCENE] [--view 1] [--raw-images]
 
 ``--data`` overrides the run's scene path (a run trained elsewhere); ``--raw-images`` reads LLFF
 photos without undistortion (runs trained before the loader undistorted them).

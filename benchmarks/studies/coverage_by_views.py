@@ -11,7 +11,7 @@ test of the synthetic scene's stand-in points). Per group it reports the share i
 68% and 95% intervals with the run's stored map (``RUN/calibration.json``) and raw, and the
 median standardised error |d - d*| / sigma.
 
-    python benchmarks/coverage_by_views.py --run fern=RUN flower=RUN synthetic=RUN \\
+    python benchmarks/studies/coverage_by_views.py --run fern=RUN flower=RUN synthetic=RUN \\
         --out benchmarks/results/uncertainty_study/coverage_by_views
 
 Renders only (no training; test views choose nothing). Torch on 1 thread. Writes ``study.json``,
@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # the re-split study's renders of the scored points
-from calibration_split_study import LEVELS, begin_study, scored_points, study_parser, write_study  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers (study_helpers.py)
+from study_helpers import LEVELS, begin_study, scored_points, study_parser, write_study  # noqa: E402
 
 #: Groups of the training-view count: (label, lowest, highest).
 GROUPS: tuple[tuple[str, int, int], ...] = (("0", 0, 0), ("1", 1, 1), ("2", 2, 2), ("3-4", 3, 4), ("5+", 5, 10**9))

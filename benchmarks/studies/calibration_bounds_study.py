@@ -12,7 +12,7 @@ renders with the renders of the same held-out (not FIT) capture points from the 
 neither trained nor are evaluated (COLMAP scenes). Those photos are the novel views the calibration
 views stand in for.
 
-    python benchmarks/calibration_bounds_study.py --run fern/seed0=RUN ... \\
+    python benchmarks/studies/calibration_bounds_study.py --run fern/seed0=RUN ... \\
         --out benchmarks/results/uncertainty_study/calibration_bounds
 
 The decision reads the means over a scene's seeds (docs/uncertainty.md, study 12, rule fixed before
@@ -27,8 +27,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from calibration_split_study import LEVELS, begin_study, scored_points, study_parser, write_study  # noqa: E402
-from std_floor_study import by_scene, distance, gap, tercile_rows  # noqa: E402
+from study_helpers import LEVELS, begin_study, by_scene, distance, gap, scored_points, study_parser, tercile_rows, write_study  # noqa: E402
 
 #: Study 12's tolerances (fixed with the rule): no scene's coverage distance or conditional gap may
 #: grow by more than TOLERANCE, and the mean distance over scenes must fall by at least GAIN.

@@ -13,13 +13,13 @@ of whole-training loop times to ``--reference``. Beside them: the step time of e
 with ``--out``), and the tensor operations per step at the end (each at least one kernel launch on
 a GPU, where small steps are launch-bound) with the functions issuing most.
 
-    python benchmarks/train_cost.py --scene fern --methods deterministic snerf_default \\
+    python benchmarks/studies/train_cost.py --scene fern --methods deterministic snerf_default \\
         --out benchmarks/results/eval_tables/train_cost.json
 
 A study row's configuration is timed as a variant of a method, ``LABEL=METHOD:KEY=VALUE,...``
 (values read as JSON, else as text; the result is checked like any configuration):
 
-    python benchmarks/train_cost.py --methods deterministic snerf_default \\
+    python benchmarks/studies/train_cost.py --methods deterministic snerf_default \\
         --variant draws4=snerf_default:train.train_draws=4
 """
 
@@ -32,7 +32,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_DATA_ROOT = REPO_ROOT / ".." / "shared" / "data" / "nerf_llff_data"
 
 

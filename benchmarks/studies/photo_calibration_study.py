@@ -8,7 +8,7 @@ CALIBRATE points seen from them (*photos*), and from each one alone (*one photo*
 ``MIN_PHOTO_POINTS`` points), and scores every map on the SCORE points seen from the run's
 evaluated test views (``calibration_split_study.scored_points``), beside today's (*views*).
 
-    python benchmarks/photo_calibration_study.py --run fern/seed0=RUN flower/seed0=RUN ... \\
+    python benchmarks/studies/photo_calibration_study.py --run fern/seed0=RUN flower/seed0=RUN ... \\
         --out benchmarks/results/uncertainty_study/photo_calibration
 
 Labels are SCENE/SEED; the decision reads the means over a scene's seeds (docs/uncertainty.md,
@@ -24,8 +24,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from calibration_split_study import LEVELS, begin_study, scored_points, study_parser, write_study  # noqa: E402
-from std_floor_study import by_scene, coverage, distance  # noqa: E402
+from study_helpers import LEVELS, begin_study, by_scene, coverage, distance, scored_points, study_parser, write_study  # noqa: E402
 
 #: Study 18's rule (study 12's): no scene's coverage distance may grow by more than TOLERANCE, and the
 #: mean distance over the scenes must fall by at least GAIN.

@@ -11,7 +11,7 @@ Spearman |err| against the std per test view (mean) and pooled, and the coverage
 68% / 95% intervals. ``--reference`` runs (the deep ensemble) are scored the same way, reported
 beside, deciding nothing.
 
-    python benchmarks/free_space_study.py --run fern/seed0=RUN flower/seed0=RUN ... \\
+    python benchmarks/studies/free_space_study.py --run fern/seed0=RUN flower/seed0=RUN ... \\
         --reference fern=ENSEMBLE_RUN ... --out benchmarks/results/uncertainty_study/free_space
 
 Labels are SCENE/SEED; the decision reads the means over a scene's seeds (docs/uncertainty.md,
@@ -27,9 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # the re-split study's renders of the scored points
-from calibration_split_study import LEVELS, begin_study, scored_points, study_parser, write_study  # noqa: E402
-from std_floor_study import by_scene, coverage, distance  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers (study_helpers.py)
+from study_helpers import LEVELS, begin_study, by_scene, coverage, distance, scored_points, study_parser, write_study  # noqa: E402
 
 #: Study 13's tolerances (fixed with the rule): on no scene may the per-view or pooled depth
 #: Spearman fall by more than this, nor the coverage distance grow by more (study 8's) ...
@@ -202,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
 
         print(plot(read_json(args.out / "study.json", "study results"), args.out / "coverage_by_seed.png"))
         return 0
-    from calibration_split_study import parse_runs
+    from study_helpers import parse_runs
 
 
     references = parse_runs(p, args.reference) if args.reference else {}

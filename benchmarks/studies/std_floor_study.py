@@ -7,11 +7,11 @@ too wide where sigma is large and too narrow where it is small, and a set of poi
 depends on its mix of sigmas. The floored map standardises by sqrt(sigma^2 + tau^2) instead
 (``calibration.fit_std_floor``). This study fits both maps on the same CALIBRATE renders (the
 calibration views, as ``stochastic-fields calibrate`` does) and scores both on the SCORE points seen
-from the run's evaluated test views (``calibration_split_study.scored_points``; on the synthetic
+from the run's evaluated test views (``study_helpers.scored_points``; on the synthetic
 scene a seeded 10% of the test views' surface pixels in SCORE blocks), overall and per tercile of
 the scored points' raw sigma.
 
-    python benchmarks/std_floor_study.py --run fern/seed0=RUN flower/seed0=RUN ... \\
+    python benchmarks/studies/std_floor_study.py --run fern/seed0=RUN flower/seed0=RUN ... \\
         --out benchmarks/results/uncertainty_study/std_floor
 
 Labels are SCENE/SEED; the decision reads the means over a scene's seeds (docs/uncertainty.md,
@@ -26,54 +26,15 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # the re-split study's renders of the scored points
-from calibration_split_study import LEVELS, begin_study, scored_points, study_parser, write_study  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
+from study_helpers import (LEVELS, STD_GROUPS, begin_study, by_scene, coverage, distance, gap,  # noqa: E402,F401
+                    scored_points, study_parser, tercile_rows, write_study)
 
-#: Groups of the scored points by raw sigma: equal-count terciles.
-STD_GROUPS: tuple[str, ...] = ("low sigma", "mid sigma", "high sigma")
 #: Study 11's tolerances (fixed with the rule): coverage distance and conditional gap may grow by
 #: at most this much on any scene (study 8's coverage tolerance) ...
 TOLERANCE: float = 0.02
 #: ... and the conditional gap must fall by at least this much on the mean over scenes.
 GAP_GAIN: float = 0.05
-
-
-def coverage(abs_err: np.ndarray, std: np.ndarray, calibration, levels=LEVELS) -> np.ndarray:
-    """Share of ``abs_err`` [N] inside the central intervals at ``levels`` [L] that render, eval and
-    export draw from the map: |err| <= z_p calibrated_std(std) relative_scale(p), i.e.
-    z_p s(p) sqrt(std^2 + floor^2). [L]."""
-    from scipy.special import ndtri
-
-    levels = np.asarray(levels, np.float64)
-    bound = ndtri((1.0 + levels) / 2.0) * calibration.relative_scale(levels)
-    return (np.asarray(abs_err)[:, None] <= bound[None, :] * calibration.calibrated_std(std)[:, None]).mean(axis=0)
-
-
-def tercile_rows(abs_err: np.ndarray, std: np.ndarray, floored, plain) -> list[dict]:
-    """Per tercile of ``std`` (``STD_GROUPS``) and for all points: the points, the std range and the
-    coverage with the ``floored`` map ("coverage") and the ``plain`` one ("coverage_raw", the name
-    ``plots.plot_coverage_by_group`` reads)."""
-    edges = np.quantile(std, [1.0 / 3.0, 2.0 / 3.0])
-    group = np.digitize(std, edges)
-    rows = []
-    for g, name in list(enumerate(STD_GROUPS)) + [(None, "all")]:
-        m = np.ones(len(std), bool) if g is None else group == g
-        rows.append({"group": name, "points": int(m.sum()),
-                     "std_range": [float(std[m].min()), float(std[m].max())] if m.any() else [np.nan, np.nan],
-                     "coverage": coverage(abs_err[m], std[m], floored).tolist(),
-                     "coverage_raw": coverage(abs_err[m], std[m], plain).tolist()})
-    return rows
-
-
-def distance(cov) -> float:
-    """Coverage distance: the largest |coverage - nominal| over ``LEVELS``."""
-    return float(np.max(np.abs(np.asarray(cov) - np.asarray(LEVELS))))
-
-
-def gap(rows: list[dict], which: str) -> float:
-    """Conditional gap at 68%: max - min of the terciles' ``which`` coverage."""
-    vals = [r[which][0] for r in rows if r["group"] in STD_GROUPS]
-    return float(max(vals) - min(vals))
 
 
 def study_run(run_dir: Path, *, seed: int = 0, bounds: str | None = None) -> dict:
@@ -107,14 +68,6 @@ def study_run(run_dir: Path, *, seed: int = 0, bounds: str | None = None) -> dic
             "groups": rows,
             "distance": {"plain": distance(rows[-1]["coverage_raw"]), "floored": distance(rows[-1]["coverage"])},
             "gap": {"plain": gap(rows, "coverage_raw"), "floored": gap(rows, "coverage")}}
-
-
-def by_scene(runs: dict[str, dict]) -> dict[str, list[dict]]:
-    """{SCENE/SEED label: result} -> {scene: [its seeds' results]}, in the given order."""
-    out: dict[str, list[dict]] = {}
-    for label, res in runs.items():
-        out.setdefault(label.split("/")[0], []).append(res)
-    return out
 
 
 def decide(results: dict) -> dict:

@@ -7,9 +7,9 @@ re-evaluates each run twice, as the tables evaluate it (its scored test views, S
 points or the synthetic scene's SCORE-block pixels, the depth map refitted on the CALIBRATE points
 of the same model): *plain* (today) and *carved*.
 
-    python benchmarks/carve_study.py --run fern/0=RUN flower/0=RUN ... --out OUT
-    python benchmarks/carve_study.py --run ... --merge OUT_A OUT_B --out OUT   # runs made in parts
-    python benchmarks/carve_study.py --check --run ... --out OUT   # study 15: carved, then checked
+    python benchmarks/studies/carve_study.py --run fern/0=RUN flower/0=RUN ... --out OUT
+    python benchmarks/studies/carve_study.py --run ... --merge OUT_A OUT_B --out OUT   # runs made in parts
+    python benchmarks/studies/carve_study.py --check --run ... --out OUT   # study 15: carved, then checked
 
 With ``--check`` (study 15) the carved arm also checks free space: the training views are rendered
 again from the carved model and the depth map is fitted on, and applies, the checked std
@@ -29,8 +29,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from calibration_split_study import LEVELS, begin_study, study_parser, write_study  # noqa: E402
-from std_floor_study import by_scene  # noqa: E402
+from study_helpers import LEVELS, begin_study, by_scene, study_parser, write_study  # noqa: E402
 
 #: Study 14's tolerances (fixed with the rule; study 8's): PSNR may drop by at most this (dB), ...
 PSNR_TOLERANCE: float = 0.2

@@ -8,11 +8,11 @@ interleaved with the deterministic NeRF in this one process (``--timing-repeats`
 [deterministic, row 1, row 2, ...]; median per row). The rows and the rule are fixed before the run
 (docs/uncertainty.md, study 7).
 
-    python benchmarks/render_estimator_study.py --snerf-runs RUNS --deterministic-runs DET --out OUT \\
+    python benchmarks/studies/render_estimator_study.py --snerf-runs RUNS --deterministic-runs DET --out OUT \\
         --scenes synthetic fern flower
 
 ``RUNS/<scene>/snerf_default`` and ``DET/<scene>/deterministic`` are run folders of the tables'
-runner (``benchmarks/eval_tables.py`` or ``benchmarks/uncertainty_study.py``). Each row's scores go
+runner (``benchmarks/eval_tables.py`` or ``benchmarks/studies/uncertainty_study.py``). Each row's scores go
 to ``OUT/<row>/<scene>/metrics.json`` (skipped when present: the study resumes), the timings to
 ``OUT/timing_<scene>.json``, the table to ``OUT/study.md`` / ``study.json``.
 """
@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))  # run from a checkout
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "src"))  # run from a checkout
 
 from stochastic_fields.calibration import RunCalibration, fit_depth_calibration  # noqa: E402
 from stochastic_fields.evaluation import evaluate  # noqa: E402
@@ -37,7 +37,7 @@ from stochastic_fields.trainer import load_trained_model  # noqa: E402
 from stochastic_fields_bench.budget import BenchmarkSettings  # noqa: E402
 from stochastic_fields_bench.runner import TABLE_CONVENTIONS, scene_inputs, time_renders_interleaved  # noqa: E402
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_DATA_ROOT = REPO_ROOT / ".." / "shared" / "data" / "nerf_llff_data"
 
 #: (name, render options, why): fixed before the run. Every row names both options, so a row
@@ -156,7 +156,7 @@ def main(argv=None) -> None:
     results = {}
     for scene in args.scenes:
         results[Path(scene).name] = run_scene(scene, args)
-    command = "python benchmarks/render_estimator_study.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    command = "python benchmarks/studies/render_estimator_study.py " + " ".join(sys.argv[1:] if argv is None else argv)
     atomic_write_text(args.out / "study.json", json.dumps({"command": command, "results": results}, indent=1,
                                                           default=float))
     atomic_write_text(args.out / "study.md", table(results, command))

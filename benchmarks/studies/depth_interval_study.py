@@ -14,7 +14,7 @@ recalibration of the whole CDF by its PIT values (predictive.PitCalibration), th
 views' bounds, and a neighbourhood mixture (predictive.neighbourhood_weights: the pixel's own
 Gaussian keeps half the mass, the stencil's rays share the rest). Scores: metrics.interval_sharpness.
 
-    python benchmarks/depth_interval_study.py --run fern=RUNS/fern/snerf_default \\
+    python benchmarks/studies/depth_interval_study.py --run fern=RUNS/fern/snerf_default \\
         --run flower=RUNS/flower/snerf_default --ensemble fern=RUNS/fern/ensemble \\
         --ensemble flower=RUNS/flower/ensemble --out benchmarks/results/depth_interval_study
 """
@@ -174,7 +174,7 @@ def main(argv=None) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     runs = dict(a.split("=", 1) for a in args.run)
     ensembles = dict(a.split("=", 1) for a in args.ensemble)
-    results: dict = {"command": "python benchmarks/depth_interval_study.py " + " ".join(sys.argv[1:] if argv is None else argv),
+    results: dict = {"command": "python benchmarks/studies/depth_interval_study.py " + " ".join(sys.argv[1:] if argv is None else argv),
                      "rule": f"coverage at {[round(x, 3) for x in RULE_LEVELS]} within {COVERAGE_TOLERANCE} on the "
                              "unused photos of every scene; then the lowest mean 95% interval score / depth there",
                      "scenes": {}}

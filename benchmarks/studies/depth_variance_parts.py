@@ -8,7 +8,7 @@ capture points or the synthetic scene's SCORE-block pixels, opacity > 0.5, the r
 recalibration, render seed 0) and reports Spearman |error| vs the total std and vs each part's std
 alone, per-view mean and pooled.
 
-    python benchmarks/depth_variance_parts.py --run fern=RUN --run flower=RUN2 ... --out OUT
+    python benchmarks/studies/depth_variance_parts.py --run fern=RUN --run flower=RUN2 ... --out OUT
 
 Each ``--run`` is SCENE=FOLDER (SCENE: an LLFF scene under --data-root or a scene folder; FOLDER: a
 trained S-NeRF run). Runs are re-scored into OUT/<scene>/<n> (resumable: a finished one is read
@@ -23,7 +23,7 @@ import shlex
 import sys
 from pathlib import Path
 
-REPO_ROOT = Path(__file__).resolve().parents[1]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_DATA_ROOT = REPO_ROOT / ".." / "shared" / "data" / "nerf_llff_data"
 
 #: (column, where in metrics.json): the total first, then each part.
@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
         metrics = json.loads(metrics_path.read_text())
         rows.append({"scene": dataset.name, "run": str(folder), **part_spearmans(metrics)})
 
-    command = "python benchmarks/depth_variance_parts.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
+    command = "python benchmarks/studies/depth_variance_parts.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
     names = [c[0] for c in COLUMNS]
     lines = ["# Which part of the depth variance ranks depth errors", "", f"Command: `{command}`", "",
              "Spearman |depth error| vs std: the total (what the scores use) and each part alone; "

@@ -1,0 +1,170 @@
+"""What the renders-only studies share: reading the runs, rendering and standardising the scored
+capture points, the options every study takes, coverage and distance of the intervals, and writing
+``study.json`` / ``study.md`` with the command that reproduces them.
+
+The study scripts beside this file import it by path (``sys.path`` holds the folder of the script
+that runs); docs/studies.md is the research log they feed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shlex
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.special import ndtri
+
+from stochastic_fields.calibration import render_at_points
+from stochastic_fields.cameras import camera_to_world, intrinsics_3x3
+from stochastic_fields.capture_points import SCORE, backproject_pixels, block_keys, restrict_sparse_depth
+from stochastic_fields.io_utils import atomic_write_text
+from stochastic_fields.sparse_depth import project_sparse_depth, sparse_depth_for_dataset
+from stochastic_fields.view_maps import OPACITY_MASK
+
+#: Central levels scored.
+LEVELS: tuple[float, float] = (0.6827, 0.95)
+#: Share of the synthetic scene's evaluated surface pixels that are scored (seeded).
+SYNTHETIC_PIXEL_SHARE: float = 0.1
+#: Groups of the scored points by raw sigma: equal-count terciles.
+STD_GROUPS: tuple[str, ...] = ("low sigma", "mid sigma", "high sigma")
+
+
+def _standardised(model, cameras, near, far, sparse, seed: int) -> dict[str, np.ndarray]:
+    """|d - d*| / sigma [N], |d - d*| [N], sigma [N] and the point index [N] of each rendered point
+    with opacity > mask."""
+
+    r = render_at_points(model, cameras, near, far, sparse, generator=torch.Generator().manual_seed(seed))
+    index = np.concatenate([sparse[v].point_index for v in sparse if len(sparse[v])] or [np.zeros(0, np.int64)])
+    view = np.concatenate([np.full(len(sparse[v]), v) for v in sparse if len(sparse[v])] or [np.zeros(0, np.int64)])
+    keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(r["depth_std"]) & (r["depth_std"] > 0)
+    abs_err = np.abs(r["gt"] - r["depth_mean"])[keep]
+    return {"abs_z": abs_err / r["depth_std"][keep], "abs_err": abs_err, "std": r["depth_std"][keep],
+            "index": index[keep], "view": view[keep], "gt": r["gt"][keep], "depth_mean": r["depth_mean"][keep]}
+
+
+def scored_points(run_dir: Path, model, dataset, points, views: list[int], held: np.ndarray, seed: int):
+    """Standardised errors at the evaluated test views with their points (world xyz), blocks and
+    roles (SCORE for every synthetic pixel, as the tables score them all)."""
+
+    if points.source == "synthetic":
+        rng = np.random.default_rng(seed)
+        K, c2w = intrinsics_3x3(dataset.cameras).double(), camera_to_world(dataset.cameras).double()
+        xyz, visible, start = [], [np.zeros(0, np.int64) for _ in range(dataset.num_views)], 0
+        for v in views:
+            depth = dataset.depths[v].double()
+            rows, cols = torch.nonzero(depth > 0, as_tuple=True)
+            take = torch.from_numpy(rng.random(rows.numel()) < SYNTHETIC_PIXEL_SHARE)
+            rows, cols = rows[take], cols[take]
+            xyz.append(backproject_pixels(K[v], c2w[v], rows, cols, depth[rows, cols]).numpy())
+            visible[v] = np.arange(start, start + len(rows))
+            start += len(rows)
+        xyz = np.concatenate(xyz)
+        sparse = project_sparse_depth(dataset.cameras, xyz, views, visible=visible, visibility_name="test pixels")
+        out = _standardised(model, dataset.cameras, dataset.near, dataset.far, sparse, seed)
+        out["xyz"] = xyz[out["index"]]
+        out["block"] = block_keys(out["xyz"], points.xyz)
+        out["role"] = np.full(len(out["abs_z"]), SCORE)
+        return out
+    if points.colmap is not None:
+        full = sparse_depth_for_dataset(dataset, views, points=points.colmap)
+    else:
+        full = project_sparse_depth(dataset.cameras, points.xyz, views, visible=points.visible,
+                                    visibility_name=points.source)
+    sparse = {v: restrict_sparse_depth(sd, held[sd.point_index]) for v, sd in full.items()}
+    out = _standardised(model, dataset.cameras, dataset.near, dataset.far, sparse, seed)
+    out["xyz"] = points.xyz[out["index"]]
+    out["block"] = block_keys(out["xyz"], points.xyz)
+    out["role"] = points.roles[out["index"]]
+    return out
+
+
+def parse_runs(parser: argparse.ArgumentParser, items: list[str]) -> dict[str, Path]:
+    """{scene: run folder} from ``--run SCENE=RUN_DIR`` items; a parser error names the item that
+    is malformed or whose run has no metrics.json."""
+    runs = {}
+    for item in items:
+        scene, sep, path = item.partition("=")
+        if not sep or not scene or not path:
+            parser.error(f"--run expects SCENE=RUN_DIR, got {item!r}")
+        if not (Path(path) / "metrics.json").is_file():
+            parser.error(f"--run {item}: {path} has no metrics.json (train and evaluate the run first)")
+        runs[scene] = Path(path)
+    return runs
+
+
+def study_parser(doc: str, out_name: str, run_help: str, *, metavar: str = "SCENE/SEED=RUN_DIR",
+                 seed_help: str = "Render seed (the draws).") -> argparse.ArgumentParser:
+    """The options every renders-only study shares: ``--run`` (``metavar`` items, ``run_help``),
+    ``--out`` (default ``benchmarks/results/uncertainty_study/OUT_NAME``) and ``--seed``."""
+    p = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", nargs="+", required=True, metavar=metavar, help=run_help)
+    p.add_argument("--out", type=Path, default=Path("benchmarks/results/uncertainty_study") / out_name)
+    p.add_argument("--seed", type=int, default=0, help=seed_help)
+    return p
+
+
+def write_study(out: Path, results: dict, text: str) -> None:
+    """``OUT/study.json`` (``results``) and ``OUT/study.md`` (``text``), written atomically."""
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "study.json", json.dumps(results, indent=1))
+    atomic_write_text(out / "study.md", text)
+
+
+def begin_study(parser: argparse.ArgumentParser, argv: list[str] | None, script: str
+                ) -> tuple[argparse.Namespace, dict[str, Path], dict]:
+    """What every renders-only study over ``--run LABEL=RUN_DIR`` starts with: parse ``argv``, put
+    torch on 1 thread, read the runs (``parse_runs``). Returns (args, {label: run folder}, the
+    results' header: the command that reproduces them, the levels, the thread count)."""
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    runs = parse_runs(parser, args.run)
+    command = f"python benchmarks/studies/{script} " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
+    return args, runs, {"command": command, "levels": list(LEVELS), "torch_threads": 1}
+
+
+def coverage(abs_err: np.ndarray, std: np.ndarray, calibration, levels=LEVELS) -> np.ndarray:
+    """Share of ``abs_err`` [N] inside the central intervals at ``levels`` [L] that render, eval and
+    export draw from the map: |err| <= z_p calibrated_std(std) relative_scale(p), i.e.
+    z_p s(p) sqrt(std^2 + floor^2). [L]."""
+    levels = np.asarray(levels, np.float64)
+    bound = ndtri((1.0 + levels) / 2.0) * calibration.relative_scale(levels)
+    return (np.asarray(abs_err)[:, None] <= bound[None, :] * calibration.calibrated_std(std)[:, None]).mean(axis=0)
+
+
+def tercile_rows(abs_err: np.ndarray, std: np.ndarray, floored, plain) -> list[dict]:
+    """Per tercile of ``std`` (``STD_GROUPS``) and for all points: the points, the std range and the
+    coverage with the ``floored`` map ("coverage") and the ``plain`` one ("coverage_raw", the name
+    ``plots.plot_coverage_by_group`` reads)."""
+    edges = np.quantile(std, [1.0 / 3.0, 2.0 / 3.0])
+    group = np.digitize(std, edges)
+    rows = []
+    for g, name in list(enumerate(STD_GROUPS)) + [(None, "all")]:
+        m = np.ones(len(std), bool) if g is None else group == g
+        rows.append({"group": name, "points": int(m.sum()),
+                     "std_range": [float(std[m].min()), float(std[m].max())] if m.any() else [np.nan, np.nan],
+                     "coverage": coverage(abs_err[m], std[m], floored).tolist(),
+                     "coverage_raw": coverage(abs_err[m], std[m], plain).tolist()})
+    return rows
+
+
+def distance(cov) -> float:
+    """Coverage distance: the largest |coverage - nominal| over ``LEVELS``."""
+    return float(np.max(np.abs(np.asarray(cov) - np.asarray(LEVELS))))
+
+
+def gap(rows: list[dict], which: str) -> float:
+    """Conditional gap at 68%: max - min of the terciles' ``which`` coverage."""
+    vals = [r[which][0] for r in rows if r["group"] in STD_GROUPS]
+    return float(max(vals) - min(vals))
+
+
+def by_scene(runs: dict[str, dict]) -> dict[str, list[dict]]:
+    """{SCENE/SEED label: result} -> {scene: [its seeds' results]}, in the given order."""
+    out: dict[str, list[dict]] = {}
+    for label, res in runs.items():
+        out.setdefault(label.split("/")[0], []).append(res)
+    return out
