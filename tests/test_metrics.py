@@ -364,3 +364,23 @@ def test_plots_write_png(tmp_path, rng):
     assert sorted(p.name for p in tmp_path.rglob("*") if p.is_file()) == ["calibration.png", "sparsification.png"]
     with pytest.raises(ValueError, match="png"):
         plot_calibration(cal, tmp_path / "calibration.jpg")
+
+
+def test_view_panels_show_photo_colour_depth_and_relative_std(tmp_path):
+    """The README's picture: four panels, colour bars on the two depth maps, grey where opacity < 0.5."""
+    import imageio.v3 as iio
+
+    from stochastic_fields.plots import plot_view_panels, view_panels_figure
+
+    H, W = 12, 16
+    rng = np.random.default_rng(0)
+    maps = {"colour_mean": rng.uniform(size=(H, W, 3)), "depth_mean": np.full((H, W), 2.0),
+            "depth_std": np.full((H, W), 0.2), "opacity": np.ones((H, W))}
+    maps["opacity"][:, :4] = 0.1
+    fig = view_panels_figure(rng.uniform(size=(H, W, 3)), maps, title="t")
+    assert len(fig.axes) == 6  # four panels and two colour bars
+    relative = fig.axes[3].images[0].get_array()
+    assert np.ma.is_masked(relative) or np.isnan(np.asarray(relative, dtype=float)[:, :4]).all()
+    assert np.allclose(np.asarray(relative, dtype=float)[:, 4:], 0.1)
+    out = plot_view_panels(tmp_path / "v.png", rng.uniform(size=(H, W, 3)), maps)
+    assert iio.improps(out).shape[2] in (3, 4)

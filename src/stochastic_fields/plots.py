@@ -342,3 +342,39 @@ def plot_step_times(
     ax.legend(fontsize="small")
     fig.tight_layout()
     return _save_atomic(fig, path, dpi)
+
+
+def view_panels_figure(photo: np.ndarray, maps: Mapping[str, np.ndarray], title: str | None = None) -> Figure:
+    """One view side by side: the photo [H, W, 3], the rendered colour mean, the depth mean and the
+    depth std relative to depth (``maps`` of a render/eval ``view_XXX.npz``: ``colour_mean``,
+    ``depth_mean``, ``depth_std``, ``opacity``), each map with its colour bar; pixels with
+    opacity below 0.5 are grey in the depth panels."""
+    valid = np.asarray(maps["opacity"]) >= 0.5
+    depth = np.where(valid, maps["depth_mean"], np.nan)
+    relative = np.where(valid, np.asarray(maps["depth_std"]) / np.maximum(np.asarray(maps["depth_mean"]), 1e-12),
+                        np.nan)
+    fig = Figure(figsize=(16, 3.6))
+    axes = fig.subplots(1, 4)
+    panels = [("photo", np.clip(photo, 0, 1), None), ("rendered colour (mean of K)", np.clip(maps["colour_mean"], 0, 1), None),
+              ("depth mean (camera z)", depth, "viridis"), ("depth std / depth", relative, "magma")]
+    for ax, (name, image, cmap) in zip(axes, panels):
+        if cmap is None:
+            ax.imshow(image)
+        else:
+            finite = image[np.isfinite(image)]
+            lo, hi = (np.percentile(finite, [1, 99]) if finite.size else (0.0, 1.0))
+            shown = ax.imshow(image, cmap=cmap, vmin=lo, vmax=hi)
+            shown.cmap.set_bad("0.6")
+            fig.colorbar(shown, ax=ax, fraction=0.035, pad=0.02)
+        ax.set_title(name, fontsize=10)
+        ax.set_axis_off()
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.tight_layout()
+    return fig
+
+
+def plot_view_panels(path: str | os.PathLike, photo: np.ndarray, maps: Mapping[str, np.ndarray],
+                     title: str | None = None, dpi: int = 90) -> Path:
+    """:func:`view_panels_figure` saved as a PNG (atomically)."""
+    return _save_atomic(view_panels_figure(photo, maps, title), path, dpi)
