@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 RUN ?= runs/demo
 
-.PHONY: demo test test-fast notebook bench bench-capture bench-registration eval-tables uncertainty-study sysdeps venv clean
+.PHONY: demo test test-slow test-all test-fast notebook bench bench-capture bench-registration eval-tables uncertainty-study sysdeps venv clean
 
 $(STAMP): pyproject.toml requirements-cpu.txt scripts/install_system_deps.sh
 	bash scripts/install_system_deps.sh
@@ -20,11 +20,17 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/stochastic-fields demo --out $(RUN)
 
+# the quick suite (a few minutes); the end-to-end tests marked slow run in test-slow (CI runs both)
 test: $(STAMP)
+	$(PY) -m pytest -q -m "not slow"
+
+test-slow: $(STAMP)
+	$(PY) -m pytest -q -m slow
+
+test-all: $(STAMP)
 	$(PY) -m pytest -q
 
-test-fast: $(STAMP)
-	$(PY) -m pytest -q -m "not slow"
+test-fast: test
 
 notebook: $(STAMP)
 	$(VENV)/bin/jupyter lab notebooks/inspect_run.ipynb

@@ -224,6 +224,7 @@ def _close(a: torch.Tensor, b: torch.Tensor) -> bool:
     return bool(torch.allclose(a, b, rtol=1e-4, atol=1e-6 * max(scale, 1e-12)))
 
 
+@pytest.mark.slow
 def test_one_distributed_step_equals_one_single_process_step_on_the_union_batch(tiny_scene, tmp_path):
     from stochastic_fields.data import load_dataset
 
@@ -285,6 +286,7 @@ def _steps_and_resume_worker(ctx, scene: str, root: str, single_run: str) -> dic
             "from_single_at_resume": at_resume, "from_single": snapshot(from_single), "from_single_step": from_single.step}
 
 
+@pytest.mark.slow
 def test_ranks_agree_after_steps_and_resume_works_across_process_counts(tiny_scene, tmp_path):
     from stochastic_fields.checkpoint import load_checkpoint
     from stochastic_fields.data import load_dataset
@@ -350,6 +352,7 @@ def _failing_worker(ctx, scene: str, run: str, mode: str) -> dict:
     return {"step": trainer.step}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["raises", "hangs"])
 def test_a_failing_rank_stops_the_other_with_a_clear_error_and_no_partial_checkpoint(tiny_scene, tmp_path, mode):
     from stochastic_fields.checkpoint import load_checkpoint
@@ -522,6 +525,7 @@ def _assert_same_folders(single: Path, sharded: Path, json_without_timings: tupl
     return names
 
 
+@pytest.mark.slow
 def test_sharded_eval_equals_one_process_file_by_file(tiny_scene, tiny_run, tmp_path):
     import json
 
@@ -546,6 +550,7 @@ def test_sharded_eval_equals_one_process_file_by_file(tiny_scene, tiny_run, tmp_
     assert len(metrics["per_view"]["render_s"]) == 5 and min(metrics["per_view"]["render_s"]) > 0  # kept, not compared
 
 
+@pytest.mark.slow
 def test_a_failing_rank_during_eval_stops_the_other_and_no_metrics_are_written(tiny_scene, tiny_run, tmp_path):
     out = tmp_path / "sharded"
     r0, r1 = _launch("_eval_worker", (str(tiny_scene), str(tiny_run), str(out), 5), tmp_path, timeout_s=5.0)
@@ -575,6 +580,7 @@ def _export_worker(ctx, scene: str, run: str, out: str, foreign: str, fail_posit
     return {"refused": refused, "rendered": [specs[i].name for i in rendered], "summary": summary}
 
 
+@pytest.mark.slow
 def test_sharded_export_equals_one_process_export(tiny_scene, tiny_run, tmp_path):
     from stochastic_fields.products.export import ExportOptions, dataset_view_specs, export_views
 
@@ -599,6 +605,7 @@ def test_sharded_export_equals_one_process_export(tiny_scene, tiny_run, tmp_path
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".sharded")]  # the temporary folder was swapped in
 
 
+@pytest.mark.slow
 def test_a_failing_rank_during_export_leaves_the_previous_export(tiny_scene, tiny_run, tmp_path):
     out = tmp_path / "sharded"
     out.mkdir()
@@ -662,6 +669,7 @@ def _tables_without_timings(tables: dict) -> dict:
     return strip(tables)
 
 
+@pytest.mark.slow
 def test_tables_stages_run_on_two_ranks_and_rank_0_writes_the_same_tables(tiny_scene, tmp_path):
     import json
 

@@ -143,6 +143,7 @@ def test_mc_dropout_passes_are_a_render_option(dataset):
 
 
 # ------------------------------------------------------------------------------ evaluation
+@pytest.mark.slow
 def test_evaluation_reports_the_k_it_rendered(snerf, dataset, tmp_path):
     views = list(dataset.test_indices)[:2]
     options = snerf.render_options(adaptive_draws=True, adaptive_batch_draws=2, adaptive_max_draws=8,

@@ -65,6 +65,7 @@ def test_command_refuses_a_variant_outside_its_range(tiny_scene, capsys, load_sc
     assert "distinct" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_whole_training_is_timed_in_interleaved_chunks(tiny_scene, tmp_path, monkeypatch, load_script):
     """Every method trains the same steps in chunks of --chunk (the last one shorter); the loop
     times add up to each method's total, the ratio is of totals, and the JSON and the plot are
