@@ -242,6 +242,7 @@ def test_llff_smoke_fern_images_16(shared_data, tmp_path):
     cfg = preset("llff")
     cfg.data.path = str(shared_data / "nerf_llff_data" / "fern")
     cfg.data.images = "images_16"
+    cfg.data.split = "paper"  # the paper's protocol: every 5th view trains
     cfg.train.iterations = 15
     cfg.train.rays_per_batch = 256
     cfg.train.eval_every = 0
