@@ -54,6 +54,22 @@ from typing import Any
 import numpy as np
 import torch
 from scipy.special import ndtri
+from scipy.spatial.transform import Rotation, Slerp
+from scipy.stats import spearmanr
+from . import metrics as M
+from .cameras import camera_centres, intrinsics_3x3, make_cameras
+from .capture_points import CALIBRATE, SCORE, load_capture_points
+from .capture_points import SCORE, block_keys, load_capture_points
+from .capture_points import rays_through_points
+from .config import load_config
+from .constants import DEPTH_NLL_VARIANCE_FLOOR
+from .holdout import holdout_masks
+from .io_utils import atomic_write_text
+from .io_utils import read_json
+from .sparse_depth import COVERAGE_LEVELS
+from .sparse_depth import project_sparse_depth
+from .trainer import load_trained_model
+from .view_maps import OPACITY_MASK
 
 #: Central level of +-1 standard deviation: Phi(1) - Phi(-1).
 ONE_SIGMA_LEVEL: float = 0.682689492137086
@@ -285,10 +301,6 @@ def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, raw_std: np.ndar
     ``coverage_levels`` [L], default ``sparse_depth.COVERAGE_LEVELS``: +-1 and +-2 std; the first two
     are "coverage_68" and "coverage_95"), "auce", "calibration": ``metrics.CalibrationResult`` at the
     default levels}. ValueError when a depth lies in no fold."""
-    from . import metrics as M
-    from .constants import DEPTH_NLL_VARIANCE_FLOOR
-    from .sparse_depth import COVERAGE_LEVELS
-
     gt, pred, raw_std = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (gt, pred, raw_std))
     violation = None if violation is None else np.asarray(violation, dtype=np.float64).reshape(-1)
     fold = np.asarray(fold, dtype=np.int64).reshape(-1)
@@ -323,8 +335,6 @@ def cross_fitted_depth_quantiles(pred: np.ndarray, raw_std: np.ndarray, fold: np
     std of raw_std_i, map_f's interval scale): the distribution whose intervals
     ``cross_fitted_depth_scores`` counts, for the width, interval score and CRPS
     (``metrics.interval_sharpness``). ValueError when a depth lies in no fold."""
-    from . import metrics as M
-
     pred, raw_std = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (pred, raw_std))
     fold = np.asarray(fold, dtype=np.int64).reshape(-1)
     if (fold < 0).any() or (fold >= len(folds.maps)).any():
@@ -358,8 +368,6 @@ def fit_std_floor(abs_err: np.ndarray, std: np.ndarray) -> float:
     times the largest std when even the second is < 0 (the std does not rank the errors at all: the
     map is then ~one constant std); otherwise the root, by bisection in log tau to ``STD_FLOOR_RTOL``.
     Constant stds or errors (Spearman undefined) give 0."""
-    from scipy.stats import spearmanr
-
     abs_err, std = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (abs_err, std))
     if abs_err.shape != std.shape or abs_err.size < 3:
         raise ValueError(f"fit_std_floor: needs >= 3 paired errors and stds, got {abs_err.size} and {std.size}")
@@ -442,8 +450,6 @@ def render_at_points(model, cameras, near, far, sparse: dict, *,
     """Render the rays through the pixels of {view: SparseDepth} (continuous uv) of ``cameras``
     (bounds ``near``/``far``: floats or [V]) with the render ``options`` (default: the model's):
     camera-z depth mean, total std and opacity [N], with the points' depths [N] as "gt" (float64)."""
-    from .capture_points import rays_through_points
-
     found = rays_through_points(cameras, near, far, sparse)
     if found is None:
         return {k: np.zeros(0) for k in ("gt", "depth_mean", "depth_std", "opacity")}
@@ -482,10 +488,6 @@ def calibration_views(dataset, *, neighbours: int = CALIBRATION_NEIGHBOURS,
     viewpoints among the training ones, like the test views a user renders, made without any test
     view. Returns (cameras [P], near [P], far [P], the (i, j) view pair of
     each camera), the pairs (i < j) sorted and each pair's fractions in the given order."""
-    from scipy.spatial.transform import Rotation, Slerp
-
-    from .cameras import camera_centres, intrinsics_3x3, make_cameras
-
     train = list(dataset.train_indices)
     if len(train) < 2:
         raise ValueError(f"{dataset.root}: calibration views need at least 2 training views, got {len(train)}")
@@ -565,10 +567,6 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     checked ones, sqrt(sigma^2 + e^2) with e the rendered point's free-space violation
     (``free_space.checked_std``).
     ValueError when the scene has no capture points, or for an unknown ``points``."""
-    from .capture_points import CALIBRATE, SCORE, load_capture_points
-    from .sparse_depth import project_sparse_depth
-    from .view_maps import OPACITY_MASK
-
     if points not in CALIBRATION_POINTS:
         raise ValueError(f"calibration points must be one of {CALIBRATION_POINTS}, got {points!r}")
     mask = OPACITY_MASK if opacity_mask is None else opacity_mask
@@ -630,8 +628,6 @@ def fit_depth_calibration_and_folds(model, dataset, *, seed: int = 0, points: st
     (``points="held-out"``), its cross-fitted ``DepthFolds`` from the same renders; None otherwise,
     or with a warning when the scene has too few SCORE blocks or points to fit them. ValueError as
     ``fit_depth_calibration``."""
-    from .capture_points import SCORE, block_keys, load_capture_points
-
     r = depth_calibration_renders(model, dataset, seed=seed, points=points, options=options, free_space=free_space)
     out = _fit_depth_map(r, floor=floor, free_space=free_space is not None)
     if points == "calibrate":
@@ -655,8 +651,6 @@ def fit_colour_calibration(model, dataset, *, fraction: float, block: int, seed:
     (``holdout.holdout_mask`` with the run's ``fraction`` and ``block``), rendered from their own
     cameras: |z| = |c - c*| / sigma_c over every channel value with a positive std.
     ValueError when nothing was held out (``fraction`` 0) or too few values remain."""
-    from .holdout import holdout_masks
-
     if fraction <= 0:
         raise ValueError("colour calibration needs pixels held out from training (train.holdout_fraction > 0)")
     views = list(dataset.train_indices)
@@ -729,8 +723,6 @@ class RunCalibration:
 
 
 def save_run_calibration(run_dir: str | Path, calibration: RunCalibration) -> Path:
-    from .io_utils import atomic_write_text
-
     path = Path(run_dir) / CALIBRATION_FILE
     atomic_write_text(path, json.dumps(calibration.to_dict(), indent=2))
     return path
@@ -738,8 +730,6 @@ def save_run_calibration(run_dir: str | Path, calibration: RunCalibration) -> Pa
 
 def load_run_calibration(run_dir: str | Path) -> RunCalibration | None:
     """The run's calibration.json, or None when it has none. ValueError (naming the file) if malformed."""
-    from .io_utils import read_json
-
     path = Path(run_dir) / CALIBRATION_FILE
     if not path.is_file():
         return None
@@ -766,9 +756,6 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
     ``free_space.TRAINING_DEPTH_FILE``; ``progress``: a bar over them). ValueError
     (the depth fit's reason) when neither can be fitted; a depth fit that fails beside a colour one
     leaves depth raw."""
-    from .config import load_config
-    from .trainer import load_trained_model
-
     if model is None:
         cfg, model, dataset = load_trained_model(Path(run_dir), dataset=dataset, device=device)
     else:

@@ -28,6 +28,7 @@ from typing import Any, Sequence
 
 import numpy as np
 import torch
+import imageio.v3 as iio
 
 from . import metrics as M
 from .calibration import apply_calibration
@@ -37,6 +38,7 @@ from .renderer import RenderOptions, seeded_chunks
 from .sparse_depth import paired_depth_scores
 from .view_maps import OPACITY_MASK, camera_z_maps, draws_summary, view_camera_arrays
 from .visualize import colourise, to_uint8_rgb
+from .capture_points import block_keys, dense_depth_block_keys, dense_depth_score_mask, load_capture_points
 
 #: The per-view depth scores kept under ``depth/`` (and ``depth_raw/``) in metrics.json.
 DEPTH_SCORE_KEYS: tuple[str, ...] = ("abs_rel", "rmse", "nll", "ause_rmse", "ause_rmse_normalised", "pearson",
@@ -49,8 +51,6 @@ DEPTH_STD_PARTS: dict[str, str] = {"epistemic": "depth_std_epistemic", "spread":
 
 # ----------------------------------------------------------------------------- files of a view
 def _save_png(path: Path, rgb: np.ndarray) -> None:
-    import imageio.v3 as iio
-
     with atomic_path(path) as tmp:
         iio.imwrite(tmp, rgb)
 
@@ -408,8 +408,6 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
     device = next(model.parameters()).device
     gt_depths = getattr(dataset, "depths", None)
     depth_source = "sparse" if sparse_depth is not None else ("dense" if gt_depths is not None else None)
-    from .capture_points import block_keys, dense_depth_block_keys, dense_depth_score_mask, load_capture_points
-
     capture = load_capture_points(dataset) if depth_source == "dense" else None
     folds = None if depth_source is None or calibration is None else calibration.depth_folds
     if folds is not None and capture is None:

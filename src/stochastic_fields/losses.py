@@ -26,6 +26,8 @@ from .constants import DEPTH_MIXTURE_WEIGHT_FLOOR, RANDOM_POINT_PRIOR_STD
 from .distributions import (kl_logistic_normal, kl_logistic_normal_mc, kl_rectified_normal,
                             kl_rectified_normal_mc)
 from .fields.base import FieldParams, inverse_positive_scale, positive_scale
+from .validation import boolean, choice, integer, real
+from .validation import check_fields
 
 
 @dataclass
@@ -69,15 +71,11 @@ class LossConfig:
 
 
     def __post_init__(self) -> None:
-        from .validation import check_fields
-
         check_fields(self, LOSS_CHECKS)
 
 
 def _loss_checks() -> dict:
     """Declared range of every LossConfig field (checked on construction, load and CLI overrides)."""
-    from .validation import boolean, choice, integer, real
-
     return {
         "likelihood_std": real(0.0, lo_open=True),
         "learn_likelihood_std": boolean(),

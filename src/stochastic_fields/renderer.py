@@ -38,6 +38,8 @@ from typing import Callable, Literal
 
 import torch
 from torch import Tensor
+from tqdm.auto import tqdm
+import numpy as np
 
 from .constants import (DRAW_BLOCK_ELEMENTS, OCCUPANCY_ALPHA_THRESHOLD, OCCUPANCY_UPPER_NUM_STD,
                         PACK_MIN_SKIPPED_FRACTION)
@@ -556,8 +558,6 @@ ChunkGenerators = Callable[[int], "torch.Generator | None"]
 
 def chunk_seed(seed: int, view: int, chunk: int) -> int:
     """A 63-bit seed mixed from (seed, view, chunk) (numpy SeedSequence hashing)."""
-    import numpy as np
-
     return int(np.random.SeedSequence((seed, view, chunk)).generate_state(1, dtype=np.uint64)[0] >> 1)
 
 
@@ -584,8 +584,6 @@ def render_chunked(render_chunk: Callable[[RayBundle, "torch.Generator | None"],
     report it, and with ``keep_draws`` ``depth_draws`` [H, W, K] and ``colour_draws``
     [H, W, K, 3], padded with NaN beyond a chunk's K to the largest K.
     """
-    from tqdm.auto import tqdm
-
     shape = rays.shape
     flat = rays.flatten()
     out: dict[str, list[Tensor]] = {name: [] for name in (*MAP_NAMES, "num_draws", "field_evals_per_ray")}

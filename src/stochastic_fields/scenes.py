@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from .config import ExperimentConfig
+from .data import detect_format, load_dataset
 
 EMBEDDED_SCENE_DIR = "scene"
 
@@ -17,8 +18,6 @@ def scene_path(cfg: ExperimentConfig, run_dir: Path) -> Path:
 def load_run_dataset(cfg: ExperimentConfig, run_dir: Path, *, generate: bool = True):
     """Load the run's dataset, split by ``cfg.data.split`` (:func:`apply_split`); generate the
     embedded synthetic scene first if needed."""
-    from .data import detect_format, load_dataset
-
     path = scene_path(cfg, run_dir)
     if not cfg.data.path:
         from .io_utils import check_no_symlinks

@@ -35,6 +35,23 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from stochastic_fields import metrics as M
+from stochastic_fields.cameras import generate_rays_for_view
+from stochastic_fields.config import ExperimentConfig, from_dict
+from stochastic_fields.config import preset
+from stochastic_fields.config import to_dict
+from stochastic_fields.evaluation import score_view
+from stochastic_fields.io_utils import atomic_write_text
+from stochastic_fields.rays import RayBundle
+from stochastic_fields.renderer import render_image
+from stochastic_fields.scenes import load_run_dataset
+from stochastic_fields.trainer import Trainer
+from stochastic_fields.trainer import TrainingRays
+from stochastic_fields.trainer import load_trained_model
+from stochastic_fields.view_maps import camera_z_maps
+import matplotlib
+import matplotlib.pyplot as plt
+import os
 
 K_VALUES = (1, 4, 8, 16, 32, 64, 128)
 
@@ -73,8 +90,6 @@ def _budget(args) -> dict:
 
 # ----------------------------------------------------------------------------------- scenes
 def _scene_config(scene: str, backend: str, budget: dict, scene_path: Path):
-    from stochastic_fields.config import preset
-
     cfg = preset("llff" if scene == "fern" else "demo")
     cfg.data.path = str(scene_path)
     cfg.data.split = "paper"  # the paper's protocol, explicitly (not the capture default)
@@ -93,16 +108,11 @@ def _scene_config(scene: str, backend: str, budget: dict, scene_path: Path):
 
 
 def _load(cfg):
-    from stochastic_fields.scenes import load_run_dataset
-
     return load_run_dataset(cfg, Path(cfg.data.path))
 
 
 def _eval_pixels(dataset, count: int, seed: int = 0):
     """A fixed random subset of test pixels: rays [P] and colours [P, 3]."""
-    from stochastic_fields.cameras import generate_rays_for_view
-    from stochastic_fields.rays import RayBundle
-
     rays, colours = [], []
     for v in dataset.test_indices:
         rays.append(generate_rays_for_view(dataset.cameras, v, dataset.near, dataset.far).flatten())
@@ -113,8 +123,6 @@ def _eval_pixels(dataset, count: int, seed: int = 0):
 
 
 def _score_pixels(model, rays, colours, num_draws: int = 16) -> dict:
-    from stochastic_fields import metrics as M
-
     maps = model.render_view(rays, model.render_options(num_draws=num_draws), generator=torch.Generator().manual_seed(0))
     mean, var = maps["colour_mean"].double(), maps["colour_var"].double()
     return {"psnr": M.psnr(mean, colours.double()), "nll": M.gaussian_nll(colours.double(), mean, var),
@@ -137,9 +145,6 @@ def _rss_mb() -> float:
 
 def _train_child(cfg_dict: dict, run_dir: str, budget: dict, queue) -> None:
     """Train one backend in a fresh process (its peak memory is its own) and evaluate along the way."""
-    from stochastic_fields.config import ExperimentConfig, from_dict
-    from stochastic_fields.trainer import Trainer
-
     try:
         torch.set_num_threads(torch.get_num_threads())
         cfg = from_dict(ExperimentConfig, cfg_dict)
@@ -169,8 +174,6 @@ def _train_child(cfg_dict: dict, run_dir: str, budget: dict, queue) -> None:
 
 
 def train_backend(cfg, run_dir: Path, budget: dict) -> dict:
-    from stochastic_fields.config import to_dict
-
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
     proc = ctx.Process(target=_train_child, args=(to_dict(cfg), str(run_dir), budget, queue))
@@ -212,9 +215,6 @@ def _timed_pair(fn_a, fn_b, repeats: int | None = None):
 
 
 def _view_scores(maps, gt, gt_depth, sparse, stride: int) -> dict:
-    from stochastic_fields.evaluation import score_view
-    from stochastic_fields.view_maps import camera_z_maps
-
     products = camera_z_maps(maps)
     s = score_view(products, gt, gt_depth)
     out = {k: (v.value if hasattr(v, "value") else v) for k, v in s.items() if not isinstance(v, dict)}
@@ -239,9 +239,6 @@ def _view_scores(maps, gt, gt_depth, sparse, stride: int) -> dict:
 
 def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> dict:
     """K sweep, adaptive K, skipping on/off, deterministic ratio on one test view of a trained model."""
-    from stochastic_fields.cameras import generate_rays_for_view
-    from stochastic_fields.renderer import render_image
-
     view = int(dataset.test_indices[0])
     rays = generate_rays_for_view(dataset.cameras, view, dataset.near, dataset.far)[::stride, ::stride]
     gt = dataset.images[view][::stride, ::stride].numpy()
@@ -349,8 +346,6 @@ SKIPPING_CRITERIA = ((3.0, 1e-4), (2.0, 1e-3), (1.0, 1e-2), (0.0, 1e-2))
 def skipping_sweep(model, rays, settings, num_draws: int, score) -> list[dict]:
     """Occupancy rebuilt from the trained field at each of SKIPPING_CRITERIA; one render each:
     field evaluations per ray, time and scores (the trained occupancy is restored afterwards)."""
-    from stochastic_fields.renderer import render_image
-
     saved = {k: v.clone() for k, v in model.occupancy.state_dict().items()}
     rows = []
     try:
@@ -370,8 +365,6 @@ def skipping_sweep(model, rays, settings, num_draws: int, score) -> list[dict]:
 
 def training_step_times(model, dataset, steps: int, rays_per_batch: int) -> dict:
     """Forward + backward time of S-NeRF's training loss with and without empty-space skipping."""
-    from stochastic_fields.trainer import TrainingRays
-
     data = TrainingRays.from_dataset(dataset, torch.device("cpu"))
     model.train()
     out = {}
@@ -418,11 +411,7 @@ def field_throughput(field, region, points: int = 65536) -> dict:
 
 # ----------------------------------------------------------------------------------- plots
 def make_plots(results: dict, out: Path) -> list[str]:
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     files = []
     scenes = list(results["scenes"])
     fig, axes = plt.subplots(len(scenes), 2, figsize=(10, 3.6 * len(scenes)), squeeze=False)
@@ -574,8 +563,6 @@ def evaluate_targets(results: dict) -> dict:
 
 # ----------------------------------------------------------------------------------- main
 def machine_description() -> dict:
-    import os
-
     cpu = "unknown"
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -590,8 +577,6 @@ def machine_description() -> dict:
 
 
 def run(args: argparse.Namespace) -> None:
-    from stochastic_fields.trainer import load_trained_model
-
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     work = out / "work"
@@ -672,8 +657,6 @@ def run(args: argparse.Namespace) -> None:
 
 
 def _write(out: Path, results: dict) -> None:
-    from stochastic_fields.io_utils import atomic_write_text
-
     atomic_write_text(out / "bench.json", json.dumps(results, indent=2, default=float))
 
 

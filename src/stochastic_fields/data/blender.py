@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
+import imageio.v3 as iio
 
 from ..cameras import backproject_depths, make_cameras, opengl_c2w_to_opencv_w2c
 from .capture import bounds_from_points, is_forward_facing, visible_points_by_projection
@@ -226,8 +227,6 @@ def _downscaled_file(json_path: Path, path: Path, factor: int) -> Path | None:
 
 def _image_size(path: Path) -> tuple[int, int]:
     """(H, W) of an image file without decoding all of it."""
-    import imageio.v3 as iio
-
     try:
         shape = iio.improps(path).shape
     except Exception as exc:

@@ -56,11 +56,14 @@ from pathlib import Path
 import numpy as np
 import torch
 from tqdm.auto import tqdm
+import imageio.v3 as iio
 
 from ..io_utils import atomic_path, atomic_write, atomic_write_text
 from .colmap import ColmapCamera, read_colmap_model
 from .dataset import IMAGE_SUFFIXES, read_image
 from .errors import DatasetError
+from ..cameras import opencv_w2c_to_opengl_c2w
+from .blender import _area_downscale
 
 #: Video files ``prepare`` splits into frames (decoded with imageio's PyAV plugin).
 VIDEO_SUFFIXES: tuple[str, ...] = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
@@ -150,8 +153,6 @@ def sharpness(image: np.ndarray) -> float:
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:
-    import imageio.v3 as iio
-
     atomic_write(path, lambda tmp: iio.imwrite(tmp, image, extension=".png"))
 
 
@@ -163,8 +164,6 @@ def extract_video_frames(video: str | Path, out_dir: str | Path, *, fps: float =
     the sharpest frame of each window is kept. DatasetError naming the video if it cannot be
     opened or decoded, or yields no frame.
     """
-    import imageio.v3 as iio
-
     video, out_dir = Path(video), Path(out_dir)
     if not video.is_file():
         raise DatasetError(video, "missing video file")
@@ -220,8 +219,6 @@ def collect_photos(folder: str | Path, out_dir: str | Path, *, progress: bool = 
     Returns the copies, sorted by name. DatasetError naming the folder when it holds no photo, or
     naming the photo that cannot be read or whose size differs from the first.
     """
-    import imageio.v3 as iio
-
     folder, out_dir = Path(folder), Path(out_dir)
     if not folder.is_dir():
         raise DatasetError(folder, "missing photo folder")
@@ -254,7 +251,7 @@ def collect_photos(folder: str | Path, out_dir: str | Path, *, progress: bool = 
 
 # ---------------------------------------------------------------------- structure from motion
 def _device(name: str):
-    import pycolmap
+    import pycolmap  # heavy optional dependency (pycolmap): loaded only when used
 
     if name not in ("auto", "cpu", "cuda"):
         raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {name!r}")
@@ -270,7 +267,7 @@ def _failure_reasons(database: Path, names: list[str], registered: set[str], min
     Each reason reads ``"<kind>: <detail>"``; the kinds are ``not imported by COLMAP``, ``few SIFT
     features``, ``too few matches`` and ``not placed by the mapper``.
     """
-    import pycolmap
+    import pycolmap  # heavy optional dependency (pycolmap): loaded only when used
 
     db = pycolmap.Database.open(database)
     try:
@@ -438,8 +435,6 @@ def nerfstudio_intrinsics(camera: ColmapCamera) -> dict:
 
 def write_transforms(model_dir: Path, scene_dir: Path, image_folder: str = "images") -> Path:
     """``scene_dir/transforms.json`` from the COLMAP model in ``model_dir`` (OpenGL camera-to-world)."""
-    from ..cameras import opencv_w2c_to_opengl_c2w
-
     model = read_colmap_model(model_dir)
     cams = {cid: nerfstudio_intrinsics(c) for cid, c in model.cameras.items()}
     used = sorted({im.camera_id for im in model.images})
@@ -483,10 +478,6 @@ def write_downscaled(images: list[Path], scene_dir: Path, factors=DOWNSCALE_FACT
     The file name is kept so that ``images_<d>/<name>`` mirrors ``images/<name>`` (nerfstudio's
     rule, which the loaders follow). Sizes: ``round(H / d) x round(W / d)``.
     """
-    import imageio.v3 as iio
-
-    from .blender import _area_downscale
-
     for path in tqdm(images, desc="downscaling", unit="img", disable=not progress):
         image = read_image(path)[..., :3]
         for d in factors:
@@ -530,7 +521,7 @@ def prepare(source: str | Path, scene_dir: str | Path, *, camera_model: str = "S
         num_threads=num_threads, device=device, seed=seed, progress=progress)
     timings.update(sfm_times)
     registered = {rec.images[i].name for i in rec.reg_image_ids()} if rec is not None else set()
-    import pycolmap
+    import pycolmap  # heavy optional dependency (pycolmap): loaded only when used
 
     failed = _failure_reasons(database, names, registered,
                               int(pycolmap.TwoViewGeometryOptions().min_num_inliers))

@@ -46,6 +46,7 @@ from ..scene_region import SceneRegion
 from .base import FieldParams, StochasticField, inverse_positive_scale, inverse_softplus, positive_scale
 from .encoding import PositionalEncoding
 from .row_gather import gather_rows
+from ..scene_region import frustum_points
 
 
 def coarse_to_fine_weights(num_levels: int, progress: float, fraction: float) -> list[float]:
@@ -248,8 +249,6 @@ def resolution_from_footprint(region: SceneRegion, intrinsics: Tensor, w2c: Tens
     Per axis of the unit cube, so a flat region gets few cells across its thin axis. The result
     is capped at ``max_cells`` cells (all axes scaled by the same factor).
     """
-    from ..scene_region import frustum_points
-
     K = intrinsics[:, :3, :3].float()
     pts = frustum_points(K, w2c, height, width, near.reshape(-1).expand(w2c.shape[0]), far.reshape(-1).expand(w2c.shape[0]), grid=5, depths=8)
     # world length of one pixel footprint at each frustum point: camera depth / focal length

@@ -63,6 +63,7 @@ from ..renderer import ChunkGenerators, ChunkRender, RenderOptions, RenderSettin
 from ..volume_rendering import TrajectoryStatistics, accumulate, statistics_from_draws
 from .base import RadianceModel
 from .field_builder import build_field
+from ..constants import FIELD_STD_FLOOR
 
 #: Dropout rate of ``mc_dropout`` when ``field.dropout`` is 0 (the common MC-Dropout choice).
 DEFAULT_DROPOUT_RATE: float = 0.2
@@ -357,8 +358,6 @@ def nerfw_point_variance(params: FieldParams) -> Tensor:
     ``beta = softplus(raw) = rgb_scale - FIELD_STD_FLOOR`` (``rgb_scale`` is softplus(raw) + floor);
     clamped at 0 against rounding.
     """
-    from ..constants import FIELD_STD_FLOOR
-
     return (params.rgb_scale - FIELD_STD_FLOOR).clamp_min(0.0) ** 2
 
 

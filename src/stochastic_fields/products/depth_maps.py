@@ -47,6 +47,10 @@ from typing import Callable, Sequence
 
 import numpy as np
 import torch
+import imageio.v3 as iio
+import matplotlib
+import matplotlib.pyplot as plt
+import tifffile
 
 from ..calibration import apply_calibration
 from ..view_maps import camera_z_maps
@@ -329,8 +333,6 @@ def write_png16(path: str | Path, depth: np.ndarray, valid: np.ndarray, *, max_d
     Sidecar: ``{"scale", "formula": "depth = value * scale", "invalid_value": 0, "units",
     "depth_kind": "camera_z", "quantity", "image"}``.
     """
-    import imageio.v3 as iio
-
     path = Path(path)
     scale = png16_scale(max_depth)
     img = encode_png16(depth, valid, scale)
@@ -346,8 +348,6 @@ def write_png16(path: str | Path, depth: np.ndarray, valid: np.ndarray, *, max_d
 
 def read_png16(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """(depth [H, W] float64, valid [H, W] bool) from a PNG written by :func:`write_png16`."""
-    import imageio.v3 as iio
-
     path = Path(path)
     sidecar = path.with_suffix(".json")
     if not sidecar.is_file():
@@ -364,8 +364,6 @@ def write_tiff(path: str | Path, products: DepthProducts) -> Path:
     :meth:`DepthProducts.maps` in that order, NaN where not ``valid`` (opacity is kept
     everywhere). The ImageDescription is JSON: ``{"pages": [...], "units", "nodata": "nan",
     "conventions", "min_opacity"}``."""
-    import tifffile
-
     path = Path(path)
     maps = products.maps()
     names = list(maps)
@@ -379,8 +377,6 @@ def write_tiff(path: str | Path, products: DepthProducts) -> Path:
 
 def read_tiff(path: str | Path) -> dict[str, np.ndarray]:
     """Maps by name from a TIFF written by :func:`write_tiff`."""
-    import tifffile
-
     with tifffile.TiffFile(path) as tf:
         desc = json.loads(tf.pages[0].description)
         data = tf.asarray()
@@ -391,11 +387,7 @@ def write_colourised(path: str | Path, products: DepthProducts, *, title: str = 
     """PNG for people (atomic): depth mean (turbo) and total std (magma) side by side, each with
     a colour bar labelled with its units; invalid pixels grey. Ranges: 1st-99th percentile of
     the valid pixels (std from 0)."""
-    import matplotlib
-
     matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
     path = Path(path)
     H, W = products.shape
     valid = products.valid

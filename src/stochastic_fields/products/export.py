@@ -35,6 +35,7 @@ from typing import Sequence
 
 import numpy as np
 import torch
+import trimesh
 
 from ..cameras import generate_rays_for_view, intrinsics_3x3, make_cameras
 from ..data.dataset import parse_views
@@ -49,6 +50,8 @@ from .pointcloud import (CloudArrays, PointFilter, cloud_from_products, filter_c
                          uncertainty_range, write_ply)
 from .render_cloud import render_cloud_png
 from .ros_depth import MetricScale, write_ros_depth
+from ..calibration import load_run_calibration
+from ..trainer import load_trained_model
 
 FORMATS: tuple[str, ...] = ("npz", "png16", "tiff", "png", "ros")
 #: Formats written when none are named ('ros' needs a metric scale, so it is asked for by name).
@@ -363,9 +366,7 @@ class CalibrationAccumulator:
 def surface_distances(points: np.ndarray, mesh_path: str | Path) -> np.ndarray:
     """Unsigned distance [N] of world points [N, 3] to the triangle mesh in ``mesh_path``
     (Open3D RaycastingScene.compute_distance, float32)."""
-    import open3d as o3d
-    import trimesh
-
+    import open3d as o3d  # heavy optional dependency (Open3D): loaded only when used
     try:
         mesh = trimesh.load(str(mesh_path), force="mesh", process=False)
     except Exception as exc:  # trimesh raises bare exceptions for damaged files ("PLY is unexpected length!")
@@ -417,8 +418,6 @@ def export_run(run_dir: str | Path, opts: ExportOptions, *, distributed=None) ->
     """Export the products of a trained run (see the module doc). Returns the summary it saves.
     ``distributed``: this rank's ``distributed.DistContext`` (see ``export_views``); the model is
     loaded on the rank's device."""
-    from ..trainer import load_trained_model
-
     opts.validate()
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -445,8 +444,6 @@ def export_run(run_dir: str | Path, opts: ExportOptions, *, distributed=None) ->
         check_voxel_size(opts.voxel_size, reach)
     out = Path(opts.out) if opts.out is not None else run_dir / "export"
     mesh_path = Path(dataset.root) / "scene.ply"
-    from ..calibration import load_run_calibration
-
     calibration = None if opts.raw_uncertainty else load_run_calibration(run_dir)
     return export_views(model, specs, out, opts, mesh_path=mesh_path if mesh_path.is_file() else None,
                         run_name=str(run_dir), calibration=calibration, distributed=distributed)

@@ -17,6 +17,10 @@ import torch
 
 from ..io_utils import read_json
 from .free_path import FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, path_free_probability, segment_free_probability
+from ..cameras import image_size, intrinsics_3x3
+from ..io_utils import atomic_write_text
+from ..trainer import load_trained_model
+from .occupancy_map import footprint_voxel_size
 
 
 def _points(path: Path, key: str, value, shape_tail: tuple[int, ...]) -> torch.Tensor:
@@ -59,11 +63,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> None:
-    from ..cameras import image_size, intrinsics_3x3
-    from ..io_utils import atomic_write_text
-    from ..trainer import load_trained_model
-    from .occupancy_map import footprint_voxel_size
-
     segs, way = load_queries(args.queries)
     if args.num_draws < 1:
         raise ValueError(f"--num-draws must be >= 1, got {args.num_draws}")

@@ -44,6 +44,7 @@ import numpy as np
 import torch
 from kornia.geometry.camera.perspective import unproject_points
 from kornia.geometry.linalg import transform_points
+import matplotlib
 
 from ..cameras import invert_rigid, pixel_centres
 from ..io_utils import atomic_path
@@ -301,8 +302,6 @@ def point_colours(cloud: CloudArrays, colour_by: ColourBy = "rgb", *, value_rang
         return (rgb * 255.0 + 0.5).astype(np.uint8), {"colour_by": "rgb"}
     if colour_by != "uncertainty":
         raise ValueError(f"colour_by must be 'rgb' or 'uncertainty', got {colour_by!r}")
-    import matplotlib
-
     if quantity not in cloud.attributes:
         raise ValueError(f"cannot colour by {quantity!r}: the cloud has {sorted(cloud.attributes)}")
     values = cloud.attributes[quantity].astype(np.float64)
@@ -319,7 +318,7 @@ def point_colours(cloud: CloudArrays, colour_by: ColourBy = "rgb", *, value_rang
 def to_open3d(cloud: CloudArrays, colour_by: ColourBy = "rgb", *, value_range: tuple[float, float] | None = None):
     """``open3d.t.geometry.PointCloud`` with positions (float32), normals, uint8 colors and every
     attribute as an [N, 1] tensor."""
-    import open3d as o3d
+    import open3d as o3d  # heavy optional dependency (Open3D): loaded only when used
 
     colours, _ = point_colours(cloud, colour_by, value_range=value_range)
     pc = o3d.t.geometry.PointCloud()
@@ -379,7 +378,7 @@ def write_ply(path: str | Path, cloud: CloudArrays, colour_by: ColourBy = "rgb",
 
 def read_ply(path: str | Path) -> tuple[CloudArrays, np.ndarray]:
     """(cloud, uint8 colours [N, 3]) read back with Open3D (attributes as [N] arrays)."""
-    import open3d as o3d
+    import open3d as o3d  # heavy optional dependency (Open3D): loaded only when used
 
     path = Path(path)
     if not path.is_file():

@@ -42,6 +42,9 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+import imageio.v3 as iio
+import tifffile
+import yaml
 
 from ..io_utils import atomic_path, atomic_write_text
 from .depth_maps import DepthProducts
@@ -139,8 +142,6 @@ def camera_info(products: DepthProducts, scale: MetricScale, *, frame_id: str, s
 
 def _yaml(info: dict) -> str:
     """CameraInfo YAML in the layout of ROS camera_calibration_parsers (plus our extra keys)."""
-    import yaml
-
     K = info["K"]
     doc = {
         "image_width": info["width"], "image_height": info["height"], "camera_name": info["header"]["frame_id"],
@@ -171,9 +172,6 @@ def write_ros_depth(views_dir: str | Path, name: str, products: DepthProducts, s
                     frame_id: str | None = None) -> list[Path]:
     """Write the REP 118 depth images, their std and the CameraInfo of one view (module doc).
     Returns the written paths (each atomic)."""
-    import imageio.v3 as iio
-    import tifffile
-
     views_dir = Path(views_dir)
     m = scale.metres_per_unit
     valid = products.valid
@@ -222,7 +220,7 @@ def integrate_tsdf_open3d(views: Sequence[tuple[Path, Path]], *, voxel_size: flo
     Open3D ``VoxelBlockGrid`` (tensor TSDF); truncation ``TSDF_TRUNCATION_VOXELS * voxel_size``;
     the mesh keeps voxels observed at least once (``weight_threshold`` below one frame's weight).
     """
-    import open3d as o3d
+    import open3d as o3d  # heavy optional dependency (Open3D): loaded only when used
 
     if max_std_mm is not None and (std_images is None or len(std_images) != len(views)):
         raise ValueError("integrate_tsdf_open3d: max_std_mm needs one std image per view")

@@ -27,6 +27,7 @@ import numpy as np
 
 from .depth_maps import DepthProducts
 from .ros_depth import MetricScale, camera_info
+from .pointcloud import read_ply
 
 #: Seconds between the views' messages.
 ROSBAG_PERIOD_S: float = 0.1
@@ -63,8 +64,6 @@ class ExportedView:
 
 def load_export(export_dir: str | Path) -> list[ExportedView]:
     """The views of an export folder, sorted by name (npz files other than ``*_free_space.npz``)."""
-    from .pointcloud import read_ply
-
     export_dir = Path(export_dir)
     vdir = export_dir / "views"
     paths = sorted(p for p in vdir.glob("*.npz") if not p.name.endswith("_free_space.npz")) if vdir.is_dir() else []
@@ -114,8 +113,8 @@ def write_rosbag(export_dir: str | Path, out: str | Path, *, metres_per_unit: fl
                  period_s: float = ROSBAG_PERIOD_S, storage: str = "mcap") -> dict:
     """Write the bag (module doc). ``out`` must not exist (rosbags refuses to overwrite).
     Returns {topic: message count}."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-    from rosbags.typesys import Stores, get_typestore
+    from rosbags.rosbag2 import StoragePlugin, Writer  # heavy optional dependency (rosbags): loaded only when used
+    from rosbags.typesys import Stores, get_typestore  # heavy optional dependency (rosbags): loaded only when used
 
     views = load_export(export_dir)
     out = Path(out)
