@@ -12,8 +12,8 @@ from test_layout import import_graph
 #: Bottom to top: (layer name, its modules), module names without the package prefix
 #: (``stochastic_fields.`` for the library, ``bench.`` for ``stochastic_fields_bench``).
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("foundations", ("", "constants", "validation", "io_utils", "data.errors", "visualize", "holdout",
-                     "pose_alignment", "predictive")),
+    ("foundations", ("", "constants", "defaults", "validation", "io_utils", "launch", "settings", "data.errors",
+                     "visualize", "holdout", "pose_alignment", "predictive")),
     ("geometry and maths", ("rays", "scene_region", "cameras", "distortion", "distributions", "logistic_normal_table",
                             "volume_rendering", "samplers", "metrics", "optim", "checkpoint", "view_maps", "plots")),
     ("fields", ("fields", "fields.encoding", "fields.row_gather", "fields.base", "fields.grid", "fields.mlp")),
@@ -24,10 +24,11 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("runs", ("scenes", "distributed", "trainer", "calibration", "evaluation")),
     ("products", ("products", "products.free_path", "products.free_space", "products.occupancy_map",
                   "products.depth_maps", "products.free_path_cli", "products.plan", "products.planner_cli",
-                  "products.pointcloud", "products.ros_depth", "products.fusion", "products.render_cloud",
+                  "products.export_options", "products.pointcloud", "products.ros_depth", "products.fusion", "products.render_cloud",
                   "products.rosbag", "products.export", "products.rerun_log")),
-    ("interfaces", ("cli", "products.cli", "inspect")),
-    ("experiments", ("bench", "bench.budget", "bench.methods", "bench.report", "bench.runner", "bench.speed",
+    ("interfaces", ("cli", "products.cli", "inspect", "commands", "commands.calibrate", "commands.occupancy",
+                    "commands.free_path", "commands.rosbag", "commands.rerun", "commands.prepare")),
+    ("experiments", ("bench", "bench.bench_command", "bench.budget", "bench.methods", "bench.report", "bench.runner", "bench.speed",
                      "bench.tables")),
 )
 

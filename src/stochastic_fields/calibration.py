@@ -70,6 +70,7 @@ from .sparse_depth import COVERAGE_LEVELS
 from .sparse_depth import project_sparse_depth
 from .trainer import load_trained_model
 from .view_maps import OPACITY_MASK
+from .defaults import CALIBRATION_FILE, CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS, DEPTH_FREE_SPACE, DEPTH_STD_FLOOR  # noqa: F401  (defaults the command line shows)
 
 #: Central level of +-1 standard deviation: Phi(1) - Phi(-1).
 ONE_SIGMA_LEVEL: float = 0.682689492137086
@@ -79,25 +80,8 @@ CALIBRATION_LEVELS: np.ndarray = np.round(np.arange(1, 100) / 100.0, 2)
 MIN_CALIBRATION_SAMPLES: int = 50
 #: Smallest scale a fitted map may hold (a map of zeros would claim certainty).
 MIN_CALIBRATION_SCALE: float = 1e-3
-#: File of a run's calibration.
-CALIBRATION_FILE = "calibration.json"
-#: Which capture points a depth map may be fitted on (``--points``): "held-out", every point the
-#: training did not fit (CALIBRATE and SCORE: three times the blocks, so the map sees most of the
-#: scene's surfaces; the default, docs/uncertainty.md, studies 18 and 18b), scored independently by
-#: its cross-fitted fold maps (``DepthFolds``); or "calibrate", the CALIBRATE role only (the SCORE
-#: points then score the map itself; the protocol of studies 1 to 18).
-CALIBRATION_POINTS: tuple[str, ...] = ("held-out", "calibrate")
-DEFAULT_CALIBRATION_POINTS: str = "held-out"
-#: Folds the SCORE blocks are dealt into when a map is fitted on them too (``DepthFolds``), and the
-#: seed of the deal (study 18's diagnostic: 5 folds, seed 0).
-CROSS_FIT_FOLDS: int = 5
+#: Seed of the deal of the SCORE blocks into folds (``DepthFolds``; study 18's diagnostic: seed 0).
 CROSS_FIT_SEED: int = 0
-#: Whether depth maps fit a std floor (``fit_std_floor``); docs/uncertainty.md, study 11.
-DEPTH_STD_FLOOR: bool = False
-#: Whether depth maps are fitted on the free-space-checked std sqrt(sigma^2 + e^2) (``free_space``;
-#: docs/uncertainty.md, study 13: it ranks depth errors better on every scene, but its map transfers
-#: badly on fern, so it is an option).
-DEPTH_FREE_SPACE: bool = False
 #: Relative precision of the fitted std floor (bisection in log tau stops there).
 STD_FLOOR_RTOL: float = 1e-4
 #: A floor is fitted only when the standardised errors fall with sigma at this one-sided significance
@@ -835,26 +819,6 @@ def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibrati
 # --------------------------------------------------------------------------------------------
 # ``stochastic-fields calibrate``
 # --------------------------------------------------------------------------------------------
-
-
-def add_arguments(p) -> None:
-    p.add_argument("--run", required=True, help="Trained run folder.")
-    p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
-    p.add_argument("--seed", type=int, default=0, help="Seed of the K draws of the calibration renders.")
-    p.add_argument("--points", choices=CALIBRATION_POINTS, default=DEFAULT_CALIBRATION_POINTS,
-                   help="Capture points to fit on: 'held-out' (default) fits every point the training did not "
-                        "fit, so the map sees most of the scene's surfaces, and stores its cross-fitted fold "
-                        f"maps ({CROSS_FIT_FOLDS} folds of the SCORE blocks) that eval scores its intervals with; "
-                        "'calibrate' fits the CALIBRATE points only (docs/uncertainty.md, studies 18 and 18b).")
-    p.add_argument("--std-floor", action=argparse.BooleanOptionalAction, default=DEPTH_STD_FLOOR,
-                   help="Fit a depth std floor tau first, so that depth_std = s * sqrt(raw^2 + tau^2) "
-                        f"(docs/uncertainty.md, study 11; default: {'on' if DEPTH_STD_FLOOR else 'off'}).")
-    p.add_argument("--free-space", action=argparse.BooleanOptionalAction, default=DEPTH_FREE_SPACE,
-                   help="Check each rendered depth against the training views' free space: depth_std = "
-                        "s * sqrt(raw^2 + e^2), e how far the point lies in front of a training view's rendered "
-                        "surface, also written as depth_free_space (renders the training views once into "
-                        "RUN/training_depth.npz; docs/uncertainty.md, study 13: ranks depth errors better on every "
-                        f"scene, intervals transfer worse on fern; default: {'on' if DEPTH_FREE_SPACE else 'off'}).")
 
 
 def run(args) -> None:

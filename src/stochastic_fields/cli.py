@@ -16,8 +16,8 @@ from pathlib import Path
 
 from . import config as C
 from .constants import DISTRIBUTED_TIMEOUT_S
-from .distributed import DistributedError, requested_by_environment, sharding_from_environment
-from .renderer import COLOUR_ESTIMATORS
+from .launch import DistributedError, requested_by_environment
+from .settings import COLOUR_ESTIMATORS
 
 
 def _add_experiment_options(p: argparse.ArgumentParser) -> None:
@@ -154,6 +154,8 @@ def _render_and_score(args: argparse.Namespace, default_out: Path, product_views
     from .io_utils import check_no_symlinks, check_output_folder  # deferred: loads only when this command runs (keeps --help fast)
     from .trainer import load_trained_model  # deferred: loads only when this command runs (keeps --help fast)
 
+    from .distributed import sharding_from_environment  # deferred: loads only when this command runs (keeps --help fast)
+
     out = check_output_folder(args.out if args.out is not None else default_out, "--out")
     check_no_symlinks(out, "views", "metrics.json")
     with sharding_from_environment(args.run, args.device, timeout_s=args.dist_timeout) as ctx:
@@ -267,14 +269,14 @@ DISTRIBUTED_COMMANDS: tuple[str, ...] = ("train", "render", "eval", "export")
 #: (pyproject.toml), so that the library never imports them.
 EXTRA_COMMANDS = {
     "export": ("stochastic_fields.products.cli", "Export depth maps, uncertainty maps and point clouds of a trained run."),
-    "calibrate": ("stochastic_fields.calibration",
+    "calibrate": ("stochastic_fields.commands.calibrate",
                   "Fit a run's uncertainty recalibration (calibration.json): depth from its capture points, "
                   "colour from the pixels it held out of training."),
-    "occupancy": ("stochastic_fields.products.planner_cli", "Occupancy probabilities of a run (npz + OctoMap .ot)."),
-    "free-path": ("stochastic_fields.products.free_path_cli", "P(collision-free) of segments or a path, with its error."),
-    "rosbag": ("stochastic_fields.products.rosbag", "ROS 2 bag (depth, std, CameraInfo, colour, PointCloud2) of an export."),
-    "rerun": ("stochastic_fields.products.rerun_log", "rerun recording (.rrd) of an export."),
-    "prepare": ("stochastic_fields.data.prepare", "Photos or a video -> camera poses with pycolmap (SfM) -> a scene folder to train on."),
+    "occupancy": ("stochastic_fields.commands.occupancy", "Occupancy probabilities of a run (npz + OctoMap .ot)."),
+    "free-path": ("stochastic_fields.commands.free_path", "P(collision-free) of segments or a path, with its error."),
+    "rosbag": ("stochastic_fields.commands.rosbag", "ROS 2 bag (depth, std, CameraInfo, colour, PointCloud2) of an export."),
+    "rerun": ("stochastic_fields.commands.rerun", "rerun recording (.rrd) of an export."),
+    "prepare": ("stochastic_fields.commands.prepare", "Photos or a video -> camera poses with pycolmap (SfM) -> a scene folder to train on."),
 }
 
 

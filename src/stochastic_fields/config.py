@@ -19,12 +19,9 @@ from pathlib import Path
 from typing import Any, Literal
 
 from . import validation as V
-from .losses import LossConfig
-from .renderer import RenderSettings
 from .io_utils import atomic_write_text
 from .io_utils import read_json
-from .losses import LOSS_CHECKS
-from .renderer import RENDER_CHECKS
+from .settings import LOSS_CHECKS, RENDER_CHECKS, LossConfig, RenderSettings
 
 
 @dataclass

@@ -71,19 +71,11 @@ from tqdm.auto import tqdm
 
 from .constants import DISTRIBUTED_TIMEOUT_S
 from .fields.row_gather import row_gradient
+from .launch import DistributedError, requested_by_environment  # noqa: F401  (re-exported)
 from .models.registry import resolve_device
 
 #: torchrun's environment variables that describe a rank.
 ENV_VARS: tuple[str, ...] = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
-
-
-class DistributedError(RuntimeError):
-    """A collective failed: another rank stopped, raised, or did not answer within the timeout."""
-
-
-def requested_by_environment() -> bool:
-    """True when the process was started by torchrun (``RANK`` and ``WORLD_SIZE`` are set)."""
-    return "RANK" in os.environ and "WORLD_SIZE" in os.environ
 
 
 def rank() -> int:

@@ -41,9 +41,8 @@ from .io_utils import atomic_write
 from .models.snerf import UNIT_CUBE
 from .occupancy import OccupancyGrid
 from .renderer import seeded_chunks
+from .defaults import TRAINING_DEPTH_FILE  # noqa: F401  (defaults the command line shows)
 
-#: File of a run's rendered training-view depths (``save_training_depth``).
-TRAINING_DEPTH_FILE = "training_depth.npz"
 #: Carving (``carve_free_space``): a training pixel carves only where its ray ended sharply, with
 #: opacity above this ...
 CARVE_MIN_OPACITY: float = 0.9

@@ -27,49 +27,33 @@ import argparse
 import json
 import math
 import multiprocessing as mp
+import os
 import platform
 import resource
 import time
 from dataclasses import replace
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
 import torch
+
 from stochastic_fields import metrics as M
 from stochastic_fields.cameras import generate_rays_for_view
-from stochastic_fields.config import ExperimentConfig, from_dict
-from stochastic_fields.config import preset
-from stochastic_fields.config import to_dict
+from stochastic_fields.config import ExperimentConfig, from_dict, preset, to_dict
 from stochastic_fields.evaluation import score_view
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.rays import RayBundle
 from stochastic_fields.renderer import render_image
 from stochastic_fields.scenes import load_run_dataset
-from stochastic_fields.trainer import Trainer
-from stochastic_fields.trainer import TrainingRays
-from stochastic_fields.trainer import load_trained_model
+from stochastic_fields.trainer import Trainer, TrainingRays, load_trained_model
 from stochastic_fields.view_maps import camera_z_maps
-import matplotlib
-import matplotlib.pyplot as plt
-import os
 
 K_VALUES = (1, 4, 8, 16, 32, 64, 128)
 
 
 # ----------------------------------------------------------------------------------- arguments
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", default="benchmarks/results", help="Output folder for bench.json and plots.")
-    parser.add_argument("--data", default="../shared/data", help="Reference data folder (fern is skipped if absent).")
-    parser.add_argument("--quick", action="store_true", help="Small budget (about 10 minutes on 2 CPU cores).")
-    parser.add_argument("--iterations", type=int, default=None, help="Training steps per backend (default 100 quick, 3000).")
-    parser.add_argument("--mlp-iterations", type=int, default=None, help="Training steps of the MLP (default: --iterations).")
-    parser.add_argument("--mlp-width", type=int, default=None, help="MLP trunk width (paper: 256; default 64 quick, 256).")
-    parser.add_argument("--rays-per-batch", type=int, default=None, help="Training rays per step (default 512 quick, 1024).")
-    parser.add_argument("--eval-pixels", type=int, default=None, help="Test pixels for the training curves (default 1024 quick, 8192).")
-    parser.add_argument("--curve-points", type=int, default=8,
-                        help="Evaluations along each training curve, spaced geometrically in steps (early quality is where backends differ).")
-    parser.add_argument("--view-stride", type=int, default=None, help="Pixel stride of the rendered view (default 4 quick on fern, 1).")
-    parser.add_argument("--scenes", default="synthetic,fern", help="Comma-separated scenes: synthetic, fern.")
 
 
 def _budget(args) -> dict:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .export import FORMATS, ExportOptions, export_run
+from .export_options import FORMATS, ExportOptions
 
 
 def _floats(name: str):
@@ -103,6 +103,7 @@ def options_from_args(args: argparse.Namespace) -> ExportOptions:
 
 def run(args: argparse.Namespace) -> None:
     from ..distributed import sharding_from_environment  # deferred: loads only when this command runs (keeps --help fast)
+    from .export import export_run  # deferred: loads only when this command runs (keeps --help fast)
 
     opts = options_from_args(args)
     with sharding_from_environment(args.run, args.device, timeout_s=args.dist_timeout) as ctx:

@@ -55,6 +55,7 @@ import tifffile
 from ..calibration import apply_calibration
 from ..view_maps import camera_z_maps
 from ..io_utils import atomic_path, atomic_write_text
+from .export_options import check_quantile_levels  # noqa: F401  (re-exported)
 
 #: Colour range (relative) given to a constant map so matplotlib can draw it.
 FLAT_MAP_RANGE: float = 1e-3
@@ -180,17 +181,6 @@ def gaussian_band(mean: np.ndarray, std: np.ndarray, level: float) -> tuple[np.n
     mean = np.asarray(mean, np.float64)
     std = np.asarray(std, np.float64)
     return (mean - z * std).astype(np.float32), (mean + z * std).astype(np.float32)
-
-
-def check_quantile_levels(levels: Sequence[float]) -> np.ndarray:
-    """[Q] float64 levels in the given order; ValueError naming the bad one if outside (0, 1)."""
-    arr = np.asarray([float(q) for q in levels], dtype=np.float64)
-    if arr.size == 0:
-        raise ValueError("quantile levels: need at least one level in (0, 1)")
-    bad = [float(q) for q in arr if not 0.0 < q < 1.0]
-    if bad:
-        raise ValueError(f"quantile levels must lie strictly between 0 and 1, got {bad}")
-    return arr
 
 
 # ------------------------------------------------------------------------------- estimators

@@ -53,13 +53,8 @@ from ..cameras import image_size, intrinsics_3x3
 from ..io_utils import atomic_write_text
 from ..scene_region import frustum_points
 from ..trainer import load_trained_model
+from ..defaults import BLOCKED_OPACITY, OCCUPANCY_MAX_CELLS, OCCUPANCY_PIXELS_PER_VOXEL  # noqa: F401  (defaults the command line shows)
 
-#: Opacity of one voxel crossing that counts as "blocked" for the default density threshold.
-BLOCKED_OPACITY: float = 0.5
-#: Pixels a voxel should span where the cameras see it (a voxel below one pixel is not resolved).
-OCCUPANCY_PIXELS_PER_VOXEL: float = 2.0
-#: Most voxels in the region (coarser voxels beyond this): 2M cells evaluate in seconds on a CPU.
-OCCUPANCY_MAX_CELLS: int = 2_000_000
 #: Voxels with a lower probability are not listed (they are free).
 OCCUPANCY_MIN_PROBABILITY: float = 1e-3
 #: OctoMap clamping: probabilities in (0, 1) are kept up to this distance from 0 and 1.

@@ -49,6 +49,7 @@ import matplotlib
 from ..cameras import invert_rigid, pixel_centres
 from ..io_utils import atomic_path
 from .depth_maps import DepthProducts
+from .export_options import PointFilter  # noqa: F401  (re-exported)
 
 #: Relative depth std at which ``confidence`` = 1/e (see module doc).
 CONFIDENCE_REL_STD_SCALE: float = 0.05
@@ -228,24 +229,6 @@ def cloud_from_products(products: DepthProducts, *, view: int = 0, mask: np.ndar
 
 
 # ------------------------------------------------------------------------------- filters
-@dataclass
-class PointFilter:
-    """Which points to keep; None disables a test. Applied in this order:
-    ``opacity >= min_opacity``, ``depth_std <= max_std``, ``depth_std / depth <= max_rel_std``,
-    then the ``keep_fraction`` most confident of what is left (ties keep the earlier point)."""
-
-    min_opacity: float | None = None
-    max_std: float | None = None
-    max_rel_std: float | None = None
-    keep_fraction: float | None = None
-
-    def __post_init__(self) -> None:
-        for name in ("min_opacity", "max_std", "max_rel_std"):
-            v = getattr(self, name)
-            if v is not None and not (np.isfinite(v) and v >= 0):
-                raise ValueError(f"PointFilter.{name} must be a non-negative number, got {v}")
-        if self.keep_fraction is not None and not 0.0 < self.keep_fraction <= 1.0:
-            raise ValueError(f"PointFilter.keep_fraction must be in (0, 1], got {self.keep_fraction}")
 
 
 def most_confident(confidence: np.ndarray, fraction: float) -> np.ndarray:

@@ -26,10 +26,7 @@ import matplotlib
 
 from .rosbag import load_export
 from .pointcloud import read_ply
-
-#: Entity paths.
-RERUN_CAMERAS: str = "world/cameras"
-RERUN_POINTS: str = "world/points"
+from ..defaults import RERUN_CAMERAS, RERUN_POINTS  # noqa: F401  (defaults the command line shows)
 
 
 def _confidence_colours(conf: np.ndarray) -> np.ndarray:
@@ -102,9 +99,6 @@ def read_rerun_entities(path: str | Path) -> dict[str, list]:
 
 
 # ------------------------------------------------------------------------------- CLI
-def add_arguments(p) -> None:
-    p.add_argument("--export", required=True, type=Path, help="Export folder (from `stochastic-fields export`).")
-    p.add_argument("--out", required=True, type=Path, help="Recording file to write (.rrd).")
 
 
 def run(args) -> None:

@@ -48,6 +48,7 @@ import yaml
 
 from ..io_utils import atomic_path, atomic_write_text
 from .depth_maps import DepthProducts
+from .export_options import MetricScale  # noqa: F401  (re-exported)
 
 #: Millimetres per metre (REP 118 16UC1 depth is in millimetres).
 MM_PER_METRE: float = 1000.0
@@ -59,18 +60,6 @@ PIXEL_CENTRE_CONVENTION: str = (
     "and Open3D PinholeCameraIntrinsic; the project's own K (pixel centres at +0.5) has cx, cy larger by 0.5")
 #: Truncation of the TSDF in voxels (Open3D's examples use 3-5).
 TSDF_TRUNCATION_VOXELS: float = 4.0
-
-
-@dataclass(frozen=True)
-class MetricScale:
-    """Metres per scene unit and where that number came from (written into every file)."""
-
-    metres_per_unit: float
-    source: str
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.metres_per_unit) and self.metres_per_unit > 0):
-            raise ValueError(f"metres per scene unit must be a positive number, got {self.metres_per_unit}")
 
 
 def metres_per_unit_from_known_distance(world_to_camera: np.ndarray, i: int, j: int, metres: float) -> MetricScale:
