@@ -71,6 +71,12 @@ from .sparse_depth import project_sparse_depth
 from .trainer import load_trained_model
 from .view_maps import OPACITY_MASK
 from .defaults import CALIBRATION_FILE, CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS, DEPTH_FREE_SPACE, DEPTH_STD_FLOOR  # noqa: F401  (defaults the command line shows)
+from .cameras import camera_to_world
+from .free_space import TRAINING_DEPTH_FILE
+from .free_space import TRAINING_DEPTH_FILE, load_training_depth
+from .free_space import checked_std, free_space_violation, rendered_points
+from .free_space import render_training_depth, save_training_depth
+from .free_space import violation_map
 
 #: Central level of +-1 standard deviation: Phi(1) - Phi(-1).
 ONE_SIGMA_LEVEL: float = 0.682689492137086
@@ -572,9 +578,6 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     views = [v for v, sd in sparse.items() if len(sd)]  # the order of render_at_points' rays
     index = np.concatenate([sparse[v].point_index for v in views] or [np.zeros(0, np.int64)])
     if free_space is not None and len(std):
-        from .cameras import camera_to_world
-        from .free_space import checked_std, free_space_violation, rendered_points
-
         centres = camera_to_world(cams).double()[:, :3, 3].numpy()[np.concatenate(
             [np.full(len(sparse[v]), v) for v in views])]
         where = rendered_points(centres, capture.xyz[index], r["gt"], np.where(keep, r["depth_mean"], r["gt"]))
@@ -719,8 +722,6 @@ def load_run_calibration(run_dir: str | Path) -> RunCalibration | None:
         return None
     out = RunCalibration.from_dict(read_json(path, "calibration"), where=str(path))
     if out.depth is not None and out.depth.free_space:
-        from .free_space import TRAINING_DEPTH_FILE, load_training_depth
-
         out.training_depth = load_training_depth(run_dir)
         if out.training_depth is None:
             raise ValueError(f"{path}: the depth map checks free space, but {Path(run_dir) / TRAINING_DEPTH_FILE} "
@@ -750,8 +751,6 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
                                         block=cfg.train.holdout_block, seed=seed)
     reference = None
     if free_space:
-        from .free_space import render_training_depth, save_training_depth
-
         reference = render_training_depth(model, dataset, seed=seed, progress=progress)
         save_training_depth(run_dir, reference)  # before the calibration.json that names it
     try:
@@ -799,9 +798,6 @@ def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibrati
         return out
     violation = None
     if calibration.depth is not None and calibration.depth.free_space and "depth_std" in products:
-        from .free_space import violation_map
-        from .view_maps import OPACITY_MASK
-
         if camera is None or calibration.training_depth is None:
             raise ValueError("the depth map checks free space: applying it needs the view's camera and the run's "
                              "training-view depths (load the calibration with load_run_calibration)")
@@ -828,7 +824,5 @@ def run(args) -> None:
     print(f"written: {Path(args.run) / CALIBRATION_FILE} (render, eval and export apply it; raw stds as depth_std_raw "
           "and colour_std_raw)")
     if cal.training_depth is not None:
-        from .free_space import TRAINING_DEPTH_FILE
-
         print(f"written: {Path(args.run) / TRAINING_DEPTH_FILE} (the training views' rendered depths the free-space "
               "check compares with; each view's violation is written as depth_free_space)")

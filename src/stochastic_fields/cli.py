@@ -200,8 +200,8 @@ def _print_summary(result: dict, title: str) -> None:
               f"95% {depth['coverage_95']:.3f}")
     iv = result.get("pooled", {}).get("depth_intervals")
     if iv and math.isfinite(iv.get("coverage_95", math.nan)):
-        from .evaluation import INTERVAL_PLOT
-        from .metrics import INTERVAL_LEVELS, level_name
+        from .evaluation import INTERVAL_PLOT  # deferred: loads only when this command runs (keeps --help fast)
+        from .metrics import INTERVAL_LEVELS, level_name  # deferred: loads only when this command runs (keeps --help fast)
 
         names = [level_name(p) for p in INTERVAL_LEVELS]
         print("  depth intervals " + "/".join(names) + "%: coverage "

@@ -73,6 +73,7 @@ from .constants import DISTRIBUTED_TIMEOUT_S
 from .fields.row_gather import row_gradient
 from .launch import DistributedError, requested_by_environment  # noqa: F401  (re-exported)
 from .models.registry import resolve_device
+from .config import load_config
 
 #: torchrun's environment variables that describe a rank.
 ENV_VARS: tuple[str, ...] = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
@@ -301,8 +302,6 @@ def sharding_from_environment(run_dir, device: str | None, *,
         yield None
         return
     if device is None:
-        from .config import load_config
-
         saved = os.path.join(os.fspath(run_dir), "config.json")
         device = load_config(saved).train.device if os.path.isfile(saved) else "auto"
     with process_group(device, timeout_s=timeout_s) as ctx:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from .config import ExperimentConfig
 from .data import detect_format, load_dataset
+from .io_utils import check_no_symlinks
 
 EMBEDDED_SCENE_DIR = "scene"
 
@@ -20,13 +21,11 @@ def load_run_dataset(cfg: ExperimentConfig, run_dir: Path, *, generate: bool = T
     embedded synthetic scene first if needed."""
     path = scene_path(cfg, run_dir)
     if not cfg.data.path:
-        from .io_utils import check_no_symlinks
-
         check_no_symlinks(run_dir, EMBEDDED_SCENE_DIR)  # the scene is generated into the run folder
     if not cfg.data.path and not (path / "transforms.json").exists():
         if not generate:
             raise FileNotFoundError(f"the embedded scene is missing from {path}")
-        from .data.synthetic import make_synthetic_scene
+        from .data.synthetic import make_synthetic_scene  # heavy optional dependencies (Open3D, trimesh): only to generate the embedded scene
 
         make_synthetic_scene(path)
     if detect_format(path) == "llff":  # LLFF picks images_N; Blender/nerfstudio/COLMAP a downscale factor

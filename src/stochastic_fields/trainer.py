@@ -36,6 +36,7 @@ from .config import load_config
 from .holdout import holdout_masks
 from .metrics import psnr
 from .scenes import load_run_dataset
+from .config import TRAIN_CHECKS
 
 
 #: Options a resumed run may change: how long and how often, where, and render chunking. Any
@@ -459,8 +460,6 @@ def load_trained_model(run_dir: Path, dataset=None, device: str | None = None):
         raise FileNotFoundError(f"run folder {run_dir} has no {CHECKPOINT_NAME}: train it first")
     dev_name = None
     if device is not None:
-        from .config import TRAIN_CHECKS
-
         try:
             dev_name = TRAIN_CHECKS["device"](device)
         except ValueError as exc:

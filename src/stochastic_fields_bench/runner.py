@@ -26,6 +26,7 @@ from stochastic_fields.data import detect_format, load_dataset
 from stochastic_fields.evaluation import evaluate
 from stochastic_fields.trainer import Trainer, load_trained_model
 from tqdm import tqdm
+from stochastic_fields.calibration import calibrate_run, describe, load_run_calibration
 
 from .methods import MethodSpec, METHOD_SPECS, method_config
 from .budget import TABLE_CONVENTIONS, BenchmarkSettings, base_config, select_views
@@ -286,8 +287,6 @@ def run_method(spec: MethodSpec, dataset, scene_path: Path, run_dir: Path, setti
 
     calibration = None
     if spec.calibrate:
-        from stochastic_fields.calibration import calibrate_run, describe, load_run_calibration
-
         calibration = load_run_calibration(run_dir)
         if (stages.get("calibrate", {}).get("fingerprint") != fp_cal
                 or (calibration is not None and not calibration.independent_depth_scores)):  # benchmarks score: refit

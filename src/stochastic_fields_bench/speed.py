@@ -49,6 +49,9 @@ from stochastic_fields.renderer import render_image
 from stochastic_fields.scenes import load_run_dataset
 from stochastic_fields.trainer import Trainer, TrainingRays, load_trained_model
 from stochastic_fields.view_maps import camera_z_maps
+from stochastic_fields.data.synthetic import make_synthetic_scene
+from stochastic_fields.sparse_depth import paired_depth_scores
+import shutil
 
 K_VALUES = (1, 4, 8, 16, 32, 64, 128)
 
@@ -205,8 +208,6 @@ def _view_scores(maps, gt, gt_depth, sparse, stride: int) -> dict:
     if gt_depth is not None:
         out["depth_abs_rel"], out["depth_rmse"] = out["depth/abs_rel"], out["depth/rmse"]
     if sparse is not None:
-        from stochastic_fields.sparse_depth import paired_depth_scores
-
         rows, cols = sparse.rows // stride, sparse.cols // stride
         ok = (rows < gt.shape[0]) & (cols < gt.shape[1])
         rows, cols = rows[ok], cols[ok]
@@ -578,8 +579,6 @@ def run(args: argparse.Namespace) -> None:
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
     for scene in scenes:
         if scene == "synthetic":
-            from stochastic_fields.data.synthetic import make_synthetic_scene
-
             path = work / "scene_synthetic"
             if not (path / "transforms.json").exists():
                 make_synthetic_scene(path)
@@ -598,8 +597,6 @@ def run(args: argparse.Namespace) -> None:
             cfg = _scene_config(scene, backend, budget, path)
             run_dir = work / f"{scene}_{backend}"
             if run_dir.exists():
-                import shutil
-
                 shutil.rmtree(run_dir)
             print(f"  training {backend} ({cfg.train.iterations} steps x {cfg.train.rays_per_batch} rays)")
             res["training"][backend] = train_backend(cfg, run_dir, budget)
@@ -621,8 +618,6 @@ def run(args: argparse.Namespace) -> None:
             res["throughput"][name] = tp
         # deterministic ratio of the MLP backbone on the curve pixels (a full view is too slow on CPU)
         rays, _ = _eval_pixels(dataset, min(budget["eval_pixels"], 2048))
-        from stochastic_fields.renderer import render_image
-
         occ = mlp_model.occupied if mlp_model.occupancy is not None else None
         with torch.no_grad():
             (_, t_det), (_, t_sto) = _timed_pair(

@@ -243,8 +243,6 @@ def _read_depth(path: Path, scale: float) -> np.ndarray:
             raise DatasetError(path, f"unreadable depth array ({type(exc).__name__}: {exc})") from exc
         depth = np.asarray(depth, dtype=np.float32)
     elif path.suffix.lower() == ".png":
-        import imageio.v3 as iio
-
         raw = iio.imread(path)
         if raw.dtype != np.uint16 or raw.ndim != 2:
             raise DatasetError(path, f"depth PNG must be single-channel 16-bit, got {raw.dtype} {raw.shape}")
@@ -530,7 +528,7 @@ def _sparse_points(json_path: Path, meta: dict, cameras, paths: list[Path]):
         ply_path = folder / str(ply)
         if not ply_path.is_file():
             raise DatasetError(ply_path, f"missing point cloud (ply_file_path in {json_path.name})")
-        import trimesh
+        import trimesh  # heavy optional dependency (trimesh, about 1 s to import): only for a scene's point-cloud PLY
 
         try:
             cloud = trimesh.load(ply_path, process=False)

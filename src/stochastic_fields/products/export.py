@@ -53,6 +53,7 @@ from .ros_depth import MetricScale, write_ros_depth
 from ..calibration import load_run_calibration
 from ..trainer import load_trained_model
 from .export_options import DEFAULT_FORMATS, FORMATS, ExportOptions  # noqa: F401  (re-exported)
+from .ros_depth import metres_per_unit_from_known_distance
 
 #: Tolerance on R^T R = I for a user's world_to_camera: poses typed or exported with 5-6
 #: significant digits pass, a scaled or sheared matrix (off by 1e-2 or more) does not.
@@ -329,8 +330,6 @@ def export_run(run_dir: str | Path, opts: ExportOptions, *, distributed=None) ->
     device = opts.device if distributed is None else str(distributed.device)
     cfg, model, dataset = load_trained_model(run_dir, device=device)
     if opts.known_distance is not None:
-        from .ros_depth import metres_per_unit_from_known_distance
-
         i, j, metres = opts.known_distance
         if i != int(i) or j != int(j):
             raise ValueError(f"--known-distance: camera indices must be integers, got {i}, {j}")
