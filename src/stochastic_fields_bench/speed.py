@@ -31,6 +31,7 @@ import os
 import platform
 import resource
 import time
+import traceback
 from dataclasses import replace
 from pathlib import Path
 
@@ -50,7 +51,7 @@ from stochastic_fields.scenes import load_run_dataset
 from stochastic_fields.trainer import Trainer, TrainingRays, load_trained_model
 from stochastic_fields.view_maps import camera_z_maps
 from stochastic_fields.data.synthetic import make_synthetic_scene
-from stochastic_fields.sparse_depth import paired_depth_scores
+from stochastic_fields.sparse_depth import paired_depth_scores, sparse_depth_for_dataset
 import shutil
 
 K_VALUES = (1, 4, 8, 16, 32, 64, 128)
@@ -155,8 +156,6 @@ def _train_child(cfg_dict: dict, run_dir: str, budget: dict, queue) -> None:
                    "model_size_mb": params / 2**20, "model_buffers_mb": buffers / 2**20,
                    "steps_per_s": trainer.step / max(trainer.elapsed, 1e-9)})
     except Exception as exc:  # report the failure to the parent instead of hanging it
-        import traceback
-
         queue.put({"error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()})
 
 
@@ -232,8 +231,6 @@ def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> 
     sparse = None
     if gt_depth is None:
         try:
-            from stochastic_fields.sparse_depth import sparse_depth_for_dataset
-
             sparse = sparse_depth_for_dataset(dataset, [view])[view]
         except (ImportError, FileNotFoundError, ValueError) as exc:
             print(f"  (no sparse depth for view {view}: {exc})")
