@@ -57,26 +57,19 @@ from scipy.special import ndtri
 from scipy.spatial.transform import Rotation, Slerp
 from scipy.stats import spearmanr
 from . import metrics as M
-from .cameras import camera_centres, intrinsics_3x3, make_cameras
-from .capture_points import CALIBRATE, SCORE, load_capture_points
-from .capture_points import SCORE, block_keys, load_capture_points
-from .capture_points import rays_through_points
+from .cameras import camera_centres, camera_to_world, intrinsics_3x3, make_cameras
+from .capture_points import CALIBRATE, SCORE, block_keys, load_capture_points, rays_through_points
 from .config import load_config
 from .constants import DEPTH_NLL_VARIANCE_FLOOR
 from .holdout import holdout_masks
-from .io_utils import atomic_write_text
-from .io_utils import read_json
-from .sparse_depth import COVERAGE_LEVELS
-from .sparse_depth import project_sparse_depth
+from .io_utils import atomic_write_text, read_json
+from .sparse_depth import COVERAGE_LEVELS, project_sparse_depth
 from .trainer import load_trained_model
 from .view_maps import OPACITY_MASK
-from .defaults import CALIBRATION_FILE, CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS, DEPTH_FREE_SPACE, DEPTH_STD_FLOOR  # noqa: F401  (defaults the command line shows)
-from .cameras import camera_to_world
-from .free_space import TRAINING_DEPTH_FILE
-from .free_space import TRAINING_DEPTH_FILE, load_training_depth
-from .free_space import checked_std, free_space_violation, rendered_points
-from .free_space import render_training_depth, save_training_depth
-from .free_space import violation_map
+from .defaults import (CALIBRATION_FILE, CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS,
+                       DEPTH_FREE_SPACE, DEPTH_STD_FLOOR)  # noqa: F401  (defaults the command line shows)
+from .free_space import (TRAINING_DEPTH_FILE, checked_std, free_space_violation, load_training_depth,
+                         render_training_depth, rendered_points, save_training_depth, violation_map)
 
 #: Central level of +-1 standard deviation: Phi(1) - Phi(-1).
 ONE_SIGMA_LEVEL: float = 0.682689492137086

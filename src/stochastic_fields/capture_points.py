@@ -28,18 +28,14 @@ CALIBRATE blocks' fitted the recalibration.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
 import torch
-from dataclasses import replace
-from .cameras import camera_to_world, intrinsics_3x3
-from .cameras import generate_rays_at
-from .cameras import in_image, project_points, select_cameras
+from .cameras import camera_to_world, generate_rays_at, in_image, intrinsics_3x3, project_points, select_cameras
 from .data.colmap import read_points3d_binary
-from .sparse_depth import points_file, track_visibility
-from .sparse_depth import project_sparse_depth, sparse_depth_for_dataset
+from .sparse_depth import points_file, project_sparse_depth, sparse_depth_for_dataset, track_visibility
 
 #: Roles of a capture point.
 FIT, CALIBRATE, SCORE = 0, 1, 2

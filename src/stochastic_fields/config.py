@@ -19,8 +19,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from . import validation as V
-from .io_utils import atomic_write_text
-from .io_utils import read_json
+from .io_utils import atomic_write_text, read_json
 from .settings import LOSS_CHECKS, RENDER_CHECKS, LossConfig, RenderSettings
 
 

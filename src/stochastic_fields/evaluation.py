@@ -31,17 +31,15 @@ import torch
 import imageio.v3 as iio
 
 from . import metrics as M
-from .calibration import apply_calibration
+from .calibration import apply_calibration, cross_fitted_depth_quantiles, cross_fitted_depth_scores
 from .distributed import map_sharded
 from .io_utils import atomic_path, atomic_write_text
 from .renderer import RenderOptions, seeded_chunks
-from .sparse_depth import paired_depth_scores
+from .sparse_depth import paired_depth_scores, sparse_depth_conventions
 from .view_maps import OPACITY_MASK, camera_z_maps, draws_summary, view_camera_arrays
 from .visualize import colourise, to_uint8_rgb
 from .capture_points import block_keys, dense_depth_block_keys, dense_depth_score_mask, load_capture_points
-from .calibration import cross_fitted_depth_quantiles, cross_fitted_depth_scores
 from .plots import plot_interval_reliability
-from .sparse_depth import sparse_depth_conventions
 
 #: The per-view depth scores kept under ``depth/`` (and ``depth_raw/``) in metrics.json.
 DEPTH_SCORE_KEYS: tuple[str, ...] = ("abs_rel", "rmse", "nll", "ause_rmse", "ause_rmse_normalised", "pearson",

@@ -34,8 +34,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .view_maps import OPACITY_MASK
-from .cameras import intrinsics_3x3
-from .cameras import invert_rigid
+from .cameras import intrinsics_3x3, invert_rigid
 from .capture_points import backproject_pixels
 from .io_utils import atomic_write
 from .models.snerf import UNIT_CUBE

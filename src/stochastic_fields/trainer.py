@@ -19,9 +19,10 @@ from pathlib import Path
 import torch
 from tqdm.auto import tqdm
 
-from .cameras import generate_rays
+from .cameras import generate_rays, generate_rays_for_view, select_cameras
 from .checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
-from .config import ExperimentConfig, flatten, save_config, saved_config, set_dotted, to_dict, validate_experiment
+from .config import (TRAIN_CHECKS, ExperimentConfig, flatten, load_config, save_config, saved_config,
+                     set_dotted, to_dict, validate_experiment)
 from .distributed import DistContext, GradientReducer, rank_seeds, shard_size
 from .io_utils import atomic_write_text, open_append_no_follow, remove_stale_temporaries
 from .fields.grid import GridField, coarse_to_fine_weights
@@ -29,14 +30,10 @@ from .models.base import RadianceModel
 from .models.registry import build_model, resolve_device
 from .optim import FieldOptimizer
 from .rays import RayBundle
-from .cameras import generate_rays_for_view
-from .cameras import select_cameras
 from .capture_points import FIT, load_capture_points, rays_through_points, sparse_depth_for_role
-from .config import load_config
 from .holdout import holdout_masks
 from .metrics import psnr
 from .scenes import load_run_dataset
-from .config import TRAIN_CHECKS
 
 
 #: Options a resumed run may change: how long and how often, where, and render chunking. Any

@@ -14,9 +14,8 @@ from stochastic_fields import metrics as M
 from stochastic_fields.evaluation import INTERVAL_KEYS
 from stochastic_fields.plots import plot_calibration, plot_sparsification
 
-from .budget import BenchmarkSettings
+from .budget import TABLE_CONVENTIONS, BenchmarkSettings
 from .methods import DEFAULT_METHODS, METHOD_SPECS, PAPER_TABLE1, PAPER_TABLE2, PAPER_TABLE3, TABLE1_METHODS, TABLE3_METHODS
-from .budget import TABLE_CONVENTIONS
 
 
 def _unpack(data, prefix: str, cls):

@@ -14,19 +14,17 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from stochastic_fields.calibration import CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS
+from stochastic_fields.calibration import (CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS, calibrate_run, describe,
+                                           load_run_calibration)
 from stochastic_fields.config import (LEGACY_VALUES, ExperimentConfig, flatten, save_config, saved_config,
                                      set_dotted, to_dict)
 from stochastic_fields.io_utils import atomic_write_text
-from stochastic_fields.evaluation import synchronize
-from stochastic_fields.trainer import RESUMABLE_OPTIONS
+from stochastic_fields.evaluation import evaluate, synchronize
+from stochastic_fields.trainer import RESUMABLE_OPTIONS, load_trained_model, Trainer
 from stochastic_fields.view_maps import draws_summary
 from stochastic_fields.capture_points import score_sparse_depth
 from stochastic_fields.data import detect_format, load_dataset
-from stochastic_fields.evaluation import evaluate
-from stochastic_fields.trainer import Trainer, load_trained_model
 from tqdm import tqdm
-from stochastic_fields.calibration import calibrate_run, describe, load_run_calibration
 
 from .methods import MethodSpec, METHOD_SPECS, method_config
 from .budget import TABLE_CONVENTIONS, BenchmarkSettings, base_config, select_views

@@ -64,7 +64,8 @@ from .dataset import IMAGE_SUFFIXES, read_image
 from .errors import DatasetError
 from ..cameras import opencv_w2c_to_opengl_c2w
 from .blender import _area_downscale
-from ..defaults import CAMERA_MODELS, DEFAULT_MAX_FRAMES, DEFAULT_MIN_REGISTERED_FRACTION, DEFAULT_VIDEO_FPS, MAPPING_STRATEGIES, RELAXED_INIT_MIN_TRI_ANGLE_DEG  # noqa: F401  (defaults the command line shows)
+from ..defaults import (CAMERA_MODELS, DEFAULT_MAX_FRAMES, DEFAULT_MIN_REGISTERED_FRACTION, DEFAULT_VIDEO_FPS,
+                        MAPPING_STRATEGIES, RELAXED_INIT_MIN_TRI_ANGLE_DEG)  # noqa: F401  (defaults the command line shows)
 
 #: Video files ``prepare`` splits into frames (decoded with imageio's PyAV plugin).
 VIDEO_SUFFIXES: tuple[str, ...] = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")

@@ -42,11 +42,10 @@ from torch import Tensor, nn
 import torch.nn.functional as F
 
 from ..constants import NOISE_HEAD_INIT_STD, OUTSIDE_DENSITY_LOC
-from ..scene_region import SceneRegion
+from ..scene_region import frustum_points, SceneRegion
 from .base import FieldParams, StochasticField, inverse_positive_scale, inverse_softplus, positive_scale
 from .encoding import PositionalEncoding
 from .row_gather import gather_rows
-from ..scene_region import frustum_points
 
 
 def coarse_to_fine_weights(num_levels: int, progress: float, fraction: float) -> list[float]:

@@ -54,7 +54,7 @@ from typing import Callable, Iterator
 import torch
 from torch import Tensor, nn
 
-from ..constants import NERFW_BETA_MIN
+from ..constants import FIELD_STD_FLOOR, NERFW_BETA_MIN
 from ..fields.base import FieldParams, StochasticField
 from ..fields.grid import GridField
 from ..losses import LossConfig, gaussian_likelihood_nll
@@ -63,7 +63,6 @@ from ..renderer import ChunkGenerators, ChunkRender, RenderOptions, RenderSettin
 from ..volume_rendering import TrajectoryStatistics, accumulate, statistics_from_draws
 from .base import RadianceModel
 from .field_builder import build_field
-from ..constants import FIELD_STD_FLOOR
 
 #: Dropout rate of ``mc_dropout`` when ``field.dropout`` is 0 (the common MC-Dropout choice).
 DEFAULT_DROPOUT_RATE: float = 0.2

@@ -49,11 +49,10 @@ from .fusion import check_voxel_size, fuse_clouds
 from .pointcloud import (CloudArrays, PointFilter, cloud_from_products, filter_cloud, most_confident,
                          uncertainty_range, write_ply)
 from .render_cloud import render_cloud_png
-from .ros_depth import MetricScale, write_ros_depth
+from .ros_depth import metres_per_unit_from_known_distance, MetricScale, write_ros_depth
 from ..calibration import load_run_calibration
 from ..trainer import load_trained_model
 from .export_options import DEFAULT_FORMATS, FORMATS, ExportOptions  # noqa: F401  (re-exported)
-from .ros_depth import metres_per_unit_from_known_distance
 
 #: Tolerance on R^T R = I for a user's world_to_camera: poses typed or exported with 5-6
 #: significant digits pass, a scaled or sheared matrix (off by 1e-2 or more) does not.

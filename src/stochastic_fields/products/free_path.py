@@ -30,7 +30,7 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor
-from ..defaults import FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL  # noqa: F401  (defaults the command line shows)
+from ..defaults import (FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL)  # noqa: F401  (defaults the command line shows)
 
 #: Points per chunk (segments x samples) of field evaluations.
 FREE_PATH_CHUNK_POINTS: int = 262_144

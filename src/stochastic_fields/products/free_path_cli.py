@@ -15,10 +15,9 @@ from pathlib import Path
 
 import torch
 
-from ..io_utils import read_json
+from ..io_utils import atomic_write_text, read_json
 from .free_path import FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, path_free_probability, segment_free_probability
 from ..cameras import image_size, intrinsics_3x3
-from ..io_utils import atomic_write_text
 from ..trainer import load_trained_model
 from .occupancy_map import footprint_voxel_size
 

@@ -48,12 +48,11 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from ..io_utils import atomic_path
+from ..io_utils import atomic_path, atomic_write_text
 from ..cameras import image_size, intrinsics_3x3
-from ..io_utils import atomic_write_text
 from ..scene_region import frustum_points
 from ..trainer import load_trained_model
-from ..defaults import BLOCKED_OPACITY, OCCUPANCY_MAX_CELLS, OCCUPANCY_PIXELS_PER_VOXEL  # noqa: F401  (defaults the command line shows)
+from ..defaults import (BLOCKED_OPACITY, OCCUPANCY_MAX_CELLS, OCCUPANCY_PIXELS_PER_VOXEL)  # noqa: F401  (defaults the command line shows)
 
 #: Voxels with a lower probability are not listed (they are free).
 OCCUPANCY_MIN_PROBABILITY: float = 1e-3
