@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import argparse
 
-from stochastic_fields import bench
+from stochastic_fields_bench import bench_command, speed
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=bench.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    bench.add_arguments(parser)
-    bench.run(parser.parse_args())
+    parser = argparse.ArgumentParser(description=speed.__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    bench_command.add_arguments(parser)
+    bench_command.run(parser.parse_args())
 
 
 if __name__ == "__main__":

@@ -104,16 +104,26 @@ def test_presets_are_data_and_listed_in_help(capsys):
 
 
 def test_a_command_imports_only_its_own_module():
-    """`train` does not pay for export's trimesh/Open3D or prepare's pycolmap imports; `export` does load its own."""
+    """Building any command's parser (what --help does) loads neither torch nor a command's
+    implementation (export's trimesh/Open3D, prepare's pycolmap): each loads when its command runs."""
     import subprocess
     import sys
 
+    from stochastic_fields.cli import EXTRA_COMMANDS
+
+    heavy = ("torch", "stochastic_fields.products.export", "stochastic_fields.data.prepare",
+             "stochastic_fields.calibration", "stochastic_fields.products.rosbag", "stochastic_fields.products.rerun_log")
     code = ("import sys; from stochastic_fields.cli import build_parser; build_parser({!r}); "
-            "print(' '.join(m for m in ('stochastic_fields.products.export', 'stochastic_fields.data.prepare') "
-            "if m in sys.modules))")
+            f"print(' '.join(m for m in {heavy!r} if m in sys.modules))")
+    commands = ("train", "eval", "render", "demo", *EXTRA_COMMANDS, "bench")
     loaded = {cmd: subprocess.run([sys.executable, "-c", code.format(cmd)], capture_output=True, text=True,
-                                  check=True).stdout.split() for cmd in ("train", "export")}
-    assert loaded == {"train": [], "export": ["stochastic_fields.products.export"]}
+                                  check=True).stdout.split() for cmd in commands}
+    assert loaded == {cmd: [] for cmd in commands}
+    # and each --help answers with its usage
+    for cmd in commands:
+        out = subprocess.run([sys.executable, "-m", "stochastic_fields.cli", cmd, "--help"], capture_output=True,
+                             text=True, check=True).stdout
+        assert out.startswith(f"usage: stochastic-fields {cmd}"), (cmd, out[:80])
 
 
 @pytest.mark.parametrize("command", ["render", "eval", "export"])

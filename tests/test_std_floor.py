@@ -146,7 +146,8 @@ def test_fit_depth_calibration_finds_an_error_the_std_leaves_out(tmp_path):
 def test_calibrate_command_takes_the_floor_switch():
     import argparse
 
-    from stochastic_fields.calibration import DEPTH_STD_FLOOR, add_arguments
+    from stochastic_fields.calibration import DEPTH_STD_FLOOR
+    from stochastic_fields.commands.calibrate import add_arguments
 
     p = argparse.ArgumentParser()
     add_arguments(p)

@@ -54,6 +54,22 @@ from typing import Any
 import numpy as np
 import torch
 from scipy.special import ndtri
+from scipy.spatial.transform import Rotation, Slerp
+from scipy.stats import spearmanr
+from . import metrics as M
+from .cameras import camera_centres, camera_to_world, intrinsics_3x3, make_cameras
+from .capture_points import CALIBRATE, SCORE, block_keys, load_capture_points, rays_through_points
+from .config import load_config
+from .constants import DEPTH_NLL_VARIANCE_FLOOR
+from .holdout import holdout_masks
+from .io_utils import atomic_write_text, read_json
+from .sparse_depth import COVERAGE_LEVELS, project_sparse_depth
+from .trainer import load_trained_model
+from .view_maps import OPACITY_MASK
+from .defaults import (CALIBRATION_FILE, CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS,
+                       DEPTH_FREE_SPACE, DEPTH_STD_FLOOR)  # noqa: F401  (defaults the command line shows)
+from .free_space import (TRAINING_DEPTH_FILE, checked_std, free_space_violation, load_training_depth,
+                         render_training_depth, rendered_points, save_training_depth, violation_map)
 
 #: Central level of +-1 standard deviation: Phi(1) - Phi(-1).
 ONE_SIGMA_LEVEL: float = 0.682689492137086
@@ -63,25 +79,8 @@ CALIBRATION_LEVELS: np.ndarray = np.round(np.arange(1, 100) / 100.0, 2)
 MIN_CALIBRATION_SAMPLES: int = 50
 #: Smallest scale a fitted map may hold (a map of zeros would claim certainty).
 MIN_CALIBRATION_SCALE: float = 1e-3
-#: File of a run's calibration.
-CALIBRATION_FILE = "calibration.json"
-#: Which capture points a depth map may be fitted on (``--points``): "held-out", every point the
-#: training did not fit (CALIBRATE and SCORE: three times the blocks, so the map sees most of the
-#: scene's surfaces; the default, docs/uncertainty.md, studies 18 and 18b), scored independently by
-#: its cross-fitted fold maps (``DepthFolds``); or "calibrate", the CALIBRATE role only (the SCORE
-#: points then score the map itself; the protocol of studies 1 to 18).
-CALIBRATION_POINTS: tuple[str, ...] = ("held-out", "calibrate")
-DEFAULT_CALIBRATION_POINTS: str = "held-out"
-#: Folds the SCORE blocks are dealt into when a map is fitted on them too (``DepthFolds``), and the
-#: seed of the deal (study 18's diagnostic: 5 folds, seed 0).
-CROSS_FIT_FOLDS: int = 5
+#: Seed of the deal of the SCORE blocks into folds (``DepthFolds``; study 18's diagnostic: seed 0).
 CROSS_FIT_SEED: int = 0
-#: Whether depth maps fit a std floor (``fit_std_floor``); docs/uncertainty.md, study 11.
-DEPTH_STD_FLOOR: bool = False
-#: Whether depth maps are fitted on the free-space-checked std sqrt(sigma^2 + e^2) (``free_space``;
-#: docs/uncertainty.md, study 13: it ranks depth errors better on every scene, but its map transfers
-#: badly on fern, so it is an option).
-DEPTH_FREE_SPACE: bool = False
 #: Relative precision of the fitted std floor (bisection in log tau stops there).
 STD_FLOOR_RTOL: float = 1e-4
 #: A floor is fitted only when the standardised errors fall with sigma at this one-sided significance
@@ -285,10 +284,6 @@ def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, raw_std: np.ndar
     ``coverage_levels`` [L], default ``sparse_depth.COVERAGE_LEVELS``: +-1 and +-2 std; the first two
     are "coverage_68" and "coverage_95"), "auce", "calibration": ``metrics.CalibrationResult`` at the
     default levels}. ValueError when a depth lies in no fold."""
-    from . import metrics as M
-    from .constants import DEPTH_NLL_VARIANCE_FLOOR
-    from .sparse_depth import COVERAGE_LEVELS
-
     gt, pred, raw_std = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (gt, pred, raw_std))
     violation = None if violation is None else np.asarray(violation, dtype=np.float64).reshape(-1)
     fold = np.asarray(fold, dtype=np.int64).reshape(-1)
@@ -323,8 +318,6 @@ def cross_fitted_depth_quantiles(pred: np.ndarray, raw_std: np.ndarray, fold: np
     std of raw_std_i, map_f's interval scale): the distribution whose intervals
     ``cross_fitted_depth_scores`` counts, for the width, interval score and CRPS
     (``metrics.interval_sharpness``). ValueError when a depth lies in no fold."""
-    from . import metrics as M
-
     pred, raw_std = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (pred, raw_std))
     fold = np.asarray(fold, dtype=np.int64).reshape(-1)
     if (fold < 0).any() or (fold >= len(folds.maps)).any():
@@ -358,8 +351,6 @@ def fit_std_floor(abs_err: np.ndarray, std: np.ndarray) -> float:
     times the largest std when even the second is < 0 (the std does not rank the errors at all: the
     map is then ~one constant std); otherwise the root, by bisection in log tau to ``STD_FLOOR_RTOL``.
     Constant stds or errors (Spearman undefined) give 0."""
-    from scipy.stats import spearmanr
-
     abs_err, std = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (abs_err, std))
     if abs_err.shape != std.shape or abs_err.size < 3:
         raise ValueError(f"fit_std_floor: needs >= 3 paired errors and stds, got {abs_err.size} and {std.size}")
@@ -442,8 +433,6 @@ def render_at_points(model, cameras, near, far, sparse: dict, *,
     """Render the rays through the pixels of {view: SparseDepth} (continuous uv) of ``cameras``
     (bounds ``near``/``far``: floats or [V]) with the render ``options`` (default: the model's):
     camera-z depth mean, total std and opacity [N], with the points' depths [N] as "gt" (float64)."""
-    from .capture_points import rays_through_points
-
     found = rays_through_points(cameras, near, far, sparse)
     if found is None:
         return {k: np.zeros(0) for k in ("gt", "depth_mean", "depth_std", "opacity")}
@@ -482,10 +471,6 @@ def calibration_views(dataset, *, neighbours: int = CALIBRATION_NEIGHBOURS,
     viewpoints among the training ones, like the test views a user renders, made without any test
     view. Returns (cameras [P], near [P], far [P], the (i, j) view pair of
     each camera), the pairs (i < j) sorted and each pair's fractions in the given order."""
-    from scipy.spatial.transform import Rotation, Slerp
-
-    from .cameras import camera_centres, intrinsics_3x3, make_cameras
-
     train = list(dataset.train_indices)
     if len(train) < 2:
         raise ValueError(f"{dataset.root}: calibration views need at least 2 training views, got {len(train)}")
@@ -565,10 +550,6 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     checked ones, sqrt(sigma^2 + e^2) with e the rendered point's free-space violation
     (``free_space.checked_std``).
     ValueError when the scene has no capture points, or for an unknown ``points``."""
-    from .capture_points import CALIBRATE, SCORE, load_capture_points
-    from .sparse_depth import project_sparse_depth
-    from .view_maps import OPACITY_MASK
-
     if points not in CALIBRATION_POINTS:
         raise ValueError(f"calibration points must be one of {CALIBRATION_POINTS}, got {points!r}")
     mask = OPACITY_MASK if opacity_mask is None else opacity_mask
@@ -590,9 +571,6 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     views = [v for v, sd in sparse.items() if len(sd)]  # the order of render_at_points' rays
     index = np.concatenate([sparse[v].point_index for v in views] or [np.zeros(0, np.int64)])
     if free_space is not None and len(std):
-        from .cameras import camera_to_world
-        from .free_space import checked_std, free_space_violation, rendered_points
-
         centres = camera_to_world(cams).double()[:, :3, 3].numpy()[np.concatenate(
             [np.full(len(sparse[v]), v) for v in views])]
         where = rendered_points(centres, capture.xyz[index], r["gt"], np.where(keep, r["depth_mean"], r["gt"]))
@@ -630,8 +608,6 @@ def fit_depth_calibration_and_folds(model, dataset, *, seed: int = 0, points: st
     (``points="held-out"``), its cross-fitted ``DepthFolds`` from the same renders; None otherwise,
     or with a warning when the scene has too few SCORE blocks or points to fit them. ValueError as
     ``fit_depth_calibration``."""
-    from .capture_points import SCORE, block_keys, load_capture_points
-
     r = depth_calibration_renders(model, dataset, seed=seed, points=points, options=options, free_space=free_space)
     out = _fit_depth_map(r, floor=floor, free_space=free_space is not None)
     if points == "calibrate":
@@ -655,8 +631,6 @@ def fit_colour_calibration(model, dataset, *, fraction: float, block: int, seed:
     (``holdout.holdout_mask`` with the run's ``fraction`` and ``block``), rendered from their own
     cameras: |z| = |c - c*| / sigma_c over every channel value with a positive std.
     ValueError when nothing was held out (``fraction`` 0) or too few values remain."""
-    from .holdout import holdout_masks
-
     if fraction <= 0:
         raise ValueError("colour calibration needs pixels held out from training (train.holdout_fraction > 0)")
     views = list(dataset.train_indices)
@@ -729,8 +703,6 @@ class RunCalibration:
 
 
 def save_run_calibration(run_dir: str | Path, calibration: RunCalibration) -> Path:
-    from .io_utils import atomic_write_text
-
     path = Path(run_dir) / CALIBRATION_FILE
     atomic_write_text(path, json.dumps(calibration.to_dict(), indent=2))
     return path
@@ -738,15 +710,11 @@ def save_run_calibration(run_dir: str | Path, calibration: RunCalibration) -> Pa
 
 def load_run_calibration(run_dir: str | Path) -> RunCalibration | None:
     """The run's calibration.json, or None when it has none. ValueError (naming the file) if malformed."""
-    from .io_utils import read_json
-
     path = Path(run_dir) / CALIBRATION_FILE
     if not path.is_file():
         return None
     out = RunCalibration.from_dict(read_json(path, "calibration"), where=str(path))
     if out.depth is not None and out.depth.free_space:
-        from .free_space import TRAINING_DEPTH_FILE, load_training_depth
-
         out.training_depth = load_training_depth(run_dir)
         if out.training_depth is None:
             raise ValueError(f"{path}: the depth map checks free space, but {Path(run_dir) / TRAINING_DEPTH_FILE} "
@@ -766,9 +734,6 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
     ``free_space.TRAINING_DEPTH_FILE``; ``progress``: a bar over them). ValueError
     (the depth fit's reason) when neither can be fitted; a depth fit that fails beside a colour one
     leaves depth raw."""
-    from .config import load_config
-    from .trainer import load_trained_model
-
     if model is None:
         cfg, model, dataset = load_trained_model(Path(run_dir), dataset=dataset, device=device)
     else:
@@ -779,8 +744,6 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
                                         block=cfg.train.holdout_block, seed=seed)
     reference = None
     if free_space:
-        from .free_space import render_training_depth, save_training_depth
-
         reference = render_training_depth(model, dataset, seed=seed, progress=progress)
         save_training_depth(run_dir, reference)  # before the calibration.json that names it
     try:
@@ -828,9 +791,6 @@ def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibrati
         return out
     violation = None
     if calibration.depth is not None and calibration.depth.free_space and "depth_std" in products:
-        from .free_space import violation_map
-        from .view_maps import OPACITY_MASK
-
         if camera is None or calibration.training_depth is None:
             raise ValueError("the depth map checks free space: applying it needs the view's camera and the run's "
                              "training-view depths (load the calibration with load_run_calibration)")
@@ -850,26 +810,6 @@ def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibrati
 # --------------------------------------------------------------------------------------------
 
 
-def add_arguments(p) -> None:
-    p.add_argument("--run", required=True, help="Trained run folder.")
-    p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
-    p.add_argument("--seed", type=int, default=0, help="Seed of the K draws of the calibration renders.")
-    p.add_argument("--points", choices=CALIBRATION_POINTS, default=DEFAULT_CALIBRATION_POINTS,
-                   help="Capture points to fit on: 'held-out' (default) fits every point the training did not "
-                        "fit, so the map sees most of the scene's surfaces, and stores its cross-fitted fold "
-                        f"maps ({CROSS_FIT_FOLDS} folds of the SCORE blocks) that eval scores its intervals with; "
-                        "'calibrate' fits the CALIBRATE points only (docs/uncertainty.md, studies 18 and 18b).")
-    p.add_argument("--std-floor", action=argparse.BooleanOptionalAction, default=DEPTH_STD_FLOOR,
-                   help="Fit a depth std floor tau first, so that depth_std = s * sqrt(raw^2 + tau^2) "
-                        f"(docs/uncertainty.md, study 11; default: {'on' if DEPTH_STD_FLOOR else 'off'}).")
-    p.add_argument("--free-space", action=argparse.BooleanOptionalAction, default=DEPTH_FREE_SPACE,
-                   help="Check each rendered depth against the training views' free space: depth_std = "
-                        "s * sqrt(raw^2 + e^2), e how far the point lies in front of a training view's rendered "
-                        "surface, also written as depth_free_space (renders the training views once into "
-                        "RUN/training_depth.npz; docs/uncertainty.md, study 13: ranks depth errors better on every "
-                        f"scene, intervals transfer worse on fern; default: {'on' if DEPTH_FREE_SPACE else 'off'}).")
-
-
 def run(args) -> None:
     cal = calibrate_run(Path(args.run), device=args.device, seed=args.seed, points=args.points,
                         floor=args.std_floor, free_space=args.free_space)
@@ -877,7 +817,5 @@ def run(args) -> None:
     print(f"written: {Path(args.run) / CALIBRATION_FILE} (render, eval and export apply it; raw stds as depth_std_raw "
           "and colour_std_raw)")
     if cal.training_depth is not None:
-        from .free_space import TRAINING_DEPTH_FILE
-
         print(f"written: {Path(args.run) / TRAINING_DEPTH_FILE} (the training views' rendered depths the free-space "
               "check compares with; each view's violation is written as depth_free_space)")

@@ -28,11 +28,14 @@ CALIBRATE blocks' fitted the recalibration.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
 import torch
+from .cameras import camera_to_world, generate_rays_at, in_image, intrinsics_3x3, project_points, select_cameras
+from .data.colmap import read_points3d_binary
+from .sparse_depth import points_file, project_sparse_depth, sparse_depth_for_dataset, track_visibility
 
 #: Roles of a capture point.
 FIT, CALIBRATE, SCORE = 0, 1, 2
@@ -86,8 +89,6 @@ def block_roles(xyz: np.ndarray, capture: "CapturePoints") -> np.ndarray:
 def _dense_surface_points(dataset, view: int) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
     """The pixels of ``view``'s exact depth map with a surface (depth > 0): rows [N], cols [N] and
     their back-projected world points [N, 3] (float64)."""
-    from .cameras import camera_to_world, intrinsics_3x3
-
     depth = dataset.depths[view].double()
     rows, cols = torch.nonzero(depth > 0, as_tuple=True)
     xyz = backproject_pixels(intrinsics_3x3(dataset.cameras)[view], camera_to_world(dataset.cameras)[view],
@@ -189,8 +190,6 @@ def depth_map_observes(dataset, xyz: np.ndarray | torch.Tensor, view: int, *,
     A point is observed when it projects inside the image in front of the camera and the view's
     depth map at its pixel is within ``rtol`` (relative) of the point's camera depth: the pixel's
     surface is the point's, not an occluder (the track of a stand-in point)."""
-    from .cameras import in_image, project_points, select_cameras
-
     points = torch.as_tensor(np.asarray(xyz), dtype=torch.float64)
     cam = select_cameras(dataset.cameras, [int(view)])
     cam64 = type(cam)(cam.intrinsics.double(), cam.extrinsics.double(), cam.height.double(), cam.width.double())
@@ -208,8 +207,6 @@ def synthetic_capture_points(dataset, *, fraction: float = SYNTHETIC_POINTS_FRAC
     surface pixels, back-projected at the pixel centre. Returns (xyz [P, 3], per-view visible point
     indices): as a COLMAP track, a training view observes a point when ``depth_map_observes`` says
     so (test views observe none)."""
-    from .cameras import camera_to_world, intrinsics_3x3
-
     if dataset.depths is None:
         raise ValueError(f"{dataset.root}: no dense depth to take stand-in capture points from")
     rng = np.random.default_rng(seed)
@@ -256,9 +253,6 @@ def load_capture_points(dataset) -> CapturePoints | None:
     scene); ``<root>/sparse/0/points3D.bin`` (LLFF, tracks matched by image id = view + 1);
     the loader's points without tracks (z-buffer); stand-in points of a dense-depth scene.
     Roles from ``split_points_by_blocks``."""
-    from .data.colmap import read_points3d_binary
-    from .sparse_depth import points_file, track_visibility
-
     own = getattr(dataset, "points3d", None)
     own_visible = getattr(dataset, "points3d_visible", None)
     if own is not None and own_visible is not None and len(own):
@@ -288,8 +282,6 @@ def sparse_depth_for_role(dataset, points: CapturePoints, views: Sequence[int], 
     COLMAP points use their tracks when the image-id match checks out for these views
     (``sparse_depth.sparse_depth_for_dataset``), stand-in points the view they came from;
     otherwise a z-buffer."""
-    from .sparse_depth import project_sparse_depth, sparse_depth_for_dataset
-
     views = [int(v) for v in views]
     if points.colmap is not None:
         full = sparse_depth_for_dataset(dataset, views, points=points.colmap)
@@ -311,8 +303,6 @@ def score_sparse_depth(dataset, views: Sequence[int]) -> dict | None:
 
 def restrict_sparse_depth(sd, keep: np.ndarray):
     """A SparseDepth with only the entries where ``keep`` [M] is True."""
-    from dataclasses import replace
-
     keep = np.asarray(keep, dtype=bool)
     return replace(sd, rows=sd.rows[keep], cols=sd.cols[keep], uv=sd.uv[keep], depth=sd.depth[keep],
                    point_index=sd.point_index[keep])
@@ -322,8 +312,6 @@ def rays_through_points(cameras, near, far, sparse: dict):
     """Rays through the pixels (continuous uv) of {view: SparseDepth} of ``cameras`` (bounds
     ``near``/``far``: floats or [V]) and the points' camera-z depths: (RayBundle [N], [N] float64).
     None when no view holds a point."""
-    from .cameras import generate_rays_at
-
     views = [v for v, sd in sparse.items() if len(sd)]
     if not views:
         return None

@@ -16,8 +16,8 @@ from pathlib import Path
 
 from . import config as C
 from .constants import DISTRIBUTED_TIMEOUT_S
-from .distributed import DistributedError, requested_by_environment, sharding_from_environment
-from .renderer import COLOUR_ESTIMATORS
+from .launch import DistributedError, requested_by_environment
+from .settings import COLOUR_ESTIMATORS
 
 
 def _add_experiment_options(p: argparse.ArgumentParser) -> None:
@@ -47,7 +47,7 @@ def experiment_from_args(args: argparse.Namespace, run_dir: Path) -> C.Experimen
 
 
 def _parse_views(spec: str | None, dataset) -> list[int]:
-    from .data.dataset import parse_views
+    from .data.dataset import parse_views  # deferred: loads only when this command runs (keeps --help fast)
 
     return parse_views(spec, dataset.num_views, dataset.train_indices, dataset.test_indices)
 
@@ -76,12 +76,12 @@ def add_dist_timeout_argument(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_train(args: argparse.Namespace) -> None:
-    from .models.registry import resolve_device
-    from .scenes import describe_split, load_run_dataset
-    from .trainer import Trainer
+    from .models.registry import resolve_device  # deferred: loads only when this command runs (keeps --help fast)
+    from .scenes import describe_split, load_run_dataset  # deferred: loads only when this command runs (keeps --help fast)
+    from .trainer import Trainer  # deferred: loads only when this command runs (keeps --help fast)
 
-    from .io_utils import check_output_folder
-    from .trainer import check_resume
+    from .io_utils import check_output_folder  # deferred: loads only when this command runs (keeps --help fast)
+    from .trainer import check_resume  # deferred: loads only when this command runs (keeps --help fast)
 
     run_dir = check_output_folder(args.out, "--out")
     cfg = experiment_from_args(args, run_dir)
@@ -100,9 +100,9 @@ def cmd_train(args: argparse.Namespace) -> None:
 def _train_distributed(args: argparse.Namespace, run_dir: Path, cfg: C.ExperimentConfig) -> None:
     """``train`` as one rank of a data-parallel run (torchrun's environment; see
     stochastic_fields.distributed). Rank 0 writes the run folder and fits the calibration."""
-    from .distributed import process_group
-    from .scenes import load_run_dataset
-    from .trainer import Trainer, check_resume
+    from .distributed import process_group  # deferred: loads only when this command runs (keeps --help fast)
+    from .scenes import load_run_dataset  # deferred: loads only when this command runs (keeps --help fast)
+    from .trainer import Trainer, check_resume  # deferred: loads only when this command runs (keeps --help fast)
 
     with process_group(cfg.train.device, timeout_s=args.dist_timeout) as ctx:
         # rank 0's config everywhere (on another host the run folder's config.json may be absent)
@@ -120,7 +120,7 @@ def _calibrate_after_training(run_dir: Path, model, dataset):
     """Fit the recalibration of an S-NeRF run (calibration.json): depth from its capture points,
     colour from the pixels it held out of training (``train.holdout_fraction``); a run with neither
     keeps the raw stds (said, not an error). Returns the calibration or None."""
-    from .calibration import calibrate_run, describe
+    from .calibration import calibrate_run, describe  # deferred: loads only when this command runs (keeps --help fast)
 
     if not getattr(model, "accepts_depth", False):
         return None
@@ -135,7 +135,7 @@ def _calibrate_after_training(run_dir: Path, model, dataset):
 
 def _run_calibration(args: argparse.Namespace):
     """The run's calibration.json unless --raw-uncertainty."""
-    from .calibration import load_run_calibration
+    from .calibration import load_run_calibration  # deferred: loads only when this command runs (keeps --help fast)
 
     return None if args.raw_uncertainty else load_run_calibration(Path(args.run))
 
@@ -149,10 +149,12 @@ def _render_and_score(args: argparse.Namespace, default_out: Path, product_views
     """What ``render`` and ``eval`` share: the run loaded, its views rendered and scored by
     ``evaluation.evaluate`` into ``--out`` (default ``default_out``), sharded over the ranks of a
     torchrun launch. Returns (config, dataset, views, metrics, out folder, DistContext or None)."""
-    from .capture_points import score_sparse_depth
-    from .evaluation import evaluate
-    from .io_utils import check_no_symlinks, check_output_folder
-    from .trainer import load_trained_model
+    from .capture_points import score_sparse_depth  # deferred: loads only when this command runs (keeps --help fast)
+    from .evaluation import evaluate  # deferred: loads only when this command runs (keeps --help fast)
+    from .io_utils import check_no_symlinks, check_output_folder  # deferred: loads only when this command runs (keeps --help fast)
+    from .trainer import load_trained_model  # deferred: loads only when this command runs (keeps --help fast)
+
+    from .distributed import sharding_from_environment  # deferred: loads only when this command runs (keeps --help fast)
 
     out = check_output_folder(args.out if args.out is not None else default_out, "--out")
     check_no_symlinks(out, "views", "metrics.json")
@@ -198,8 +200,8 @@ def _print_summary(result: dict, title: str) -> None:
               f"95% {depth['coverage_95']:.3f}")
     iv = result.get("pooled", {}).get("depth_intervals")
     if iv and math.isfinite(iv.get("coverage_95", math.nan)):
-        from .evaluation import INTERVAL_PLOT
-        from .metrics import INTERVAL_LEVELS, level_name
+        from .evaluation import INTERVAL_PLOT  # deferred: loads only when this command runs (keeps --help fast)
+        from .metrics import INTERVAL_LEVELS, level_name  # deferred: loads only when this command runs (keeps --help fast)
 
         names = [level_name(p) for p in INTERVAL_LEVELS]
         print("  depth intervals " + "/".join(names) + "%: coverage "
@@ -224,13 +226,13 @@ def set_aside_run(run_dir: Path) -> Path:
 
 def cmd_demo(args: argparse.Namespace) -> None:
     """Generate the embedded scene, train S-NeRF, render and score the held-out views."""
-    from .evaluation import evaluate
-    from .models.registry import resolve_device
-    from .scenes import load_run_dataset
-    from .trainer import Trainer
+    from .evaluation import evaluate  # deferred: loads only when this command runs (keeps --help fast)
+    from .models.registry import resolve_device  # deferred: loads only when this command runs (keeps --help fast)
+    from .scenes import load_run_dataset  # deferred: loads only when this command runs (keeps --help fast)
+    from .trainer import Trainer  # deferred: loads only when this command runs (keeps --help fast)
 
-    from .io_utils import check_output_folder
-    from .trainer import describe_differences, resume_differences
+    from .io_utils import check_output_folder  # deferred: loads only when this command runs (keeps --help fast)
+    from .trainer import describe_differences, resume_differences  # deferred: loads only when this command runs (keeps --help fast)
 
     run_dir = check_output_folder(args.out, "--out")
     cfg = experiment_from_args(argparse.Namespace(**{**vars(args), "preset": args.preset or "demo"}), run_dir)
@@ -248,7 +250,7 @@ def cmd_demo(args: argparse.Namespace) -> None:
     result = evaluate(model, dataset, run_dir, progress=not args.quiet, calibration=calibration)
     wall = time.perf_counter() - t0
     result["wall_time_s"] = {"train_and_data": round(t_train, 1), "total": round(wall, 1)}
-    from .io_utils import atomic_write_text
+    from .io_utils import atomic_write_text  # deferred: loads only when this command runs (keeps --help fast)
 
     atomic_write_text(run_dir / "metrics.json", json.dumps(result, indent=2, default=float))
     _print_summary(result, f"demo: S-NeRF on the embedded scene, {len(dataset.test_indices)} test views")
@@ -267,14 +269,14 @@ DISTRIBUTED_COMMANDS: tuple[str, ...] = ("train", "render", "eval", "export")
 #: (pyproject.toml), so that the library never imports them.
 EXTRA_COMMANDS = {
     "export": ("stochastic_fields.products.cli", "Export depth maps, uncertainty maps and point clouds of a trained run."),
-    "calibrate": ("stochastic_fields.calibration",
+    "calibrate": ("stochastic_fields.commands.calibrate",
                   "Fit a run's uncertainty recalibration (calibration.json): depth from its capture points, "
                   "colour from the pixels it held out of training."),
-    "occupancy": ("stochastic_fields.products.planner_cli", "Occupancy probabilities of a run (npz + OctoMap .ot)."),
-    "free-path": ("stochastic_fields.products.free_path_cli", "P(collision-free) of segments or a path, with its error."),
-    "rosbag": ("stochastic_fields.products.rosbag", "ROS 2 bag (depth, std, CameraInfo, colour, PointCloud2) of an export."),
-    "rerun": ("stochastic_fields.products.rerun_log", "rerun recording (.rrd) of an export."),
-    "prepare": ("stochastic_fields.data.prepare", "Photos or a video -> camera poses with pycolmap (SfM) -> a scene folder to train on."),
+    "occupancy": ("stochastic_fields.commands.occupancy", "Occupancy probabilities of a run (npz + OctoMap .ot)."),
+    "free-path": ("stochastic_fields.commands.free_path", "P(collision-free) of segments or a path, with its error."),
+    "rosbag": ("stochastic_fields.commands.rosbag", "ROS 2 bag (depth, std, CameraInfo, colour, PointCloud2) of an export."),
+    "rerun": ("stochastic_fields.commands.rerun", "rerun recording (.rrd) of an export."),
+    "prepare": ("stochastic_fields.commands.prepare", "Photos or a video -> camera poses with pycolmap (SfM) -> a scene folder to train on."),
 }
 
 
@@ -338,8 +340,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     _add_experiment_options(p)
     p.set_defaults(func=cmd_demo)
 
-    import importlib
-    from importlib.metadata import entry_points
+    import importlib  # deferred: loads only when this command runs (keeps --help fast)
+    from importlib.metadata import entry_points  # deferred: loads only when this command runs (keeps --help fast)
 
     commands = {name: (lambda module=module: importlib.import_module(module), helptext)
                 for name, (module, helptext) in EXTRA_COMMANDS.items()}
@@ -363,7 +365,7 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
 def _describe_os_error(exc: OSError) -> str:
     """One line for an environment error: what failed, on which file, and why."""
-    import errno
+    import errno  # deferred: loads only when this command runs (keeps --help fast)
 
     where = f" {exc.filename}" if exc.filename else ""
     reason = exc.strerror or str(exc)

@@ -19,8 +19,8 @@ from pathlib import Path
 from typing import Any, Literal
 
 from . import validation as V
-from .losses import LossConfig
-from .renderer import RenderSettings
+from .io_utils import atomic_write_text, read_json
+from .settings import LOSS_CHECKS, RENDER_CHECKS, LossConfig, RenderSettings
 
 
 @dataclass
@@ -315,8 +315,6 @@ def merge_dict(cfg: ExperimentConfig, data: Any, source: str) -> ExperimentConfi
 
 def read_config_file(path: str | Path) -> dict:
     """The JSON object in ``path`` (ValueError/FileNotFoundError naming the file)."""
-    from .io_utils import read_json
-
     path = Path(path)
     data = read_json(path, "config file")
     if not isinstance(data, dict):
@@ -337,8 +335,6 @@ def flatten(d: dict, prefix: str = "") -> dict[str, Any]:
 
 
 def save_config(cfg: ExperimentConfig, path: Path) -> None:
-    from .io_utils import atomic_write_text
-
     atomic_write_text(path, json.dumps(to_dict(cfg), indent=2))
 
 
@@ -444,9 +440,6 @@ def _parser_for(hint: Any):
 
 
 def _checks_of(cls: type) -> dict:
-    from .losses import LOSS_CHECKS
-    from .renderer import RENDER_CHECKS
-
     return {DataConfig: DATA_CHECKS, FieldConfig: FIELD_CHECKS, TrainConfig: TRAIN_CHECKS,
             RenderSettings: RENDER_CHECKS, LossConfig: LOSS_CHECKS}.get(cls, {})
 

@@ -67,20 +67,16 @@ import numpy as np
 import torch
 import torch.distributed as dist
 from torch import Tensor
+from tqdm.auto import tqdm
 
 from .constants import DISTRIBUTED_TIMEOUT_S
+from .fields.row_gather import row_gradient
+from .launch import DistributedError, requested_by_environment  # noqa: F401  (re-exported)
+from .models.registry import resolve_device
+from .config import load_config
 
 #: torchrun's environment variables that describe a rank.
 ENV_VARS: tuple[str, ...] = ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")
-
-
-class DistributedError(RuntimeError):
-    """A collective failed: another rank stopped, raised, or did not answer within the timeout."""
-
-
-def requested_by_environment() -> bool:
-    """True when the process was started by torchrun (``RANK`` and ``WORLD_SIZE`` are set)."""
-    return "RANK" in os.environ and "WORLD_SIZE" in os.environ
 
 
 def rank() -> int:
@@ -123,8 +119,6 @@ def map_sharded(fn, total: int, ctx: "DistContext | None", *, what: str, desc: s
     each rank calls ``fn`` on its ``shard_indices`` and rank 0 receives every result, in position
     order (None on the other ranks). ``what`` names the gather in errors; ``desc`` the progress bar
     (rank 0's only)."""
-    from tqdm.auto import tqdm
-
     positions = range(total) if ctx is None else shard_indices(total, ctx.rank, ctx.world_size)
     quiet = not progress or (ctx is not None and not ctx.is_main)
     mine = [(i, fn(i)) for i in tqdm(positions, desc=desc, dynamic_ncols=True, disable=quiet)]
@@ -253,8 +247,6 @@ def init_process_group(device: str = "auto", *, timeout_s: float = DISTRIBUTED_T
     rank (``cuda:LOCAL_RANK``, whatever index the option names). ``timeout_s`` bounds every
     collective (and the rendezvous). ValueError names a missing or bad variable or option.
     """
-    from .models.registry import resolve_device
-
     if not dist.is_available():
         raise ValueError("this torch build has no torch.distributed; distributed training is unavailable")
     if not (timeout_s > 0 and np.isfinite(timeout_s)):
@@ -310,8 +302,6 @@ def sharding_from_environment(run_dir, device: str | None, *,
         yield None
         return
     if device is None:
-        from .config import load_config
-
         saved = os.path.join(os.fspath(run_dir), "config.json")
         device = load_config(saved).train.device if os.path.isfile(saved) else "auto"
     with process_group(device, timeout_s=timeout_s) as ctx:
@@ -407,8 +397,6 @@ class GradientReducer:
         return reduced_extras
 
     def _reduce_rows(self) -> None:
-        from .fields.row_gather import row_gradient
-
         W = self.ctx.world_size
         accs = [row_gradient(t) for t in self.tables]
         for t in self.tables:

@@ -28,15 +28,18 @@ from typing import Any, Sequence
 
 import numpy as np
 import torch
+import imageio.v3 as iio
 
 from . import metrics as M
-from .calibration import apply_calibration
+from .calibration import apply_calibration, cross_fitted_depth_quantiles, cross_fitted_depth_scores
 from .distributed import map_sharded
 from .io_utils import atomic_path, atomic_write_text
 from .renderer import RenderOptions, seeded_chunks
-from .sparse_depth import paired_depth_scores
+from .sparse_depth import paired_depth_scores, sparse_depth_conventions
 from .view_maps import OPACITY_MASK, camera_z_maps, draws_summary, view_camera_arrays
 from .visualize import colourise, to_uint8_rgb
+from .capture_points import block_keys, dense_depth_block_keys, dense_depth_score_mask, load_capture_points
+from .plots import plot_interval_reliability
 
 #: The per-view depth scores kept under ``depth/`` (and ``depth_raw/``) in metrics.json.
 DEPTH_SCORE_KEYS: tuple[str, ...] = ("abs_rel", "rmse", "nll", "ause_rmse", "ause_rmse_normalised", "pearson",
@@ -49,8 +52,6 @@ DEPTH_STD_PARTS: dict[str, str] = {"epistemic": "depth_std_epistemic", "spread":
 
 # ----------------------------------------------------------------------------- files of a view
 def _save_png(path: Path, rgb: np.ndarray) -> None:
-    import imageio.v3 as iio
-
     with atomic_path(path) as tmp:
         iio.imwrite(tmp, rgb)
 
@@ -165,8 +166,6 @@ def calibrated_depth_scores(samples: DepthSamples, calibration=None) -> dict[str
     quantiles = lambda t: M.gaussian_quantiles(samples.pred, samples.std, t, scale)  # noqa: E731
     folds = None if calibration is None else calibration.depth_folds
     if folds is not None and samples.block is not None and samples.gt.size >= 2:
-        from .calibration import cross_fitted_depth_quantiles, cross_fitted_depth_scores
-
         fold = folds.fold_of(samples.block)
         scores.update(cross_fitted_depth_scores(samples.gt, samples.pred, samples.std_raw, fold, folds,
                                                 violation=samples.violation))
@@ -318,8 +317,6 @@ def _conventions(depth_source: str | None, calibration, *, dense_scored_blocks: 
                                    "AUSE; its NLL uses the variance floor",
            "num_draws": "K actually rendered per view (adaptive K: mean over pixels, with min/max)"}
     if depth_source == "sparse":
-        from .sparse_depth import sparse_depth_conventions
-
         out.update(sparse_depth_conventions())
     if depth_source == "dense":
         out["dense_depth_scored"] = (DENSE_DEPTH_SCORED if dense_scored_blocks
@@ -408,8 +405,6 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
     device = next(model.parameters()).device
     gt_depths = getattr(dataset, "depths", None)
     depth_source = "sparse" if sparse_depth is not None else ("dense" if gt_depths is not None else None)
-    from .capture_points import block_keys, dense_depth_block_keys, dense_depth_score_mask, load_capture_points
-
     capture = load_capture_points(dataset) if depth_source == "dense" else None
     folds = None if depth_source is None or calibration is None else calibration.depth_folds
     if folds is not None and capture is None:
@@ -487,8 +482,6 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
             curves.update({"depth_intervals.levels": np.asarray(iv["levels"]),
                            "depth_intervals.coverage": np.asarray(iv["coverage"]),
                            "depth_intervals.halfwidth": np.asarray(iv["halfwidth"], dtype=np.float32)})
-            from .plots import plot_interval_reliability
-
             plot_interval_reliability(out_dir / INTERVAL_PLOT, iv, title=f"depth intervals ({iv['num_values']} "
                                       f"{'points' if depth_source == 'sparse' else 'pixels'})")
         pooled_out["depth_parts"] = {k.split("/", 1)[1]: v.value for k, v in depth_part_rankings(pooled).items()}

@@ -31,11 +31,17 @@ from typing import Sequence
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
 from .view_maps import OPACITY_MASK
+from .cameras import intrinsics_3x3, invert_rigid
+from .capture_points import backproject_pixels
+from .io_utils import atomic_write
+from .models.snerf import UNIT_CUBE
+from .occupancy import OccupancyGrid
+from .renderer import seeded_chunks
+from .defaults import TRAINING_DEPTH_FILE  # noqa: F401  (defaults the command line shows)
 
-#: File of a run's rendered training-view depths (``save_training_depth``).
-TRAINING_DEPTH_FILE = "training_depth.npz"
 #: Carving (``carve_free_space``): a training pixel carves only where its ray ended sharply, with
 #: opacity above this ...
 CARVE_MIN_OPACITY: float = 0.9
@@ -90,11 +96,6 @@ def render_training_depth(model, dataset, *, options=None, seed: int = 0, progre
     """Render every training view of ``dataset`` with ``model`` (``options``: the model's render
     options by default; draws seeded per view, as evaluation seeds them) and keep its camera-z
     depth mean and opacity."""
-    from tqdm.auto import tqdm
-
-    from .cameras import intrinsics_3x3
-    from .renderer import seeded_chunks
-
     views = [int(v) for v in dataset.train_indices]
     device = next(model.parameters()).device
     depth, opacity, spread = [], [], []
@@ -115,8 +116,6 @@ def render_training_depth(model, dataset, *, options=None, seed: int = 0, progre
 
 def save_training_depth(run_dir: str | Path, ref: TrainingDepth) -> Path:
     """Write ``ref`` to ``RUN/TRAINING_DEPTH_FILE`` atomically."""
-    from .io_utils import atomic_write
-
     path = Path(run_dir) / TRAINING_DEPTH_FILE
 
     def write(tmp: Path) -> None:
@@ -191,9 +190,6 @@ def violation_map(depth: np.ndarray, intrinsics: np.ndarray, world_to_camera: np
     """e [H, W] (float32) of a rendered camera-z ``depth`` map [H, W] of the camera ``intrinsics``
     [3, 3], ``world_to_camera`` [4, 4]: each pixel centre back-projected to its depth, then
     ``free_space_violation``; 0 where ``mask`` [H, W] is False (default: every pixel)."""
-    from .cameras import invert_rigid
-    from .capture_points import backproject_pixels
-
     depth = torch.as_tensor(np.asarray(depth, dtype=np.float64))
     H, W = depth.shape
     rows, cols = torch.nonzero(torch.ones(H, W, dtype=torch.bool) if mask is None
@@ -234,9 +230,6 @@ def carve_free_space(model, ref: TrainingDepth, *, resolution: int = CARVE_RESOL
     """Empty the cells of ``model``'s occupancy grid (built all-occupied at ``resolution`` if it
     keeps none) whose centre ``carved_points`` marks, so renders skip them. Returns the share of
     the occupied cells carved."""
-    from .models.snerf import UNIT_CUBE
-    from .occupancy import OccupancyGrid
-
     if getattr(model, "occupancy", None) is None:
         device = next(model.parameters()).device
         model.occupancy = OccupancyGrid(UNIT_CUBE, resolution).to(device)

@@ -41,6 +41,7 @@ from typing import Any, Literal, Sequence
 import numpy as np
 import torch
 from matplotlib.figure import Figure
+import matplotlib
 
 from .cameras import generate_rays_for_view, image_size, intrinsics_3x3
 from .distributions import RectifiedNormal
@@ -485,8 +486,6 @@ class RunInspector:
 # ---------------------------------------------------------------------------- drawing helpers
 def _draw_map(fig: Figure, ax, products: dict[str, np.ndarray], name: str, *, mask_empty: bool) -> None:
     """Draw map ``name`` on ``ax`` with a colour bar labelled with its unit."""
-    import matplotlib
-
     spec = MAP_SPECS[name]
     ax.set_xticks([])
     ax.set_yticks([])
@@ -605,7 +604,7 @@ def plotly_cloud_figure(points: np.ndarray, colours: np.ndarray, values: np.ndar
     exported clouds' colour map and range, with a colour bar) or by the points' RGB colours; at
     most ``max_points`` points (evenly thinned). Needs plotly.
     """
-    import plotly.graph_objects as go
+    import plotly.graph_objects as go  # heavy optional dependency (plotly): loaded only when used
 
     idx = _select(values, threshold, max_points)
     p, c, val = points[idx], colours[idx], values[idx]

@@ -26,80 +26,9 @@ from .constants import DEPTH_MIXTURE_WEIGHT_FLOOR, RANDOM_POINT_PRIOR_STD
 from .distributions import (kl_logistic_normal, kl_logistic_normal_mc, kl_rectified_normal,
                             kl_rectified_normal_mc)
 from .fields.base import FieldParams, inverse_positive_scale, positive_scale
+from .settings import LOSS_CHECKS, LossConfig  # noqa: F401  (the loss settings, re-exported)
 
 
-@dataclass
-class LossConfig:
-    """Weights and choices of the variational loss."""
-
-    likelihood_std: float = 0.05
-    """sigma_n: standard deviation of the Gaussian pixel likelihood (colour units, [0, 1]); the starting value when learned. Range: a finite number > 0."""
-    learn_likelihood_std: bool = True
-    """Learn sigma_n (one per colour channel) with the rest of the objective instead of fixing it (default: learned; the paper fixes it). Render with render.colour_variance='predictive' to add sigma_n^2 to the colour variance."""
-    likelihood_estimator: Literal["draws", "rao_blackwell"] = "draws"
-    """How the expected pixel log-likelihood E_q[log N(c | C_k, v_k)] is estimated over the K training trajectories: 'draws' draws each sample's colour (the paper); 'rao_blackwell' draws the density only and takes the colour's expectation exactly, E[(C_k - c)^2 | w_k] = (sum_i w_ik E[r_i] - c)^2 + sum_i w_ik^2 Var[r_i] (logistic-normal moments, tabulated): the same objective, with less Monte-Carlo noise and no colour draws (gaussian_likelihood_nll)."""
-    kl: Literal["none", "fixed_prior", "full"] = "full"
-    """KL terms (paper Table 3): none, fixed-prior (random points) only, or full (random + observed-ray priors)."""
-    kl_estimator: Literal["closed_form", "monte_carlo"] = "closed_form"
-    """Exact KL or the paper's Monte-Carlo estimate."""
-    kl_mc_samples: int = 8
-    """Draws per point for the Monte-Carlo KL. Range: an integer >= 1 and <= 4096."""
-    lambda_random: float = 1e-2
-    """Weight of the mean KL over random scene points. Range: a finite number >= 0."""
-    lambda_observed: float = 1.25e-2
-    """Weight of the mean KL over the training-ray samples. Default 1.25e-2, a quarter of the earlier default 5e-2 (the paper states no weight; the tables' paper S-NeRF rows keep 5e-2): the shared observed prior pulls every observed point's variance towards one value, and at a quarter of its weight the recalibrated depth intervals came closer to nominal on every scene (benchmarks/results/uncertainty_study/kl, study 16b). Range: a finite number >= 0."""
-    random_points_per_axis: int = 12
-    """Stratified random KL points: n per axis, n^3 points per step. Range: an integer >= 1 and <= 256."""
-    observed_kl_samples: int = 4096
-    """Training-ray samples per step on which the observed-prior KL is evaluated (a uniform random subset: an unbiased estimate of the mean over all samples at a fraction of the cost; 0 = all). Range: an integer >= 0 and <= 16777216."""
-    noise_head_decoupled: bool = True
-    """With loss.per_point_noise: the noise head only explains residuals. Each pixel-draw term of the likelihood is weighted by stopgrad(v / sigma_n^2) and v uses stopgrad(w), so colours and densities get exactly the gradient of the global-noise likelihood, while beta still fits the residuals (stationary at v = r^2; beta-NLL, Seitzer et al. 2022). Off: the joint likelihood, where a large beta also down-weights a pixel for the colours and the geometry (it cost up to 1.2 dB PSNR in benchmarks/results/uncertainty_study/noise_head)."""
-    per_point_noise: bool = True
-    """Learn an observation-noise std beta(x) per point (one more field output) beside sigma_n: each trajectory's pixel likelihood gets variance sigma_n^2 + sum_i w_i beta_i^2, and with render.colour_variance='predictive' the rendered colour variance adds its mean over draws (docs/definitions.md §4.7). Default on: benchmarks/results/uncertainty_study/noise_head. Off: one noise for every pixel (sigma_n), the paper's model."""
-    lambda_depth: float = 1.0
-    """Weight of the sparse-depth likelihood of the capture's own structure-from-motion points (FIT role of the spatial split, stochastic_fields.capture_points): -mean_k log sum_i w_ik N(t* | t_i, s_i^2) per point ray (termination_depth_nll). 0 = off (the paper); scenes without capture points train without it. Default 1.0: benchmarks/results/uncertainty_study (0.1 in study 1, 0.3 in study 4, geometry, 1.0 in study 6, depth_weight). Range: a finite number >= 0."""
-    depth_rays_per_batch: int = 256
-    """Capture-point rays per training step for the depth likelihood (drawn from the training views' FIT points). Range: an integer >= 1 and <= 1048576."""
-    depth_relative_std: float = 0.01
-    """Depth noise of a capture point relative to its depth (added to each sample's bin width in the depth likelihood). Range: a finite number > 0."""
-    depth_draws: int = 0
-    """Trajectories per capture-point ray in the depth likelihood (0: ``train.train_draws``, as the colour rays). Range: an integer >= 0 and <= 4096."""
-    lambda_distortion: float = 0.0
-    """Weight of the Mip-NeRF 360 distortion regulariser on every training trajectory (stochastic_fields.distortion): penalises weight spread along rays (floaters). 0 = off (the paper's objective); on fern at 1000 steps it did not empty space for skipping and cost PSNR at weight 20 (docs/design.md). Range: a finite number >= 0."""
-
-
-    def __post_init__(self) -> None:
-        from .validation import check_fields
-
-        check_fields(self, LOSS_CHECKS)
-
-
-def _loss_checks() -> dict:
-    """Declared range of every LossConfig field (checked on construction, load and CLI overrides)."""
-    from .validation import boolean, choice, integer, real
-
-    return {
-        "likelihood_std": real(0.0, lo_open=True),
-        "learn_likelihood_std": boolean(),
-        "per_point_noise": boolean(),
-        "noise_head_decoupled": boolean(),
-        "likelihood_estimator": choice("draws", "rao_blackwell"),
-        "kl": choice("none", "fixed_prior", "full"),
-        "kl_estimator": choice("closed_form", "monte_carlo"),
-        "kl_mc_samples": integer(1, 4096),
-        "lambda_random": real(0.0),
-        "lambda_observed": real(0.0),
-        "random_points_per_axis": integer(1, 256),
-        "observed_kl_samples": integer(0, 2**24),
-        "lambda_depth": real(0.0),
-        "depth_rays_per_batch": integer(1, 2**20),
-        "depth_relative_std": real(0.0, lo_open=True),
-        "depth_draws": integer(0, 4096),
-        "lambda_distortion": real(0.0),
-    }
-
-
-LOSS_CHECKS = _loss_checks()
 
 class Priors(nn.Module):
     """Learned prior parameters (scalars shared by every point of the scene)."""

@@ -38,97 +38,22 @@ from typing import Callable, Literal
 
 import torch
 from torch import Tensor
+from tqdm.auto import tqdm
+import numpy as np
 
-from .constants import (DRAW_BLOCK_ELEMENTS, OCCUPANCY_ALPHA_THRESHOLD, OCCUPANCY_UPPER_NUM_STD,
-                        PACK_MIN_SKIPPED_FRACTION)
+from .constants import DRAW_BLOCK_ELEMENTS, PACK_MIN_SKIPPED_FRACTION
 from .fields.base import FieldParams, StochasticField
 from .logistic_normal_table import logistic_normal_moments_tabulated
 from .rays import PackedRaySamples, RayBundle, RaySamples
-from .samplers import Spacing, sample_along_rays
-from .validation import Checker, boolean, check_fields, choice, colour_or_none, integer, real
+from .samplers import sample_along_rays
+from .settings import COLOUR_ESTIMATORS, RENDER_CHECKS, RenderSettings, Spacing  # noqa: F401  (re-exported)
+from .validation import Checker, boolean, check_fields
 from .volume_rendering import (LogitNormalColourDraws, TrajectoryStatistics, concatenate_draws, observation_noise,
                                observation_noise_packed, render_weights, render_weights_packed, trajectory_statistics,
                                trajectory_statistics_packed, weights_alpha_from_optical_depth)
 
-#: RenderSettings.colour_estimator values: drawn colours (docs/definitions.md §3) or Rao-Blackwellised colours.
-COLOUR_ESTIMATORS: tuple[str, ...] = ("draws", "rao_blackwell")
-
 #: ``occupied(positions [R, S, 3]) -> [R, S] bool``: which dense samples to keep (empty-space skipping).
 OccupiedFn = Callable[[Tensor], Tensor]
-
-
-@dataclass
-class RenderSettings:
-    """How rays are rendered. Every field is a CLI option."""
-
-    num_samples: int = 64
-    """Samples per ray (bins between near and far). Range: an integer >= 2 and <= 100000."""
-    num_draws: int = 8
-    """K: stochastic trajectories per ray when rendering (training uses TrainConfig.train_draws). 8 since study 7 (docs/uncertainty.md): with Rao-Blackwellised colours the scores at K = 8 matched K = 16 with drawn colours on every scene, at 0.66x the render time. Range: an integer >= 1 and <= 4096."""
-    quadrature: Literal["alpha", "trapezoid"] = "alpha"
-    """Volume-rendering quadrature: 'alpha' compositing (default, measured more accurate on steep densities) or the paper's 'trapezoid'."""
-    spacing: Spacing = "linear"
-    """Sample spacing along rays: 'linear' in distance or linear in 'disparity' (forward-facing scenes)."""
-    shared_noise: bool = False
-    """Share eps along each ray per draw (trajectory-consistent draws) instead of independent eps per point."""
-    chunk_rays: int = 2048
-    """Rays per chunk when rendering full images (memory bound: chunk * S * K floats). Range: an integer >= 1 and <= 16777216."""
-    background: tuple[float, float, float] | None = None
-    """Background colour composited behind the scene (None: black/no compositing). Range: None or three numbers in [0, 1] (r,g,b)."""
-    skip_empty_space: bool = True
-    """S-NeRF: keep an occupancy grid (in the scene region's unit cube), updated from the density upper estimate relu(mu_a + n s_a) (n = occupancy_num_std), and evaluate the field only at samples in occupied cells (training and rendering; needs quadrature='alpha'; set false to use 'trapezoid'). Default on: benchmarks/results measures fewer field evaluations per ray and faster training steps at equal PSNR."""
-    occupancy_num_std: float = OCCUPANCY_UPPER_NUM_STD
-    """Occupancy upper estimate relu(mu_a + n s_a): n standard deviations (3: a draw exceeds it with probability 0.13%). Smaller n skips more of the space S-NeRF is unsure about, at a cost in uncertainty (benchmarks/results). Range: a finite number >= 0."""
-    occupancy_alpha_threshold: float = OCCUPANCY_ALPHA_THRESHOLD
-    """A cell is occupied where the upper estimate gives one render interval an opacity above this. Range: a finite number > 0 and < 1."""
-    occupancy_resolution: int = 64
-    """Cells per axis of the occupancy grid over the region's unit cube. Range: an integer >= 1 and <= 512."""
-    occupancy_update_every: int = 16
-    """Training steps between occupancy-grid updates. Range: an integer >= 1 and <= 1000000000."""
-    occupancy_warmup_steps: int = 256
-    """Steps during which every occupancy cell is re-evaluated at each update (afterwards a random subset). Range: an integer >= 0 and <= 1000000000."""
-    colour_variance: Literal["epistemic", "predictive"] = "predictive"
-    """S-NeRF colour variance: 'predictive' (default) adds sigma_n^2 to the variance over the K trajectories; 'epistemic' is that variance alone (docs/definitions.md §3, the paper). 'predictive' adds sigma_n^2, the likelihood's pixel noise (the model's predictive variance of an observed pixel; learn sigma_n with loss.learn_likelihood_std)."""
-    adaptive_draws: bool = False
-    """Render with adaptive K (stochastic_fields.adaptive): trajectories in batches of adaptive_batch_draws until the colour and depth variance estimates change by less than adaptive_rtol, at most adaptive_max_draws. Used when no explicit num_draws is asked for."""
-    adaptive_batch_draws: int = 8
-    """Adaptive K: trajectories drawn per batch (one field evaluation serves every batch). Range: an integer >= 2 and <= 4096."""
-    adaptive_max_draws: int = 128
-    """Adaptive K: cap on the trajectories per ray. Range: an integer >= 2 and <= 4096."""
-    adaptive_rtol: float = 0.05
-    """Adaptive K: tolerance of adaptive_rule ('precision': predicted relative change of the mean precision 1/var between the current K and the cap; 'change': relative L1 change of the per-pixel colour and depth variances from one batch to the next). Measured (benchmarks/results): with colour_estimator='rao_blackwell', precision at 0.01 ends within 2% of the cap's NLL in about 0.7x its time. Range: a finite number > 0."""
-    colour_estimator: Literal["draws", "rao_blackwell"] = "rao_blackwell"
-    """Rendering colour statistics: 'rao_blackwell' (default since study 7) draws only densities and integrates each trajectory's colour noise exactly given its weights (E[C_k|w_k] = sum_i w_ik E[r_i], Var[C_k|w_k] = sum_i w_ik^2 Var[r_i], tabulated logistic-normal moments), estimating the same mean and variance as drawn colours with less Monte-Carlo noise and no colour draws; 'draws' samples every colour (docs/definitions.md §3: C_k = sum_i w_ik r_ik, variance over k; per-draw colour maps are then samples, not conditional means). Training always draws colours."""
-    adaptive_rule: Literal["precision", "change"] = "precision"
-    """Adaptive K stopping rule: 'precision' stops when the small-K bias of 1/var left before the cap, predicted from the draws' kurtosis, is below adaptive_rtol (aims at the NLL of K = adaptive_max_draws); 'change' when the variances change by less than adaptive_rtol between batches (stops earlier, NLL measured 4% above K = 128's at rtol 0.05). See stochastic_fields.adaptive."""
-
-    def __post_init__(self) -> None:
-        check_fields(self, RENDER_CHECKS)
-
-
-#: Declared range of every RenderSettings field (checked on construction, load and CLI overrides).
-RENDER_CHECKS: dict[str, Checker] = {
-    "num_samples": integer(2, 100_000),
-    "num_draws": integer(1, 4096),
-    "quadrature": choice("alpha", "trapezoid"),
-    "spacing": choice("linear", "disparity"),
-    "shared_noise": boolean(),
-    "chunk_rays": integer(1, 2**24),
-    "background": colour_or_none(),
-    "skip_empty_space": boolean(),
-    "occupancy_num_std": real(0.0),
-    "occupancy_alpha_threshold": real(0.0, 1.0, lo_open=True, hi_open=True),
-    "occupancy_resolution": integer(1, 512),
-    "occupancy_update_every": integer(1, 10**9),
-    "occupancy_warmup_steps": integer(0, 10**9),
-    "colour_variance": choice("epistemic", "predictive"),
-    "adaptive_draws": boolean(),
-    "adaptive_batch_draws": integer(2, 4096),
-    "adaptive_max_draws": integer(2, 4096),
-    "adaptive_rtol": real(0.0, lo_open=True),
-    "colour_estimator": choice(*COLOUR_ESTIMATORS),
-    "adaptive_rule": choice("precision", "change"),
-}
 
 
 def dense_noise(num_rays: int, num_draws: int, num_samples: int, *, shared_noise: bool = False,
@@ -556,8 +481,6 @@ ChunkGenerators = Callable[[int], "torch.Generator | None"]
 
 def chunk_seed(seed: int, view: int, chunk: int) -> int:
     """A 63-bit seed mixed from (seed, view, chunk) (numpy SeedSequence hashing)."""
-    import numpy as np
-
     return int(np.random.SeedSequence((seed, view, chunk)).generate_state(1, dtype=np.uint64)[0] >> 1)
 
 
@@ -584,8 +507,6 @@ def render_chunked(render_chunk: Callable[[RayBundle, "torch.Generator | None"],
     report it, and with ``keep_draws`` ``depth_draws`` [H, W, K] and ``colour_draws``
     [H, W, K, 3], padded with NaN beyond a chunk's K to the largest K.
     """
-    from tqdm.auto import tqdm
-
     shape = rays.shape
     flat = rays.flatten()
     out: dict[str, list[Tensor]] = {name: [] for name in (*MAP_NAMES, "num_draws", "field_evals_per_ray")}

@@ -14,8 +14,8 @@ import torch
 from torch import Tensor
 
 from .rays import RayBundle, RaySamples
+from .settings import Spacing
 
-Spacing = Literal["linear", "disparity"]
 
 
 def bin_edges(near: Tensor, far: Tensor, num_samples: int, spacing: Spacing = "linear") -> Tensor:

@@ -6,6 +6,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from .config import ExperimentConfig
+from .data import detect_format, load_dataset
+from .io_utils import check_no_symlinks
 
 EMBEDDED_SCENE_DIR = "scene"
 
@@ -17,17 +19,13 @@ def scene_path(cfg: ExperimentConfig, run_dir: Path) -> Path:
 def load_run_dataset(cfg: ExperimentConfig, run_dir: Path, *, generate: bool = True):
     """Load the run's dataset, split by ``cfg.data.split`` (:func:`apply_split`); generate the
     embedded synthetic scene first if needed."""
-    from .data import detect_format, load_dataset
-
     path = scene_path(cfg, run_dir)
     if not cfg.data.path:
-        from .io_utils import check_no_symlinks
-
         check_no_symlinks(run_dir, EMBEDDED_SCENE_DIR)  # the scene is generated into the run folder
     if not cfg.data.path and not (path / "transforms.json").exists():
         if not generate:
             raise FileNotFoundError(f"the embedded scene is missing from {path}")
-        from .data.synthetic import make_synthetic_scene
+        from .data.synthetic import make_synthetic_scene  # heavy optional dependencies (Open3D, trimesh): only to generate the embedded scene
 
         make_synthetic_scene(path)
     if detect_format(path) == "llff":  # LLFF picks images_N; Blender/nerfstudio/COLMAP a downscale factor

@@ -39,6 +39,7 @@ from torch import Tensor
 from .cameras import in_image, project_points, select_cameras
 from .constants import DEPTH_NLL_VARIANCE_FLOOR
 from . import metrics as M
+from .data.colmap import read_points3d_binary
 
 Visibility = Literal["auto", "tracks", "zbuffer"]
 
@@ -154,8 +155,6 @@ def sparse_depth_for_dataset(dataset, views: Sequence[int] | None = None, *, vis
     points3D.bin, the id = view + 1 match checks out for every requested view, else zbuffer).
     Raises FileNotFoundError naming the file if the scene has no SfM points.
     """
-    from .data.colmap import read_points3d_binary
-
     views = list(dataset.test_indices) if views is None else [int(v) for v in views]
     if visibility not in ("auto", "tracks", "zbuffer"):
         raise ValueError(f"visibility must be 'auto', 'tracks' or 'zbuffer', got {visibility!r}")

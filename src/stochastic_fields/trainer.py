@@ -19,9 +19,10 @@ from pathlib import Path
 import torch
 from tqdm.auto import tqdm
 
-from .cameras import generate_rays
+from .cameras import generate_rays, generate_rays_for_view, select_cameras
 from .checkpoint import CHECKPOINT_NAME, load_checkpoint, save_checkpoint
-from .config import ExperimentConfig, flatten, save_config, saved_config, set_dotted, to_dict, validate_experiment
+from .config import (TRAIN_CHECKS, ExperimentConfig, flatten, load_config, save_config, saved_config,
+                     set_dotted, to_dict, validate_experiment)
 from .distributed import DistContext, GradientReducer, rank_seeds, shard_size
 from .io_utils import atomic_write_text, open_append_no_follow, remove_stale_temporaries
 from .fields.grid import GridField, coarse_to_fine_weights
@@ -29,6 +30,10 @@ from .models.base import RadianceModel
 from .models.registry import build_model, resolve_device
 from .optim import FieldOptimizer
 from .rays import RayBundle
+from .capture_points import FIT, load_capture_points, rays_through_points, sparse_depth_for_role
+from .holdout import holdout_masks
+from .metrics import psnr
+from .scenes import load_run_dataset
 
 
 #: Options a resumed run may change: how long and how often, where, and render chunking. Any
@@ -73,8 +78,6 @@ def saved_run_config(run_dir: Path, state: dict | None = None) -> ExperimentConf
             return saved_config(json.loads(text))
         except (ValueError, json.JSONDecodeError) as exc:
             raise ValueError(f"checkpoint {ckpt}: its stored config is unreadable ({exc})") from exc
-    from .config import load_config
-
     return load_config(Path(run_dir) / "config.json")
 
 
@@ -111,9 +114,6 @@ class TrainingRays:
     @staticmethod
     def from_dataset(dataset, device: torch.device, *, holdout_fraction: float = 0.0,
                      holdout_block: int = 16) -> "TrainingRays":
-        from .cameras import select_cameras
-        from .holdout import holdout_masks
-
         idx = list(dataset.train_indices)
         cams = select_cameras(dataset.cameras, idx)
         rays = generate_rays(cams, dataset.near[idx], dataset.far[idx]).flatten()
@@ -140,8 +140,6 @@ class TrainingDepth:
     @staticmethod
     def from_dataset(dataset, device: torch.device) -> "TrainingDepth | None":
         """None when the scene has no capture points or none of the FIT role lies inside a training view's bounds."""
-        from .capture_points import FIT, load_capture_points, rays_through_points, sparse_depth_for_role
-
         points = load_capture_points(dataset)
         if points is None:
             return None
@@ -173,9 +171,6 @@ QUICK_EVAL_DRAWS = 4
 
 def quick_eval(model: RadianceModel, dataset, view: int, device: torch.device) -> dict[str, float]:
     """PSNR of the mean colour on one test view (a cheap progress signal)."""
-    from .cameras import generate_rays_for_view
-    from .metrics import psnr
-
     model.eval()
     rays = generate_rays_for_view(dataset.cameras, view, dataset.near, dataset.far).to(device)
     maps = model.render_view(rays, model.default_render_options().with_changes(num_draws=QUICK_EVAL_DRAWS))
@@ -456,17 +451,12 @@ def load_trained_model(run_dir: Path, dataset=None, device: str | None = None):
     checkpoint in an option that shapes the model or its training (a run damaged by an earlier
     failed resume), the checkpoint's config is used, with a warning naming the options, but for
     ``RESUMABLE_OPTIONS`` (render options among them), which stay config.json's."""
-    from .config import load_config
-    from .scenes import load_run_dataset
-
     run_dir = Path(run_dir)
     ckpt = run_dir / CHECKPOINT_NAME
     if not ckpt.is_file():
         raise FileNotFoundError(f"run folder {run_dir} has no {CHECKPOINT_NAME}: train it first")
     dev_name = None
     if device is not None:
-        from .config import TRAIN_CHECKS
-
         try:
             dev_name = TRAIN_CHECKS["device"](device)
         except ValueError as exc:

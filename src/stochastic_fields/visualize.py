@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import matplotlib
 
 
 def colourise(values: np.ndarray, *, cmap: str = "viridis", vmin: float | None = None, vmax: float | None = None,
@@ -10,8 +11,6 @@ def colourise(values: np.ndarray, *, cmap: str = "viridis", vmin: float | None =
     """[H, W] float -> ([H, W, 3] uint8, vmin, vmax). Range defaults to the 1st-99th percentiles of
     the valid values, so a few outliers do not wash the map out. Invalid pixels (``~mask`` or
     non-finite) get ``invalid_rgb``."""
-    import matplotlib
-
     values = np.asarray(values, dtype=np.float64)
     valid = np.isfinite(values) if mask is None else (np.asarray(mask, bool) & np.isfinite(values))
     if valid.any():

@@ -105,3 +105,15 @@ def select_views(test_views: list[int], settings: BenchmarkSettings) -> list[int
         raise ValueError(f"max_views must be positive, got {n}")
     picks = np.unique(np.linspace(0, len(test_views) - 1, n).round().astype(int))
     return [test_views[i] for i in picks]
+
+
+#: What the tables' depth numbers mean, beside the conventions of ``evaluation.evaluate``.
+TABLE_CONVENTIONS: dict[str, str] = {
+    "scored_points": ("depth is scored only on the capture points of the SCORE role (capture_points: blocks of "
+                      "space disjoint from the points that train the depth likelihood)"),
+    "depth_calibration": ("methods marked calibrated report depth_std recalibrated on every held-out (CALIBRATE and "
+                          "SCORE) capture point seen from views halfway between neighbouring training views, intervals "
+                          "at level p scaled by s(p)/s(0.683); their coverage, AUCE and depth NLL are cross-fitted "
+                          "(each scored point judged by a fold map fitted without its SCORE block's fold); raw scores "
+                          "under depth_raw/"),
+}

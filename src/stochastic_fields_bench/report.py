@@ -12,8 +12,9 @@ import numpy as np
 
 from stochastic_fields import metrics as M
 from stochastic_fields.evaluation import INTERVAL_KEYS
+from stochastic_fields.plots import plot_calibration, plot_sparsification
 
-from .budget import BenchmarkSettings
+from .budget import TABLE_CONVENTIONS, BenchmarkSettings
 from .methods import DEFAULT_METHODS, METHOD_SPECS, PAPER_TABLE1, PAPER_TABLE2, PAPER_TABLE3, TABLE1_METHODS, TABLE3_METHODS
 
 
@@ -135,8 +136,6 @@ def build_tables(results: dict[str, dict[str, dict]], *, methods: Sequence[str] 
                  for m in present}
     depth_sources = sorted({rows[s][m]["depth"]["source"] for s in scenes for m in rows[s] if "depth" in rows[s][m]})
     any_result = next(iter(next(iter(results.values())).values())) if results else None
-    from .runner import TABLE_CONVENTIONS  # today's words, whichever run's metrics.json is older
-
     conventions = dict(any_result["metrics"]["conventions"]) if any_result else M.default_conventions()
     conventions.update(TABLE_CONVENTIONS)
     conventions.update({
@@ -282,8 +281,6 @@ def format_markdown(tables: dict[str, Any]) -> str:
 def write_plots(results: dict[str, dict[str, dict]], plot_dir: Path) -> list[Path]:
     """Per scene: colour sparsification (RMSE, normalised) and calibration plots for the Table-1
     methods and for the ablation, plus depth plots where depth ground truth exists."""
-    from stochastic_fields.plots import plot_calibration, plot_sparsification
-
     written = []
     groups = {"": TABLE1_METHODS, "ablation_": TABLE3_METHODS}
     for scene, by_method in results.items():

@@ -14,16 +14,20 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from stochastic_fields.calibration import CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS
+from stochastic_fields.calibration import (CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS, calibrate_run, describe,
+                                           load_run_calibration)
 from stochastic_fields.config import (LEGACY_VALUES, ExperimentConfig, flatten, save_config, saved_config,
                                      set_dotted, to_dict)
 from stochastic_fields.io_utils import atomic_write_text
-from stochastic_fields.evaluation import synchronize
-from stochastic_fields.trainer import RESUMABLE_OPTIONS
+from stochastic_fields.evaluation import evaluate, synchronize
+from stochastic_fields.trainer import RESUMABLE_OPTIONS, load_trained_model, Trainer
 from stochastic_fields.view_maps import draws_summary
+from stochastic_fields.capture_points import score_sparse_depth
+from stochastic_fields.data import detect_format, load_dataset
+from tqdm import tqdm
 
 from .methods import MethodSpec, METHOD_SPECS, method_config
-from .budget import BenchmarkSettings, base_config, select_views
+from .budget import TABLE_CONVENTIONS, BenchmarkSettings, base_config, select_views
 from .report import build_tables, format_markdown, write_plots
 
 
@@ -157,16 +161,6 @@ def _reset_cuda_peak() -> None:
         torch.cuda.reset_peak_memory_stats()
 
 
-#: What the tables' depth numbers mean, beside the conventions of ``evaluation.evaluate``.
-TABLE_CONVENTIONS: dict[str, str] = {
-    "scored_points": ("depth is scored only on the capture points of the SCORE role (capture_points: blocks of "
-                      "space disjoint from the points that train the depth likelihood)"),
-    "depth_calibration": ("methods marked calibrated report depth_std recalibrated on every held-out (CALIBRATE and "
-                          "SCORE) capture point seen from views halfway between neighbouring training views, intervals "
-                          "at level p scaled by s(p)/s(0.683); their coverage, AUCE and depth NLL are cross-fitted "
-                          "(each scored point judged by a fold map fitted without its SCORE block's fold); raw scores "
-                          "under depth_raw/"),
-}
 
 
 def evaluate_run(model, dataset, out_dir: Path, *, views: Sequence[int] | None = None, seed: int = 0,
@@ -174,8 +168,6 @@ def evaluate_run(model, dataset, out_dir: Path, *, views: Sequence[int] | None =
                  calibration=None) -> dict:
     """``evaluation.evaluate`` of one trained model with the tables' conventions (the model's own
     render options; products of the first ``product_views`` views)."""
-    from stochastic_fields.evaluation import evaluate
-
     return evaluate(model, dataset, out_dir, views=views, seed=seed, sparse_depth=sparse_depth,
                     product_views=product_views, calibration=calibration, conventions=TABLE_CONVENTIONS,
                     progress=progress)
@@ -228,8 +220,6 @@ def time_training_interleaved(trainers: dict[str, Any], steps: int, chunk: int, 
     """Train each of ``trainers`` {name: Trainer} ``steps`` more steps, ``chunk`` at a time in turn
     (A, B, A, B, ...) so that drifts of the machine hit every one alike; returns {name: [(loop
     seconds, steps) per chunk]} from the trainer's own loop clock (no set-up, resume or checkpoint)."""
-    from tqdm import tqdm
-
     times: dict[str, list[tuple[float, int]]] = {k: [] for k in trainers}
     done, bar = 0, tqdm(total=steps, desc="train (interleaved)", unit="step", disable=not progress)
     while done < steps:
@@ -258,8 +248,6 @@ def run_method(spec: MethodSpec, dataset, scene_path: Path, run_dir: Path, setti
                views: Sequence[int], sparse_depth: dict | None, progress: bool = True,
                log: Callable[[str], None] = print) -> dict[str, Any]:
     """Train (or resume), evaluate and time one method on one scene; skips finished stages."""
-    from stochastic_fields.trainer import Trainer, load_trained_model
-
     run_dir = Path(run_dir)
     cfg = method_config(spec, base_config(settings, dataset), scene_path)
     render_changes = check_compatible(run_dir, cfg)
@@ -297,8 +285,6 @@ def run_method(spec: MethodSpec, dataset, scene_path: Path, run_dir: Path, setti
 
     calibration = None
     if spec.calibrate:
-        from stochastic_fields.calibration import calibrate_run, describe, load_run_calibration
-
         calibration = load_run_calibration(run_dir)
         if (stages.get("calibrate", {}).get("fingerprint") != fp_cal
                 or (calibration is not None and not calibration.independent_depth_scores)):  # benchmarks score: refit
@@ -356,16 +342,12 @@ def scene_inputs(scene: str, settings: BenchmarkSettings, data_root: Path | None
     """What every method of a scene is scored on: (scene folder, dataset with every 5th view
     training, the scored test views, {view: SparseDepth} of the SCORE capture points or None
     where the scene has exact depth maps or no points)."""
-    from stochastic_fields.data import detect_format, load_dataset
-
     scene_path = resolve_scene(scene, data_root)
     if detect_format(scene_path) == "llff":
         dataset = load_dataset(scene_path, images=settings.images, split_every=5)
     else:
         dataset = load_dataset(scene_path, split_every=5)
     views = select_views(list(dataset.test_indices), settings)
-    from stochastic_fields.capture_points import score_sparse_depth
-
     sparse = score_sparse_depth(dataset, views)
     if sparse is None and getattr(dataset, "depths", None) is None:
         log(f"[{dataset.name}] no sparse depth ground truth: the scene has no COLMAP points")

@@ -27,32 +27,37 @@ import argparse
 import json
 import math
 import multiprocessing as mp
+import os
 import platform
 import resource
 import time
+import traceback
 from dataclasses import replace
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
 import numpy as np
 import torch
+
+from stochastic_fields import metrics as M
+from stochastic_fields.cameras import generate_rays_for_view
+from stochastic_fields.config import ExperimentConfig, from_dict, preset, to_dict
+from stochastic_fields.evaluation import score_view
+from stochastic_fields.io_utils import atomic_write_text
+from stochastic_fields.rays import RayBundle
+from stochastic_fields.renderer import render_image
+from stochastic_fields.scenes import load_run_dataset
+from stochastic_fields.trainer import Trainer, TrainingRays, load_trained_model
+from stochastic_fields.view_maps import camera_z_maps
+from stochastic_fields.data.synthetic import make_synthetic_scene
+from stochastic_fields.sparse_depth import paired_depth_scores, sparse_depth_for_dataset
+import shutil
 
 K_VALUES = (1, 4, 8, 16, 32, 64, 128)
 
 
 # ----------------------------------------------------------------------------------- arguments
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", default="benchmarks/results", help="Output folder for bench.json and plots.")
-    parser.add_argument("--data", default="../shared/data", help="Reference data folder (fern is skipped if absent).")
-    parser.add_argument("--quick", action="store_true", help="Small budget (about 10 minutes on 2 CPU cores).")
-    parser.add_argument("--iterations", type=int, default=None, help="Training steps per backend (default 100 quick, 3000).")
-    parser.add_argument("--mlp-iterations", type=int, default=None, help="Training steps of the MLP (default: --iterations).")
-    parser.add_argument("--mlp-width", type=int, default=None, help="MLP trunk width (paper: 256; default 64 quick, 256).")
-    parser.add_argument("--rays-per-batch", type=int, default=None, help="Training rays per step (default 512 quick, 1024).")
-    parser.add_argument("--eval-pixels", type=int, default=None, help="Test pixels for the training curves (default 1024 quick, 8192).")
-    parser.add_argument("--curve-points", type=int, default=8,
-                        help="Evaluations along each training curve, spaced geometrically in steps (early quality is where backends differ).")
-    parser.add_argument("--view-stride", type=int, default=None, help="Pixel stride of the rendered view (default 4 quick on fern, 1).")
-    parser.add_argument("--scenes", default="synthetic,fern", help="Comma-separated scenes: synthetic, fern.")
 
 
 def _budget(args) -> dict:
@@ -73,8 +78,6 @@ def _budget(args) -> dict:
 
 # ----------------------------------------------------------------------------------- scenes
 def _scene_config(scene: str, backend: str, budget: dict, scene_path: Path):
-    from stochastic_fields.config import preset
-
     cfg = preset("llff" if scene == "fern" else "demo")
     cfg.data.path = str(scene_path)
     cfg.data.split = "paper"  # the paper's protocol, explicitly (not the capture default)
@@ -93,16 +96,11 @@ def _scene_config(scene: str, backend: str, budget: dict, scene_path: Path):
 
 
 def _load(cfg):
-    from stochastic_fields.scenes import load_run_dataset
-
     return load_run_dataset(cfg, Path(cfg.data.path))
 
 
 def _eval_pixels(dataset, count: int, seed: int = 0):
     """A fixed random subset of test pixels: rays [P] and colours [P, 3]."""
-    from stochastic_fields.cameras import generate_rays_for_view
-    from stochastic_fields.rays import RayBundle
-
     rays, colours = [], []
     for v in dataset.test_indices:
         rays.append(generate_rays_for_view(dataset.cameras, v, dataset.near, dataset.far).flatten())
@@ -113,8 +111,6 @@ def _eval_pixels(dataset, count: int, seed: int = 0):
 
 
 def _score_pixels(model, rays, colours, num_draws: int = 16) -> dict:
-    from stochastic_fields import metrics as M
-
     maps = model.render_view(rays, model.render_options(num_draws=num_draws), generator=torch.Generator().manual_seed(0))
     mean, var = maps["colour_mean"].double(), maps["colour_var"].double()
     return {"psnr": M.psnr(mean, colours.double()), "nll": M.gaussian_nll(colours.double(), mean, var),
@@ -137,9 +133,6 @@ def _rss_mb() -> float:
 
 def _train_child(cfg_dict: dict, run_dir: str, budget: dict, queue) -> None:
     """Train one backend in a fresh process (its peak memory is its own) and evaluate along the way."""
-    from stochastic_fields.config import ExperimentConfig, from_dict
-    from stochastic_fields.trainer import Trainer
-
     try:
         torch.set_num_threads(torch.get_num_threads())
         cfg = from_dict(ExperimentConfig, cfg_dict)
@@ -163,14 +156,10 @@ def _train_child(cfg_dict: dict, run_dir: str, budget: dict, queue) -> None:
                    "model_size_mb": params / 2**20, "model_buffers_mb": buffers / 2**20,
                    "steps_per_s": trainer.step / max(trainer.elapsed, 1e-9)})
     except Exception as exc:  # report the failure to the parent instead of hanging it
-        import traceback
-
         queue.put({"error": f"{type(exc).__name__}: {exc}", "traceback": traceback.format_exc()})
 
 
 def train_backend(cfg, run_dir: Path, budget: dict) -> dict:
-    from stochastic_fields.config import to_dict
-
     ctx = mp.get_context("spawn")
     queue = ctx.Queue()
     proc = ctx.Process(target=_train_child, args=(to_dict(cfg), str(run_dir), budget, queue))
@@ -212,17 +201,12 @@ def _timed_pair(fn_a, fn_b, repeats: int | None = None):
 
 
 def _view_scores(maps, gt, gt_depth, sparse, stride: int) -> dict:
-    from stochastic_fields.evaluation import score_view
-    from stochastic_fields.view_maps import camera_z_maps
-
     products = camera_z_maps(maps)
     s = score_view(products, gt, gt_depth)
     out = {k: (v.value if hasattr(v, "value") else v) for k, v in s.items() if not isinstance(v, dict)}
     if gt_depth is not None:
         out["depth_abs_rel"], out["depth_rmse"] = out["depth/abs_rel"], out["depth/rmse"]
     if sparse is not None:
-        from stochastic_fields.sparse_depth import paired_depth_scores
-
         rows, cols = sparse.rows // stride, sparse.cols // stride
         ok = (rows < gt.shape[0]) & (cols < gt.shape[1])
         rows, cols = rows[ok], cols[ok]
@@ -239,9 +223,6 @@ def _view_scores(maps, gt, gt_depth, sparse, stride: int) -> dict:
 
 def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> dict:
     """K sweep, adaptive K, skipping on/off, deterministic ratio on one test view of a trained model."""
-    from stochastic_fields.cameras import generate_rays_for_view
-    from stochastic_fields.renderer import render_image
-
     view = int(dataset.test_indices[0])
     rays = generate_rays_for_view(dataset.cameras, view, dataset.near, dataset.far)[::stride, ::stride]
     gt = dataset.images[view][::stride, ::stride].numpy()
@@ -250,8 +231,6 @@ def render_experiments(model, dataset, stride: int, scene_root: Path | None) -> 
     sparse = None
     if gt_depth is None:
         try:
-            from stochastic_fields.sparse_depth import sparse_depth_for_dataset
-
             sparse = sparse_depth_for_dataset(dataset, [view])[view]
         except (ImportError, FileNotFoundError, ValueError) as exc:
             print(f"  (no sparse depth for view {view}: {exc})")
@@ -349,8 +328,6 @@ SKIPPING_CRITERIA = ((3.0, 1e-4), (2.0, 1e-3), (1.0, 1e-2), (0.0, 1e-2))
 def skipping_sweep(model, rays, settings, num_draws: int, score) -> list[dict]:
     """Occupancy rebuilt from the trained field at each of SKIPPING_CRITERIA; one render each:
     field evaluations per ray, time and scores (the trained occupancy is restored afterwards)."""
-    from stochastic_fields.renderer import render_image
-
     saved = {k: v.clone() for k, v in model.occupancy.state_dict().items()}
     rows = []
     try:
@@ -370,8 +347,6 @@ def skipping_sweep(model, rays, settings, num_draws: int, score) -> list[dict]:
 
 def training_step_times(model, dataset, steps: int, rays_per_batch: int) -> dict:
     """Forward + backward time of S-NeRF's training loss with and without empty-space skipping."""
-    from stochastic_fields.trainer import TrainingRays
-
     data = TrainingRays.from_dataset(dataset, torch.device("cpu"))
     model.train()
     out = {}
@@ -418,11 +393,7 @@ def field_throughput(field, region, points: int = 65536) -> dict:
 
 # ----------------------------------------------------------------------------------- plots
 def make_plots(results: dict, out: Path) -> list[str]:
-    import matplotlib
-
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     files = []
     scenes = list(results["scenes"])
     fig, axes = plt.subplots(len(scenes), 2, figsize=(10, 3.6 * len(scenes)), squeeze=False)
@@ -574,8 +545,6 @@ def evaluate_targets(results: dict) -> dict:
 
 # ----------------------------------------------------------------------------------- main
 def machine_description() -> dict:
-    import os
-
     cpu = "unknown"
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -590,8 +559,6 @@ def machine_description() -> dict:
 
 
 def run(args: argparse.Namespace) -> None:
-    from stochastic_fields.trainer import load_trained_model
-
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     work = out / "work"
@@ -609,8 +576,6 @@ def run(args: argparse.Namespace) -> None:
     scenes = [s.strip() for s in args.scenes.split(",") if s.strip()]
     for scene in scenes:
         if scene == "synthetic":
-            from stochastic_fields.data.synthetic import make_synthetic_scene
-
             path = work / "scene_synthetic"
             if not (path / "transforms.json").exists():
                 make_synthetic_scene(path)
@@ -629,8 +594,6 @@ def run(args: argparse.Namespace) -> None:
             cfg = _scene_config(scene, backend, budget, path)
             run_dir = work / f"{scene}_{backend}"
             if run_dir.exists():
-                import shutil
-
                 shutil.rmtree(run_dir)
             print(f"  training {backend} ({cfg.train.iterations} steps x {cfg.train.rays_per_batch} rays)")
             res["training"][backend] = train_backend(cfg, run_dir, budget)
@@ -652,8 +615,6 @@ def run(args: argparse.Namespace) -> None:
             res["throughput"][name] = tp
         # deterministic ratio of the MLP backbone on the curve pixels (a full view is too slow on CPU)
         rays, _ = _eval_pixels(dataset, min(budget["eval_pixels"], 2048))
-        from stochastic_fields.renderer import render_image
-
         occ = mlp_model.occupied if mlp_model.occupancy is not None else None
         with torch.no_grad():
             (_, t_det), (_, t_sto) = _timed_pair(
@@ -672,8 +633,6 @@ def run(args: argparse.Namespace) -> None:
 
 
 def _write(out: Path, results: dict) -> None:
-    from stochastic_fields.io_utils import atomic_write_text
-
     atomic_write_text(out / "bench.json", json.dumps(results, indent=2, default=float))
 
 

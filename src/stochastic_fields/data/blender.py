@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
+import imageio.v3 as iio
 
 from ..cameras import backproject_depths, make_cameras, opengl_c2w_to_opencv_w2c
 from .capture import bounds_from_points, is_forward_facing, visible_points_by_projection
@@ -226,8 +227,6 @@ def _downscaled_file(json_path: Path, path: Path, factor: int) -> Path | None:
 
 def _image_size(path: Path) -> tuple[int, int]:
     """(H, W) of an image file without decoding all of it."""
-    import imageio.v3 as iio
-
     try:
         shape = iio.improps(path).shape
     except Exception as exc:
@@ -244,8 +243,6 @@ def _read_depth(path: Path, scale: float) -> np.ndarray:
             raise DatasetError(path, f"unreadable depth array ({type(exc).__name__}: {exc})") from exc
         depth = np.asarray(depth, dtype=np.float32)
     elif path.suffix.lower() == ".png":
-        import imageio.v3 as iio
-
         raw = iio.imread(path)
         if raw.dtype != np.uint16 or raw.ndim != 2:
             raise DatasetError(path, f"depth PNG must be single-channel 16-bit, got {raw.dtype} {raw.shape}")
@@ -531,7 +528,7 @@ def _sparse_points(json_path: Path, meta: dict, cameras, paths: list[Path]):
         ply_path = folder / str(ply)
         if not ply_path.is_file():
             raise DatasetError(ply_path, f"missing point cloud (ply_file_path in {json_path.name})")
-        import trimesh
+        import trimesh  # heavy optional dependency (trimesh, about 1 s to import): only for a scene's point-cloud PLY
 
         try:
             cloud = trimesh.load(ply_path, process=False)

@@ -257,7 +257,7 @@ def read_colmap_model(path: str | Path) -> ColmapModel:
     Only registered images (those with a pose) are returned, sorted by name. DatasetError naming
     the folder if pycolmap cannot read it or it registers no image.
     """
-    import pycolmap
+    import pycolmap  # heavy optional dependency (pycolmap): loaded only when used
 
     path = Path(path)
     if not path.is_dir():
@@ -309,7 +309,7 @@ def read_colmap_model(path: str | Path) -> ColmapModel:
 # ---------------------------------------------------------------------- camera models
 def pycolmap_camera(camera: ColmapCamera):
     """The pycolmap.Camera of a :class:`ColmapCamera` (for projections and rescaling)."""
-    import pycolmap
+    import pycolmap  # heavy optional dependency (pycolmap): loaded only when used
 
     try:
         return pycolmap.Camera(model=camera.model, width=int(camera.width), height=int(camera.height),

@@ -56,36 +56,25 @@ from pathlib import Path
 import numpy as np
 import torch
 from tqdm.auto import tqdm
+import imageio.v3 as iio
 
 from ..io_utils import atomic_path, atomic_write, atomic_write_text
 from .colmap import ColmapCamera, read_colmap_model
 from .dataset import IMAGE_SUFFIXES, read_image
 from .errors import DatasetError
+from ..cameras import opencv_w2c_to_opengl_c2w
+from .blender import _area_downscale
+from ..defaults import (CAMERA_MODELS, DEFAULT_MAX_FRAMES, DEFAULT_MIN_REGISTERED_FRACTION, DEFAULT_VIDEO_FPS,
+                        MAPPING_STRATEGIES, RELAXED_INIT_MIN_TRI_ANGLE_DEG)  # noqa: F401  (defaults the command line shows)
 
 #: Video files ``prepare`` splits into frames (decoded with imageio's PyAV plugin).
 VIDEO_SUFFIXES: tuple[str, ...] = (".mp4", ".mov", ".avi", ".mkv", ".webm", ".m4v", ".mpg", ".mpeg")
 #: Downscaled copies written next to ``images/`` (``images_<d>``), as LLFF and nerfstudio do.
 DOWNSCALE_FACTORS: tuple[int, ...] = (2, 4, 8)
-#: Default frames per second of footage kept from a video.
-DEFAULT_VIDEO_FPS: float = 2.0
-#: Default cap on the frames kept from a video.
-DEFAULT_MAX_FRAMES: int = 300
 #: Fewer registered images than this and no radiance field can be trained.
 MIN_REGISTERED_IMAGES: int = 3
-#: Default fraction of the input images that must register.
-DEFAULT_MIN_REGISTERED_FRACTION: float = 0.5
 #: Fewer SIFT features than this in an image is reported as the likely reason it failed.
 FEW_FEATURES: int = 100
-#: COLMAP camera models ``prepare`` offers, with the nerfstudio ``camera_model`` each is written as.
-CAMERA_MODELS: dict[str, str] = {
-    "SIMPLE_PINHOLE": "OPENCV", "PINHOLE": "OPENCV", "SIMPLE_RADIAL": "OPENCV", "RADIAL": "OPENCV",
-    "OPENCV": "OPENCV", "SIMPLE_RADIAL_FISHEYE": "OPENCV_FISHEYE", "RADIAL_FISHEYE": "OPENCV_FISHEYE",
-    "OPENCV_FISHEYE": "OPENCV_FISHEYE",
-}
-#: Mapping strategies, tried in this order until one registers every image (module doc).
-MAPPING_STRATEGIES: tuple[str, ...] = ("incremental", "incremental-relaxed", "global")
-#: Median triangulation angle (degrees) the initial pair needs in ``incremental-relaxed`` (COLMAP: 16).
-RELAXED_INIT_MIN_TRI_ANGLE_DEG: float = 4.0
 #: Failed images named in a registration error (the rest are counted, and listed in failures.json).
 FAILURES_LISTED: int = 3
 #: pycolmap's glog level while it runs (3 = fatal only: its INFO lines would bury the progress bars, and a
@@ -150,8 +139,6 @@ def sharpness(image: np.ndarray) -> float:
 
 
 def _write_png(path: Path, image: np.ndarray) -> None:
-    import imageio.v3 as iio
-
     atomic_write(path, lambda tmp: iio.imwrite(tmp, image, extension=".png"))
 
 
@@ -163,8 +150,6 @@ def extract_video_frames(video: str | Path, out_dir: str | Path, *, fps: float =
     the sharpest frame of each window is kept. DatasetError naming the video if it cannot be
     opened or decoded, or yields no frame.
     """
-    import imageio.v3 as iio
-
     video, out_dir = Path(video), Path(out_dir)
     if not video.is_file():
         raise DatasetError(video, "missing video file")
@@ -220,8 +205,6 @@ def collect_photos(folder: str | Path, out_dir: str | Path, *, progress: bool = 
     Returns the copies, sorted by name. DatasetError naming the folder when it holds no photo, or
     naming the photo that cannot be read or whose size differs from the first.
     """
-    import imageio.v3 as iio
-
     folder, out_dir = Path(folder), Path(out_dir)
     if not folder.is_dir():
         raise DatasetError(folder, "missing photo folder")
@@ -254,7 +237,7 @@ def collect_photos(folder: str | Path, out_dir: str | Path, *, progress: bool = 
 
 # ---------------------------------------------------------------------- structure from motion
 def _device(name: str):
-    import pycolmap
+    import pycolmap  # heavy optional dependency (pycolmap): loaded only when used
 
     if name not in ("auto", "cpu", "cuda"):
         raise ValueError(f"device must be 'auto', 'cpu' or 'cuda', got {name!r}")
@@ -270,7 +253,7 @@ def _failure_reasons(database: Path, names: list[str], registered: set[str], min
     Each reason reads ``"<kind>: <detail>"``; the kinds are ``not imported by COLMAP``, ``few SIFT
     features``, ``too few matches`` and ``not placed by the mapper``.
     """
-    import pycolmap
+    import pycolmap  # heavy optional dependency (pycolmap): loaded only when used
 
     db = pycolmap.Database.open(database)
     try:
@@ -438,8 +421,6 @@ def nerfstudio_intrinsics(camera: ColmapCamera) -> dict:
 
 def write_transforms(model_dir: Path, scene_dir: Path, image_folder: str = "images") -> Path:
     """``scene_dir/transforms.json`` from the COLMAP model in ``model_dir`` (OpenGL camera-to-world)."""
-    from ..cameras import opencv_w2c_to_opengl_c2w
-
     model = read_colmap_model(model_dir)
     cams = {cid: nerfstudio_intrinsics(c) for cid, c in model.cameras.items()}
     used = sorted({im.camera_id for im in model.images})
@@ -483,10 +464,6 @@ def write_downscaled(images: list[Path], scene_dir: Path, factors=DOWNSCALE_FACT
     The file name is kept so that ``images_<d>/<name>`` mirrors ``images/<name>`` (nerfstudio's
     rule, which the loaders follow). Sizes: ``round(H / d) x round(W / d)``.
     """
-    import imageio.v3 as iio
-
-    from .blender import _area_downscale
-
     for path in tqdm(images, desc="downscaling", unit="img", disable=not progress):
         image = read_image(path)[..., :3]
         for d in factors:
@@ -530,7 +507,7 @@ def prepare(source: str | Path, scene_dir: str | Path, *, camera_model: str = "S
         num_threads=num_threads, device=device, seed=seed, progress=progress)
     timings.update(sfm_times)
     registered = {rec.images[i].name for i in rec.reg_image_ids()} if rec is not None else set()
-    import pycolmap
+    import pycolmap  # heavy optional dependency (pycolmap): loaded only when used
 
     failed = _failure_reasons(database, names, registered,
                               int(pycolmap.TwoViewGeometryOptions().min_num_inliers))
@@ -565,30 +542,6 @@ def prepare(source: str | Path, scene_dir: str | Path, *, camera_model: str = "S
 
 
 # ---------------------------------------------------------------------- CLI
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.description = ("Recover camera poses and intrinsics of a folder of photos or a video with pycolmap and "
-                     "write a scene folder that `stochastic-fields train --data.path` reads (docs/capture.md).")
-    p.add_argument("source", help="A folder of photos (png/jpg, one size) or a video file (mp4, mov, ...).")
-    p.add_argument("--out", required=True, help="Scene folder to write (images/, sparse/0/, transforms.json, ...).")
-    p.add_argument("--camera-model", default="SIMPLE_RADIAL", choices=tuple(CAMERA_MODELS),
-                   help="COLMAP camera model shared by all images (default SIMPLE_RADIAL: one focal length and "
-                        "one radial term; OPENCV for stronger lens distortion, OPENCV_FISHEYE for fisheyes).")
-    p.add_argument("--matcher", default=None, choices=("exhaustive", "sequential"),
-                   help="Feature matching: every pair (default for photos) or neighbours in order (default for video).")
-    p.add_argument("--mapping", default="auto", choices=("auto",) + MAPPING_STRATEGIES,
-                   help="SfM mapping: auto (default) tries incremental, then incremental-relaxed (an initial pair "
-                        f"needing {RELAXED_INIT_MIN_TRI_ANGLE_DEG:g} instead of 16 degrees of triangulation angle, for "
-                        "captures taken from one spot), then global (GLOMAP), until one registers every image.")
-    p.add_argument("--fps", type=float, default=DEFAULT_VIDEO_FPS,
-                   help="Video only: frames kept per second of footage (the sharpest of each window).")
-    p.add_argument("--max-frames", type=int, default=DEFAULT_MAX_FRAMES, help="Video only: at most this many frames.")
-    p.add_argument("--threads", type=int, default=-1, help="CPU threads for pycolmap (-1: all cores).")
-    p.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"),
-                   help="SIFT extraction/matching device (auto: CUDA when pycolmap is built with it).")
-    p.add_argument("--min-registered", type=float, default=DEFAULT_MIN_REGISTERED_FRACTION,
-                   help="Fail when fewer than this fraction of the images register (default 0.5).")
-    p.add_argument("--seed", type=int, default=0, help="Random seed of COLMAP's RANSAC and mapper.")
-    p.add_argument("--quiet", action="store_true", help="No progress bars.")
 
 
 def run(args: argparse.Namespace) -> None:
@@ -599,9 +552,3 @@ def run(args: argparse.Namespace) -> None:
                      min_registered_fraction=args.min_registered, seed=args.seed, progress=not args.quiet)
     print(result.summary())
     print(f"scene: {args.out} (train with: stochastic-fields train --data.path {args.out} --out RUN)")
-
-
-if __name__ == "__main__":  # pragma: no cover - python -m stochastic_fields.data.prepare
-    parser = argparse.ArgumentParser(prog="stochastic-fields prepare")
-    add_arguments(parser)
-    run(parser.parse_args())

@@ -42,7 +42,7 @@ from torch import Tensor, nn
 import torch.nn.functional as F
 
 from ..constants import NOISE_HEAD_INIT_STD, OUTSIDE_DENSITY_LOC
-from ..scene_region import SceneRegion
+from ..scene_region import frustum_points, SceneRegion
 from .base import FieldParams, StochasticField, inverse_positive_scale, inverse_softplus, positive_scale
 from .encoding import PositionalEncoding
 from .row_gather import gather_rows
@@ -248,8 +248,6 @@ def resolution_from_footprint(region: SceneRegion, intrinsics: Tensor, w2c: Tens
     Per axis of the unit cube, so a flat region gets few cells across its thin axis. The result
     is capped at ``max_cells`` cells (all axes scaled by the same factor).
     """
-    from ..scene_region import frustum_points
-
     K = intrinsics[:, :3, :3].float()
     pts = frustum_points(K, w2c, height, width, near.reshape(-1).expand(w2c.shape[0]), far.reshape(-1).expand(w2c.shape[0]), grid=5, depths=8)
     # world length of one pixel footprint at each frustum point: camera depth / focal length

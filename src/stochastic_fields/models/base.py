@@ -11,6 +11,7 @@ from torch import Tensor, nn
 
 from ..rays import RayBundle
 from ..renderer import ChunkGenerators, RenderOptions, RenderSettings
+from ..fields.grid import GridField
 
 
 #: Learning-rate multiplier of grid cells relative to network weights and priors.
@@ -54,8 +55,6 @@ class RadianceModel(nn.Module, abc.ABC):
         """Optimiser parameter groups: grid cells (of every GridField inside) at
         ``GRID_LR_FACTOR * lr`` (each cell sees few rays per step) and marked ``sparse`` (their
         gradients are sparse, see ``optim.FieldOptimizer``), everything else at ``lr``."""
-        from ..fields.grid import GridField
-
         grid = [p for m in self.modules() if isinstance(m, GridField) for p in m.levels.parameters()]
         ids = {id(p) for p in grid}
         rest = [p for p in self.parameters() if id(p) not in ids and p.requires_grad]

@@ -54,7 +54,7 @@ from typing import Callable, Iterator
 import torch
 from torch import Tensor, nn
 
-from ..constants import NERFW_BETA_MIN
+from ..constants import FIELD_STD_FLOOR, NERFW_BETA_MIN
 from ..fields.base import FieldParams, StochasticField
 from ..fields.grid import GridField
 from ..losses import LossConfig, gaussian_likelihood_nll
@@ -357,8 +357,6 @@ def nerfw_point_variance(params: FieldParams) -> Tensor:
     ``beta = softplus(raw) = rgb_scale - FIELD_STD_FLOOR`` (``rgb_scale`` is softplus(raw) + floor);
     clamped at 0 against rounding.
     """
-    from ..constants import FIELD_STD_FLOOR
-
     return (params.rgb_scale - FIELD_STD_FLOOR).clamp_min(0.0) ** 2
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from .export import FORMATS, ExportOptions, export_run
+from .export_options import FORMATS, ExportOptions
 
 
 def _floats(name: str):
@@ -85,7 +85,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="Ignore the run's calibration.json: depth_std and the bands use the raw total std.")
     p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
     p.add_argument("--quiet", action="store_true", help="No progress bars.")
-    from ..cli import add_dist_timeout_argument
+    from ..cli import add_dist_timeout_argument  # deferred: loads only when this command runs (keeps --help fast)
 
     add_dist_timeout_argument(p)
 
@@ -102,7 +102,8 @@ def options_from_args(args: argparse.Namespace) -> ExportOptions:
 
 
 def run(args: argparse.Namespace) -> None:
-    from ..distributed import sharding_from_environment
+    from ..distributed import sharding_from_environment  # deferred: loads only when this command runs (keeps --help fast)
+    from .export import export_run  # deferred: loads only when this command runs (keeps --help fast)
 
     opts = options_from_args(args)
     with sharding_from_environment(args.run, args.device, timeout_s=args.dist_timeout) as ctx:

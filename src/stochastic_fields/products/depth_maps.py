@@ -47,10 +47,15 @@ from typing import Callable, Sequence
 
 import numpy as np
 import torch
+import imageio.v3 as iio
+import matplotlib
+import matplotlib.pyplot as plt
+import tifffile
 
 from ..calibration import apply_calibration
 from ..view_maps import camera_z_maps
 from ..io_utils import atomic_path, atomic_write_text
+from .export_options import check_quantile_levels  # noqa: F401  (re-exported)
 
 #: Colour range (relative) given to a constant map so matplotlib can draw it.
 FLAT_MAP_RANGE: float = 1e-3
@@ -176,17 +181,6 @@ def gaussian_band(mean: np.ndarray, std: np.ndarray, level: float) -> tuple[np.n
     mean = np.asarray(mean, np.float64)
     std = np.asarray(std, np.float64)
     return (mean - z * std).astype(np.float32), (mean + z * std).astype(np.float32)
-
-
-def check_quantile_levels(levels: Sequence[float]) -> np.ndarray:
-    """[Q] float64 levels in the given order; ValueError naming the bad one if outside (0, 1)."""
-    arr = np.asarray([float(q) for q in levels], dtype=np.float64)
-    if arr.size == 0:
-        raise ValueError("quantile levels: need at least one level in (0, 1)")
-    bad = [float(q) for q in arr if not 0.0 < q < 1.0]
-    if bad:
-        raise ValueError(f"quantile levels must lie strictly between 0 and 1, got {bad}")
-    return arr
 
 
 # ------------------------------------------------------------------------------- estimators
@@ -329,8 +323,6 @@ def write_png16(path: str | Path, depth: np.ndarray, valid: np.ndarray, *, max_d
     Sidecar: ``{"scale", "formula": "depth = value * scale", "invalid_value": 0, "units",
     "depth_kind": "camera_z", "quantity", "image"}``.
     """
-    import imageio.v3 as iio
-
     path = Path(path)
     scale = png16_scale(max_depth)
     img = encode_png16(depth, valid, scale)
@@ -346,8 +338,6 @@ def write_png16(path: str | Path, depth: np.ndarray, valid: np.ndarray, *, max_d
 
 def read_png16(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """(depth [H, W] float64, valid [H, W] bool) from a PNG written by :func:`write_png16`."""
-    import imageio.v3 as iio
-
     path = Path(path)
     sidecar = path.with_suffix(".json")
     if not sidecar.is_file():
@@ -364,8 +354,6 @@ def write_tiff(path: str | Path, products: DepthProducts) -> Path:
     :meth:`DepthProducts.maps` in that order, NaN where not ``valid`` (opacity is kept
     everywhere). The ImageDescription is JSON: ``{"pages": [...], "units", "nodata": "nan",
     "conventions", "min_opacity"}``."""
-    import tifffile
-
     path = Path(path)
     maps = products.maps()
     names = list(maps)
@@ -379,8 +367,6 @@ def write_tiff(path: str | Path, products: DepthProducts) -> Path:
 
 def read_tiff(path: str | Path) -> dict[str, np.ndarray]:
     """Maps by name from a TIFF written by :func:`write_tiff`."""
-    import tifffile
-
     with tifffile.TiffFile(path) as tf:
         desc = json.loads(tf.pages[0].description)
         data = tf.asarray()
@@ -391,11 +377,7 @@ def write_colourised(path: str | Path, products: DepthProducts, *, title: str = 
     """PNG for people (atomic): depth mean (turbo) and total std (magma) side by side, each with
     a colour bar labelled with its units; invalid pixels grey. Ranges: 1st-99th percentile of
     the valid pixels (std from 0)."""
-    import matplotlib
-
     matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
     path = Path(path)
     H, W = products.shape
     valid = products.valid

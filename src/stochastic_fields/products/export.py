@@ -35,6 +35,7 @@ from typing import Sequence
 
 import numpy as np
 import torch
+import trimesh
 
 from ..cameras import generate_rays_for_view, intrinsics_3x3, make_cameras
 from ..data.dataset import parse_views
@@ -48,111 +49,17 @@ from .fusion import check_voxel_size, fuse_clouds
 from .pointcloud import (CloudArrays, PointFilter, cloud_from_products, filter_cloud, most_confident,
                          uncertainty_range, write_ply)
 from .render_cloud import render_cloud_png
-from .ros_depth import MetricScale, write_ros_depth
+from .ros_depth import metres_per_unit_from_known_distance, MetricScale, write_ros_depth
+from ..calibration import load_run_calibration
+from ..trainer import load_trained_model
+from .export_options import DEFAULT_FORMATS, FORMATS, ExportOptions  # noqa: F401  (re-exported)
 
-FORMATS: tuple[str, ...] = ("npz", "png16", "tiff", "png", "ros")
-#: Formats written when none are named ('ros' needs a metric scale, so it is asked for by name).
-DEFAULT_FORMATS: tuple[str, ...] = ("npz", "png16", "tiff", "png")
 #: Tolerance on R^T R = I for a user's world_to_camera: poses typed or exported with 5-6
 #: significant digits pass, a scaled or sheared matrix (off by 1e-2 or more) does not.
 ROTATION_TOLERANCE: float = 1e-4
 #: Central interval levels checked against ground truth, and their Gaussian half-widths in std.
 CALIBRATION_LEVELS: dict[str, tuple[float, float]] = {"68": (0.682689492, 1.0), "90": (0.9, 1.644853627),
                                                       "95": (0.95, 1.959963985)}
-
-
-@dataclass
-class ExportOptions:
-    """What ``export`` writes; every field is a CLI option (see products/cli.py)."""
-
-    views: str = "test"
-    """'test', 'train', 'all' or comma-separated dataset view indices; ignored with ``cameras``."""
-    cameras: Path | None = None
-    """JSON list of {"K": 3x3, "world_to_camera": 4x4, "width", "height"[, "near", "far", "name"]} (OpenCV)."""
-    out: Path | None = None
-    """Output folder (default: RUN/export)."""
-    num_draws: int | None = None
-    """K depth trajectories per pixel (default: the run's render.num_draws)."""
-    formats: tuple[str, ...] = DEFAULT_FORMATS
-    """Per-view map formats: npz, png16, tiff, png (colourised), ros (REP 118 metres/millimetres + CameraInfo)."""
-    quantiles: tuple[float, ...] = (0.05, 0.95)
-    """Depth quantile levels from the K draws."""
-    min_opacity: float = 0.5
-    """Pixels with lower accumulated opacity are invalid (no depth, no point)."""
-    max_std: float | None = None
-    """Drop points with total depth std above this (scene units)."""
-    max_rel_std: float | None = None
-    """Drop points with depth_std / depth above this."""
-    keep_fraction: float | None = None
-    """Keep only this fraction of each view's most confident points."""
-    colour_by: str = "rgb"
-    """PLY colours: 'rgb' (rendered colour) or 'uncertainty' (depth_std through a colour map)."""
-    fuse: bool = False
-    """Also write one fused cloud of all views."""
-    voxel_size: float | None = None
-    """Fusion voxel size (default: the median pixel footprint)."""
-    free_space_thresholds: tuple[float, ...] = ()
-    """Camera-z distances d for a per-view P(depth > d) volume [T, H, W]."""
-    covariance: bool = False
-    """Add per-point 3x3 covariances (cov_xx .. cov_zz) to the PLYs."""
-    save_draws: bool = False
-    """Store the [H, W, K] per-draw depths in the npz (for free-space queries at any distance)."""
-    units: str = "scene units"
-    """Name of the length unit written into every file."""
-    metres_per_unit: float | None = None
-    """Metres per scene unit (needed by the 'ros' format; written into every npz)."""
-    known_distance: tuple[float, float, float] | None = None
-    """(i, j, metres): dataset cameras i and j are this far apart; sets metres_per_unit."""
-    scale_source: str | None = None
-    """Where metres_per_unit came from (set by export_run for a known distance)."""
-    seed: int = 0
-    """Seed of the K draws."""
-    raw_uncertainty: bool = False
-    """Ignore the run's calibration.json (depth_std then is the raw total std; by default it is recalibrated, the raw one kept as depth_std_raw)."""
-    device: str | None = None
-    """auto, cpu or cuda (default: the run's)."""
-    progress: bool = True
-    """Show progress bars."""
-
-    def validate(self) -> None:
-        bad = [f for f in self.formats if f not in FORMATS]
-        if bad:
-            raise ValueError(f"unknown format(s) {bad}; choose from {list(FORMATS)}")
-        check_quantile_levels(self.quantiles)
-        if not 0.0 <= self.min_opacity <= 1.0:
-            raise ValueError(f"min_opacity must be in [0, 1], got {self.min_opacity}")
-        if self.colour_by not in ("rgb", "uncertainty"):
-            raise ValueError(f"colour_by must be 'rgb' or 'uncertainty', got {self.colour_by!r}")
-        if self.num_draws is not None and not 2 <= self.num_draws <= 4096:
-            raise ValueError(f"num_draws must be in [2, 4096] for depth uncertainty, got {self.num_draws}")
-        if self.voxel_size is not None and not self.voxel_size > 0:
-            raise ValueError(f"voxel_size must be positive, got {self.voxel_size}")
-        if any(not (math.isfinite(t) and t > 0) for t in self.free_space_thresholds):
-            raise ValueError(
-                f"free-space thresholds must be positive distances, got {list(self.free_space_thresholds)}")
-        if self.metres_per_unit is not None and not (math.isfinite(self.metres_per_unit) and self.metres_per_unit > 0):
-            raise ValueError(f"--metres-per-unit must be a positive number, got {self.metres_per_unit}")
-        if self.metres_per_unit is not None and self.known_distance is not None and self.scale_source is None:
-            raise ValueError("give either --metres-per-unit or --known-distance, not both")
-        if "ros" in self.formats and self.metres_per_unit is None and self.known_distance is None:
-            raise ValueError("--formats ros writes depth in metres: give --metres-per-unit or --known-distance "
-                             "I,J,METRES (scene units are not metres for LLFF or structure-from-motion captures)")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ValueError(f"seed must be a non-negative integer, got {self.seed!r}")
-        if not isinstance(self.units, str) or not 0 < len(self.units) <= 64 or not self.units.isprintable():
-            raise ValueError(f"units must be 1-64 printable characters (it is written into file headers), "
-                             f"got {self.units!r}")
-        self.point_filter()
-
-    def metric_scale(self) -> MetricScale | None:
-        """The metric scale of the export, or None when unknown."""
-        if self.metres_per_unit is None:
-            return None
-        return MetricScale(float(self.metres_per_unit), self.scale_source or "--metres-per-unit (given by the user)")
-
-    def point_filter(self) -> PointFilter:
-        return PointFilter(min_opacity=self.min_opacity, max_std=self.max_std, max_rel_std=self.max_rel_std,
-                           keep_fraction=self.keep_fraction)
 
 
 @dataclass
@@ -363,9 +270,7 @@ class CalibrationAccumulator:
 def surface_distances(points: np.ndarray, mesh_path: str | Path) -> np.ndarray:
     """Unsigned distance [N] of world points [N, 3] to the triangle mesh in ``mesh_path``
     (Open3D RaycastingScene.compute_distance, float32)."""
-    import open3d as o3d
-    import trimesh
-
+    import open3d as o3d  # heavy optional dependency (Open3D): loaded only when used
     try:
         mesh = trimesh.load(str(mesh_path), force="mesh", process=False)
     except Exception as exc:  # trimesh raises bare exceptions for damaged files ("PLY is unexpected length!")
@@ -417,8 +322,6 @@ def export_run(run_dir: str | Path, opts: ExportOptions, *, distributed=None) ->
     """Export the products of a trained run (see the module doc). Returns the summary it saves.
     ``distributed``: this rank's ``distributed.DistContext`` (see ``export_views``); the model is
     loaded on the rank's device."""
-    from ..trainer import load_trained_model
-
     opts.validate()
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -426,8 +329,6 @@ def export_run(run_dir: str | Path, opts: ExportOptions, *, distributed=None) ->
     device = opts.device if distributed is None else str(distributed.device)
     cfg, model, dataset = load_trained_model(run_dir, device=device)
     if opts.known_distance is not None:
-        from .ros_depth import metres_per_unit_from_known_distance
-
         i, j, metres = opts.known_distance
         if i != int(i) or j != int(j):
             raise ValueError(f"--known-distance: camera indices must be integers, got {i}, {j}")
@@ -445,8 +346,6 @@ def export_run(run_dir: str | Path, opts: ExportOptions, *, distributed=None) ->
         check_voxel_size(opts.voxel_size, reach)
     out = Path(opts.out) if opts.out is not None else run_dir / "export"
     mesh_path = Path(dataset.root) / "scene.ply"
-    from ..calibration import load_run_calibration
-
     calibration = None if opts.raw_uncertainty else load_run_calibration(run_dir)
     return export_views(model, specs, out, opts, mesh_path=mesh_path if mesh_path.is_file() else None,
                         run_name=str(run_dir), calibration=calibration, distributed=distributed)

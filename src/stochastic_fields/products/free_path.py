@@ -30,11 +30,8 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+from ..defaults import (FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL)  # noqa: F401  (defaults the command line shows)
 
-#: Default transmittance level: a segment is free when more than half the light gets through.
-FREE_TRANSMITTANCE_LEVEL: float = 0.5
-#: Default number of density trajectories.
-FREE_PATH_NUM_DRAWS: int = 256
 #: Points per chunk (segments x samples) of field evaluations.
 FREE_PATH_CHUNK_POINTS: int = 262_144
 

@@ -15,8 +15,11 @@ from pathlib import Path
 
 import torch
 
-from ..io_utils import read_json
+from ..io_utils import atomic_write_text, read_json
 from .free_path import FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, path_free_probability, segment_free_probability
+from ..cameras import image_size, intrinsics_3x3
+from ..trainer import load_trained_model
+from .occupancy_map import footprint_voxel_size
 
 
 def _points(path: Path, key: str, value, shape_tail: tuple[int, ...]) -> torch.Tensor:
@@ -44,26 +47,7 @@ def load_queries(path: str | Path) -> tuple[torch.Tensor | None, torch.Tensor | 
     return segs, way
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--run", required=True, help="Trained S-NeRF run folder.")
-    p.add_argument("--queries", required=True, type=Path, help='JSON with "segments" and/or "path" (world, scene units).')
-    p.add_argument("--out", type=Path, default=None, help="Write the answers to this JSON file (default: print).")
-    p.add_argument("--num-draws", type=int, default=FREE_PATH_NUM_DRAWS, help="K density trajectories (default 256).")
-    p.add_argument("--level", type=float, default=FREE_TRANSMITTANCE_LEVEL,
-                   help="Free = transmittance along the segment above this (default 0.5).")
-    p.add_argument("--step", type=float, default=None, help="Sample spacing along segments (default: from footprint).")
-    p.add_argument("--shared-noise", choices=("run", "true", "false"), default="run",
-                   help="Share eps along a segment per draw (default: as the run renders).")
-    p.add_argument("--seed", type=int, default=0, help="Seed of the draws.")
-    p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
-
-
 def run(args: argparse.Namespace) -> None:
-    from ..cameras import image_size, intrinsics_3x3
-    from ..io_utils import atomic_write_text
-    from ..trainer import load_trained_model
-    from .occupancy_map import footprint_voxel_size
-
     segs, way = load_queries(args.queries)
     if args.num_draws < 1:
         raise ValueError(f"--num-draws must be >= 1, got {args.num_draws}")

@@ -48,14 +48,12 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
-from ..io_utils import atomic_path
+from ..io_utils import atomic_path, atomic_write_text
+from ..cameras import image_size, intrinsics_3x3
+from ..scene_region import frustum_points
+from ..trainer import load_trained_model
+from ..defaults import (BLOCKED_OPACITY, OCCUPANCY_MAX_CELLS, OCCUPANCY_PIXELS_PER_VOXEL)  # noqa: F401  (defaults the command line shows)
 
-#: Opacity of one voxel crossing that counts as "blocked" for the default density threshold.
-BLOCKED_OPACITY: float = 0.5
-#: Pixels a voxel should span where the cameras see it (a voxel below one pixel is not resolved).
-OCCUPANCY_PIXELS_PER_VOXEL: float = 2.0
-#: Most voxels in the region (coarser voxels beyond this): 2M cells evaluate in seconds on a CPU.
-OCCUPANCY_MAX_CELLS: int = 2_000_000
 #: Voxels with a lower probability are not listed (they are free).
 OCCUPANCY_MIN_PROBABILITY: float = 1e-3
 #: OctoMap clamping: probabilities in (0, 1) are kept up to this distance from 0 and 1.
@@ -94,8 +92,6 @@ def footprint_voxel_size(region, intrinsics: Tensor, w2c: Tensor, height: int, w
                          *, pixels_per_voxel: float = OCCUPANCY_PIXELS_PER_VOXEL,
                          max_cells: int = OCCUPANCY_MAX_CELLS) -> float:
     """Cubic voxel size from the images' footprint (module doc), coarsened to ``max_cells``."""
-    from ..scene_region import frustum_points
-
     K = intrinsics[:, :3, :3].float()
     V = w2c.shape[0]
     pts = frustum_points(K, w2c, height, width, near.reshape(-1).expand(V), far.reshape(-1).expand(V), grid=5, depths=8)
@@ -243,7 +239,7 @@ def read_occupancy_npz(path: str | Path) -> OccupancyMap:
 def write_octomap(path: str | Path, occ: OccupancyMap) -> Path:
     """Write an OctoMap ``.ot`` (full probabilities, pyoctomap; module doc). Resolution and
     coordinates in metres when ``occ.metres_per_unit`` is known, else scene units. Atomic."""
-    import pyoctomap
+    import pyoctomap  # heavy optional dependency (pyoctomap): loaded only when used
 
     path = Path(path)
     if path.suffix != ".ot":
@@ -283,10 +279,6 @@ def occupancy_from_run(run_dir: str | Path, out: str | Path, *, voxel_size: floa
                        octomap: bool = True, device: str | None = None, progress: bool = True) -> dict:
     """``stochastic-fields occupancy``: the occupancy map of a trained run into folder ``out``
     (``occupancy.npz``, ``occupancy.ot``, ``occupancy.json``). Returns the metadata."""
-    from ..cameras import image_size, intrinsics_3x3
-    from ..io_utils import atomic_write_text
-    from ..trainer import load_trained_model
-
     _, model, dataset = load_trained_model(Path(run_dir), device=device)
     if not hasattr(model, "region") or not hasattr(model, "field"):
         raise ValueError(f"{run_dir}: occupancy needs an S-NeRF run (a stochastic field and its region)")

@@ -16,6 +16,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import dijkstra
 
 from .occupancy_map import OccupancyMap
 
@@ -31,9 +33,6 @@ def plan_voxel_path(occ: OccupancyMap, start: np.ndarray, goal: np.ndarray, *,
 
     ``start``/``goal``: world points [3] inside known voxels. ValueError when either is outside the
     grid or region, or when no path exists."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import dijkstra
-
     X, Y, Z = occ.shape
     p = np.clip(occ.dense(unknown=np.nan).astype(np.float64), 0.0, 1.0 - PLAN_PROBABILITY_CLIP)
     known = occ.inside_region

@@ -44,10 +44,12 @@ import numpy as np
 import torch
 from kornia.geometry.camera.perspective import unproject_points
 from kornia.geometry.linalg import transform_points
+import matplotlib
 
 from ..cameras import invert_rigid, pixel_centres
 from ..io_utils import atomic_path
 from .depth_maps import DepthProducts
+from .export_options import PointFilter  # noqa: F401  (re-exported)
 
 #: Relative depth std at which ``confidence`` = 1/e (see module doc).
 CONFIDENCE_REL_STD_SCALE: float = 0.05
@@ -227,24 +229,6 @@ def cloud_from_products(products: DepthProducts, *, view: int = 0, mask: np.ndar
 
 
 # ------------------------------------------------------------------------------- filters
-@dataclass
-class PointFilter:
-    """Which points to keep; None disables a test. Applied in this order:
-    ``opacity >= min_opacity``, ``depth_std <= max_std``, ``depth_std / depth <= max_rel_std``,
-    then the ``keep_fraction`` most confident of what is left (ties keep the earlier point)."""
-
-    min_opacity: float | None = None
-    max_std: float | None = None
-    max_rel_std: float | None = None
-    keep_fraction: float | None = None
-
-    def __post_init__(self) -> None:
-        for name in ("min_opacity", "max_std", "max_rel_std"):
-            v = getattr(self, name)
-            if v is not None and not (np.isfinite(v) and v >= 0):
-                raise ValueError(f"PointFilter.{name} must be a non-negative number, got {v}")
-        if self.keep_fraction is not None and not 0.0 < self.keep_fraction <= 1.0:
-            raise ValueError(f"PointFilter.keep_fraction must be in (0, 1], got {self.keep_fraction}")
 
 
 def most_confident(confidence: np.ndarray, fraction: float) -> np.ndarray:
@@ -301,8 +285,6 @@ def point_colours(cloud: CloudArrays, colour_by: ColourBy = "rgb", *, value_rang
         return (rgb * 255.0 + 0.5).astype(np.uint8), {"colour_by": "rgb"}
     if colour_by != "uncertainty":
         raise ValueError(f"colour_by must be 'rgb' or 'uncertainty', got {colour_by!r}")
-    import matplotlib
-
     if quantity not in cloud.attributes:
         raise ValueError(f"cannot colour by {quantity!r}: the cloud has {sorted(cloud.attributes)}")
     values = cloud.attributes[quantity].astype(np.float64)
@@ -319,7 +301,7 @@ def point_colours(cloud: CloudArrays, colour_by: ColourBy = "rgb", *, value_rang
 def to_open3d(cloud: CloudArrays, colour_by: ColourBy = "rgb", *, value_range: tuple[float, float] | None = None):
     """``open3d.t.geometry.PointCloud`` with positions (float32), normals, uint8 colors and every
     attribute as an [N, 1] tensor."""
-    import open3d as o3d
+    import open3d as o3d  # heavy optional dependency (Open3D): loaded only when used
 
     colours, _ = point_colours(cloud, colour_by, value_range=value_range)
     pc = o3d.t.geometry.PointCloud()
@@ -379,7 +361,7 @@ def write_ply(path: str | Path, cloud: CloudArrays, colour_by: ColourBy = "rgb",
 
 def read_ply(path: str | Path) -> tuple[CloudArrays, np.ndarray]:
     """(cloud, uint8 colours [N, 3]) read back with Open3D (attributes as [N] arrays)."""
-    import open3d as o3d
+    import open3d as o3d  # heavy optional dependency (Open3D): loaded only when used
 
     path = Path(path)
     if not path.is_file():

@@ -21,6 +21,8 @@ import math
 from pathlib import Path
 
 import numpy as np
+import matplotlib
+import matplotlib.pyplot as plt
 
 from ..io_utils import atomic_path
 from .pointcloud import CloudArrays, uncertainty_range
@@ -101,11 +103,7 @@ def render_cloud_png(path: str | Path, cloud: CloudArrays, *, quantity: str = "d
     ``eye_direction``: world vector from the cloud's centre towards the eye; default from
     ``elev``/``azim`` (degrees) around ``up``. Returns the path.
     """
-    import matplotlib
-
     matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-
     if len(cloud) == 0:
         raise ValueError(f"render_cloud_png({path}): the cloud is empty")
     if quantity not in cloud.attributes:

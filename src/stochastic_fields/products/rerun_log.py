@@ -22,25 +22,20 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import matplotlib
 
 from .rosbag import load_export
-
-#: Entity paths.
-RERUN_CAMERAS: str = "world/cameras"
-RERUN_POINTS: str = "world/points"
+from .pointcloud import read_ply
+from ..defaults import RERUN_CAMERAS, RERUN_POINTS  # noqa: F401  (defaults the command line shows)
 
 
 def _confidence_colours(conf: np.ndarray) -> np.ndarray:
-    import matplotlib
-
     return (matplotlib.colormaps["viridis"](np.clip(conf, 0, 1))[:, :3] * 255).astype(np.uint8)
 
 
 def write_rerun(export_dir: str | Path, out: str | Path, *, application_id: str = "stochastic-fields") -> dict:
     """Write the recording (module doc) to ``out`` (.rrd). Returns {entity: rows logged}."""
-    import rerun as rr
-
-    from .pointcloud import read_ply
+    import rerun as rr  # heavy optional dependency (rerun-sdk): loaded only when used
 
     views = load_export(export_dir)
     out = Path(out)
@@ -95,7 +90,7 @@ def write_rerun(export_dir: str | Path, out: str | Path, *, application_id: str 
 
 def read_rerun_entities(path: str | Path) -> dict[str, list]:
     """{entity path: [pyarrow RecordBatch, ...]} of a recording (rerun.chunk.RrdReader)."""
-    from rerun.chunk import RrdReader
+    from rerun.chunk import RrdReader  # heavy optional dependency (rerun-sdk): loaded only when used
 
     out: dict[str, list] = {}
     for chunk in RrdReader(str(path)).stream():
@@ -104,9 +99,6 @@ def read_rerun_entities(path: str | Path) -> dict[str, list]:
 
 
 # ------------------------------------------------------------------------------- CLI
-def add_arguments(p) -> None:
-    p.add_argument("--export", required=True, type=Path, help="Export folder (from `stochastic-fields export`).")
-    p.add_argument("--out", required=True, type=Path, help="Recording file to write (.rrd).")
 
 
 def run(args) -> None:

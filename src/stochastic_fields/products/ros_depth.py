@@ -42,9 +42,13 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+import imageio.v3 as iio
+import tifffile
+import yaml
 
 from ..io_utils import atomic_path, atomic_write_text
 from .depth_maps import DepthProducts
+from .export_options import MetricScale  # noqa: F401  (re-exported)
 
 #: Millimetres per metre (REP 118 16UC1 depth is in millimetres).
 MM_PER_METRE: float = 1000.0
@@ -56,18 +60,6 @@ PIXEL_CENTRE_CONVENTION: str = (
     "and Open3D PinholeCameraIntrinsic; the project's own K (pixel centres at +0.5) has cx, cy larger by 0.5")
 #: Truncation of the TSDF in voxels (Open3D's examples use 3-5).
 TSDF_TRUNCATION_VOXELS: float = 4.0
-
-
-@dataclass(frozen=True)
-class MetricScale:
-    """Metres per scene unit and where that number came from (written into every file)."""
-
-    metres_per_unit: float
-    source: str
-
-    def __post_init__(self) -> None:
-        if not (math.isfinite(self.metres_per_unit) and self.metres_per_unit > 0):
-            raise ValueError(f"metres per scene unit must be a positive number, got {self.metres_per_unit}")
 
 
 def metres_per_unit_from_known_distance(world_to_camera: np.ndarray, i: int, j: int, metres: float) -> MetricScale:
@@ -139,8 +131,6 @@ def camera_info(products: DepthProducts, scale: MetricScale, *, frame_id: str, s
 
 def _yaml(info: dict) -> str:
     """CameraInfo YAML in the layout of ROS camera_calibration_parsers (plus our extra keys)."""
-    import yaml
-
     K = info["K"]
     doc = {
         "image_width": info["width"], "image_height": info["height"], "camera_name": info["header"]["frame_id"],
@@ -171,9 +161,6 @@ def write_ros_depth(views_dir: str | Path, name: str, products: DepthProducts, s
                     frame_id: str | None = None) -> list[Path]:
     """Write the REP 118 depth images, their std and the CameraInfo of one view (module doc).
     Returns the written paths (each atomic)."""
-    import imageio.v3 as iio
-    import tifffile
-
     views_dir = Path(views_dir)
     m = scale.metres_per_unit
     valid = products.valid
@@ -222,7 +209,7 @@ def integrate_tsdf_open3d(views: Sequence[tuple[Path, Path]], *, voxel_size: flo
     Open3D ``VoxelBlockGrid`` (tensor TSDF); truncation ``TSDF_TRUNCATION_VOXELS * voxel_size``;
     the mesh keeps voxels observed at least once (``weight_threshold`` below one frame's weight).
     """
-    import open3d as o3d
+    import open3d as o3d  # heavy optional dependency (Open3D): loaded only when used
 
     if max_std_mm is not None and (std_images is None or len(std_images) != len(views)):
         raise ValueError("integrate_tsdf_open3d: max_std_mm needs one std image per view")

@@ -27,9 +27,9 @@ import numpy as np
 
 from .depth_maps import DepthProducts
 from .ros_depth import MetricScale, camera_info
+from .pointcloud import read_ply
+from ..defaults import ROSBAG_PERIOD_S  # noqa: F401  (defaults the command line shows)
 
-#: Seconds between the views' messages.
-ROSBAG_PERIOD_S: float = 0.1
 #: PointCloud2 datatype code for FLOAT32 (sensor_msgs/PointField).
 POINTFIELD_FLOAT32: int = 7
 #: PointCloud2 fields written (all float32).
@@ -63,8 +63,6 @@ class ExportedView:
 
 def load_export(export_dir: str | Path) -> list[ExportedView]:
     """The views of an export folder, sorted by name (npz files other than ``*_free_space.npz``)."""
-    from .pointcloud import read_ply
-
     export_dir = Path(export_dir)
     vdir = export_dir / "views"
     paths = sorted(p for p in vdir.glob("*.npz") if not p.name.endswith("_free_space.npz")) if vdir.is_dir() else []
@@ -114,8 +112,8 @@ def write_rosbag(export_dir: str | Path, out: str | Path, *, metres_per_unit: fl
                  period_s: float = ROSBAG_PERIOD_S, storage: str = "mcap") -> dict:
     """Write the bag (module doc). ``out`` must not exist (rosbags refuses to overwrite).
     Returns {topic: message count}."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-    from rosbags.typesys import Stores, get_typestore
+    from rosbags.rosbag2 import StoragePlugin, Writer  # heavy optional dependency (rosbags): loaded only when used
+    from rosbags.typesys import Stores, get_typestore  # heavy optional dependency (rosbags): loaded only when used
 
     views = load_export(export_dir)
     out = Path(out)
@@ -205,13 +203,6 @@ def _quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
 
 
 # ------------------------------------------------------------------------------- CLI
-def add_arguments(p) -> None:
-    p.add_argument("--export", required=True, type=Path, help="Export folder (from `stochastic-fields export`).")
-    p.add_argument("--out", required=True, type=Path, help="Bag folder to create (must not exist).")
-    p.add_argument("--metres-per-unit", type=float, default=None,
-                   help="Metres per scene unit (default: the one the export recorded; required if it recorded none).")
-    p.add_argument("--period", type=float, default=ROSBAG_PERIOD_S, help="Seconds between views (default 0.1).")
-    p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="rosbag2 storage plugin.")
 
 
 def run(args) -> None:

@@ -1,0 +1,37 @@
+"""``stochastic-fields calibrate``: fit a run's uncertainty recalibration (``calibration.calibrate_run``).
+
+The options live here, without the implementation, so that ``--help`` answers at once; ``run``
+loads the implementation when the command runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from ..defaults import CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS, DEPTH_FREE_SPACE, DEPTH_STD_FLOOR
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--run", required=True, help="Trained run folder.")
+    p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
+    p.add_argument("--seed", type=int, default=0, help="Seed of the K draws of the calibration renders.")
+    p.add_argument("--points", choices=CALIBRATION_POINTS, default=DEFAULT_CALIBRATION_POINTS,
+                   help="Capture points to fit on: 'held-out' (default) fits every point the training did not "
+                        "fit, so the map sees most of the scene's surfaces, and stores its cross-fitted fold "
+                        f"maps ({CROSS_FIT_FOLDS} folds of the SCORE blocks) that eval scores its intervals with; "
+                        "'calibrate' fits the CALIBRATE points only (docs/uncertainty.md, studies 18 and 18b).")
+    p.add_argument("--std-floor", action=argparse.BooleanOptionalAction, default=DEPTH_STD_FLOOR,
+                   help="Fit a depth std floor tau first, so that depth_std = s * sqrt(raw^2 + tau^2) "
+                        f"(docs/uncertainty.md, study 11; default: {'on' if DEPTH_STD_FLOOR else 'off'}).")
+    p.add_argument("--free-space", action=argparse.BooleanOptionalAction, default=DEPTH_FREE_SPACE,
+                   help="Check each rendered depth against the training views' free space: depth_std = "
+                        "s * sqrt(raw^2 + e^2), e how far the point lies in front of a training view's rendered "
+                        "surface, also written as depth_free_space (renders the training views once into "
+                        "RUN/training_depth.npz; docs/uncertainty.md, study 13: ranks depth errors better on every "
+                        f"scene, intervals transfer worse on fern; default: {'on' if DEPTH_FREE_SPACE else 'off'}).")
+
+
+def run(args) -> None:
+    from ..calibration import run as run_command  # deferred: loads only when this command runs (keeps --help fast)
+
+    run_command(args)

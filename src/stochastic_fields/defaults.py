@@ -1,0 +1,73 @@
+"""The defaults and choices the command line shows, in one torch-free module.
+
+``--help`` of every command reads them without loading the implementation behind the command
+(torch, pycolmap, Open3D...); each implementation imports its own from here.
+"""
+
+from __future__ import annotations
+
+
+# calibration
+#: File of a run's calibration.
+CALIBRATION_FILE = "calibration.json"
+#: Which capture points a depth map may be fitted on (``--points``): "held-out", every point the
+#: training did not fit (CALIBRATE and SCORE: three times the blocks, so the map sees most of the
+#: scene's surfaces; the default, docs/uncertainty.md, studies 18 and 18b), scored independently by
+#: its cross-fitted fold maps (``DepthFolds``); or "calibrate", the CALIBRATE role only (the SCORE
+#: points then score the map itself; the protocol of studies 1 to 18).
+CALIBRATION_POINTS: tuple[str, ...] = ("held-out", "calibrate")
+DEFAULT_CALIBRATION_POINTS: str = "held-out"
+#: Folds the SCORE blocks are dealt into when a map is fitted on them too (``DepthFolds``; study
+#: 18's diagnostic: 5 folds).
+CROSS_FIT_FOLDS: int = 5
+#: Whether depth maps fit a std floor (``fit_std_floor``); docs/uncertainty.md, study 11.
+DEPTH_STD_FLOOR: bool = False
+#: Whether depth maps are fitted on the free-space-checked std sqrt(sigma^2 + e^2) (``free_space``;
+#: docs/uncertainty.md, study 13: it ranks depth errors better on every scene, but its map transfers
+#: badly on fern, so it is an option).
+DEPTH_FREE_SPACE: bool = False
+
+# free_space
+#: File of a run's rendered training-view depths (``save_training_depth``).
+TRAINING_DEPTH_FILE = "training_depth.npz"
+
+# data/prepare
+#: Default frames per second of footage kept from a video.
+DEFAULT_VIDEO_FPS: float = 2.0
+#: Default cap on the frames kept from a video.
+DEFAULT_MAX_FRAMES: int = 300
+#: Default fraction of the input images that must register.
+DEFAULT_MIN_REGISTERED_FRACTION: float = 0.5
+#: COLMAP camera models ``prepare`` offers, with the nerfstudio ``camera_model`` each is written as.
+CAMERA_MODELS: dict[str, str] = {
+    "SIMPLE_PINHOLE": "OPENCV", "PINHOLE": "OPENCV", "SIMPLE_RADIAL": "OPENCV", "RADIAL": "OPENCV",
+    "OPENCV": "OPENCV", "SIMPLE_RADIAL_FISHEYE": "OPENCV_FISHEYE", "RADIAL_FISHEYE": "OPENCV_FISHEYE",
+    "OPENCV_FISHEYE": "OPENCV_FISHEYE",
+}
+#: Mapping strategies, tried in this order until one registers every image (module doc).
+MAPPING_STRATEGIES: tuple[str, ...] = ("incremental", "incremental-relaxed", "global")
+#: Median triangulation angle (degrees) the initial pair needs in ``incremental-relaxed`` (COLMAP: 16).
+RELAXED_INIT_MIN_TRI_ANGLE_DEG: float = 4.0
+
+# products/occupancy_map
+#: Opacity of one voxel crossing that counts as "blocked" for the default density threshold.
+BLOCKED_OPACITY: float = 0.5
+#: Pixels a voxel should span where the cameras see it (a voxel below one pixel is not resolved).
+OCCUPANCY_PIXELS_PER_VOXEL: float = 2.0
+#: Most voxels in the region (coarser voxels beyond this): 2M cells evaluate in seconds on a CPU.
+OCCUPANCY_MAX_CELLS: int = 2_000_000
+
+# products/free_path
+#: Default transmittance level: a segment is free when more than half the light gets through.
+FREE_TRANSMITTANCE_LEVEL: float = 0.5
+#: Default number of density trajectories.
+FREE_PATH_NUM_DRAWS: int = 256
+
+# products/rosbag
+#: Seconds between the views' messages.
+ROSBAG_PERIOD_S: float = 0.1
+
+# products/rerun_log
+#: Entity paths.
+RERUN_CAMERAS: str = "world/cameras"
+RERUN_POINTS: str = "world/points"
