@@ -190,7 +190,13 @@ def write_report(records: list[dict], args) -> None:
         lines.append(f"| {r['scene']} | {r['method']} | {r['train_views']} / {len(r['validation_views'])} "
                      f"| {r['iterations']} ({r['steps_per_s_probe']:.2f}) | {last['minutes']:.1f} | {last['psnr']:.2f} "
                      f"| {last['ssim']:.3f} | {last['depth_abs_rel']:.4f} ({last['depth_points']}) | {cov} | {width} |")
-    lines += ["", f"Targets after {args.minutes:g} minutes:", "```", json.dumps(v, indent=1), "```", "",
+    lines += ["", "Minutes are training wall-clock only (the validation renders at each mark are not counted). "
+              "Each run's steps are set by a probe of its speed, so that its whole schedule fits the budget; "
+              "a machine busier during the run than during the probe shows more minutes for the same steps. "
+              "Depth abs-rel is scored at the validation photos' SfM points of the SCORE role (the points no "
+              "step fitted), as `stochastic-fields eval` scores them; the interval columns use the map `train` "
+              "fits (every held-out capture point, cross-fitted).",
+              "", f"Targets after {args.minutes:g} minutes:", "```", json.dumps(v, indent=1), "```", "",
               "![curves](capture_quality.png)", ""]
     atomic_write_text(args.out / "README.md", "\n".join(lines))
 

@@ -174,12 +174,16 @@ def parse_views(spec: str, num_views: int, train: Sequence[int], test: Sequence[
     return views
 
 
+def _every_nth(num_views: int, n: int) -> tuple[list[int], list[int]]:
+    """(views with ``index % n == 0``, the rest)."""
+    return [i for i in range(num_views) if i % n == 0], [i for i in range(num_views) if i % n != 0]
+
+
 def split_every_indices(num_views: int, n: int, path: str | Path) -> tuple[list[int], list[int]]:
     """(train, test) indices with train = ``index % n == 0``; DatasetError if either is empty."""
     if int(n) < 1:
         raise DatasetError(path, f"split_every must be >= 1, got {n}")
-    train = [i for i in range(num_views) if i % n == 0]
-    test = [i for i in range(num_views) if i % n != 0]
+    train, test = _every_nth(num_views, int(n))
     check_split(train, test, path)
     return train, test
 
@@ -189,8 +193,7 @@ def holdout_every_indices(num_views: int, n: int, path: str | Path) -> tuple[lis
     16, ... validate); DatasetError if either is empty."""
     if int(n) < 2:
         raise DatasetError(path, f"holdout_every must be >= 2, got {n}")
-    test = [i for i in range(num_views) if i % n == 0]
-    train = [i for i in range(num_views) if i % n != 0]
+    test, train = _every_nth(num_views, int(n))
     check_split(train, test, path)
     return train, test
 
