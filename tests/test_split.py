@@ -94,3 +94,28 @@ def test_train_prints_the_split_and_eval_scores_depth_at_the_capture_points(shar
     assert 0 < used <= len(expected.depth)
     assert f"over {used} SfM points (SCORE role)" in printed and "pooled depth: abs-rel " in printed
     assert "depth intervals 50/68/90/95/99%: coverage" in printed
+
+
+def test_few_view_split_follows_regnerf_protocol():
+    """Every 8th view tests; n of the rest, spread evenly by round(linspace(0, R-1, n)) with Python's
+    half-to-even rounding (RegNeRF's code), train. Worked by hand for fern (20 views) and flower (34)."""
+    from stochastic_fields.data.dataset import few_view_indices
+
+    assert few_view_indices(20, 3, 8, "fern") == ([1, 10, 19], [0, 8, 16])
+    assert few_view_indices(20, 6, 8, "fern") == ([1, 4, 7, 12, 15, 19], [0, 8, 16])  # positions 0 3 6 10 13 16
+    assert few_view_indices(34, 3, 8, "flower") == ([1, 17, 33], [0, 8, 16, 24, 32])
+    # 9 views of flower: positions 0, 3.5, 7, 10.5, 14, 17.5, 21, 24.5, 28 round half to even
+    assert few_view_indices(34, 9, 8, "flower")[0] == [1, 5, 9, 12, 17, 21, 25, 28, 33]
+    with pytest.raises(DatasetError, match=r"fern: few-view split: train_views must be between 1 and the 17"):
+        few_view_indices(20, 18, 8, "fern")
+
+
+def test_few_view_split_is_a_named_option(shared_data, tmp_path):
+    fern = shared_data / "nerf_llff_data" / "fern"
+    cfg = C.preset("llff")
+    cfg.data.path, cfg.data.split, cfg.data.train_views = str(fern), "fewview", 3
+    dataset = load_run_dataset(cfg, tmp_path)
+    assert (dataset.train_indices, dataset.test_indices) == ([1, 10, 19], [0, 8, 16])
+    assert describe_split(dataset, cfg).startswith("fern: 3 photos train, 3 test (few-view split")
+    with pytest.raises(ValueError, match=r"data\.split.*'fewview'"):
+        C.from_dict(C.ExperimentConfig, {"data": {"split": "few"}})

@@ -43,10 +43,15 @@ def load_run_dataset(cfg: ExperimentConfig, run_dir: Path, *, generate: bool = T
 def apply_split(dataset, cfg: ExperimentConfig):
     """The run's split of a loaded dataset (``data.split``): 'paper' keeps the loader's
     ``index % split_every == 0`` training views; 'capture' holds out every ``holdout_every``-th view
-    (index % holdout_every == 0) and trains on the rest. A split given by the scene's files
+    (index % holdout_every == 0) and trains on the rest; 'fewview' tests on the same views and trains on
+    ``train_views`` of the rest, spread evenly (``data.dataset.few_view_indices``). A split given by the scene's files
     (``dataset.split_source == "files"``) is kept either way."""
-    if cfg.data.split == "capture" and dataset.split_source != "files":
+    if dataset.split_source == "files":
+        return dataset
+    if cfg.data.split == "capture":
         return dataset.hold_out_every(cfg.data.holdout_every)
+    if cfg.data.split == "fewview":
+        return dataset.few_views(cfg.data.train_views, cfg.data.holdout_every)
     return dataset
 
 
@@ -55,6 +60,9 @@ def describe_split(dataset, cfg: ExperimentConfig) -> str:
     n_train, n_test = len(dataset.train_indices), len(dataset.test_indices)
     if dataset.split_source == "files":
         rule = "the scene's own train/test files"
+    elif dataset.split_source == "few_views":
+        rule = (f"few-view split: {n_train} of the photos not held out train, every {cfg.data.holdout_every}th "
+                "tests (RegNeRF's protocol)")
     elif dataset.split_source == "holdout_every":
         rule = (f"capture split: every {cfg.data.holdout_every}th photo validates (index % {cfg.data.holdout_every} "
                 "== 0); --preset paper for the paper's 20% split")

@@ -145,6 +145,12 @@ class SceneDataset:
         train, test = split_every_indices(self.num_views, n, self.root)
         return replace(self, train_indices=train, test_indices=test, split_source="split_every")
 
+    def few_views(self, train_views: int, holdout_every: int = 8) -> "SceneDataset":
+        """Re-split by the few-view protocol (:func:`few_view_indices`): every ``holdout_every``-th view
+        tests, ``train_views`` of the others train, the rest are left out."""
+        train, test = few_view_indices(self.num_views, train_views, holdout_every, self.root)
+        return replace(self, train_indices=train, test_indices=test, split_source="few_views")
+
     def hold_out_every(self, n: int) -> "SceneDataset":
         """Re-split for a capture: views with ``index % n == 0`` validate (test), the rest train."""
         train, test = holdout_every_indices(self.num_views, n, self.root)
@@ -194,6 +200,25 @@ def holdout_every_indices(num_views: int, n: int, path: str | Path) -> tuple[lis
     if int(n) < 2:
         raise DatasetError(path, f"holdout_every must be >= 2, got {n}")
     test, train = _every_nth(num_views, int(n))
+    check_split(train, test, path)
+    return train, test
+
+
+def few_view_indices(num_views: int, train_views: int, holdout_every: int, path: str | Path
+                     ) -> tuple[list[int], list[int]]:
+    """The few-view protocol of RegNeRF (Niemeyer et al. 2022), used by FreeNeRF, SparseNeRF, FSGS and
+    others on LLFF: views with ``index % holdout_every == 0`` test (every 8th); ``train_views`` of the
+    others, spread evenly, train: the rest's positions ``round(linspace(0, R - 1, train_views))``
+    with Python's ``round`` (half to even), as RegNeRF's code picks them. The views neither train nor
+    test are left out. DatasetError if the split is impossible."""
+    if int(holdout_every) < 2:
+        raise DatasetError(path, f"holdout_every must be >= 2, got {holdout_every}")
+    test, rest = _every_nth(num_views, int(holdout_every))
+    if not 1 <= int(train_views) <= len(rest):
+        raise DatasetError(path, f"few-view split: train_views must be between 1 and the {len(rest)} views that are "
+                           f"not held out, got {train_views}")
+    positions = [round(float(x)) for x in np.linspace(0, len(rest) - 1, int(train_views))]
+    train = [rest[k] for k in positions]
     check_split(train, test, path)
     return train, test
 
