@@ -384,3 +384,20 @@ def test_view_panels_show_photo_colour_depth_and_relative_std(tmp_path):
     assert np.allclose(np.asarray(relative, dtype=float)[:, 4:], 0.1)
     out = plot_view_panels(tmp_path / "v.png", rng.uniform(size=(H, W, 3)), maps)
     assert iio.improps(out).shape[2] in (3, 4)
+
+
+def test_ause_max_normalised_divides_each_curve_by_its_maximum():
+    """Two pixels, the uncertainty anti-ranked (worked by hand, F = 2, fractions 0 and 0.5):
+    model RMSE [sqrt(1/2), 1] (removing the certain-but-wrong pixel last), oracle [sqrt(1/2), 0].
+    AUSE = 0.25; divided by the RMSE on all pixels: 0.25 / sqrt(1/2); each curve by its own maximum:
+    trapz([sqrt(1/2) - 1, 1 - 0], [0, 0.5]) = (sqrt(1/2) - 1 + 1) / 4."""
+    from stochastic_fields.metrics import sparsification_curve
+
+    res = sparsification_curve(np.array([1.0, 0.0]), np.array([0.0, 1.0]), num_fractions=2)
+    assert res.ause == pytest.approx(0.25, abs=1e-15)
+    assert res.ause_normalised == pytest.approx(0.25 / math.sqrt(0.5), abs=1e-15)
+    assert res.ause_max_normalised == pytest.approx(math.sqrt(0.5) / 4, abs=1e-15)
+    # a perfect ranking: both conventions give 0; all errors zero: both undefined
+    perfect = sparsification_curve(np.array([3.0, 1.0, 2.0]), np.array([3.0, 1.0, 2.0]), num_fractions=3)
+    assert perfect.ause_max_normalised == pytest.approx(0.0, abs=1e-15) == perfect.ause_normalised
+    assert math.isnan(sparsification_curve(np.zeros(4), np.ones(4)).ause_max_normalised)

@@ -236,7 +236,8 @@ def ranking_scores(mse: np.ndarray, err_mae: np.ndarray, unc: np.ndarray) -> dic
 
 def _ause_scores(ranking: dict[str, Any]) -> dict[str, float]:
     return {f"ause_{metric}{suffix}": (math.nan if ranking[metric] is None else getattr(ranking[metric], field))
-            for metric in ("rmse", "mae") for suffix, field in (("", "ause"), ("_normalised", "ause_normalised"))}
+            for metric in ("rmse", "mae") for suffix, field in (("", "ause"), ("_normalised", "ause_normalised"),
+                                                                ("_max_normalised", "ause_max_normalised"))}
 
 
 def score_colour(products: dict[str, np.ndarray], gt_colour: np.ndarray,

@@ -282,6 +282,10 @@ class SparsificationResult:
         reference: the metric on all pixels (= model[0] = oracle[0]), the normaliser.
         model_normalised, oracle_normalised: [F] curves divided by ``reference``.
         ause_normalised: ause / reference (NaN when reference == 0: every error is zero).
+        ause_max_normalised: the same integral with each curve divided by its own maximum (the
+            convention of CF-NeRF, Bayes' Rays and FisherRF): trapz(model / max(model) - oracle /
+            max(oracle)). It differs from ``ause_normalised`` only where removing the most
+            uncertain pixels raises the error above its value on all pixels. NaN when every error is zero.
         num_pixels: P.
     """
 
@@ -295,6 +299,7 @@ class SparsificationResult:
     oracle_normalised: np.ndarray
     ause_normalised: float
     num_pixels: int
+    ause_max_normalised: float = float("nan")
 
 
 def _kept_metric_curve(abs_err: Tensor, key: Tensor, num_fractions: int, metric: ErrorMetric) -> Tensor:
@@ -356,9 +361,10 @@ def sparsification_curve(
     reference = float(model[0].item())
     if reference > 0:
         model_n, oracle_n, ause_n = model / reference, oracle / reference, ause_value / reference
+        ause_max = float(torch.trapezoid(model / model.max() - oracle / oracle.max(), fractions).item())
     else:
         model_n = torch.full_like(model, float("nan"))
-        oracle_n, ause_n = model_n, float("nan")
+        oracle_n, ause_n, ause_max = model_n, float("nan"), float("nan")
     return SparsificationResult(
         metric=metric,
         fractions=fractions.cpu().numpy(),
@@ -370,6 +376,7 @@ def sparsification_curve(
         oracle_normalised=oracle_n.cpu().numpy(),
         ause_normalised=float(ause_n),
         num_pixels=e.numel(),
+        ause_max_normalised=ause_max,
     )
 
 
