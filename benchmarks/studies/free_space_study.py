@@ -6,7 +6,7 @@ contradicts it. The checked std sqrt(sigma^2 + e^2) adds the point's free-space 
 against the training views' rendered depth (``stochastic_fields.free_space``). This study fits
 the depth map (one factor per level) on the CALIBRATE renders of the calibration views twice,
 on sigma (*plain*, today) and on the checked std (*checked*), and scores both on the SCORE points
-seen from the run's evaluated test views (``calibration_split_study.scored_points``): depth
+seen from the run's evaluated test views (``study_helpers.scored_points``): depth
 Spearman |err| against the std per test view (mean) and pooled, and the coverage of the central
 68% / 95% intervals. ``--reference`` runs (the deep ensemble) are scored the same way, reported
 beside, deciding nothing.

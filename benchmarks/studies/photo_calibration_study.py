@@ -6,7 +6,7 @@ photos out of training. At the CPU budget the benchmark scenes have such photos 
 views that neither train nor are scored. This study fits the map (one factor per level) on the
 CALIBRATE points seen from them (*photos*), and from each one alone (*one photo*, at least
 ``MIN_PHOTO_POINTS`` points), and scores every map on the SCORE points seen from the run's
-evaluated test views (``calibration_split_study.scored_points``), beside today's (*views*).
+evaluated test views (``study_helpers.scored_points``), beside today's (*views*).
 
     python benchmarks/studies/photo_calibration_study.py --run fern/seed0=RUN flower/seed0=RUN ... \\
         --out benchmarks/results/uncertainty_study/photo_calibration

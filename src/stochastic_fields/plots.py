@@ -222,7 +222,7 @@ def plot_coverage_by_group(
 
     Args:
         groups: scene -> rows with "group" (label), "points", "coverage" [L], "coverage_raw" [L]
-            (``benchmarks/coverage_by_views.coverage_table``).
+            (``benchmarks/studies/coverage_by_views.coverage_table``).
         levels: [L] nominal central levels.
         series: legend names of "coverage" and "coverage_raw".
     Returns:
@@ -274,7 +274,7 @@ def plot_rule_margins(
 
     Args:
         margins: scene -> row -> metric -> signed change / |tolerance|
-            (``benchmarks/uncertainty_study.rule_margins``).
+            (``benchmarks/studies/uncertainty_study.rule_margins``).
     Returns:
         the written path.
     """
