@@ -23,7 +23,9 @@ Resumes: a finished (scene, method) is read from ``--work``; ``results.json``, `
 from __future__ import annotations
 
 import argparse
+import copy
 import json
+import shutil
 import time
 import warnings
 from pathlib import Path
@@ -59,17 +61,19 @@ def config_for(scene: str, method: str, iterations: int, seed: int):
     return cfg
 
 
-def steps_per_second(scene: str, method: str, seed: int, work: Path) -> float:
-    """Training speed of this machine on this scene and method, from a short throwaway run."""
-    cfg = config_for(scene, method, WARMUP_STEPS + PROBE_STEPS, seed)
-    run_dir = work / f"probe_{scene}_{method}"
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        dataset = load_run_dataset(cfg, run_dir)
+def steps_per_second(cfg, dataset, work: Path) -> float:
+    """Training speed of this machine for ``cfg`` on ``dataset``, from a short throwaway run (its
+    folder is removed afterwards)."""
+    cfg = copy.deepcopy(cfg)
+    cfg.train.iterations = WARMUP_STEPS + PROBE_STEPS
+    run_dir = work / "probe"
     trainer = Trainer(cfg, run_dir, dataset)
-    trainer.train(progress=False, max_steps=WARMUP_STEPS)
-    before = trainer.elapsed
-    trainer.train(progress=False, max_steps=PROBE_STEPS)
+    try:
+        trainer.train(progress=False, max_steps=WARMUP_STEPS)
+        before = trainer.elapsed
+        trainer.train(progress=False, max_steps=PROBE_STEPS)
+    finally:
+        shutil.rmtree(run_dir, ignore_errors=True)
     return PROBE_STEPS / max(trainer.elapsed - before, 1e-9)
 
 
@@ -88,36 +92,36 @@ def run_one(scene: str, method: str, args) -> dict:
     record = args.work / scene / method / "record.json"
     if record.exists():
         return json.loads(record.read_text())
-    rate = steps_per_second(scene, method, args.seed, args.work)
-    iterations = max(100, int(round(rate * args.minutes * 60)))
-    cfg = config_for(scene, method, iterations, args.seed)
     run_dir = args.work / scene / method / "run"
+    cfg = config_for(scene, method, 1, args.seed)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        dataset = load_run_dataset(cfg, run_dir)
+        dataset = load_run_dataset(cfg, run_dir)  # the split depends on the config, not on the steps
+    rate = steps_per_second(cfg, dataset, args.work)
+    iterations = max(100, int(round(rate * args.minutes * 60)))
+    cfg.train.iterations = iterations
     views = list(dataset.test_indices)
     sparse = score_sparse_depth(dataset, views)
     trainer = Trainer(cfg, run_dir, dataset)
     marks = sorted({max(1, int(round(f * iterations))) for f in args.marks})
-    curve = []
+    curve, calibrated = [], None
     print(f"{scene} {method}: {describe_split(dataset, cfg)}; {rate:.2f} steps/s -> {iterations} steps", flush=True)
     for mark in marks:
         model = trainer.train(progress=not args.quiet, max_steps=mark - trainer.step)
         t0 = time.perf_counter()
+        final = mark == marks[-1]
+        # the last mark is scored once, with the recalibration train fits (colour and depth means do not change)
+        calibration = calibrate_run(run_dir, model=model, dataset=dataset) \
+            if final and getattr(model, "accepts_depth", False) else None
         with torch.no_grad():
             result = evaluate(model, dataset, run_dir / f"eval_{mark:06d}", views=views, sparse_depth=sparse,
-                              product_views=0, progress=False)
+                              product_views=0, progress=False, calibration=calibration)
         curve.append({"step": trainer.step, "minutes": trainer.elapsed / 60.0, **scores_of(result),
                       "eval_s": time.perf_counter() - t0})
         print(f"  step {trainer.step}: {trainer.elapsed / 60:.1f} min, PSNR {curve[-1]['psnr']:.2f} dB, depth "
               f"abs-rel {curve[-1]['depth_abs_rel']:.4f}", flush=True)
-    calibrated = None
-    if getattr(model, "accepts_depth", False):
-        calibration = calibrate_run(run_dir, model=model, dataset=dataset)
-        with torch.no_grad():
-            result = evaluate(model, dataset, run_dir / "eval_calibrated", views=views, sparse_depth=sparse,
-                              product_views=0, progress=False, calibration=calibration)
-        calibrated = scores_of(result)
+        if calibration is not None:
+            calibrated = scores_of(result)
     out = {"scene": scene, "method": method, "train_views": len(dataset.train_indices), "validation_views": views,
            "steps_per_s_probe": rate, "iterations": iterations, "curve": curve, "calibrated": calibrated,
            "threads": torch.get_num_threads()}

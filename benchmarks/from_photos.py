@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from stochastic_fields.pose_alignment import similarity_align
+from stochastic_fields.pose_alignment import pose_errors, similarity_align
 
 
 #: Rendered colour mean in an exported view's npz.
@@ -108,12 +108,9 @@ def main() -> None:
     ours, llff = load_dataset(out / "scene"), load_dataset(args.fern)
     assert [p.name for p in ours.image_paths] == [p.name for p in llff.image_paths]
     ca, cb = camera_centres(ours.cameras).double().numpy(), camera_centres(llff.cameras).double().numpy()
-    s, R, t = similarity_align(ca, cb)
-    extent = max(np.linalg.norm(a - b) for a in cb for b in cb)
-    centre_err = float(np.linalg.norm(s * ca @ R.T + t - cb, axis=1).max() / extent)
-    Ra, Rb = (camera_to_world(d.cameras).double().numpy()[:, :3, :3] for d in (ours, llff))
-    rot_err = max(float(np.degrees(np.arccos(np.clip((np.trace((R @ Ra[i]).T @ Rb[i]) - 1) / 2, -1, 1))))
-                  for i in range(len(Ra)))
+    s, R, t = similarity_align(ca, cb)  # maps the photos run's depths and cloud into LLFF's frame below
+    errors = pose_errors(*(camera_to_world(d.cameras).double().numpy() for d in (ours, llff)))
+    centre_err, rot_err = errors["centre_error_max"], errors["rotation_error_max_deg"]
 
     views = list(llff.test_indices)
 

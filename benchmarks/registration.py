@@ -18,10 +18,13 @@ Resumes: a scene/seed/strategy whose prepare.json exists is not prepared again (
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import shutil
 import warnings
 from pathlib import Path
+
+import numpy as np
 
 from stochastic_fields.cameras import camera_to_world
 from stochastic_fields.data import DatasetError, load_dataset
@@ -35,15 +38,21 @@ LLFF_ROOT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "ne
 CENTRE_TARGET, ROTATION_TARGET_DEG = 0.01, 0.5
 
 
-def score(scene_dir: Path, llff_dir: Path) -> dict:
-    """Pose errors of a prepared scene against LLFF's cameras of the same photos."""
+@functools.lru_cache(maxsize=None)
+def llff_cameras(llff_dir: Path) -> tuple[dict[str, int], np.ndarray]:
+    """({image name: index}, camera-to-world [V, 4, 4]) of an LLFF scene, read once per scene."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # LLFF's lens-distortion notice
-        ours, ref = load_dataset(scene_dir), load_dataset(llff_dir)
-    names = [p.name for p in ours.image_paths]
-    index = {p.name: i for i, p in enumerate(ref.image_paths)}
-    ref_c2w = camera_to_world(ref.cameras).double().numpy()[[index[n] for n in names]]
-    return pose_errors(camera_to_world(ours.cameras).double().numpy(), ref_c2w)
+        ref = load_dataset(llff_dir)
+    return {p.name: i for i, p in enumerate(ref.image_paths)}, camera_to_world(ref.cameras).double().numpy()
+
+
+def score(scene_dir: Path, llff_dir: Path) -> dict:
+    """Pose errors of a prepared scene against LLFF's cameras of the same photos."""
+    ours = load_dataset(scene_dir)
+    index, ref_c2w = llff_cameras(llff_dir)
+    return pose_errors(camera_to_world(ours.cameras).double().numpy(),
+                       ref_c2w[[index[p.name] for p in ours.image_paths]])
 
 
 def run_one(scene: str, seed: int, mapping: str, work: Path, threads: int) -> dict:
