@@ -22,6 +22,18 @@ so that the interval ``d +- s(p) z_p sigma`` holds the fitted points at rate p. 
 A Gaussian error model with the right scale gives s(p) constant; heavier or lighter tails give
 an s(p) that rises or falls with p. The raw sigma stays available (``depth_std_raw``).
 
+A depth map may also hold a depth-proportional term rho (``fit_relative_floor``, ``DEPTH_RELATIVE_FLOOR``):
+the errors are standardised by sqrt(sigma^2 + (rho d)^2), d the rendered depth, and
+
+    sigma_cal = s(p1) sqrt(sigma^2 + (rho d)^2)
+
+A pixel rendered on the wrong surface with a tiny sigma has an error that is a fraction of its
+depth, not a multiple of its sigma: without rho, the few such pixels set s(95%) for every pixel
+(x100 on flower), with rho their standardised error is bounded by about |err| / (rho d).
+rho is the grid value that minimises the mean CRPS / depth of the fitted distribution on the
+fitting points (a proper score: it pays for width and for misses at every level at once);
+docs/uncertainty.md, study 20.
+
 A map may also hold a std floor tau (``fit_std_floor``; depth only, ``DEPTH_STD_FLOOR``): the
 errors are standardised by sqrt(sigma^2 + tau^2) instead of sigma, and
 
@@ -67,7 +79,7 @@ from .sparse_depth import COVERAGE_LEVELS, project_sparse_depth
 from .trainer import load_trained_model
 from .view_maps import OPACITY_MASK
 from .defaults import (CALIBRATION_FILE, CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS,
-                       DEPTH_FREE_SPACE, DEPTH_STD_FLOOR)  # noqa: F401  (defaults the command line shows)
+                       DEPTH_FREE_SPACE, DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR)  # noqa: F401  (defaults the command line shows)
 from .free_space import (TRAINING_DEPTH_FILE, checked_std, free_space_violation, load_training_depth,
                          render_training_depth, rendered_points, save_training_depth, violation_map)
 
@@ -88,6 +100,9 @@ STD_FLOOR_RTOL: float = 1e-4
 STD_FLOOR_SIGNIFICANCE: float = 0.05
 #: Largest std floor tried, in multiples of the largest raw std (beyond it the std is ~constant).
 STD_FLOOR_MAX_RATIO: float = 100.0
+#: Values of the depth-proportional term rho tried by ``fit_relative_floor``: 0 and 48 values
+#: spaced evenly in log from 0.1% to 100% of the depth (neighbours 15% apart).
+RELATIVE_FLOOR_GRID: np.ndarray = np.concatenate([[0.0], np.geomspace(1e-3, 1.0, 48)])
 
 
 @dataclass
@@ -105,6 +120,9 @@ class QuantileCalibration:
         free_space: the map was fitted on (and applies to) the free-space-checked std
             sqrt(sigma^2 + e^2), e the rendered point's violation of the training views' free space
             (``free_space``; depth only).
+        relative_floor: the depth-proportional term rho (0: none): errors are standardised by
+            sqrt(sigma^2 + tau^2 + (rho d)^2), d the rendered depth (module doc,
+            ``fit_relative_floor``; depth only).
     """
 
     quantity: str
@@ -114,6 +132,7 @@ class QuantileCalibration:
     source: str = ""
     floor: float = 0.0
     free_space: bool = False
+    relative_floor: float = 0.0
 
     @classmethod
     def fit(cls, abs_z: np.ndarray, *, quantity: str, source: str = "",
@@ -134,28 +153,48 @@ class QuantileCalibration:
 
     @classmethod
     def fit_errors(cls, abs_err: np.ndarray, std: np.ndarray, *, quantity: str, source: str = "",
-                   floor: bool = False, levels: np.ndarray = CALIBRATION_LEVELS) -> "QuantileCalibration":
+                   floor: bool = False, depth: np.ndarray | None = None,
+                   levels: np.ndarray = CALIBRATION_LEVELS) -> "QuantileCalibration":
         """Fit on absolute errors ``abs_err`` [N] and raw stds ``std`` [N] (> 0): with ``floor``, first
-        the std floor tau (``fit_std_floor``), then s(p) on |err| / sqrt(std^2 + tau^2) (``fit``)."""
+        the std floor tau (``fit_std_floor``); with the rendered depths ``depth`` [N] (> 0), then the
+        depth-proportional term rho (``fit_relative_floor``); then s(p) on
+        |err| / sqrt(std^2 + tau^2 + (rho depth)^2) (``fit``)."""
         abs_err, std = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (abs_err, std))
         if abs_err.shape != std.shape:
             raise ValueError(f"calibration of {quantity}: {abs_err.size} errors but {std.size} stds")
         if not (np.isfinite(std).all() and (std > 0).all()):
             raise ValueError(f"calibration of {quantity}: stds must be finite and > 0")
         tau = fit_std_floor(abs_err, std) if floor and abs_err.size >= MIN_CALIBRATION_SAMPLES else 0.0
-        out = cls.fit(abs_err / np.hypot(std, tau), quantity=quantity, source=source, levels=levels)
-        out.floor = float(tau)
+        std = np.hypot(std, tau)
+        rho = 0.0
+        if depth is not None:
+            depth = np.asarray(depth, dtype=np.float64).reshape(-1)
+            if depth.shape != std.shape or not (np.isfinite(depth).all() and (depth > 0).all()):
+                raise ValueError(f"calibration of {quantity}: needs one finite depth > 0 per error, got {depth.size} "
+                                 f"depths for {std.size} errors")
+            if abs_err.size >= MIN_CALIBRATION_SAMPLES:
+                rho = fit_relative_floor(abs_err, std, depth)
+            std = np.hypot(std, rho * depth)
+        out = cls.fit(abs_err / std, quantity=quantity, source=source, levels=levels)
+        out.floor, out.relative_floor = float(tau), float(rho)
         return out
 
-    def calibrated_std(self, raw: np.ndarray, violation: np.ndarray | None = None) -> np.ndarray:
-        """s(0.6827) sqrt(raw^2 + floor^2 [+ violation^2]) in float64: the calibrated one-sigma std of
-        raw stds [...]; a ``free_space`` map needs the free-space ``violation`` [...] (same shape)."""
+    def calibrated_std(self, raw: np.ndarray, violation: np.ndarray | None = None,
+                       depth: np.ndarray | None = None) -> np.ndarray:
+        """s(0.6827) sqrt(raw^2 + floor^2 [+ violation^2] [+ (relative_floor depth)^2]) in float64: the
+        calibrated one-sigma std of raw stds [...]; a ``free_space`` map needs the free-space
+        ``violation`` [...], a map with a ``relative_floor`` the rendered ``depth`` [...] (same shape)."""
         std = np.hypot(np.asarray(raw, dtype=np.float64), self.floor)
         if self.free_space:
             if violation is None:
                 raise ValueError(f"the {self.quantity} map was fitted on the free-space-checked std: it needs each "
                                  "pixel's free-space violation (free_space.violation_map)")
             std = np.hypot(std, np.asarray(violation, dtype=np.float64))
+        if self.relative_floor > 0.0:
+            if depth is None:
+                raise ValueError(f"the {self.quantity} map has a depth-proportional term: it needs each pixel's "
+                                 "rendered depth")
+            std = np.hypot(std, self.relative_floor * np.asarray(depth, dtype=np.float64))
         return self.std_scale * std
 
     def scale_at(self, p: float | np.ndarray) -> np.ndarray:
@@ -174,7 +213,7 @@ class QuantileCalibration:
     def to_dict(self) -> dict[str, Any]:
         return {"quantity": self.quantity, "levels": self.levels.tolist(), "scales": self.scales.tolist(),
                 "num_samples": self.num_samples, "source": self.source, "std_scale": self.std_scale,
-                "floor": self.floor, "free_space": self.free_space}
+                "floor": self.floor, "free_space": self.free_space, "relative_floor": self.relative_floor}
 
     @classmethod
     def from_dict(cls, data: dict, *, where: str = "calibration") -> "QuantileCalibration":
@@ -183,13 +222,16 @@ class QuantileCalibration:
             scales = np.asarray(data["scales"], dtype=np.float64)
             out = cls(str(data["quantity"]), levels, scales, int(data["num_samples"]), str(data.get("source", "")),
                       float(data.get("floor", 0.0)),  # files written before the floor: none
-                      data.get("free_space", False))  # ... before the free-space check: none
+                      data.get("free_space", False),  # ... before the free-space check: none
+                      float(data.get("relative_floor", 0.0)))  # ... before the depth-proportional term: none
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{where}: malformed quantile calibration ({exc!r})") from exc
         if not isinstance(out.free_space, bool):
             raise ValueError(f"{where}: free_space must be true or false, got {out.free_space!r}")
         if not (math.isfinite(out.floor) and out.floor >= 0.0):
             raise ValueError(f"{where}: the std floor must be finite and >= 0, got {out.floor}")
+        if not (math.isfinite(out.relative_floor) and out.relative_floor >= 0.0):
+            raise ValueError(f"{where}: the depth-proportional term must be finite and >= 0, got {out.relative_floor}")
         if (levels.ndim != 1 or levels.shape != scales.shape or levels.size == 0 or not np.isfinite(levels).all()
                 or not np.isfinite(scales).all() or (levels <= 0).any() or (levels >= 1).any()
                 or (np.diff(levels) <= 0).any() or (scales <= 0).any()):
@@ -252,12 +294,12 @@ class DepthFolds:
 
 def fit_depth_folds(abs_err: np.ndarray, std: np.ndarray, keys: np.ndarray, score_blocks: np.ndarray, *,
                     folds: int = CROSS_FIT_FOLDS, seed: int = CROSS_FIT_SEED, floor: bool = False,
-                    source: str = "") -> DepthFolds:
+                    depth: np.ndarray | None = None, source: str = "") -> DepthFolds:
     """``DepthFolds`` from the held-out calibration renders: absolute errors ``abs_err`` [N], their
     stds ``std`` [N] (> 0) and the block key of each point ``keys`` [N]; ``score_blocks`` [B]: the
     SCORE role's block keys, shuffled (``seed``) and dealt round-robin into ``folds`` folds; fold f's
-    map is fitted (``QuantileCalibration.fit_errors``, ``floor`` as the run's map) on the renders
-    outside fold f's blocks. ValueError for fewer than 2 folds or blocks, or a fold map with too few
+    map is fitted (``QuantileCalibration.fit_errors``, ``floor`` and the rendered ``depth`` [N] for
+    a depth-proportional term as the run's map) on the renders outside fold f's blocks. ValueError for fewer than 2 folds or blocks, or a fold map with too few
     points."""
     score_blocks = np.unique(np.asarray(score_blocks, dtype=np.int64))
     if folds < 2 or len(score_blocks) < 2:
@@ -266,9 +308,12 @@ def fit_depth_folds(abs_err: np.ndarray, std: np.ndarray, keys: np.ndarray, scor
     order = np.random.default_rng(seed).permutation(score_blocks)
     blocks = [np.sort(order[f::folds]) for f in range(min(folds, len(order)))]
     keys = np.asarray(keys, dtype=np.int64)
-    maps = [QuantileCalibration.fit_errors(abs_err[~np.isin(keys, b)], std[~np.isin(keys, b)], quantity="depth_std",
-                                           floor=floor, source=f"{source}, outside fold {f}'s {len(b)} SCORE blocks")
-            for f, b in enumerate(blocks)]
+    maps = []
+    for f, b in enumerate(blocks):
+        out = ~np.isin(keys, b)
+        maps.append(QuantileCalibration.fit_errors(abs_err[out], std[out], quantity="depth_std", floor=floor,
+                                                   depth=None if depth is None else np.asarray(depth)[out],
+                                                   source=f"{source}, outside fold {f}'s {len(b)} SCORE blocks"))
     return DepthFolds(blocks, maps, seed)
 
 
@@ -298,7 +343,7 @@ def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, raw_std: np.ndar
         i = fold == f
         if not i.any():
             continue
-        std = m.calibrated_std(raw_std[i], None if violation is None else violation[i])
+        std = m.calibrated_std(raw_std[i], None if violation is None else violation[i], pred[i])
         inside += M.calibration_curve(gt[i], pred[i], std, interval_scale=m.relative_scale).coverage * i.sum()
         inside_cov += M.calibration_curve(gt[i], pred[i], std, levels=coverage_levels,
                                           interval_scale=m.relative_scale).coverage * i.sum()
@@ -327,7 +372,7 @@ def cross_fitted_depth_quantiles(pred: np.ndarray, raw_std: np.ndarray, fold: np
     for f, m in enumerate(folds.maps):
         i = fold == f
         if i.any():
-            stds[i] = m.calibrated_std(raw_std[i], None if violation is None else np.asarray(violation)[i])
+            stds[i] = m.calibrated_std(raw_std[i], None if violation is None else np.asarray(violation)[i], pred[i])
 
     def quantiles(levels: np.ndarray) -> np.ndarray:
         out = np.zeros((pred.size, np.asarray(levels).size))
@@ -375,6 +420,36 @@ def fit_std_floor(abs_err: np.ndarray, std: np.ndarray) -> float:
         mid = math.sqrt(lo * hi)
         lo, hi = (mid, hi) if trend(mid) < 0.0 else (lo, mid)
     return hi
+
+
+def fit_relative_floor(abs_err: np.ndarray, std: np.ndarray, depth: np.ndarray,
+                       grid: np.ndarray = RELATIVE_FLOOR_GRID) -> float:
+    """The depth-proportional term rho of ``abs_err`` [N] against stds ``std`` [N] (> 0) at rendered
+    depths ``depth`` [N] (> 0): the value of ``grid`` that minimises the mean relative CRPS
+
+        mean_i CRPS(F_rho,i, y_i) / d_i,   F_rho,i symmetric about d_i with central half-width
+        h_i(p) = Q_p(z) sqrt(std_i^2 + (rho d_i)^2) at level p,  z = |err| / sqrt(std^2 + (rho d)^2)
+
+    (Q_p the empirical p-quantile: the distribution the level map of these points gives), the CRPS
+    in its quantile form at ``metrics.crps_levels()``. The CRPS of a symmetric distribution depends
+    on |y - d| only, so the errors' signs are not needed. Ties go to the smaller rho (0 first)."""
+    abs_err, std, depth = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (abs_err, std, depth))
+    if not (abs_err.shape == std.shape == depth.shape) or abs_err.size < 3:
+        raise ValueError(f"fit_relative_floor: needs >= 3 paired errors, stds and depths, got {abs_err.size}, "
+                         f"{std.size} and {depth.size}")
+    if not (np.isfinite(abs_err).all() and (abs_err >= 0).all() and np.isfinite(std).all() and (std > 0).all()
+            and np.isfinite(depth).all() and (depth > 0).all()):
+        raise ValueError("fit_relative_floor: errors must be finite and >= 0, stds and depths finite and > 0")
+    t = M.crps_levels()
+    sign, central = np.sign(t - 0.5), np.abs(2.0 * t - 1.0)
+    scores = []
+    for rho in np.asarray(grid, dtype=np.float64):
+        total = np.hypot(std, rho * depth)
+        half = np.quantile(abs_err / total, central)  # [Q] in units of each point's total std
+        q_minus_y = sign[None, :] * half[None, :] * total[:, None] - abs_err[:, None]  # y = d + |err|
+        crps = 2.0 * (((q_minus_y > 0).astype(np.float64) - t[None, :]) * q_minus_y).mean(axis=1)
+        scores.append(float((crps / depth).mean()))
+    return float(np.asarray(grid, dtype=np.float64)[int(np.argmin(scores))])
 
 
 def standardised_errors(gt: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
@@ -539,8 +614,8 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
                               points: str = "calibrate", options=None, bounds: str = CALIBRATION_BOUNDS,
                               free_space=None) -> dict[str, Any]:
     """What a depth map is fitted on: the absolute camera-z errors "abs_err" [N] and raw total stds
-    "std" [N] (> 0), with the capture point of each ("index" [N] int64) and the data in words
-    ("source"), at the CALIBRATE capture points (``points="held-out"``: CALIBRATE and SCORE, see
+    "std" [N] (> 0), with the capture point of each ("index" [N] int64), the rendered depth ("depth"
+    [N]) and the data in words ("source"), at the CALIBRATE capture points (``points="held-out"``: CALIBRATE and SCORE, see
     ``CALIBRATION_POINTS``) seen from the calibration views (``calibration_views``: halfway between
     neighbouring training views; a point counts when both views of the pair observed it), at pixels
     with rendered opacity above ``opacity_mask`` (as the depth scores), rendered with ``options``
@@ -577,46 +652,48 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
         std = checked_std(std, free_space_violation(where, free_space))
         source += ", std checked against the training views' free space"
     return {"abs_err": np.abs(r["gt"][keep] - r["depth_mean"][keep]), "std": std[keep], "index": index[keep],
-            "source": source}
+            "depth": r["depth_mean"][keep], "source": source}
 
 
 def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
                           points: str = "calibrate", options=None, floor: bool = DEPTH_STD_FLOOR,
-                          free_space=None) -> QuantileCalibration:
+                          free_space=None, relative_floor: bool = DEPTH_RELATIVE_FLOOR) -> QuantileCalibration:
     """The depth map fitted on ``depth_calibration_errors`` (same arguments, the default bounds);
     with ``floor``, a std floor first (``fit_std_floor``); with ``free_space``
-    (``free_space.TrainingDepth``), on the free-space-checked std (the map's ``free_space``).
-    ValueError when the scene has no capture points or too few of those roles, or for an unknown
+    (``free_space.TrainingDepth``), on the free-space-checked std (the map's ``free_space``); with
+    ``relative_floor``, a depth-proportional term (``fit_relative_floor``). ValueError when the scene has no capture points or too few of those roles, or for an unknown
     ``points``."""
     r = depth_calibration_renders(model, dataset, seed=seed, opacity_mask=opacity_mask, points=points,
                                   options=options, free_space=free_space)
-    return _fit_depth_map(r, floor=floor, free_space=free_space is not None)
+    return _fit_depth_map(r, floor=floor, free_space=free_space is not None, relative_floor=relative_floor)
 
 
-def _fit_depth_map(renders: dict[str, Any], *, floor: bool, free_space: bool) -> QuantileCalibration:
+def _fit_depth_map(renders: dict[str, Any], *, floor: bool, free_space: bool,
+                   relative_floor: bool) -> QuantileCalibration:
     """The depth map of ``depth_calibration_renders``' output."""
     out = QuantileCalibration.fit_errors(renders["abs_err"], renders["std"], quantity="depth_std", floor=floor,
-                                         source=renders["source"])
+                                         depth=renders["depth"] if relative_floor else None, source=renders["source"])
     out.free_space = free_space
     return out
 
 
 def fit_depth_calibration_and_folds(model, dataset, *, seed: int = 0, points: str = DEFAULT_CALIBRATION_POINTS,
                                     options=None, floor: bool = DEPTH_STD_FLOOR, free_space=None,
+                                    relative_floor: bool = DEPTH_RELATIVE_FLOOR,
                                     folds: int = CROSS_FIT_FOLDS) -> tuple[QuantileCalibration, DepthFolds | None]:
     """The depth map (as ``fit_depth_calibration``) and, when it is fitted on the SCORE points too
     (``points="held-out"``), its cross-fitted ``DepthFolds`` from the same renders; None otherwise,
     or with a warning when the scene has too few SCORE blocks or points to fit them. ValueError as
     ``fit_depth_calibration``."""
     r = depth_calibration_renders(model, dataset, seed=seed, points=points, options=options, free_space=free_space)
-    out = _fit_depth_map(r, floor=floor, free_space=free_space is not None)
+    out = _fit_depth_map(r, floor=floor, free_space=free_space is not None, relative_floor=relative_floor)
     if points == "calibrate":
         return out, None
     capture = load_capture_points(dataset)
     keys = block_keys(capture.xyz, capture.xyz)
     try:
         folded = fit_depth_folds(r["abs_err"], r["std"], keys[r["index"]], keys[capture.roles == SCORE], folds=folds,
-                                 floor=floor, source=r["source"])
+                                 floor=floor, depth=r["depth"] if relative_floor else None, source=r["source"])
     except ValueError as exc:  # a scene too small to cross-fit: the map stands, its scores are not independent
         warnings.warn(f"{dataset.root}: the depth map's cross-fitted folds were not fitted ({exc}); depth interval "
                       "scores on the SCORE points will not be independent", stacklevel=2)
@@ -724,14 +801,16 @@ def load_run_calibration(run_dir: str | Path) -> RunCalibration | None:
 
 def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int = 0, model=None,
                   dataset=None, points: str = DEFAULT_CALIBRATION_POINTS, floor: bool = DEPTH_STD_FLOOR,
-                  free_space: bool = DEPTH_FREE_SPACE, progress: bool = True) -> RunCalibration:
+                  free_space: bool = DEPTH_FREE_SPACE, relative_floor: bool = DEPTH_RELATIVE_FLOOR,
+                  progress: bool = True) -> RunCalibration:
     """Fit the run's calibration and write ``RUN/calibration.json``: the depth map from its capture
     points (``points``: ``CALIBRATION_POINTS``; "held-out" adds the cross-fitted ``DepthFolds``
     that score it) and, when the run held pixels out of training
     (``train.holdout_fraction`` > 0 in its config.json), the colour map from them; ``floor``: whether
     the depth map fits a std floor (``fit_std_floor``); ``free_space``: whether it is fitted on the
     free-space-checked std (the training views are rendered once and stored first, as
-    ``free_space.TRAINING_DEPTH_FILE``; ``progress``: a bar over them). ValueError
+    ``free_space.TRAINING_DEPTH_FILE``; ``progress``: a bar over them); ``relative_floor``: whether
+    it fits a depth-proportional term (``fit_relative_floor``). ValueError
     (the depth fit's reason) when neither can be fitted; a depth fit that fails beside a colour one
     leaves depth raw."""
     if model is None:
@@ -748,7 +827,7 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
         save_training_depth(run_dir, reference)  # before the calibration.json that names it
     try:
         depth, folds = fit_depth_calibration_and_folds(model, dataset, seed=seed, points=points, floor=floor,
-                                                       free_space=reference)
+                                                       free_space=reference, relative_floor=relative_floor)
     except ValueError:
         if colour is None:
             raise
@@ -773,7 +852,8 @@ def describe(calibration: RunCalibration) -> str:
 
 
 def _std_formula(m: QuantileCalibration) -> str:
-    terms = ["raw^2"] + ([f"{m.floor:.3g}^2"] if m.floor else []) + (["free-space violation^2"] if m.free_space else [])
+    terms = (["raw^2"] + ([f"{m.floor:.3g}^2"] if m.floor else []) + (["free-space violation^2"] if m.free_space else [])
+             + ([f"({m.relative_floor:.3g} depth)^2"] if m.relative_floor else []))
     return "x" if len(terms) == 1 else f"sqrt({' + '.join(terms)}) x"
 
 
@@ -801,7 +881,8 @@ def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibrati
         if cal is not None and key in products:
             raw = products[key]
             extra = violation if key == "depth_std" else None
-            out.update({f"{key}_raw": raw, key: cal.calibrated_std(raw, extra).astype(raw.dtype)})
+            depth = products.get("depth_mean") if key == "depth_std" else None
+            out.update({f"{key}_raw": raw, key: cal.calibrated_std(raw, extra, depth).astype(raw.dtype)})
     return out
 
 
@@ -812,7 +893,7 @@ def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibrati
 
 def run(args) -> None:
     cal = calibrate_run(Path(args.run), device=args.device, seed=args.seed, points=args.points,
-                        floor=args.std_floor, free_space=args.free_space)
+                        floor=args.std_floor, free_space=args.free_space, relative_floor=args.relative_floor)
     print(f"calibrated {args.run}: {describe(cal)}")
     print(f"written: {Path(args.run) / CALIBRATION_FILE} (render, eval and export apply it; raw stds as depth_std_raw "
           "and colour_std_raw)")

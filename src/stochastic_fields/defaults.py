@@ -26,6 +26,9 @@ DEPTH_STD_FLOOR: bool = False
 #: docs/uncertainty.md, study 13: it ranks depth errors better on every scene, but its map transfers
 #: badly on fern, so it is an option).
 DEPTH_FREE_SPACE: bool = False
+#: Whether depth maps fit a depth-proportional std term rho, depth_std = s sqrt(raw^2 + (rho d)^2)
+#: (``calibration.fit_relative_floor``; docs/uncertainty.md, study 20).
+DEPTH_RELATIVE_FLOOR: bool = False
 
 # free_space
 #: File of a run's rendered training-view depths (``save_training_depth``).

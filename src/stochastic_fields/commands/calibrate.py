@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import argparse
 
-from ..defaults import CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS, DEPTH_FREE_SPACE, DEPTH_STD_FLOOR
+from ..defaults import (CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS, DEPTH_FREE_SPACE,
+                        DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR)
 
 
 def add_arguments(p) -> None:
@@ -29,6 +30,11 @@ def add_arguments(p) -> None:
                         "surface, also written as depth_free_space (renders the training views once into "
                         "RUN/training_depth.npz; docs/uncertainty.md, study 13: ranks depth errors better on every "
                         f"scene, intervals transfer worse on fern; default: {'on' if DEPTH_FREE_SPACE else 'off'}).")
+    p.add_argument("--relative-floor", action=argparse.BooleanOptionalAction, default=DEPTH_RELATIVE_FLOOR,
+                   help="Fit a depth-proportional std term rho, so that depth_std = s * sqrt(raw^2 + (rho depth)^2): "
+                        "a pixel rendered on the wrong surface errs by a fraction of its depth, not a multiple of its "
+                        "std, and without the term those few pixels widen every 95%% band (docs/uncertainty.md, "
+                        f"study 20; default: {'on' if DEPTH_RELATIVE_FLOOR else 'off'}).")
 
 
 def run(args) -> None:
