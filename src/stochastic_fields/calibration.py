@@ -425,14 +425,8 @@ def fit_std_floor(abs_err: np.ndarray, std: np.ndarray) -> float:
 def fit_relative_floor(abs_err: np.ndarray, std: np.ndarray, depth: np.ndarray,
                        grid: np.ndarray = RELATIVE_FLOOR_GRID) -> float:
     """The depth-proportional term rho of ``abs_err`` [N] against stds ``std`` [N] (> 0) at rendered
-    depths ``depth`` [N] (> 0): the value of ``grid`` that minimises the mean relative CRPS
-
-        mean_i CRPS(F_rho,i, y_i) / d_i,   F_rho,i symmetric about d_i with central half-width
-        h_i(p) = Q_p(z) sqrt(std_i^2 + (rho d_i)^2) at level p,  z = |err| / sqrt(std^2 + (rho d)^2)
-
-    (Q_p the empirical p-quantile: the distribution the level map of these points gives), the CRPS
-    in its quantile form at ``metrics.crps_levels()``. The CRPS of a symmetric distribution depends
-    on |y - d| only, so the errors' signs are not needed. Ties go to the smaller rho (0 first)."""
+    depths ``depth`` [N] (> 0): the value of ``grid`` with the smallest ``relative_crps`` (ties go to
+    the smaller rho, 0 first)."""
     abs_err, std, depth = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (abs_err, std, depth))
     if not (abs_err.shape == std.shape == depth.shape) or abs_err.size < 3:
         raise ValueError(f"fit_relative_floor: needs >= 3 paired errors, stds and depths, got {abs_err.size}, "
@@ -440,16 +434,25 @@ def fit_relative_floor(abs_err: np.ndarray, std: np.ndarray, depth: np.ndarray,
     if not (np.isfinite(abs_err).all() and (abs_err >= 0).all() and np.isfinite(std).all() and (std > 0).all()
             and np.isfinite(depth).all() and (depth > 0).all()):
         raise ValueError("fit_relative_floor: errors must be finite and >= 0, stds and depths finite and > 0")
+    grid = np.asarray(grid, dtype=np.float64)
+    return float(grid[int(np.argmin([relative_crps(abs_err, std, depth, rho) for rho in grid]))])
+
+
+def relative_crps(abs_err: np.ndarray, std: np.ndarray, depth: np.ndarray, rho: float) -> float:
+    """The mean CRPS / depth that the level map fitted on these points gives them with the term rho:
+
+        mean_i CRPS(F_i, y_i) / d_i,   F_i symmetric about d_i with central half-width
+        h_i(p) = Q_p(z) sqrt(std_i^2 + (rho d_i)^2) at level p,  z = |err| / sqrt(std^2 + (rho d)^2)
+
+    (Q_p the empirical p-quantile), the CRPS in its quantile form at ``metrics.crps_levels()``
+    (``metrics.crps_from_quantiles``). The CRPS of a symmetric distribution depends on |y - d|
+    only, so ``abs_err`` [N] suffices. ``std``, ``depth`` [N] (> 0)."""
     t = M.crps_levels()
-    sign, central = np.sign(t - 0.5), np.abs(2.0 * t - 1.0)
-    scores = []
-    for rho in np.asarray(grid, dtype=np.float64):
-        total = np.hypot(std, rho * depth)
-        half = np.quantile(abs_err / total, central)  # [Q] in units of each point's total std
-        q_minus_y = sign[None, :] * half[None, :] * total[:, None] - abs_err[:, None]  # y = d + |err|
-        crps = 2.0 * (((q_minus_y > 0).astype(np.float64) - t[None, :]) * q_minus_y).mean(axis=1)
-        scores.append(float((crps / depth).mean()))
-    return float(np.asarray(grid, dtype=np.float64)[int(np.argmin(scores))])
+    total = np.hypot(std, rho * depth)
+    half = np.quantile(abs_err / total, np.abs(2.0 * t - 1.0))  # [Q] in units of each point's total std
+    q_minus_y = np.sign(t - 0.5)[None, :] * half[None, :] * total[:, None] - abs_err[:, None]  # y = d + |err|
+    crps = 2.0 * (((q_minus_y > 0).astype(np.float64) - t[None, :]) * q_minus_y).mean(axis=1)
+    return float((crps / depth).mean())
 
 
 def standardised_errors(gt: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
