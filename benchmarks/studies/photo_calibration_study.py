@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from study_helpers import LEVELS, begin_study, by_scene, coverage, distance, scored_points, study_parser, write_study  # noqa: E402
+from study_helpers import (LEVELS, begin_study, by_scene, coverage, distance, photo_points, scored_points,  # noqa: E402
+                           study_parser, write_study)
 
 #: Study 18's rule (study 12's): no scene's coverage distance may grow by more than TOLERANCE, and the
 #: mean distance over the scenes must fall by at least GAIN.
@@ -44,22 +45,6 @@ def unused_views(dataset, evaluated: list[int]) -> list[int]:
     """The views that neither train nor are evaluated, in order."""
     used = set(int(v) for v in dataset.train_indices) | set(int(v) for v in evaluated)
     return [v for v in range(dataset.num_views) if v not in used]
-
-
-def photo_points(dataset, points, views: list[int], role: int) -> dict:
-    """{view: SparseDepth} of the capture points of ``role`` that each of ``views`` observed: COLMAP
-    tracks, or on a dense-depth scene the stand-in points its exact depth map shows
-    (``capture_points.depth_map_observes``); one point per pixel, the nearest."""
-    from stochastic_fields.capture_points import depth_map_observes, restrict_sparse_depth
-    from stochastic_fields.sparse_depth import project_sparse_depth, sparse_depth_for_dataset
-
-    if points.colmap is not None:
-        full = sparse_depth_for_dataset(dataset, views, points=points.colmap)
-        return {v: restrict_sparse_depth(sd, points.roles[sd.point_index] == role) for v, sd in full.items()}
-    visible = [np.zeros(0, np.int64) for _ in range(dataset.num_views)]
-    for v in views:
-        visible[v] = np.flatnonzero(depth_map_observes(dataset, points.xyz, v) & (points.roles == role))
-    return project_sparse_depth(dataset.cameras, points.xyz, views, visible=visible, visibility_name="depth map")
 
 
 def rendered_errors(model, cameras, near, far, sparse: dict, seed: int) -> dict[str, np.ndarray]:

@@ -49,12 +49,15 @@ from scipy.stats import spearmanr
 from stochastic_fields import metrics as M
 from stochastic_fields.calibration import (QuantileCalibration, cross_fitted_depth_quantiles,
                                           depth_calibration_renders, fit_depth_folds, render_at_points)
-from stochastic_fields.capture_points import SCORE, block_keys, load_capture_points, sparse_depth_for_role
+from stochastic_fields.capture_points import SCORE, block_keys, load_capture_points
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.plots import plot_interval_reliability
 from stochastic_fields.trainer import load_trained_model
 from stochastic_fields.view_maps import OPACITY_MASK
 from stochastic_fields_bench.budget import BenchmarkSettings, select_views
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers (study_helpers.py)
+from study_helpers import photo_points  # noqa: E402
 
 #: The rule (module doc), fixed before any scored point was looked at.
 COVERAGE_TOLERANCE: float = 0.05
@@ -84,7 +87,7 @@ def collect(run_dir: Path) -> dict:
     capture = load_capture_points(dataset)
     fit = depth_calibration_renders(model, dataset, points="held-out")
     views = scored_views(dataset, cfg.data.split)
-    sparse = sparse_depth_for_role(dataset, capture, views, SCORE)
+    sparse = photo_points(dataset, capture, views, SCORE)
     r = render_at_points(model, dataset.cameras, dataset.near, dataset.far, sparse,
                          generator=torch.Generator().manual_seed(0))
     order = [v for v, sd in sparse.items() if len(sd)]

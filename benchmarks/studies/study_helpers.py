@@ -20,7 +20,7 @@ from scipy.special import ndtri
 
 from stochastic_fields.calibration import render_at_points
 from stochastic_fields.cameras import camera_to_world, intrinsics_3x3
-from stochastic_fields.capture_points import SCORE, backproject_pixels, block_keys, restrict_sparse_depth
+from stochastic_fields.capture_points import SCORE, backproject_pixels, block_keys, depth_map_observes, restrict_sparse_depth
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.sparse_depth import project_sparse_depth, sparse_depth_for_dataset
 from stochastic_fields.view_maps import OPACITY_MASK
@@ -80,6 +80,19 @@ def scored_points(run_dir: Path, model, dataset, points, views: list[int], held:
     out["block"] = block_keys(out["xyz"], points.xyz)
     out["role"] = points.roles[out["index"]]
     return out
+
+
+def photo_points(dataset, points, views: list[int], role: int) -> dict:
+    """{view: SparseDepth} of the capture points of ``role`` that each of ``views`` observed: COLMAP
+    tracks, or on a dense-depth scene the stand-in points its exact depth map shows
+    (``capture_points.depth_map_observes``); one point per pixel, the nearest."""
+    if points.colmap is not None:
+        full = sparse_depth_for_dataset(dataset, views, points=points.colmap)
+        return {v: restrict_sparse_depth(sd, points.roles[sd.point_index] == role) for v, sd in full.items()}
+    visible = [np.zeros(0, np.int64) for _ in range(dataset.num_views)]
+    for v in views:
+        visible[v] = np.flatnonzero(depth_map_observes(dataset, points.xyz, v) & (points.roles == role))
+    return project_sparse_depth(dataset.cameras, points.xyz, views, visible=visible, visibility_name="depth map")
 
 
 def parse_runs(parser: argparse.ArgumentParser, items: list[str]) -> dict[str, Path]:
