@@ -116,7 +116,14 @@ def test_export_exact_geometry(tmp_path, tiny_scene, dataset, exact_model):
     np.testing.assert_allclose(z["depth_mean"][z["valid"]], dataset.depths[1].numpy()[z["valid"]], rtol=0.05)
     fs = np.load(out / "views" / "view_001_free_space.npz")
     for i, t in enumerate((2.0, 3.0, 3.5)):
-        np.testing.assert_array_equal(fs["prob_depth_greater"][i], np.mean(draws > np.float32(t), axis=-1))
+        np.testing.assert_array_equal(fs["prob_depth_greater_draws"][i], np.mean(draws > np.float32(t), axis=-1))
+        # the predictive P(depth > t) agrees with the exported 90% band: below 5% exactly beyond its upper
+        # edge, above 95% exactly before its lower edge (pixels within float32 rounding of an edge left out)
+        prob, v = fs["prob_depth_greater"][i], z["valid"]
+        for edge, side in ((z["depth_band90_upper"], 0.05), (z["depth_band90_lower"], 0.95)):
+            clear = v & (np.abs(t - edge) > 1e-4 * t)
+            assert clear.sum() > 0
+            np.testing.assert_array_equal((prob < side)[clear], (t > edge)[clear])
     # the per-view PLY carries covariances; the fused one counts merged points
     cloud, _ = read_ply(out / "clouds" / "view_001.ply")
     assert {"cov_xx", "cov_zz", "depth_std", "confidence", "opacity"} <= set(cloud.attributes)

@@ -20,7 +20,9 @@ from stochastic_fields.products.depth_maps import (
     DepthProducts, draw_quantiles, encode_png16, png16_scale, quantile_name, read_png16, read_tiff, write_npz,
     write_png16, write_tiff)
 from stochastic_fields.products.export import surface_distances
-from stochastic_fields.products.free_space import free_space_volume, pixel_free_space, prob_depth_greater
+from stochastic_fields.products.free_space import (central_level, free_space_volume, pixel_free_space,
+                                                   predictive_free_space_volume, predictive_prob_depth_greater,
+                                                   prob_depth_greater)
 from stochastic_fields.products.fusion import default_voxel_size, fuse_clouds
 from stochastic_fields.products.pointcloud import (
     COVARIANCE_NAMES, CloudArrays, PointFilter, cloud_from_products, filter_cloud, point_colours, read_ply, to_open3d,
@@ -103,6 +105,51 @@ def test_prob_depth_greater_matches_loop():
     assert np.all(np.diff(vol, axis=0) <= 0)  # non-increasing in d
     with pytest.raises(IndexError, match="outside"):
         pixel_free_space(draws, 4, 0, 1.0)
+
+
+def test_predictive_prob_depth_greater_is_the_bands_and_the_scores_distribution():
+    """P(depth > d) of a Gaussian against scipy; with a fitted level map, one minus the (1 + p) / 2
+    quantile at every exported band edge and quantile, monotone in d, and the share of true depths
+    with P(depth > y) inside [(1 - p) / 2, (1 + p) / 2] equal to the band's scored coverage."""
+    from scipy.stats import norm
+
+    from stochastic_fields import metrics as M
+    from stochastic_fields.calibration import QuantileCalibration
+
+    rng = np.random.default_rng(7)
+    mean, std = rng.uniform(1.0, 5.0, (6, 7)), rng.uniform(1e-3, 0.5, (6, 7))
+    d = rng.uniform(0.0, 6.0, (6, 7))
+    np.testing.assert_allclose(predictive_prob_depth_greater(mean, std, d), norm.sf(d, mean, std), atol=1e-12)
+    assert predictive_prob_depth_greater(2.0, 0.1, 2.0 + 0.1 * 1.6448536269514722) == pytest.approx(0.05, abs=1e-12)
+    # zero std: all mass at the mean; far tails
+    np.testing.assert_array_equal(predictive_prob_depth_greater([2.0, 2.0, 2.0], [0.0, 0.0, 0.0], [1.0, 2.0, 3.0]),
+                                  [1.0, 0.5, 0.0])
+    assert predictive_prob_depth_greater(0.0, 1.0, 40.0) == 0.0 and predictive_prob_depth_greater(0.0, 1.0, -40.0) == 1.0
+    # a heavy-tailed level map fitted on Student-t errors
+    errs = np.abs(rng.standard_t(2, 20000))
+    cal = QuantileCalibration.fit(errs, quantity="depth_std")
+    m = cal.relative_scale
+    for level in (0.5, ONE_SIGMA, 0.9, 0.95, 0.99):
+        half = norm.ppf((1 + level) / 2) * float(m(level)) * std
+        assert predictive_prob_depth_greater(mean, std, mean + half, m) == pytest.approx(np.full_like(mean, (1 - level) / 2), abs=2e-4)
+        assert predictive_prob_depth_greater(mean, std, mean - half, m) == pytest.approx(np.full_like(mean, (1 + level) / 2), abs=2e-4)
+    vol = predictive_free_space_volume(mean, std, np.linspace(0, 6, 50), m)
+    assert vol.shape == (50, 6, 7) and np.all(np.diff(vol, axis=0) <= 1e-15)
+    assert central_level(np.array([0.0]), m)[0] == 0.0
+    # the scored coverage counts the same intervals
+    n = 4000
+    mu, sd = rng.uniform(1.0, 5.0, n), rng.uniform(0.01, 0.3, n)
+    y = mu + sd * rng.standard_t(2, n)
+    prob = predictive_prob_depth_greater(mu, sd, y, m)
+    for level in (0.5, 0.9, 0.95):
+        inside = ((prob >= (1 - level) / 2 - 1e-9) & (prob <= (1 + level) / 2 + 1e-9)).mean()
+        scored = M.calibration_curve(y, mu, sd, levels=[level], interval_scale=m).coverage[0]
+        assert inside == pytest.approx(scored, abs=2.0 / n)
+    with pytest.raises(ValueError, match="stds must be finite and >= 0"):
+        predictive_prob_depth_greater(1.0, -1.0, 1.0)
+
+
+ONE_SIGMA = 0.682689492137086
 
 
 # ----------------------------------------------------------------------------- geometry

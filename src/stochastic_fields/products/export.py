@@ -10,7 +10,8 @@ complete, so OUT is always one finished export, never a mix of an old and an int
     OUT/views/<name>_depth_mean.png/.json 16-bit depth + scale sidecar (also _depth_std, _depth_q<p>)
     OUT/views/<name>.tiff                float32 pages, NaN where invalid
     OUT/views/<name>_depth_vis.png       colourised depth mean/std with colour bars
-    OUT/views/<name>_free_space.npz      P(depth > d) [T, H, W] for --free-space-thresholds
+    OUT/views/<name>_free_space.npz      P(depth > d) [T, H, W] for --free-space-thresholds (the
+                                         bands' predictive distribution; the draws' fraction beside it)
     OUT/views/<name>_depth_m.tiff, _depth_mm.png, _depth_std_*, _camera_info.yaml/.json
                                          REP 118 depth in metres/millimetres (format 'ros', ros_depth.py)
     OUT/clouds/<name>.ply                filtered point cloud of the view (pointcloud.write_ply)
@@ -44,7 +45,7 @@ from ..renderer import seeded_chunks
 from ..io_utils import atomic_folder, atomic_path, atomic_write_text, check_file_name, read_json
 from .depth_maps import (CONVENTIONS, DepthProducts, check_quantile_levels, compute_depth_products,
                          draw_quantiles, quantile_name, write_colourised, write_npz, write_png16, write_tiff)
-from .free_space import free_space_volume
+from .free_space import free_space_volume, predictive_free_space_volume
 from .fusion import check_voxel_size, fuse_clouds
 from .pointcloud import (CloudArrays, PointFilter, cloud_from_products, filter_cloud, most_confident,
                          uncertainty_range, write_ply)
@@ -192,16 +193,23 @@ def write_view_files(out_dir: Path, name: str, products: DepthProducts, opts: Ex
     if "png" in opts.formats:
         files.append(write_colourised(views_dir / f"{name}_depth_vis.png", products, title=name))
     if opts.free_space_thresholds:
-        vol = free_space_volume(torch.from_numpy(products.depth_draws), opts.free_space_thresholds).float().numpy()
+        vol = predictive_free_space_volume(products.depth_mean, products.depth_std, opts.free_space_thresholds,
+                                           products.band_multiplier).astype(np.float32)
+        draws = free_space_volume(torch.from_numpy(products.depth_draws), opts.free_space_thresholds).float().numpy()
         path = views_dir / f"{name}_free_space.npz"
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
-                np.savez_compressed(fh, prob_depth_greater=vol,
+                np.savez_compressed(fh, prob_depth_greater=vol, prob_depth_greater_draws=draws,
                                     thresholds=np.asarray(opts.free_space_thresholds, np.float32),
                                     num_draws=np.int64(products.num_draws), units=np.str_(products.units),
                                     intrinsics=products.intrinsics, world_to_camera=products.world_to_camera,
-                                    conventions=np.str_("prob_depth_greater[t, i, j] = fraction of the K draws whose "
-                                                        "camera-z depth at pixel (i, j) exceeds thresholds[t]; "
+                                    conventions=np.str_("prob_depth_greater[t, i, j] = P(camera-z depth at pixel (i, j) "
+                                                        "> thresholds[t]) under the predictive distribution of the "
+                                                        "depth bands and depth_std (symmetric about depth_mean, central "
+                                                        "level-p interval depth_mean +- z_p m(p) depth_std, m the run's "
+                                                        "level map; 1 - the band's (1 + p) / 2 quantile); "
+                                                        "prob_depth_greater_draws = the fraction of the K draws' "
+                                                        "expected depths beyond it (epistemic part only); "
                                                         + CONVENTIONS))
         files.append(path)
     return files
