@@ -1,7 +1,7 @@
 """Reproduce the paper's Tables 1-3 (and the depth / calibration tables) on LLFF scenes.
 
 Trains every method on every scene with the protocol of docs/definitions.md §7 (LLFF images_8, every 5th view
-trains, same budget and seed for all), scores the test views, times one full-view render per
+trains, same budget and seed for all; ``--protocol fewview|dense`` for the literature's splits), scores the test views, times one full-view render per
 method, and writes ``tables.json``, ``tables.md`` and ``plots/*.png`` into ``--out``. Every stage
 is resumable: run the same command again after an interruption and finished stages are skipped.
 
@@ -9,6 +9,10 @@ Examples::
 
     # the documented CPU budget (about 1.5 hours on 2 CPU cores; a GPU is used when present)
     python benchmarks/eval_tables.py --scenes fern flower --out benchmarks/results/eval_tables
+
+    # the few-view protocol of the literature (every 8th view tests, 3 of the others train), S-NeRF alone
+    python benchmarks/eval_tables.py --protocol fewview --views 3 --methods snerf_default \
+        --out benchmarks/results/eval_tables_fewview3
 
     # the paper-scale budget (llff preset, every test view: for a GPU)
     python benchmarks/eval_tables.py --budget full --scenes fern flower --out results/eval_tables_full
@@ -36,7 +40,8 @@ DEFAULT_DATA_ROOT = REPO_ROOT / ".." / "shared" / "data" / "nerf_llff_data"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from stochastic_fields_bench.tables import DEFAULT_METHODS, DEFAULT_SCENES, METHOD_SPECS, TABLES_DIST_TIMEOUT_S
+    from stochastic_fields_bench.tables import (DEFAULT_METHODS, DEFAULT_SCENES, METHOD_SPECS, PROTOCOLS,
+                                                TABLES_DIST_TIMEOUT_S)
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--scenes", nargs="+", default=list(DEFAULT_SCENES),
@@ -54,6 +59,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--budget", choices=("cpu", "full"), default="cpu",
                    help="'cpu' (default, the documented budget): 1000 steps, grid <= 250k cells, 4 test views per scene; "
                    "'full': the llff preset (3000 steps, 2M cells, every test view; for a GPU).")
+    p.add_argument("--protocol", choices=PROTOCOLS, default="paper",
+                   help="The split: 'paper' (default; every 5th view trains, the others test), 'fewview' (every 8th "
+                        "view tests, --views of the others train, spread evenly: RegNeRF's protocol of the few-view "
+                        "literature) or 'dense' (every 8th view tests, all others train). Use one --out per protocol.")
+    p.add_argument("--views", type=int, default=3, help="Training views of --protocol fewview (3, 6 or 9; default 3).")
     p.add_argument("--max-views", type=int, default=None,
                    help="Score N test views spread evenly over the test set (default: the budget's).")
     p.add_argument("--product-views", type=int, default=1,
@@ -101,7 +111,7 @@ def main(argv: list[str] | None = None) -> int:
     settings = BenchmarkSettings(budget=args.budget, images=images, iterations=args.iterations, seed=args.seed, device=args.device,
                                  max_views=args.max_views, product_views=args.product_views,
                                  timing=not args.no_timing, timing_repeats=args.timing_repeats or (1 if args.tiny else 3),
-                                 tiny=args.tiny, overrides=overrides)
+                                 tiny=args.tiny, overrides=overrides, protocol=args.protocol, train_views=args.views)
     command = "python benchmarks/eval_tables.py " + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv))
     from stochastic_fields.distributed import DistributedError, process_group, requested_by_environment
 

@@ -411,6 +411,14 @@ def test_benchmark_script_on_fern_images_16(shared_data, tmp_path, capsys, load_
         assert (tmp_path / "plots" / name).stat().st_size > 1000
     with pytest.raises(SystemExit):
         script.main(argv + ["--set", "nonsense"])
+    # the few-view protocol into its own folder: the split and the published-comparison column
+    few = tmp_path / "fewview3"
+    assert script.main([a if a != str(tmp_path) else str(few) for a in argv] + ["--protocol", "fewview", "--views", "3"]) == 0
+    tables = json.loads((few / "tables.json").read_text())
+    assert "3 of the others train" in tables["protocol"]
+    assert tables["per_scene"]["fern"]["snerf"]["num_views"] == 1
+    assert np.isfinite(tables["quality"]["snerf"]["ause_rmse_max_normalised"]["fern"])
+    assert "AUSE RMSE max-norm." in (few / "tables.md").read_text()
 
 
 def test_view_selection_and_budget():
@@ -429,6 +437,29 @@ def test_view_selection_and_budget():
     assert T.base_config(T.BenchmarkSettings(iterations=7)).train.iterations == 7  # explicit beats the budget
     with pytest.raises(ValueError, match="budget"):
         T.base_config(T.BenchmarkSettings(budget="gpu"))
+
+
+def test_protocols_split_every_method_alike(shared_data):
+    """--protocol: the paper's split, the few-view literature's (RegNeRF's training views, every 8th
+    view tests, all of them scored) and the dense one, on fern (hand-worked indices as tests/test_split.py)."""
+    root = shared_data / "nerf_llff_data"
+    paper = T.scene_inputs("fern", T.BenchmarkSettings(images="images_16"), root, log=lambda _m: None)[1]
+    assert list(paper.train_indices) == [0, 5, 10, 15]
+    few = T.BenchmarkSettings(images="images_16", protocol="fewview", train_views=3)
+    _, ds, views, sparse = T.scene_inputs("fern", few, root, log=lambda _m: None)
+    assert list(ds.train_indices) == [1, 10, 19] and list(ds.test_indices) == views == [0, 8, 16]
+    assert set(sparse) == {0, 8, 16}
+    cfg = T.base_config(few, ds)
+    assert (cfg.data.split, cfg.data.holdout_every, cfg.data.train_views) == ("fewview", 8, 3)
+    dense = T.BenchmarkSettings(images="images_16", protocol="dense")
+    _, ds, views, _ = T.scene_inputs("fern", dense, root, log=lambda _m: None)
+    assert len(ds.train_indices) == 17 and views == [0, 8, 16]
+    assert T.base_config(dense).data.split == "capture"
+    assert "every 8th view tests, 3 of the others train" in few.describe_protocol()
+    with pytest.raises(ValueError, match="protocol must be one of"):
+        T.base_config(T.BenchmarkSettings(protocol="sparse"))
+    with pytest.raises(ValueError, match="at least 1 training view"):
+        T.base_config(T.BenchmarkSettings(protocol="fewview", train_views=0))
 
 
 def test_resume_check_counts_missing_options_as_defaults(tmp_path):

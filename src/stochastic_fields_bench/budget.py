@@ -21,6 +21,16 @@ from stochastic_fields.config import ExperimentConfig, preset, set_dotted
 #: cost, for a GPU.
 CPU_BUDGET_OVERRIDES: tuple[tuple[str, Any], ...] = (("train.iterations", 1000), ("field.grid_max_cells", 250_000))
 
+#: The split protocols of the tables (``BenchmarkSettings.protocol``):
+#: "paper": the S-NeRF paper's (every 5th view trains, the others test; docs/definitions.md §7);
+#: "fewview": the few-view literature's (every 8th view tests, ``train_views`` of the others train,
+#: spread evenly: RegNeRF's protocol, used by FreeNeRF, SparseNeRF, FSGS, CoR-GS);
+#: "dense": every 8th view tests, all others train (the literature's dense LLFF protocol, and
+#: ``train``'s capture split).
+PROTOCOLS: tuple[str, ...] = ("paper", "fewview", "dense")
+#: Every how-many-th view tests under the "fewview" and "dense" protocols.
+LITERATURE_HOLDOUT_EVERY: int = 8
+
 
 CPU_BUDGET_VIEWS: int = 4
 
@@ -51,6 +61,19 @@ class BenchmarkSettings:
     """CI configuration: small grid, few samples and iterations (checks the pipeline, not the numbers)."""
     overrides: tuple[tuple[str, Any], ...] = ()
     """Extra (dotted config path, value) pairs applied to every method, after ``tiny``."""
+    protocol: str = "paper"
+    """The split (``PROTOCOLS``): "paper", "fewview" or "dense"."""
+    train_views: int = 3
+    """Training views of the "fewview" protocol (3, 6 or 9 in the literature)."""
+
+    def describe_protocol(self) -> str:
+        """One line for the tables' header."""
+        if self.protocol == "fewview":
+            return (f"few-view protocol: every {LITERATURE_HOLDOUT_EVERY}th view tests, {self.train_views} of the others "
+                    "train, spread evenly (RegNeRF's)")
+        if self.protocol == "dense":
+            return f"dense protocol: every {LITERATURE_HOLDOUT_EVERY}th view tests, all others train"
+        return "the S-NeRF paper's protocol: every 5th view trains, the others test"
 
 
 def base_config(settings: BenchmarkSettings, dataset=None) -> ExperimentConfig:
@@ -69,8 +92,18 @@ def base_config(settings: BenchmarkSettings, dataset=None) -> ExperimentConfig:
         if hasattr(cfg.render, key):
             setattr(cfg.render, key, False)
     cfg.data.images = settings.images
-    cfg.data.split = "paper"  # the paper's protocol, explicitly (not the capture default)
-    cfg.data.split_every = 5
+    if settings.protocol not in PROTOCOLS:
+        raise ValueError(f"protocol must be one of {PROTOCOLS}, got {settings.protocol!r}")
+    if settings.protocol == "paper":
+        cfg.data.split = "paper"  # the paper's protocol, explicitly (not the capture default)
+        cfg.data.split_every = 5
+    else:
+        cfg.data.split = "fewview" if settings.protocol == "fewview" else "capture"
+        cfg.data.holdout_every = LITERATURE_HOLDOUT_EVERY
+        if settings.protocol == "fewview":
+            if settings.train_views < 1:
+                raise ValueError(f"the few-view protocol needs at least 1 training view, got {settings.train_views}")
+            cfg.data.train_views = int(settings.train_views)
     cfg.train.seed = settings.seed
     cfg.train.device = settings.device
     if settings.tiny:

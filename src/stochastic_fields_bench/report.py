@@ -44,7 +44,8 @@ def _scene_row(result: dict) -> dict[str, Any]:
     metrics = result["metrics"]
     pooled = metrics.get("pooled", {})
     keys = ("nll", "pearson_mse_var", "spearman_mse_var", "psnr", "ssim", "ause_rmse", "ause_rmse_normalised",
-            "ause_mae", "ause_mae_normalised", "auce_colour", "calibration_gap_colour", "render_s")
+            "ause_mae", "ause_mae_normalised", "ause_rmse_max_normalised", "ause_mae_max_normalised", "auce_colour",
+            "calibration_gap_colour", "render_s")
     row = {k: _summary(result, k)["mean"] for k in keys}
     row["correlation_undefined_views"] = _summary(result, "pearson_mse_var")["num_undefined"]
     row["num_views"] = _summary(result, "nll")["num_views"]
@@ -122,8 +123,9 @@ def build_tables(results: dict[str, dict[str, dict]], *, methods: Sequence[str] 
                      "paper": {s: PAPER_TABLE3.get(s, {}).get(m) for s in scenes}}
     quality = {m: {"label": METHOD_SPECS[m].label,
                    **{k: per_scene(m, lambda r, k=k: r[k]) for k in ("psnr", "ssim", "ause_rmse", "ause_rmse_normalised",
-                                                                  "ause_mae", "ause_mae_normalised", "auce_colour",
-                                                                  "calibration_gap_colour")}}
+                                                                  "ause_mae", "ause_mae_normalised",
+                                                                  "ause_rmse_max_normalised", "ause_mae_max_normalised",
+                                                                  "nll", "auce_colour", "calibration_gap_colour")}}
                for m in present}
     depth = {m: {"label": METHOD_SPECS[m].label,
                  **{k: per_scene(m, lambda r, k=k: r.get("depth", {}).get(k, math.nan))
@@ -156,6 +158,7 @@ def build_tables(results: dict[str, dict[str, dict]], *, methods: Sequence[str] 
                   "split_every": cfg["data"]["split_every"], "seed": cfg["train"]["seed"],
                   "grid_max_cells": cfg["field"]["grid_max_cells"]}
     return {"scenes": scenes, "methods": present, "budget": budget, "command": command,
+            "protocol": settings.describe_protocol() if settings else None,
             "settings": dataclasses.asdict(settings) if settings else None, "table1": table1, "table2": table2,
             "table3": table3, "quality": quality, "depth": depth, "depth_intervals": intervals,
             "depth_sources": depth_sources,
@@ -200,6 +203,8 @@ def format_markdown(tables: dict[str, Any]) -> str:
         L += ["Command: `" + tables["command"] + "`", ""]
     if tables.get("budget"):
         L += ["Budget (every method): " + ", ".join(f"{k}={v}" for k, v in tables["budget"].items()), ""]
+    if tables.get("protocol"):
+        L += ["Split: " + tables["protocol"], ""]
     if tables["table1"]:
         L += ["## Table 1: NLL and MSE-uncertainty correlation (paper's figures in brackets)", ""]
         header = ["method"] + [f"NLL {s}" for s in cols] + [f"Pearson {s}" for s in cols] + [f"Spearman {s}" for s in cols]
@@ -245,11 +250,14 @@ def format_markdown(tables: dict[str, Any]) -> str:
                         + [_fmt(e["spearman"][s]) for s in cols] + [_fmt(e["psnr"][s], 2) for s in cols])
         L += _md_table(header, rows) + [""]
     L += ["## Table 4: image quality, sparsification and calibration (colour)", ""]
-    header = ["method", "scene", "PSNR", "SSIM", "AUSE RMSE", "AUSE RMSE norm.", "AUSE MAE", "AUSE MAE norm.",
-              "AUCE", "coverage gap"]
+    L += ["AUSE norm.: ours (docs/definitions.md §6.3); AUSE max-norm.: each sparsification curve divided by its "
+          "own maximum (the CF-NeRF / Bayes' Rays / FisherRF convention), the column to set beside published numbers.", ""]
+    header = ["method", "scene", "PSNR", "SSIM", "AUSE RMSE", "AUSE RMSE norm.", "AUSE RMSE max-norm.", "AUSE MAE",
+              "AUSE MAE norm.", "AUSE MAE max-norm.", "NLL", "AUCE", "coverage gap"]
     rows = [[e["label"], s] + [_fmt(e[k][s], 2 if k == "psnr" else 4) for k in
-                               ("psnr", "ssim", "ause_rmse", "ause_rmse_normalised", "ause_mae",
-                                "ause_mae_normalised", "auce_colour", "calibration_gap_colour")]
+                               ("psnr", "ssim", "ause_rmse", "ause_rmse_normalised", "ause_rmse_max_normalised",
+                                "ause_mae", "ause_mae_normalised", "ause_mae_max_normalised", "nll", "auce_colour",
+                                "calibration_gap_colour")]
             for e in tables["quality"].values() for s in cols]
     L += _md_table(header, rows) + [""]
     if tables["depth_sources"]:

@@ -24,6 +24,7 @@ from stochastic_fields.trainer import RESUMABLE_OPTIONS, load_trained_model, Tra
 from stochastic_fields.view_maps import draws_summary
 from stochastic_fields.capture_points import score_sparse_depth
 from stochastic_fields.data import detect_format, load_dataset
+from stochastic_fields.scenes import apply_split
 from tqdm import tqdm
 
 from .methods import MethodSpec, METHOD_SPECS, method_config
@@ -339,14 +340,15 @@ def load_method_result(run_dir: Path) -> dict[str, Any]:
 
 def scene_inputs(scene: str, settings: BenchmarkSettings, data_root: Path | None = None, *,
                  log: Callable[[str], None] = print) -> tuple[Path, Any, list[int], dict | None]:
-    """What every method of a scene is scored on: (scene folder, dataset with every 5th view
-    training, the scored test views, {view: SparseDepth} of the SCORE capture points or None
+    """What every method of a scene is scored on: (scene folder, dataset split by the settings'
+    protocol (``budget.PROTOCOLS``; "paper": every 5th view trains), the scored test views, {view: SparseDepth} of the SCORE capture points or None
     where the scene has exact depth maps or no points)."""
     scene_path = resolve_scene(scene, data_root)
     if detect_format(scene_path) == "llff":
         dataset = load_dataset(scene_path, images=settings.images, split_every=5)
     else:
         dataset = load_dataset(scene_path, split_every=5)
+    dataset = apply_split(dataset, base_config(settings, dataset))  # the protocol's split (paper: as loaded)
     views = select_views(list(dataset.test_indices), settings)
     sparse = score_sparse_depth(dataset, views)
     if sparse is None and getattr(dataset, "depths", None) is None:

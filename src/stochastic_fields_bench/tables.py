@@ -37,14 +37,15 @@ stages; scoring through ``stochastic_fields.evaluation``), ``report`` (tables an
 
 from __future__ import annotations
 
-from .budget import CPU_BUDGET_OVERRIDES, CPU_BUDGET_VIEWS, BenchmarkSettings, base_config, select_views
+from .budget import CPU_BUDGET_OVERRIDES, CPU_BUDGET_VIEWS, PROTOCOLS, BenchmarkSettings, base_config, select_views
 from .methods import DEFAULT_METHODS, DEFAULT_SCENES, METHOD_SPECS, MethodSpec, PAPER_SNERF, PAPER_TABLE1, PAPER_TABLE2, PAPER_TABLE3, TABLE1_METHODS, TABLE3_METHODS, method_config
 from .report import build_tables, format_markdown, write_plots
-from .runner import TABLES_DIST_TIMEOUT_S, CALIBRATION_PROTOCOL, assign_stages, SCORED_POINTS, TABLE_CONVENTIONS, check_compatible, collect_results, config_fingerprint, evaluate_run, json_default, load_method_result, load_stages, resolve_scene, run_benchmark, run_method, run_scene, save_stages, time_render
+from .runner import TABLES_DIST_TIMEOUT_S, CALIBRATION_PROTOCOL, assign_stages, SCORED_POINTS, TABLE_CONVENTIONS, check_compatible, collect_results, config_fingerprint, evaluate_run, json_default, load_method_result, load_stages, resolve_scene, run_benchmark, run_method, run_scene, save_stages, scene_inputs, time_render
 
 __all__ = [
     "CPU_BUDGET_OVERRIDES",
     "CPU_BUDGET_VIEWS",
+    "PROTOCOLS",
     "BenchmarkSettings",
     "base_config",
     "select_views",
@@ -78,6 +79,7 @@ __all__ = [
     "TABLES_DIST_TIMEOUT_S",
     "run_method",
     "run_scene",
+    "scene_inputs",
     "save_stages",
     "time_render",
 ]
