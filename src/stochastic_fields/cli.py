@@ -276,6 +276,8 @@ EXTRA_COMMANDS = {
     "free-path": ("stochastic_fields.commands.free_path", "P(collision-free) of segments or a path, with its error."),
     "rosbag": ("stochastic_fields.commands.rosbag", "ROS 2 bag (depth, std, CameraInfo, colour, PointCloud2) of an export."),
     "rerun": ("stochastic_fields.commands.rerun", "rerun recording (.rrd) of an export."),
+    "next-view": ("stochastic_fields.commands.next_view",
+                  "Rank candidate cameras by the information a photo from each would give the run."),
     "prepare": ("stochastic_fields.commands.prepare", "Photos or a video -> camera poses with pycolmap (SfM) -> a scene folder to train on."),
 }
 

@@ -31,12 +31,14 @@ class DataConfig:
     """Scene folder: LLFF (poses_bounds.npy + images_N/), Blender/nerfstudio (transforms*.json). Empty: the embedded synthetic scene, generated into the run folder. Stored resolved (absolute) in the run's config.json."""
     images: str = "images_8"
     """LLFF image folder to read (images_8 is 504x378 for fern): a folder name inside the scene, no path separators. Range: a folder name (no '/', not '.' or '..')."""
-    split: Literal["capture", "paper", "fewview"] = "capture"
-    """Which photos train. 'capture': every photo trains except every holdout_every-th (index % holdout_every == 0: photos 0, 8, 16, ... as LLFF's convention), which validate. 'paper': the paper's protocol (docs/definitions.md §7), about 20% train (index % split_every == 0) and the rest are test views; the benchmark tables use it (--preset paper). 'fewview': the few-view protocol of the literature (RegNeRF, FreeNeRF, FSGS...): every holdout_every-th photo tests and train_views of the others, spread evenly, train. Scenes whose files give the split (Blender's transforms_train/test.json) keep it."""
+    split: Literal["capture", "paper", "fewview", "views"] = "capture"
+    """Which photos train. 'capture': every photo trains except every holdout_every-th (index % holdout_every == 0: photos 0, 8, 16, ... as LLFF's convention), which validate. 'paper': the paper's protocol (docs/definitions.md §7), about 20% train (index % split_every == 0) and the rest are test views; the benchmark tables use it (--preset paper). 'fewview': the few-view protocol of the literature (RegNeRF, FreeNeRF, FSGS...): every holdout_every-th photo tests and train_views of the others, spread evenly, train. 'views': the photos listed in train_list train, the rest are test views (a next-view loop adds the chosen photos to the list). Scenes whose files give the split (Blender's transforms_train/test.json) keep it."""
     holdout_every: int = 8
     """Capture split: views with index % holdout_every == 0 validate, the rest train. Range: an integer >= 2 and <= 1000000."""
     train_views: int = 3
     """Few-view split: how many of the photos that are not held out train (3, 6 or 9 in the literature). Range: an integer >= 1 and <= 1000000."""
+    train_list: str = ""
+    """'views' split: the training photos' indices, comma-separated (e.g. 0,5,10). Range: empty or comma-separated integers >= 0."""
     split_every: int = 5
     """Paper split: training views are those with index % split_every == 0 (docs/definitions.md §7); the rest are test views. Range: an integer >= 1 and <= 1000000."""
     downscale: int = 1
@@ -140,12 +142,17 @@ def _device_name(s: str) -> bool:
     return s.startswith("cuda:") and s[5:].isdigit()
 
 
+def _index_list(s: str) -> bool:
+    return s == "" or all(part.strip().isdigit() for part in s.split(","))
+
+
 # Declared ranges: the one place each field is checked (on construction, on load, after CLI
 # overrides); --help shows them as "[range: ...]".
 DATA_CHECKS: dict[str, V.Checker] = {
     "path": V.text(),
     "images": V.text(pattern_rule="a folder name (no '/', not '.' or '..')", accept=_folder_name),
-    "split": V.choice("capture", "paper", "fewview"),
+    "split": V.choice("capture", "paper", "fewview", "views"),
+    "train_list": V.text(pattern_rule="empty or comma-separated integers >= 0", accept=_index_list),
     "train_views": V.integer(1, 10**6),
     "holdout_every": V.integer(2, 10**6),
     "split_every": V.integer(1, 10**6),

@@ -44,7 +44,8 @@ def apply_split(dataset, cfg: ExperimentConfig):
     """The run's split of a loaded dataset (``data.split``): 'paper' keeps the loader's
     ``index % split_every == 0`` training views; 'capture' holds out every ``holdout_every``-th view
     (index % holdout_every == 0) and trains on the rest; 'fewview' tests on the same views and trains on
-    ``train_views`` of the rest, spread evenly (``data.dataset.few_view_indices``). A split given by the scene's files
+    ``train_views`` of the rest, spread evenly (``data.dataset.few_view_indices``); 'views' trains the
+    views of ``data.train_list`` and tests the rest. A split given by the scene's files
     (``dataset.split_source == "files"``) is kept either way."""
     if dataset.split_source == "files":
         return dataset
@@ -52,6 +53,8 @@ def apply_split(dataset, cfg: ExperimentConfig):
         return dataset.hold_out_every(cfg.data.holdout_every)
     if cfg.data.split == "fewview":
         return dataset.few_views(cfg.data.train_views, cfg.data.holdout_every)
+    if cfg.data.split == "views":
+        return dataset.train_on([int(v) for v in cfg.data.train_list.split(",") if v.strip()])
     return dataset
 
 
@@ -63,6 +66,8 @@ def describe_split(dataset, cfg: ExperimentConfig) -> str:
     elif dataset.split_source == "few_views":
         rule = (f"few-view split: {n_train} of the photos not held out train, every {cfg.data.holdout_every}th "
                 "tests (RegNeRF's protocol)")
+    elif dataset.split_source == "views":
+        rule = f"the views of data.train_list train: {cfg.data.train_list}"
     elif dataset.split_source == "holdout_every":
         rule = (f"capture split: every {cfg.data.holdout_every}th photo validates (index % {cfg.data.holdout_every} "
                 "== 0); --preset paper for the paper's 20% split")

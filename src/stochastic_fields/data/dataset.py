@@ -151,6 +151,20 @@ class SceneDataset:
         train, test = few_view_indices(self.num_views, train_views, holdout_every, self.root)
         return replace(self, train_indices=train, test_indices=test, split_source="few_views")
 
+    def train_on(self, views: Sequence[int]) -> "SceneDataset":
+        """Re-split: the listed ``views`` train, every other view tests. DatasetError if the list is
+        empty, repeats a view or names one outside the scene."""
+        views = [int(v) for v in views]
+        if not views:
+            raise DatasetError(self.root, "the 'views' split needs at least one training view (data.train_list)")
+        bad = [v for v in views if not 0 <= v < self.num_views]
+        if bad or len(set(views)) != len(views):
+            raise DatasetError(self.root, f"data.train_list must name distinct views in [0, {self.num_views - 1}], "
+                               f"got {views}")
+        keep = set(views)
+        return replace(self, train_indices=sorted(keep), test_indices=[v for v in range(self.num_views) if v not in keep],
+                       split_source="views")
+
     def hold_out_every(self, n: int) -> "SceneDataset":
         """Re-split for a capture: views with ``index % n == 0`` validate (test), the rest train."""
         train, test = holdout_every_indices(self.num_views, n, self.root)
