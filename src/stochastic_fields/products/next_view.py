@@ -120,6 +120,7 @@ def render_candidate(model, spec: ViewSpec, *, num_draws: int, max_pixels: int, 
                      calibration=None, min_opacity: float = 0.5) -> CandidateMaps:
     """Render ``spec`` at no more than ``max_pixels`` rays with K = ``num_draws`` trajectories
     (colours drawn, so the K colours carry the whole epistemic colour variance) and its maps."""
+    num_draws = getattr(model, "trajectories", None) or num_draws  # a deep ensemble renders its M members
     if num_draws < 2:
         raise ValueError(f"num_draws must be >= 2 (the score is a variance over the draws), got {num_draws}")
     K, h, w = scaled_camera(spec, render_scale(spec.height, spec.width, max_pixels))
