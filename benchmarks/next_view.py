@@ -223,8 +223,13 @@ def verdict(summary: dict, additions: int) -> str:
 
 
 def write_outputs(results: dict, args) -> None:
+    """results.json, README.md and the plot in ``--out``, with the scenes another process (one per
+    scene, side by side) has written there since."""
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if (out / "results.json").exists():
+        stored = json.loads((out / "results.json").read_text()).get("scenes", {})
+        results.update({k: v for k, v in stored.items() if k not in args.scenes})
     full = {"command": " ".join(sys.argv), "additions": args.additions, "finetune_steps": args.finetune_steps,
             "start_steps": args.start_steps, "threads": torch.get_num_threads(), "scenes": results,
             "summary": {s: summarise(r) for s, r in results.items()}}
