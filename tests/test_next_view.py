@@ -171,3 +171,23 @@ def test_views_split(tiny_scene, capsys):
             apply_split(load_dataset(tiny_scene), cfg)
     assert main(["train", "--data.split", "views", "--data.train_list", "0;5", "--out", str(tiny_scene / "x")]) != 0
     assert "data.train_list: must be empty or comma-separated integers >= 0, got '0;5'" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_next_view_loop_example(one_sided_run, tiny_scene, monkeypatch, capsys):
+    """examples/next_view_loop.py: two rounds, retraining on the chosen photo between them; each
+    round prints a pose on the unseen side, and the second round no longer offers the first pick."""
+    import runpy
+    import sys
+
+    script = Path(__file__).resolve().parents[1] / "examples" / "next_view_loop.py"
+    monkeypatch.setattr(sys, "argv", [str(script), "--run", str(one_sided_run), "--candidates-from", str(tiny_scene),
+                                      "--rounds", "2", "--retrain-steps", "20"])
+    runpy.run_path(str(script), run_name="__main__")
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("round ")]
+    picks = [int(ln.split("view_")[1][:3]) for ln in lines]
+    assert len(picks) == 2 and picks[0] != picks[1] and picks[0] in UNSEEN_SIDE
+    assert "camera-to-world rotation" in lines[0]
+    retrained = Path(f"{one_sided_run}_next1")
+    assert json.loads((retrained / "config.json").read_text())["data"]["train_list"] == \
+        ",".join(map(str, sorted(set(TRAINED) | {picks[0]})))
