@@ -34,7 +34,7 @@ def add_arguments(p) -> None:
                    help="Fit a depth-proportional std term rho, so that depth_std = s * sqrt(raw^2 + (rho depth)^2): "
                         "a pixel rendered on the wrong surface errs by a fraction of its depth, not a multiple of its "
                         "std, and without the term those few pixels widen every 95%% band (docs/uncertainty.md, "
-                        f"study 20; default: {'on' if DEPTH_RELATIVE_FLOOR else 'off'}).")
+                        f"studies 20 and 20b; default: {'on' if DEPTH_RELATIVE_FLOOR else 'off'}).")
 
 
 def run(args) -> None:
