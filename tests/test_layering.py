@@ -25,9 +25,10 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("products", ("products", "products.free_path", "products.free_space", "products.occupancy_map",
                   "products.depth_maps", "products.free_path_cli", "products.plan", "products.planner_cli",
                   "products.export_options", "products.pointcloud", "products.ros_depth", "products.fusion", "products.render_cloud",
-                  "products.rosbag", "products.export", "products.rerun_log")),
+                  "products.rosbag", "products.export", "products.rerun_log", "products.next_view",
+                  "products.next_view_cli")),
     ("interfaces", ("cli", "products.cli", "inspect", "commands", "commands.calibrate", "commands.occupancy",
-                    "commands.free_path", "commands.rosbag", "commands.rerun", "commands.prepare")),
+                    "commands.free_path", "commands.rosbag", "commands.rerun", "commands.prepare", "commands.next_view")),
     ("experiments", ("bench", "bench.bench_command", "bench.budget", "bench.methods", "bench.report", "bench.runner", "bench.speed",
                      "bench.tables")),
 )
