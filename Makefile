@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 RUN ?= runs/demo
 
-.PHONY: demo test test-slow test-all test-fast notebook bench bench-capture bench-registration eval-tables uncertainty-study sysdeps venv clean
+.PHONY: demo test test-slow test-all test-fast notebook bench bench-capture bench-next-view bench-registration eval-tables uncertainty-study sysdeps venv clean
 
 $(STAMP): pyproject.toml requirements-cpu.txt scripts/install_system_deps.sh
 	bash scripts/install_system_deps.sh
@@ -44,6 +44,10 @@ bench: $(STAMP)
 # flower with the capture split (about 50 minutes on 2 CPU cores; resumable)
 bench-capture: $(STAMP)
 	OMP_NUM_THREADS=1 $(PY) benchmarks/capture_quality.py --out benchmarks/results/capture_quality
+
+# next-view selection against random, farthest-camera and ensemble choices (about 75 minutes per scene on one thread; resumable)
+bench-next-view: $(STAMP)
+	OMP_NUM_THREADS=1 $(PY) benchmarks/next_view.py --scenes fern flower --work runs/next_view --out benchmarks/results/next_view
 
 # prepare on LLFF photos without their poses, against LLFF's poses (about 15 minutes; resumable)
 bench-registration: $(STAMP)
