@@ -191,7 +191,7 @@ def test_checked_calibration_file_needs_its_training_depths(tmp_path):
 @pytest.mark.slow
 def test_a_run_calibrated_with_the_free_space_check_applies_it_in_eval_and_export(tmp_path):
     """calibrate_run(free_space=True) stores the training views' depths first, then a map that says so;
-    eval writes each view's violation map and a depth std of s sqrt(raw^2 + e^2); the depth products
+    eval writes each view's violation map and a depth std of s sqrt(raw^2 + e^2 + (rho d)^2); the depth products
     (export, notebook) apply the same."""
     import torch
 
@@ -218,8 +218,10 @@ def test_a_run_calibrated_with_the_free_space_check_applies_it_in_eval_and_expor
     v = int(ds.test_indices[0])
     evaluate(model, ds, tmp_path / "eval", views=[v], progress=False, calibration=stored)
     with np.load(tmp_path / "eval" / "views" / f"view_{v:03d}.npz") as f:
-        e, std, raw = f["depth_free_space"], f["depth_std"], f["depth_std_raw"]
-    np.testing.assert_allclose(std, cal.depth.std_scale * np.hypot(raw.astype(np.float64), e), rtol=1e-5)
+        e, std, raw, depth = f["depth_free_space"], f["depth_std"], f["depth_std_raw"], f["depth_mean"]
+    rho = cal.depth.relative_floor  # the depth-proportional term (default on) joins the check's e
+    np.testing.assert_allclose(std, cal.depth.std_scale * np.hypot(np.hypot(raw.astype(np.float64), e),
+                                                                   rho * depth.astype(np.float64)), rtol=1e-5)
     assert (tmp_path / "eval" / "views" / f"view_{v:03d}_depth_free_space.png").is_file()
     cam = view_camera_arrays(ds, v)
     with torch.no_grad():
@@ -229,7 +231,8 @@ def test_a_run_calibrated_with_the_free_space_check_applies_it_in_eval_and_expor
     e = violation_map(products.depth_mean, cam["intrinsics"], cam["world_to_camera"], stored.training_depth,
                       mask=products.opacity > 0.5)
     np.testing.assert_allclose(products.depth_std,
-                               cal.depth.std_scale * np.hypot(products.depth_std_raw.astype(np.float64), e), rtol=1e-5)
+                               cal.depth.std_scale * np.hypot(np.hypot(products.depth_std_raw.astype(np.float64), e),
+                                                              rho * products.depth_mean.astype(np.float64)), rtol=1e-5)
 
 
 def test_free_space_study_scores_and_rule_by_hand(load_script):
