@@ -31,6 +31,7 @@ are rewritten in ``--out`` after every stage.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import sys
 import time
@@ -40,6 +41,7 @@ import numpy as np
 import torch
 
 from stochastic_fields.cameras import camera_to_world
+from stochastic_fields.defaults import NEXT_VIEW_MAX_PIXELS, NEXT_VIEW_NUM_DRAWS
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.products.export import dataset_view_specs
 from stochastic_fields.products.next_view import rank_candidates
@@ -66,13 +68,13 @@ def views_config(method: str, settings: BenchmarkSettings, dataset, scene_path: 
 
 
 def train_stage(method: str, settings, dataset, scene_path: Path, views: list[int], run_dir: Path, *,
-                iterations: int, warm: tuple[Path, Path] | None):
-    """Train ``method`` on ``views`` into ``run_dir`` (``iterations`` steps). ``warm``: (start run,
-    previous round's run): the model is built as the start run's (its scene region, so its grid)
+                iterations: int, warm: tuple[torch.nn.Module, Path] | None):
+    """Train ``method`` on ``views`` into ``run_dir`` (``iterations`` steps). ``warm``: (the start
+    run's model, previous round's run): a copy of the start model (its scene region, so its grid)
     with the previous round's weights, then trained with a fresh optimiser and schedule. Returns
     (model, seconds); a finished stage is loaded, not retrained."""
-    def built_from(start: Path, weights: Path):
-        model = load_trained_model(start, device="cpu")[1]
+    def built_from(template: torch.nn.Module, weights: Path) -> torch.nn.Module:
+        model = copy.deepcopy(template)
         model.load_state_dict(load_checkpoint(weights / CHECKPOINT_NAME)["model"])
         return model
 
@@ -106,7 +108,8 @@ def choose(strategy: str, model, dataset, views: list[int], pool: list[int], rou
         gaps = [np.linalg.norm(c[views] - c[p], axis=1).min() for p in pool]
         return int(pool[int(np.argmax(gaps))])
     specs = dataset_view_specs(dataset, pool)
-    ranking, _ = rank_candidates(model, specs, count=1, num_draws=16, max_pixels=4096, seed=round_index)
+    ranking, _ = rank_candidates(model, specs, count=1, num_draws=NEXT_VIEW_NUM_DRAWS, max_pixels=NEXT_VIEW_MAX_PIXELS,
+                                 seed=round_index)
     return int(pool[ranking.batch[0][0]])
 
 
@@ -142,8 +145,9 @@ def run_scene(scene: str, args) -> dict:
         views, pool, prev, rows = list(start_views), list(pool0), work / "start", []
         chooser, chooser_dir = start, work / "start"
         if strategy == "ensemble":
-            chooser, _ = train_stage("ensemble", settings, dataset, scene_path, start_views, work / "ensemble_start",
-                                     iterations=args.start_steps, warm=None)
+            ensemble_start, _ = train_stage("ensemble", settings, dataset, scene_path, start_views,
+                                            work / "ensemble_start", iterations=args.start_steps, warm=None)
+            chooser = ensemble_start
             chooser_dir = work / "ensemble_start"
         model = start
         for r in range(1, args.additions + 1):
@@ -160,30 +164,27 @@ def run_scene(scene: str, args) -> dict:
             views.append(choice["pick"])
             pool.remove(choice["pick"])
             model, train_s = train_stage("snerf_default", settings, dataset, scene_path, views, stage / "snerf",
-                                         iterations=args.finetune_steps, warm=(work / "start", prev))
+                                         iterations=args.finetune_steps, warm=(start, prev))
             prev = stage / "snerf"
             row = {"round": r, "pick": choice["pick"], "select_s": choice["select_s"], "train_s": train_s,
                    **score_model(model, stage / "snerf")}
             if strategy == "ensemble" and r < args.additions:  # the chooser follows the views, for the next choice
                 chooser, ens_s = train_stage("ensemble", settings, dataset, scene_path, views, stage / "ensemble",
                                              iterations=args.finetune_steps,
-                                             warm=(work / "ensemble_start", chooser_dir))
+                                             warm=(ensemble_start, chooser_dir))
                 chooser_dir = stage / "ensemble"
                 row["chooser_train_s"] = ens_s
             rows.append(row)
             print(f"[{scene}/{strategy}] round {r}: +view {choice['pick']}, PSNR {row['psnr']:.2f} dB, "
                   f"abs-rel {row['depth_abs_rel']:.4f}, choice {choice['select_s']:.1f} s", flush=True)
             out["strategies"][strategy] = rows
-            yield_partial(scene, out, args)
+            _RESULTS[scene] = out
+            write_outputs(_RESULTS, args)
     return out
 
 
+#: Every scene's rows so far (this process's and those read from --out), rewritten after each stage.
 _RESULTS: dict = {}
-
-
-def yield_partial(scene: str, out: dict, args) -> None:
-    _RESULTS[scene] = out
-    write_outputs(_RESULTS, args)
 
 
 def summarise(res: dict) -> dict:

@@ -25,8 +25,9 @@ import torch
 
 
 def main() -> None:
-    from stochastic_fields.products.export import dataset_view_specs, load_cameras_json
-    from stochastic_fields.products.next_view import rank_candidates
+    from stochastic_fields.defaults import NEXT_VIEW_MAX_PIXELS, NEXT_VIEW_NUM_DRAWS
+    from stochastic_fields.products.export import load_cameras_json
+    from stochastic_fields.products.next_view import rank_candidates, untrained_view_specs
     from stochastic_fields.trainer import load_trained_model
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -44,14 +45,15 @@ def main() -> None:
     if args.candidates is not None:
         specs = load_cameras_json(args.candidates, default_near=float(ds.near.min()), default_far=float(ds.far.max()))
     else:
-        specs = dataset_view_specs(ds, [v for v in range(ds.num_views) if v not in set(ds.train_indices)])
+        specs = untrained_view_specs(ds)
     chosen: list[int] = []
     for r in range(1, args.rounds + 1):
         left = [s for s in specs if s.index not in chosen]
         if not left:
             print("no candidate left")
             break
-        ranking, rendered = rank_candidates(model, left, count=1, num_draws=16, max_pixels=4096, seed=r)
+        ranking, rendered = rank_candidates(model, left, count=1, num_draws=NEXT_VIEW_NUM_DRAWS,
+                                            max_pixels=NEXT_VIEW_MAX_PIXELS, seed=r)
         best, parts = ranking.batch[0]
         spec = rendered[best].spec
         c2w = np.linalg.inv(spec.world_to_camera)

@@ -13,7 +13,8 @@ import torch
 
 from stochastic_fields.cli import main
 from stochastic_fields.products.export import ViewSpec
-from stochastic_fields.products.next_view import (CandidateMaps, back_project, greedy_batch, information_gain,
+from stochastic_fields.products.pointcloud import backproject_map
+from stochastic_fields.products.next_view import (CandidateMaps, greedy_batch, information_gain,
                                                   render_scale, scaled_camera, seen_by)
 
 #: The known-answer scene: a ring of 20 cameras; the even views of the first half train.
@@ -52,7 +53,7 @@ def test_scaled_camera_and_back_projection_round_trip():
     assert (h, w) == (24, 32) and Ks[0, 0] == pytest.approx(50.0) and Ks[0, 2] == pytest.approx(16.0)
     assert render_scale(48, 64, 10**6) == 1.0
     depth = np.full((h, w), 2.0)
-    pts = back_project(depth, Ks, w2c)
+    pts = backproject_map(depth, Ks, w2c).reshape(-1, 3).numpy()
     cam = pts @ w2c[:3, :3].T + w2c[:3, 3]
     assert np.allclose(cam[:, 2], 2.0)
     uv = cam @ Ks.T
@@ -65,7 +66,7 @@ def _maps(spec: ViewSpec, depth: float, info: float, size=(6, 8)) -> CandidateMa
     return CandidateMaps(spec=spec, render_intrinsics=K, render_size=(h, w), information=np.full((h, w), info),
                          colour_mean=np.zeros((h, w, 3)), colour_std_epistemic=np.zeros((h, w)), depth_mean=d,
                          depth_std=d * 0.1, opacity=np.ones((h, w)), valid=np.ones((h, w), bool),
-                         points=back_project(d, K, spec.world_to_camera))
+                         points=backproject_map(d, K, spec.world_to_camera).reshape(-1, 3).numpy())
 
 
 def test_seen_by_and_greedy_batch_skip_a_near_duplicate():

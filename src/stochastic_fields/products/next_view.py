@@ -33,10 +33,11 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
-from ..cameras import generate_rays_for_view, make_cameras
+from ..cameras import generate_rays_for_view, in_image, intrinsics_3x3, make_cameras, project_points, rescale_cameras
 from ..renderer import seeded_chunks
 from .depth_maps import compute_depth_products
-from .export import ViewSpec
+from .export import ViewSpec, dataset_view_specs
+from .pointcloud import backproject_map
 
 #: Observation-noise variance floor (colour units^2) under n_c: the predictive variance minus the
 #: epistemic part is at least sigma_n^2 > 0 in exact arithmetic; the floor keeps float32
@@ -86,12 +87,15 @@ def render_scale(height: int, width: int, max_pixels: int) -> float:
 
 
 def scaled_camera(spec: ViewSpec, scale: float) -> tuple[np.ndarray, int, int]:
-    """(K [3, 3], h, w) of ``spec`` resampled by ``scale`` (pixel centres at +0.5 stay centres)."""
-    h, w = max(1, round(spec.height * scale)), max(1, round(spec.width * scale))
-    K = spec.intrinsics.astype(np.float64).copy()
-    K[0] *= w / spec.width
-    K[1] *= h / spec.height
-    return K, h, w
+    """(K [3, 3], h, w) of ``spec`` resampled by ``scale`` (``cameras.rescale_cameras``)."""
+    cam = rescale_cameras(_camera(spec.intrinsics, spec.world_to_camera, spec.height, spec.width), scale)
+    return intrinsics_3x3(cam)[0].numpy(), int(cam.height[0]), int(cam.width[0])
+
+
+def _camera(K: np.ndarray, world_to_camera: np.ndarray, height: int, width: int):
+    """A one-view float64 kornia camera."""
+    return make_cameras(torch.as_tensor(K, dtype=torch.float64)[None],
+                        torch.as_tensor(world_to_camera, dtype=torch.float64)[None], height, width)
 
 
 def information_gain(colour_draws: torch.Tensor, colour_var: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -104,16 +108,6 @@ def information_gain(colour_draws: torch.Tensor, colour_var: torch.Tensor) -> tu
     e = ((draws - draws.mean(dim=-2, keepdim=True)) ** 2).mean(dim=-2)
     n = (colour_var.double() - e).clamp_min(NOISE_VARIANCE_FLOOR)
     return 0.5 * torch.log1p(e / n).sum(dim=-1), e
-
-
-def back_project(depth: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray) -> np.ndarray:
-    """[h * w, 3] world points at camera-z ``depth`` [h, w] through each pixel's centre."""
-    h, w = depth.shape
-    v, u = np.meshgrid(np.arange(h) + 0.5, np.arange(w) + 0.5, indexing="ij")
-    pix = np.stack([u, v, np.ones_like(u)], axis=-1).reshape(-1, 3)
-    cam = (pix @ np.linalg.inv(K).T) * depth.reshape(-1, 1).astype(np.float64)
-    c2w = np.linalg.inv(world_to_camera)
-    return cam @ c2w[:3, :3].T + c2w[:3, 3]
 
 
 def render_candidate(model, spec: ViewSpec, *, num_draws: int, max_pixels: int, seed: int = 0,
@@ -137,22 +131,20 @@ def render_candidate(model, spec: ViewSpec, *, num_draws: int, max_pixels: int, 
     return CandidateMaps(spec=spec, render_intrinsics=K, render_size=(h, w), information=info.numpy(),
                          colour_mean=products.colour_mean, colour_std_epistemic=e.sqrt().mean(dim=-1).numpy(),
                          depth_mean=products.depth_mean, depth_std=products.depth_std, opacity=products.opacity,
-                         valid=products.valid, points=back_project(depth, K, spec.world_to_camera))
+                         valid=products.valid,
+                         points=backproject_map(depth, K, spec.world_to_camera).reshape(-1, 3).numpy())
 
 
 def seen_by(points: np.ndarray, picked: CandidateMaps, rtol: float = COVERED_DEPTH_RTOL) -> np.ndarray:
     """[P] bool: which world ``points`` [P, 3] the picked view sees (module doc): in its image, in
     front of it, and not behind its rendered surface by more than ``rtol`` of the point's depth."""
-    w2c = picked.spec.world_to_camera
-    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
-    z = cam[:, 2]
     h, w = picked.render_size
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uv = cam @ picked.render_intrinsics.T
-        u, v = uv[:, 0] / z, uv[:, 1] / z
-    inside = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    rows = np.clip(np.nan_to_num(np.floor(v)), 0, h - 1).astype(int)
-    cols = np.clip(np.nan_to_num(np.floor(u)), 0, w - 1).astype(int)
+    cam = _camera(picked.render_intrinsics, picked.spec.world_to_camera, h, w)
+    uv, z = project_points(cam, torch.as_tensor(points, dtype=torch.float64))
+    inside = in_image(cam, uv, z)[0].numpy()
+    uv, z = uv[0].numpy(), z[0].numpy()
+    rows = np.clip(np.nan_to_num(np.floor(uv[:, 1])), 0, h - 1).astype(int)
+    cols = np.clip(np.nan_to_num(np.floor(uv[:, 0])), 0, w - 1).astype(int)
     surface = np.where(picked.valid, picked.depth_mean, np.float32(picked.spec.far))[rows, cols]
     return inside & (surface >= (1.0 - rtol) * z)
 
@@ -172,16 +164,25 @@ def greedy_batch(candidates: Sequence[CandidateMaps], count: int) -> list[tuple[
     if not 1 <= count <= len(candidates):
         raise ValueError(f"--count must be between 1 and the {len(candidates)} candidates, got {count}")
     uncovered = [np.ones(c.render_size, dtype=bool) for c in candidates]
+    left = list(range(len(candidates)))
     picked: list[tuple[int, dict]] = []
     for _ in range(count):
-        left = [i for i in range(len(candidates)) if i not in {p for p, _ in picked}]
         scores = {i: candidates[i].parts(uncovered[i]) for i in left}
         best = max(left, key=lambda i: (scores[i]["information_nats_per_pixel"], -i))
         picked.append((best, scores[best]))
+        left.remove(best)
         for i in left:
-            if i != best:
-                uncovered[i] &= ~seen_by(candidates[i].points, candidates[best]).reshape(candidates[i].render_size)
+            uncovered[i] &= ~seen_by(candidates[i].points, candidates[best]).reshape(candidates[i].render_size)
     return picked
+
+
+def untrained_view_specs(dataset) -> list[ViewSpec]:
+    """The dataset's photos that did not train, as candidates (no ground truth attached)."""
+    train = set(int(i) for i in dataset.train_indices)
+    specs = dataset_view_specs(dataset, [v for v in range(dataset.num_views) if v not in train])
+    for s in specs:
+        s.gt_depth = None
+    return specs
 
 
 def rank_candidates(model, specs: Sequence[ViewSpec], *, count: int = 1, num_draws: int, max_pixels: int,

@@ -21,8 +21,8 @@ from tqdm import tqdm
 from ..calibration import load_run_calibration
 from ..io_utils import atomic_path, atomic_write_text
 from ..trainer import load_trained_model
-from .export import dataset_view_specs, load_cameras_json
-from .next_view import CandidateMaps, Ranking, rank_candidates
+from .export import load_cameras_json
+from .next_view import CandidateMaps, Ranking, rank_candidates, untrained_view_specs
 
 #: What next_views.json states about its numbers.
 FRAME: str = (
@@ -43,14 +43,10 @@ def candidate_specs(args: argparse.Namespace, dataset, run_scene: Path):
     if scene != Path(run_scene).resolve():
         raise ValueError(f"--candidates-from {args.candidates_from}: the run {args.run} was trained on {run_scene}; "
                          "candidates must be in its frame (pass the run's scene, or poses with --candidates FILE)")
-    train = set(int(i) for i in dataset.train_indices)
-    views = [v for v in range(dataset.num_views) if v not in train]
-    if not views:
+    specs = untrained_view_specs(dataset)
+    if not specs:
         raise ValueError(f"--candidates-from {args.candidates_from}: every one of its {dataset.num_views} photos "
                          "trained the run; there is no candidate left")
-    specs = dataset_view_specs(dataset, views)
-    for s in specs:
-        s.gt_depth = None
     return specs
 
 
