@@ -115,6 +115,52 @@ class PitCalibration:
                 "num_samples": self.num_samples, "source": self.source}
 
 
+@dataclass
+class CentralCalibration:
+    """Recalibration of the central intervals of any predictive CDF F (split conformal prediction,
+    Vovk et al. 2005; Romano et al. 2019 for quantile bands): on held-out points the conformity
+    score of a truth d* is c = |2 F(d*) - 1|, the smallest central level whose interval
+    [F^-1((1 - c) / 2), F^-1((1 + c) / 2)] holds it. For a nominal central level p the raw level is
+    r(p) = the ceil((n + 1) p)-th smallest of the n scores (``raw_levels`` at ``levels``, linear
+    between them), and the band is F's central interval at r(p). Guarantee: a point exchangeable
+    with the fitted ones lies inside with probability >= p (< p + 1 / (n + 1) without ties). For a
+    Gaussian F = N(mu, sigma^2) it is the level map of ``calibration.QuantileCalibration``:
+    z_((1 + r) / 2) = s(p) z_((1 + p) / 2). Unlike ``PitCalibration`` it keeps each band central
+    (equal mass outside on both sides), so it moves one number per level, as the level map does."""
+
+    levels: np.ndarray
+    raw_levels: np.ndarray
+    num_samples: int
+    source: str = ""
+
+    @classmethod
+    def fit(cls, pit: np.ndarray, *, source: str = "", levels: np.ndarray | None = None) -> "CentralCalibration":
+        """Fit on PIT values u = F(d*) [N] in [0, 1]; ValueError for fewer than ``MIN_PIT_SAMPLES``
+        or values outside [0, 1]. Default levels: 0, 0.001, ..., 0.999 and 0.9995."""
+        u = np.asarray(pit, dtype=np.float64).reshape(-1)
+        if u.size < MIN_PIT_SAMPLES:
+            raise ValueError(f"central recalibration needs at least {MIN_PIT_SAMPLES} values, got {u.size} ({source})")
+        if not (np.isfinite(u).all() and (u >= 0).all() and (u <= 1).all()):
+            raise ValueError("central recalibration: PIT values must lie in [0, 1]")
+        lv = (np.concatenate([np.arange(0, 1000) / 1000.0, [1 - 5e-4]]) if levels is None
+              else np.asarray(levels, dtype=np.float64))
+        c = np.sort(np.abs(2.0 * u - 1.0))
+        n = c.size
+        rank = np.clip(np.ceil((n + 1) * lv).astype(np.int64), 1, n)  # the conformal rank, 1-based
+        return cls(lv, np.maximum.accumulate(c[rank - 1]), int(n), source)
+
+    def quantile_levels(self, t: np.ndarray) -> np.ndarray:
+        """The levels of F to read for nominal quantile levels t (any shape): 1/2 +- r(|2t - 1|) / 2,
+        clipped to [PIT_CLIP, 1 - PIT_CLIP]."""
+        t = np.asarray(t, dtype=np.float64)
+        r = np.interp(np.abs(2.0 * t - 1.0), self.levels, self.raw_levels)
+        return np.clip(0.5 + np.sign(t - 0.5) * r / 2.0, PIT_CLIP, 1.0 - PIT_CLIP)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"levels": self.levels.tolist(), "raw_levels": self.raw_levels.tolist(),
+                "num_samples": self.num_samples, "source": self.source}
+
+
 def recalibrated_mixture_quantiles(levels: np.ndarray, means: np.ndarray, stds: np.ndarray, weights: np.ndarray,
                                    pit: PitCalibration | None) -> np.ndarray:
     """Quantiles [N, Q] of R o F at nominal ``levels`` [Q]: F^-1(Q_u(t)) (``pit`` None: F^-1(t))."""

@@ -1,0 +1,258 @@
+"""Study 21: the termination mixture as the predictive depth distribution (docs/studies.md, "Study 21").
+
+Question (issue 36, "the predictive distribution's shape"): the depth bands today are one Gaussian
+per pixel (depth mean, total std with the depth-proportional term), widened per level by the level
+map. The model itself defines another distribution: the mixture over the K trajectories of each
+trajectory's termination distribution along the ray (``termination.py``), which has two modes where
+a pixel's rays split their mass between two surfaces. Does it give bands that hold at every level
+and are narrower?
+
+Candidates, one factor at a time from today's:
+- ``today``: the Gaussian with the depth-proportional term and the level map (the default map of
+  ``calibrate``);
+- ``termination + central map``: the termination mixture, its central intervals recalibrated
+  (``predictive.CentralCalibration``: split conformal on |2 F(d*) - 1|, for a Gaussian the same
+  as the level map): the shape changes, the kind of map does not;
+- ``termination + PIT map``: the same mixture, its whole CDF recalibrated through its PIT values
+  (``predictive.PitCalibration``, Kuleshov et al. 2018): the map changes too.
+
+All three are fitted on the same renders (every held-out capture point seen from the calibration
+views, as ``calibrate --points held-out``), cross-fitted with the same five folds of SCORE blocks,
+and scored on the same renders of photos no map and no training saw (study 20's protocol: the
+capture split's held-out photos, the paper split's unused test photos, the embedded scene's unused
+views). Both the Gaussian and the mixture of a point come from one render of its ray (the same K
+draws).
+
+Rule (written before any run of this study was rendered; study 20b's checks): per run, coverage at
+each of 50, 68.3, 90 and 95% within 5 points of nominal (four checks), the median 95% half-width at
+most 15% of the depth (5% on the synthetic scene), and the mean depth Spearman (|error of the depth
+mean| against the band's 68.3% half-width, per photo) no more than 0.02 below today's. A candidate
+replaces today's distribution if on every run it passes every check today passes, on the runs
+together it passes at least one check today fails, and the 95% interval score / depth averaged over
+the real runs does not rise; of two such candidates the lower mean interval score wins.
+
+    OMP_NUM_THREADS=1 python benchmarks/studies/termination_study.py \\
+        --run capture/fern=RUN --run capture/flower=RUN --run paper/fern=RUN --run paper/flower=RUN \\
+        --run synthetic=DEMO_RUN --out benchmarks/results/termination_study
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.stats import spearmanr
+
+from stochastic_fields import metrics as M
+from stochastic_fields.calibration import (QuantileCalibration, calibration_views, cross_fitted_depth_quantiles,
+                                          fit_depth_folds, pair_visible_points)
+from stochastic_fields.capture_points import (CALIBRATE, SCORE, block_keys, load_capture_points,
+                                             rays_through_points)
+from stochastic_fields.io_utils import atomic_write_text
+from stochastic_fields.plots import plot_interval_reliability
+from stochastic_fields.predictive import CentralCalibration, PitCalibration
+from stochastic_fields.sparse_depth import project_sparse_depth
+from stochastic_fields.termination import TerminationMixture, render_termination
+from stochastic_fields.trainer import load_trained_model
+from stochastic_fields.view_maps import OPACITY_MASK
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
+from study_helpers import photo_points  # noqa: E402
+from relative_floor_study import (HALFWIDTH_TARGET_REAL, HALFWIDTH_TARGET_SYNTHETIC, COVERAGE_TOLERANCE,  # noqa: E402
+                                  RULE_LEVELS, SPEARMAN_TOLERANCE, scored_views)
+
+TODAY = "today"
+CANDIDATES: tuple[str, ...] = (TODAY, "termination + central map", "termination + PIT map")
+#: The nominal 68.3% band whose half-width ranks the points (the depth Spearman check).
+RANK_LEVEL: float = 0.682689492137086
+
+
+def render_points(model, cameras, near, far, sparse: dict, seed: int) -> dict | None:
+    """One render of the rays through ``sparse``'s points: gt, the Gaussian's mean/std/opacity, the
+    termination mixture, the capture point and view of each ray."""
+    found = rays_through_points(cameras, near, far, sparse)
+    if found is None:
+        return None
+    rays, gt = found
+    device = next(model.parameters()).device
+    stats, mixture = render_termination(model, rays.to(device), generator=torch.Generator(device=device).manual_seed(seed))
+    order = [v for v, sd in sparse.items() if len(sd)]
+    return {"gt": np.asarray(gt, np.float64), **{k: v.cpu().numpy() for k, v in stats.items()}, "mixture": mixture,
+            "index": np.concatenate([sparse[v].point_index for v in order]),
+            "view": np.concatenate([np.full(len(sparse[v]), v) for v in order])}
+
+
+def subset(r: dict, keep: np.ndarray) -> dict:
+    k = torch.from_numpy(keep).to(r["mixture"].t_starts.device)
+    m = r["mixture"]
+    return {**{n: v[keep] for n, v in r.items() if n != "mixture"},
+            "mixture": TerminationMixture(m.t_starts[k], m.t_ends[k], m.weights[k], m.far[k], m.z_scale[k])}
+
+
+def collect(run_dir: Path) -> dict:
+    cfg, model, dataset = load_trained_model(run_dir)
+    capture = load_capture_points(dataset)
+    cams, near, far, pairs = calibration_views(dataset)
+    role = np.isin(capture.roles, [CALIBRATE, SCORE])
+    fit_sparse = project_sparse_depth(cams, capture.xyz, range(len(pairs)),
+                                      visible=pair_visible_points(capture, pairs, role), visibility_name="pair")
+    t0 = time.perf_counter()
+    fit = render_points(model, cams, near, far, fit_sparse, seed=0)
+    views = scored_views(dataset, cfg.data.split)
+    scored = render_points(model, dataset.cameras, dataset.near, dataset.far,
+                           photo_points(dataset, capture, views, SCORE), seed=0)
+    render_s = time.perf_counter() - t0
+
+    def valid(r):
+        return (r["opacity"] > OPACITY_MASK) & np.isfinite(r["depth_mean"]) & (r["depth_std"] > 0)
+
+    keys = block_keys(capture.xyz, capture.xyz)
+    fit, scored = subset(fit, valid(fit)), subset(scored, valid(scored))
+    fit["keys"], scored["keys"] = keys[fit["index"]], keys[scored["index"]]
+    fit["pit"] = fit["mixture"].cdf(torch.from_numpy(fit["gt"])).cpu().numpy()
+    return {"fit": fit, "scored": scored, "score_blocks": keys[capture.roles == SCORE], "views": views,
+            "render_s": render_s, "num_draws": int(fit["mixture"].weights.shape[1])}
+
+
+def mixture_quantile_fn(mixture: TerminationMixture, maps, fold: np.ndarray):
+    """t [Q] -> [N, Q]: each point's mixture quantiles at the levels its fold's map reads."""
+    def quantiles(t: np.ndarray) -> np.ndarray:
+        out = np.zeros((mixture.num_rays, np.asarray(t).size))
+        for f, m in enumerate(maps):
+            i = np.flatnonzero(fold == f)
+            if i.size:
+                sub = TerminationMixture(*(getattr(mixture, n)[torch.from_numpy(i)] for n in
+                                           ("t_starts", "t_ends", "weights", "far", "z_scale")))
+                out[i] = sub.quantiles(torch.from_numpy(m.quantile_levels(np.asarray(t)))).cpu().numpy()
+        return out
+    return quantiles
+
+
+def evaluate_candidate(data: dict, name: str) -> tuple[dict, dict]:
+    f, s = data["fit"], data["scored"]
+    abs_err = np.abs(f["gt"] - f["depth_mean"])
+    folds = fit_depth_folds(abs_err, f["depth_std"], f["keys"], data["score_blocks"], depth=f["depth_mean"])
+    fold = folds.fold_of(s["keys"])
+    t0 = time.perf_counter()
+    if name == TODAY:
+        run_map = QuantileCalibration.fit_errors(abs_err, f["depth_std"], quantity="depth_std", depth=f["depth_mean"])
+        qfn = cross_fitted_depth_quantiles(s["depth_mean"], s["depth_std"], fold, folds)
+        rank = run_map.calibrated_std(s["depth_std"], depth=s["depth_mean"])
+        extra = {"rho": run_map.relative_floor, "s95": float(run_map.scale_at(0.95))}
+    else:
+        kind = CentralCalibration if "central" in name else PitCalibration
+        fold_maps = [kind.fit(f["pit"][~np.isin(f["keys"], b)], source=f"outside fold {i}")
+                     for i, b in enumerate(folds.blocks)]
+        run_map = kind.fit(f["pit"], source="every held-out point")
+        qfn = mixture_quantile_fn(s["mixture"], fold_maps, fold)
+        band = mixture_quantile_fn(s["mixture"], [run_map], np.zeros(len(s["gt"]), np.int64))(
+            np.array([(1 - RANK_LEVEL) / 2, (1 + RANK_LEVEL) / 2]))
+        rank = (band[:, 1] - band[:, 0]) / 2
+        lv = np.array([(1 + p) / 2 for p in RULE_LEVELS])
+        extra = {"raw_upper_levels": dict(zip([M.level_name(p) for p in RULE_LEVELS],
+                                              run_map.quantile_levels(lv).tolist()))}
+    iv = M.interval_sharpness(s["gt"], qfn)
+    score_s = time.perf_counter() - t0
+    err = np.abs(s["gt"] - s["depth_mean"])
+    per_view = [float(spearmanr(err[s["view"] == v], rank[s["view"] == v])[0])
+                for v in np.unique(s["view"]) if (s["view"] == v).sum() >= 10]
+    row = {k: v for k, v in iv.items() if k != "halfwidth"}
+    row.update(extra)
+    row.update({"spearman_per_view": per_view, "spearman_mean": float(np.mean(per_view)),
+                "median_abs_rel": float(np.median(err / s["gt"])), "points": int(s["gt"].size),
+                "fit_points": int(f["gt"].size), "score_s": score_s})
+    return row, iv
+
+
+def checks(name: str, row: dict, today: dict) -> dict[str, bool]:
+    """Issue 36's targets as they apply to one run (study 20b's checks)."""
+    out = {f"coverage {M.level_name(p)}": abs(row[f"coverage_{M.level_name(p)}"] - p) <= COVERAGE_TOLERANCE
+           for p in RULE_LEVELS}
+    target = HALFWIDTH_TARGET_SYNTHETIC if name.startswith("synthetic") else HALFWIDTH_TARGET_REAL
+    out["95% half-width"] = row["halfwidth_median_95"] <= target
+    out["depth Spearman"] = today["spearman_mean"] - row["spearman_mean"] <= SPEARMAN_TOLERANCE
+    return out
+
+
+def decide(runs: dict) -> str:
+    real = [n for n in runs if not n.startswith("synthetic")]
+    is_today = float(np.mean([runs[n][TODAY]["interval_score_95"] for n in real]))
+    verdicts, winners = [], []
+    for cand in CANDIDATES[1:]:
+        lost, gained = [], []
+        for name, r in runs.items():
+            old, new = checks(name, r[TODAY], r[TODAY]), checks(name, r[cand], r[TODAY])
+            lost += [f"{name}: {c}" for c in old if old[c] and not new[c]]
+            gained += [f"{name}: {c}" for c in old if new[c] and not old[c]]
+        is_new = float(np.mean([runs[n][cand]["interval_score_95"] for n in real]))
+        fails = [f"loses {c}" for c in lost] + ([] if gained else ["gains no check"])
+        if is_new > is_today:
+            fails.append(f"mean 95% interval score / depth rises {is_today:.3f} -> {is_new:.3f}")
+        if fails:
+            verdicts.append(f"{cand}: not taken ({'; '.join(fails)})")
+        else:
+            winners.append((is_new, cand))
+            verdicts.append(f"{cand}: passes (gains {', '.join(gained)}; mean IS95 {is_today:.3f} -> {is_new:.3f})")
+    head = f"taken: {min(winners)[1]}" if winners else "today's stays"
+    return head + ". " + " | ".join(verdicts)
+
+
+def report(results: dict) -> str:
+    names = "/".join(M.level_name(p) for p in M.INTERVAL_LEVELS)
+    lines = ["# Study 21: the termination mixture as the predictive depth distribution", "",
+             f"Command: `{results['command']}`", "", f"Rule (written before any run was rendered): {results['rule']}", "",
+             f"Decision: **{results['decision']}**", "",
+             f"| run | distribution | points | coverage {names} | median 95% half-width / depth | p90 | IS 95% / depth "
+             "| CRPS / depth | depth Spearman (mean over photos) |", "|---|---|---|---|---|---|---|---|---|"]
+    for run, r in results["runs"].items():
+        for cand in CANDIDATES:
+            c = r[cand]
+            cov = "/".join(f"{100 * x:.1f}" for x in c["coverage"])
+            lines.append(f"| {run} | {cand} | {c['points']} | {cov} | {100 * c['halfwidth_median_95']:.1f}% "
+                         f"| {100 * c['halfwidth_p90_95']:.0f}% | {c['interval_score_95']:.3f} | {c['crps']:.4f} "
+                         f"| {c['spearman_mean']:.3f} |")
+    lines += ["", "Cost per run (one thread): the renders of both point sets, then each candidate's fitting and "
+              "scoring (`render_s`, `score_s` in results.json)."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", action="append", required=True, metavar="NAME=RUN")
+    p.add_argument("--out", type=Path, required=True)
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    args.out.mkdir(parents=True, exist_ok=True)
+    rule = ("per run: coverage at each of 50/68.3/90/95% within 5 points, median 95% half-width <= 15% (synthetic "
+            "5%), mean depth Spearman no more than 0.02 below today's; a candidate is taken if on every run it passes "
+            "every check today passes, gains at least one, and the real runs' mean 95% interval score does not rise; "
+            "of two, the lower mean interval score")
+    results: dict = {"command": "python benchmarks/studies/termination_study.py "
+                     + " ".join(sys.argv[1:] if argv is None else argv), "rule": rule, "runs": {}}
+    for spec in args.run:
+        name, run = spec.split("=", 1)
+        data = collect(Path(run))
+        res, curves = {"views": [int(v) for v in data["views"]], "render_s": data["render_s"],
+                       "num_draws": data["num_draws"]}, {}
+        for cand in CANDIDATES:
+            res[cand], curves[cand] = evaluate_candidate(data, cand)
+            print(f"[{name}] {cand}: coverage " + "/".join(f"{100 * x:.1f}" for x in res[cand]["coverage"])
+                  + f", 95% half-width {100 * res[cand]['halfwidth_median_95']:.1f}%, IS95 "
+                  f"{res[cand]['interval_score_95']:.3f}, CRPS {res[cand]['crps']:.4f}, Spearman "
+                  f"{res[cand]['spearman_mean']:.3f}", flush=True)
+        plot_interval_reliability(args.out / f"{name.replace('/', '_')}.png", curves, title=f"{name}: photos no map saw")
+        results["runs"][name] = res
+        atomic_write_text(args.out / "results.json", json.dumps(results, indent=2))
+    results["decision"] = decide(results["runs"])
+    atomic_write_text(args.out / "results.json", json.dumps(results, indent=2))
+    atomic_write_text(args.out / "README.md", report(results))
+    print(results["decision"])
+
+
+if __name__ == "__main__":
+    main()

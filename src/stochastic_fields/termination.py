@@ -1,0 +1,193 @@
+"""A pixel's depth distribution as the model defines it: the mixture over K trajectories of each
+trajectory's termination distribution along the ray (docs/definitions.md §3.8).
+
+Trajectory k of a ray has, on its sample intervals [t_i, t_i + delta_i] (ray distance), a constant
+density a_ik; its compositing weights are w_ik = T_ik alpha_ik with alpha_ik = 1 - exp(-a_ik delta_i)
+and T_ik = 1 - sum_{j<i} w_jk. Its termination distance has, inside interval i at the fraction
+u = (t - t_i) / delta_i, the exact CDF of a constant density,
+
+    G_k(t) = sum_{j<i} w_jk + T_ik (1 - (1 - alpha_ik)^u),
+
+flat between intervals (skipped samples carry no mass). As the depth map (``volume_rendering.
+expected_depth``: D_k = sum_i w_ik t_i / sum_i w_ik, ``far`` where the opacity A_k = sum_i w_ik is
+below ``OPACITY_EPS``), a trajectory's depth is its termination distance *given that the ray
+terminates*: F_k(t) = G_k(t) / A_k, or all mass at ``far`` for a trajectory that hits nothing. The
+pixel's predictive distribution is the mixture F(t) = (1 / K) sum_k F_k(t): its mean is the depth
+mean (up to the exact position inside each interval instead of the midpoint) and its variance the
+total depth variance (epistemic + spread, the law of total variance).
+
+Unlike one Gaussian (depth mean, total std), the mixture has mass only where some trajectory
+terminates: a pixel whose rays split their mass between two surfaces gets two modes, so a band
+can cover the far surface where there is one instead of widening every pixel's band.
+
+Depths are camera z: ray distance times the ray's ``z_scale``. Everything is float64 torch on the
+render's device. ``quantiles`` is exact up to a bisection on u inside one interval
+(``TERMINATION_BISECTION_STEPS``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .constants import OPACITY_EPS
+from .rays import PackedRaySamples, RayBundle
+
+#: Bisection steps on the fraction u in [0, 1] of the interval holding a quantile: 2^-52 of the
+#: interval, float64's resolution.
+TERMINATION_BISECTION_STEPS: int = 52
+
+
+@dataclass
+class TerminationMixture:
+    """Per ray r: sample intervals ``t_starts``, ``t_ends`` [R, S] (ray distance, sorted, not
+    overlapping; padding intervals have zero length and weight), compositing weights ``weights``
+    [R, K, S] of K trajectories, ``far`` [R] (where the passing mass sits) and ``z_scale`` [R]
+    (camera z per unit ray distance). float64."""
+
+    t_starts: Tensor
+    t_ends: Tensor
+    weights: Tensor
+    far: Tensor
+    z_scale: Tensor
+
+    def __post_init__(self) -> None:
+        R, S = self.t_starts.shape
+        if self.t_ends.shape != (R, S) or self.weights.ndim != 3 or self.weights.shape[0] != R \
+                or self.weights.shape[2] != S or self.far.shape != (R,) or self.z_scale.shape != (R,):
+            raise ValueError(f"termination mixture: t_starts, t_ends [R, S], weights [R, K, S], far and z_scale [R] "
+                             f"expected, got {tuple(self.t_starts.shape)}, {tuple(self.t_ends.shape)}, "
+                             f"{tuple(self.weights.shape)}, {tuple(self.far.shape)}, {tuple(self.z_scale.shape)}")
+
+    @property
+    def num_rays(self) -> int:
+        return self.t_starts.shape[0]
+
+    def _parts(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """(C [R, K, S + 1]: each trajectory's mass before each interval and after the last;
+        alpha [R, K, S]; scale [R, K]: 1 / A_k for a trajectory that hits something, else 0;
+        passing [R, K]: 1 for a trajectory that hits nothing (its mass at far), else 0)."""
+        w = self.weights.clamp_min(0.0)
+        C = torch.cat([torch.zeros_like(w[..., :1]), w.cumsum(-1)], dim=-1).clamp(max=1.0)
+        T = (1.0 - C[..., :-1]).clamp_min(0.0)
+        alpha = torch.where(T > 0, w / T.clamp_min(torch.finfo(w.dtype).tiny), torch.zeros_like(w)).clamp(0.0, 1.0)
+        acc = C[..., -1]
+        hit = acc >= OPACITY_EPS
+        scale = torch.where(hit, 1.0 / acc.clamp_min(OPACITY_EPS), torch.zeros_like(acc))
+        return C, alpha, scale, (~hit).to(acc.dtype)
+
+    def cdf(self, depth: Tensor) -> Tensor:
+        """F(d) at camera-z depths ``depth`` [R, Q] (or [R]) -> [R, Q] (or [R]): the mixture's
+        probability that the depth is at most d (module doc); 1 at and beyond ``far``."""
+        flat = depth.ndim == 1
+        d = (depth[:, None] if flat else depth).to(self.t_starts)
+        t = d / self.z_scale[:, None]  # ray distance [R, Q]
+        C, alpha, scale, _ = self._parts()
+        i = torch.searchsorted(self.t_ends.contiguous(), t.contiguous(), right=True)  # intervals ended by t [R, Q]
+        S = self.t_starts.shape[1]
+        ic = i.clamp(max=S - 1)
+        ts, te = self.t_starts.gather(1, ic), self.t_ends.gather(1, ic)
+        u = torch.where((i < S) & (t > ts), (t - ts) / (te - ts).clamp_min(torch.finfo(t.dtype).tiny),
+                        torch.zeros_like(t)).clamp(0.0, 1.0)  # [R, Q]
+        K = C.shape[1]
+        before = C.gather(2, i[:, None, :].expand(-1, K, -1))  # [R, K, Q]
+        a = alpha.gather(2, ic[:, None, :].expand(-1, K, -1))
+        T = 1.0 - C.gather(2, ic[:, None, :].expand(-1, K, -1))
+        inside = T * -torch.expm1(u[:, None, :] * torch.log1p(-a.clamp(max=1.0 - 1e-16)))
+        inside = torch.where(a >= 1.0, torch.where(u[:, None, :] > 0, T, torch.zeros_like(T)), inside)
+        G = before + torch.where((i < S)[:, None, :], inside, torch.zeros_like(inside))
+        F = (scale[..., None] * G).mean(1)
+        F = torch.where(t >= self.far[:, None], torch.ones_like(F), F.clamp(0.0, 1.0))
+        return F[:, 0] if flat else F
+
+    def survival(self, depth: Tensor) -> Tensor:
+        """P(depth > d) = 1 - F(d) at camera z ``depth`` (given that the ray terminates, as the depth map)."""
+        return 1.0 - self.cdf(depth)
+
+    def quantiles(self, levels: Tensor) -> Tensor:
+        """F^-1(p) at ``levels`` [Q] (shared) or [R, Q] in (0, 1) -> camera-z depths [R, Q]: the
+        smallest d with F(d) >= p; ``far`` where p exceeds the mass of the trajectories that hit something."""
+        C, alpha, scale, _ = self._parts()
+        R, K, _ = C.shape
+        S = self.t_starts.shape[1]
+        p = levels.to(self.t_starts)
+        p = p.expand(R, -1) if p.ndim == 1 else p
+        if not bool(((p > 0) & (p < 1)).all()):
+            raise ValueError("termination quantiles: levels must lie strictly between 0 and 1")
+        F_edges = (scale[..., None] * C).mean(1)  # [R, S + 1]: F at the first start (0) and each interval's end
+        i = torch.searchsorted(F_edges[:, 1:].contiguous(), p.contiguous())  # first interval reaching p [R, Q]
+        beyond = i >= S
+        ic = i.clamp(max=S - 1)
+        Cb = C.gather(2, ic[:, None, :].expand(-1, K, -1))  # [R, K, Q]
+        a = alpha.gather(2, ic[:, None, :].expand(-1, K, -1))
+        opaque = a >= 1.0  # all of T stops at the interval's front
+        T = 1.0 - Cb
+        log1m = torch.log1p(-a.clamp(max=1.0 - 1e-16))
+        lo, hi = torch.zeros_like(p), torch.ones_like(p)
+        for _ in range(TERMINATION_BISECTION_STEPS):
+            mid = 0.5 * (lo + hi)  # > 0
+            G = Cb + T * torch.where(opaque, torch.ones_like(a), -torch.expm1(mid[:, None, :] * log1m))
+            F = (scale[..., None] * G).mean(1)
+            below = F < p
+            lo, hi = torch.where(below, mid, lo), torch.where(below, hi, mid)
+        ts, te = self.t_starts.gather(1, ic), self.t_ends.gather(1, ic)
+        t = torch.where(beyond, self.far[:, None].expand_as(p), ts + hi * (te - ts))
+        return t * self.z_scale[:, None]
+
+
+def termination_mixture(samples, weights: Tensor, rays: RayBundle) -> TerminationMixture:
+    """The ``TerminationMixture`` of a render's samples (``RaySamples`` [R, S] with weights
+    [R, K, S], or ``PackedRaySamples`` [N] with weights [K, N], padded to the most samples of a
+    ray with zero-length, zero-weight intervals at ``far``)."""
+    far = rays.far.reshape(-1).double()
+    z = rays.z_scale.reshape(-1).double()
+    if not isinstance(samples, PackedRaySamples):
+        return TerminationMixture(samples.t_starts.double(), samples.t_ends.double(), weights.double(), far, z)
+    R = far.shape[0]
+    ray = samples.ray_indices
+    counts = torch.bincount(ray, minlength=R)
+    S = max(1, int(counts.max())) if ray.numel() else 1
+    first = torch.cumsum(counts, 0) - counts
+    slot = torch.arange(ray.numel(), device=ray.device) - first[ray]
+    ts = far[:, None].repeat(1, S)
+    te = ts.clone()
+    ts[ray, slot], te[ray, slot] = samples.t_starts.double(), samples.t_ends.double()
+    K = weights.shape[0]
+    w = torch.zeros(R, K, S, dtype=torch.float64, device=weights.device)
+    w[ray, :, slot] = weights.double().T
+    return TerminationMixture(ts, te, w, far, z)
+
+
+@torch.no_grad()
+def render_termination(model, rays: RayBundle, options=None, *, generator: torch.Generator | None = None
+                       ) -> tuple[dict[str, Tensor], TerminationMixture]:
+    """Render rays [N] as ``model.render_chunk`` does (chunks of ``options.chunk_rays``, the same
+    samples, skipping and noise) and return ({"depth_mean", "depth_std", "opacity"} [N], camera z,
+    float64; the K trajectories' ``TerminationMixture``) of the same draws."""
+    options = options or model.default_render_options()
+    stats: dict[str, list[Tensor]] = {"depth_mean": [], "depth_std": [], "opacity": []}
+    parts: list[TerminationMixture] = []
+    for c0 in range(0, len(rays), options.chunk_rays):
+        chunk = rays[c0:c0 + options.chunk_rays]
+        out = model.render_chunk(chunk, options, generator=generator)
+        z = chunk.z_scale.reshape(-1).double()
+        stats["depth_mean"].append(out.stats.depth_mean.double() * z)
+        stats["depth_std"].append(out.stats.depth_var_total.double().clamp_min(0).sqrt() * z)
+        stats["opacity"].append(out.stats.opacity.double())
+        parts.append(termination_mixture(out.samples, out.extras["weights"], chunk))
+    S = max(p.t_starts.shape[1] for p in parts)
+
+    def pad(m: TerminationMixture) -> TerminationMixture:
+        extra = S - m.t_starts.shape[1]
+        if extra == 0:
+            return m
+        edge = m.far[:, None].expand(-1, extra)
+        return TerminationMixture(torch.cat([m.t_starts, edge], 1), torch.cat([m.t_ends, edge], 1),
+                                  torch.nn.functional.pad(m.weights, (0, extra)), m.far, m.z_scale)
+
+    parts = [pad(p) for p in parts]
+    mixture = TerminationMixture(*(torch.cat([getattr(p, f) for p in parts]) for f in
+                                   ("t_starts", "t_ends", "weights", "far", "z_scale")))
+    return {k: torch.cat(v) for k, v in stats.items()}, mixture
