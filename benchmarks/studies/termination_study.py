@@ -34,6 +34,8 @@ the real runs does not rise; of two such candidates the lower mean interval scor
     OMP_NUM_THREADS=1 python benchmarks/studies/termination_study.py \\
         --run capture/fern=RUN --run capture/flower=RUN --run paper/fern=RUN --run paper/flower=RUN \\
         --run synthetic=DEMO_RUN --out benchmarks/results/termination_study
+
+Resumes: a run already in ``--out``'s results.json (same name, same folder) is kept, not re-rendered.
 """
 
 from __future__ import annotations
@@ -55,7 +57,7 @@ from stochastic_fields.capture_points import (CALIBRATE, SCORE, block_keys, load
                                              rays_through_points)
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.plots import plot_interval_reliability
-from stochastic_fields.predictive import CentralCalibration, PitCalibration
+from stochastic_fields.predictive import PIT_CLIP, CentralCalibration, PitCalibration
 from stochastic_fields.sparse_depth import project_sparse_depth
 from stochastic_fields.termination import TerminationMixture, render_termination
 from stochastic_fields.trainer import load_trained_model
@@ -114,9 +116,15 @@ def collect(run_dir: Path) -> dict:
     keys = block_keys(capture.xyz, capture.xyz)
     fit, scored = subset(fit, valid(fit)), subset(scored, valid(scored))
     fit["keys"], scored["keys"] = keys[fit["index"]], keys[scored["index"]]
-    fit["pit"] = fit["mixture"].cdf(torch.from_numpy(fit["gt"])).cpu().numpy()
+    for r in (fit, scored):
+        r["pit"] = r["mixture"].cdf(torch.from_numpy(r["gt"])).cpu().numpy()
     return {"fit": fit, "scored": scored, "score_blocks": keys[capture.roles == SCORE], "views": views,
             "render_s": render_s, "num_draws": int(fit["mixture"].weights.shape[1])}
+
+
+def outside_support(pit: np.ndarray) -> np.ndarray:
+    """[N] bool: F(d*) within ``PIT_CLIP`` of 0 or 1 (``predictive.PIT_CLIP``)."""
+    return (pit <= PIT_CLIP) | (pit >= 1.0 - PIT_CLIP)
 
 
 def mixture_quantile_fn(mixture: TerminationMixture, maps, fold: np.ndarray):
@@ -164,6 +172,10 @@ def evaluate_candidate(data: dict, name: str) -> tuple[dict, dict]:
     row = {k: v for k, v in iv.items() if k != "halfwidth"}
     row.update(extra)
     row.update({"spearman_per_view": per_view, "spearman_mean": float(np.mean(per_view)),
+                # truths where the mixture has no mass on one side (F(d*) is 0 or 1): no trajectory
+                # terminates beyond (before) them, so no central interval of the mixture reaches them
+                "outside_support": float(np.mean(outside_support(s["pit"]))),
+                "outside_support_fit": float(np.mean(outside_support(f["pit"]))),
                 "median_abs_rel": float(np.median(err / s["gt"])), "points": int(s["gt"].size),
                 "fit_points": int(f["gt"].size), "score_s": score_s})
     return row, iv
@@ -209,6 +221,7 @@ def report(results: dict) -> str:
              f"Decision: **{results['decision']}**", "",
              f"| run | distribution | points | coverage {names} | median 95% half-width / depth | p90 | IS 95% / depth "
              "| CRPS / depth | depth Spearman (mean over photos) |", "|---|---|---|---|---|---|---|---|---|"]
+    support = []
     for run, r in results["runs"].items():
         for cand in CANDIDATES:
             c = r[cand]
@@ -216,6 +229,10 @@ def report(results: dict) -> str:
             lines.append(f"| {run} | {cand} | {c['points']} | {cov} | {100 * c['halfwidth_median_95']:.1f}% "
                          f"| {100 * c['halfwidth_p90_95']:.0f}% | {c['interval_score_95']:.3f} | {c['crps']:.4f} "
                          f"| {c['spearman_mean']:.3f} |")
+        support.append(f"{run} {100 * r[TODAY]['outside_support']:.1f}% (fitting points "
+                       f"{100 * r[TODAY]['outside_support_fit']:.1f}%)")
+    lines += ["", "Scored points whose true depth lies where the termination mixture has no mass on one side "
+              "(F(d*) = 0 or 1: every trajectory terminates before it, or none before it): " + ", ".join(support) + "."]
     lines += ["", "Cost per run (one thread): the renders of both point sets, then each candidate's fitting and "
               "scoring (`render_s`, `score_s` in results.json)."]
     return "\n".join(lines) + "\n"
@@ -234,10 +251,18 @@ def main(argv=None) -> None:
             "of two, the lower mean interval score")
     results: dict = {"command": "python benchmarks/studies/termination_study.py "
                      + " ".join(sys.argv[1:] if argv is None else argv), "rule": rule, "runs": {}}
+    done = {}
+    if (args.out / "results.json").exists():  # resume: a run already scored from the same folder is kept
+        done = json.loads((args.out / "results.json").read_text()).get("runs", {})
     for spec in args.run:
         name, run = spec.split("=", 1)
+        if done.get(name, {}).get("run") == str(Path(run).resolve()):
+            results["runs"][name] = done[name]
+            print(f"[{name}] scored before, kept", flush=True)
+            continue
         data = collect(Path(run))
-        res, curves = {"views": [int(v) for v in data["views"]], "render_s": data["render_s"],
+        res, curves = {"run": str(Path(run).resolve()), "views": [int(v) for v in data["views"]],
+                       "render_s": data["render_s"],
                        "num_draws": data["num_draws"]}, {}
         for cand in CANDIDATES:
             res[cand], curves[cand] = evaluate_candidate(data, cand)
