@@ -65,8 +65,7 @@ from stochastic_fields.view_maps import OPACITY_MASK
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
 from study_helpers import photo_points  # noqa: E402
-from relative_floor_study import (HALFWIDTH_TARGET_REAL, HALFWIDTH_TARGET_SYNTHETIC, COVERAGE_TOLERANCE,  # noqa: E402
-                                  RULE_LEVELS, SPEARMAN_TOLERANCE, scored_views)
+from relative_floor_study import RULE_LEVELS, checks, scored_views  # noqa: E402  (study 20b's checks)
 
 TODAY = "today"
 CANDIDATES: tuple[str, ...] = (TODAY, "termination + central map", "termination + PIT map")
@@ -179,16 +178,6 @@ def evaluate_candidate(data: dict, name: str) -> tuple[dict, dict]:
                 "median_abs_rel": float(np.median(err / s["gt"])), "points": int(s["gt"].size),
                 "fit_points": int(f["gt"].size), "score_s": score_s})
     return row, iv
-
-
-def checks(name: str, row: dict, today: dict) -> dict[str, bool]:
-    """Issue 36's targets as they apply to one run (study 20b's checks)."""
-    out = {f"coverage {M.level_name(p)}": abs(row[f"coverage_{M.level_name(p)}"] - p) <= COVERAGE_TOLERANCE
-           for p in RULE_LEVELS}
-    target = HALFWIDTH_TARGET_SYNTHETIC if name.startswith("synthetic") else HALFWIDTH_TARGET_REAL
-    out["95% half-width"] = row["halfwidth_median_95"] <= target
-    out["depth Spearman"] = today["spearman_mean"] - row["spearman_mean"] <= SPEARMAN_TOLERANCE
-    return out
 
 
 def decide(runs: dict) -> str:

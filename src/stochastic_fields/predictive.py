@@ -80,6 +80,16 @@ def mixture_quantiles(levels: np.ndarray, means: np.ndarray, stds: np.ndarray, w
     return 0.5 * (lo + hi)
 
 
+def checked_pit(pit: np.ndarray, what: str, source: str) -> np.ndarray:
+    """PIT values [N] as float64; ValueError for fewer than ``MIN_PIT_SAMPLES`` or values outside [0, 1]."""
+    u = np.asarray(pit, dtype=np.float64).reshape(-1)
+    if u.size < MIN_PIT_SAMPLES:
+        raise ValueError(f"{what} needs at least {MIN_PIT_SAMPLES} values, got {u.size} ({source})")
+    if not (np.isfinite(u).all() and (u >= 0).all() and (u <= 1).all()):
+        raise ValueError(f"{what}: PIT values must lie in [0, 1]")
+    return u
+
+
 @dataclass
 class PitCalibration:
     """Recalibration of predictive CDFs by their PIT values (module doc): the empirical quantiles
@@ -95,11 +105,7 @@ class PitCalibration:
     def fit(cls, pit: np.ndarray, *, source: str = "", levels: np.ndarray | None = None) -> "PitCalibration":
         """Fit on PIT values [N] in [0, 1]; ValueError for fewer than ``MIN_PIT_SAMPLES`` or values
         outside [0, 1]. Default levels: 0.0005 and 0.001 ... 0.999 and 0.9995."""
-        u = np.asarray(pit, dtype=np.float64).reshape(-1)
-        if u.size < MIN_PIT_SAMPLES:
-            raise ValueError(f"PIT recalibration needs at least {MIN_PIT_SAMPLES} values, got {u.size} ({source})")
-        if not (np.isfinite(u).all() and (u >= 0).all() and (u <= 1).all()):
-            raise ValueError("PIT recalibration: values must lie in [0, 1]")
+        u = checked_pit(pit, "PIT recalibration", source)
         lv = (np.concatenate([[5e-4], np.arange(1, 1000) / 1000.0, [1 - 5e-4]]) if levels is None
               else np.asarray(levels, dtype=np.float64))
         q = np.quantile(np.clip(u, PIT_CLIP, 1.0 - PIT_CLIP), lv)
@@ -137,11 +143,7 @@ class CentralCalibration:
     def fit(cls, pit: np.ndarray, *, source: str = "", levels: np.ndarray | None = None) -> "CentralCalibration":
         """Fit on PIT values u = F(d*) [N] in [0, 1]; ValueError for fewer than ``MIN_PIT_SAMPLES``
         or values outside [0, 1]. Default levels: 0, 0.001, ..., 0.999 and 0.9995."""
-        u = np.asarray(pit, dtype=np.float64).reshape(-1)
-        if u.size < MIN_PIT_SAMPLES:
-            raise ValueError(f"central recalibration needs at least {MIN_PIT_SAMPLES} values, got {u.size} ({source})")
-        if not (np.isfinite(u).all() and (u >= 0).all() and (u <= 1).all()):
-            raise ValueError("central recalibration: PIT values must lie in [0, 1]")
+        u = checked_pit(pit, "central recalibration", source)
         lv = (np.concatenate([np.arange(0, 1000) / 1000.0, [1 - 5e-4]]) if levels is None
               else np.asarray(levels, dtype=np.float64))
         c = np.sort(np.abs(2.0 * u - 1.0))
