@@ -51,14 +51,12 @@ import torch
 from scipy.stats import spearmanr
 
 from stochastic_fields import metrics as M
-from stochastic_fields.calibration import (QuantileCalibration, calibration_views, cross_fitted_depth_quantiles,
-                                          fit_depth_folds, pair_visible_points)
-from stochastic_fields.capture_points import (CALIBRATE, SCORE, block_keys, load_capture_points,
-                                             rays_through_points)
+from stochastic_fields.calibration import (QuantileCalibration, calibration_view_points,
+                                          cross_fitted_depth_quantiles, fit_depth_folds)
+from stochastic_fields.capture_points import SCORE, block_keys, load_capture_points, rays_through_points
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.plots import plot_interval_reliability
 from stochastic_fields.predictive import PIT_CLIP, CentralCalibration, PitCalibration
-from stochastic_fields.sparse_depth import project_sparse_depth
 from stochastic_fields.termination import TerminationMixture, render_termination
 from stochastic_fields.trainer import load_trained_model
 from stochastic_fields.view_maps import OPACITY_MASK
@@ -89,19 +87,14 @@ def render_points(model, cameras, near, far, sparse: dict, seed: int) -> dict | 
 
 
 def subset(r: dict, keep: np.ndarray) -> dict:
-    k = torch.from_numpy(keep).to(r["mixture"].t_starts.device)
-    m = r["mixture"]
     return {**{n: v[keep] for n, v in r.items() if n != "mixture"},
-            "mixture": TerminationMixture(m.t_starts[k], m.t_ends[k], m.weights[k], m.far[k], m.z_scale[k])}
+            "mixture": r["mixture"].select(torch.from_numpy(keep).to(r["mixture"].t_starts.device))}
 
 
 def collect(run_dir: Path) -> dict:
     cfg, model, dataset = load_trained_model(run_dir)
     capture = load_capture_points(dataset)
-    cams, near, far, pairs = calibration_views(dataset)
-    role = np.isin(capture.roles, [CALIBRATE, SCORE])
-    fit_sparse = project_sparse_depth(cams, capture.xyz, range(len(pairs)),
-                                      visible=pair_visible_points(capture, pairs, role), visibility_name="pair")
+    cams, near, far, _, fit_sparse = calibration_view_points(dataset, capture, points="held-out")
     t0 = time.perf_counter()
     fit = render_points(model, cams, near, far, fit_sparse, seed=0)
     views = scored_views(dataset, cfg.data.split)
@@ -133,9 +126,8 @@ def mixture_quantile_fn(mixture: TerminationMixture, maps, fold: np.ndarray):
         for f, m in enumerate(maps):
             i = np.flatnonzero(fold == f)
             if i.size:
-                sub = TerminationMixture(*(getattr(mixture, n)[torch.from_numpy(i)] for n in
-                                           ("t_starts", "t_ends", "weights", "far", "z_scale")))
-                out[i] = sub.quantiles(torch.from_numpy(m.quantile_levels(np.asarray(t)))).cpu().numpy()
+                levels = torch.from_numpy(m.quantile_levels(np.asarray(t)))
+                out[i] = mixture.select(torch.from_numpy(i)).quantiles(levels).cpu().numpy()
         return out
     return quantiles
 
@@ -157,8 +149,8 @@ def evaluate_candidate(data: dict, name: str) -> tuple[dict, dict]:
                      for i, b in enumerate(folds.blocks)]
         run_map = kind.fit(f["pit"], source="every held-out point")
         qfn = mixture_quantile_fn(s["mixture"], fold_maps, fold)
-        band = mixture_quantile_fn(s["mixture"], [run_map], np.zeros(len(s["gt"]), np.int64))(
-            np.array([(1 - RANK_LEVEL) / 2, (1 + RANK_LEVEL) / 2]))
+        band = s["mixture"].quantiles(torch.from_numpy(
+            run_map.quantile_levels(np.array([(1 - RANK_LEVEL) / 2, (1 + RANK_LEVEL) / 2])))).cpu().numpy()
         rank = (band[:, 1] - band[:, 0]) / 2
         lv = np.array([(1 + p) / 2 for p in RULE_LEVELS])
         extra = {"raw_upper_levels": dict(zip([M.level_name(p) for p in RULE_LEVELS],

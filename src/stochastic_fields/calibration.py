@@ -613,6 +613,17 @@ def depth_calibration_errors(model, dataset, *, seed: int = 0, opacity_mask: flo
     return r["abs_err"], r["std"], r["source"]
 
 
+def calibration_view_points(dataset, capture, *, points: str = "calibrate", bounds: str = CALIBRATION_BOUNDS):
+    """The calibration views (``calibration_views``) and the capture points a depth map is fitted on
+    in each ({view: SparseDepth}): the CALIBRATE role (``points="held-out"``: CALIBRATE and SCORE)
+    that both views of the view's pair observed. Returns (cameras, near, far, pairs, sparse)."""
+    cams, near, far, pairs = calibration_views(dataset, bounds=bounds)
+    role = np.isin(capture.roles, [CALIBRATE] if points == "calibrate" else [CALIBRATE, SCORE])
+    sparse = project_sparse_depth(cams, capture.xyz, range(len(pairs)), visible=pair_visible_points(capture, pairs, role),
+                                  visibility_name="pair")
+    return cams, near, far, pairs, sparse
+
+
 def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
                               points: str = "calibrate", options=None, bounds: str = CALIBRATION_BOUNDS,
                               free_space=None) -> dict[str, Any]:
@@ -634,10 +645,7 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     capture = load_capture_points(dataset)
     if capture is None:
         raise ValueError(f"{dataset.root}: no capture points (sparse/0/points3D.bin or dense depth) to calibrate on")
-    cams, near, far, pairs = calibration_views(dataset, bounds=bounds)
-    role = np.isin(capture.roles, [CALIBRATE] if points == "calibrate" else [CALIBRATE, SCORE])
-    sparse = project_sparse_depth(cams, capture.xyz, range(len(pairs)), visible=pair_visible_points(capture, pairs, role),
-                                  visibility_name="pair")
+    cams, near, far, pairs, sparse = calibration_view_points(dataset, capture, points=points, bounds=bounds)
     device = next(model.parameters()).device
     r = render_at_points(model, cams, near, far, sparse, generator=torch.Generator(device=device).manual_seed(seed),
                          options=options)

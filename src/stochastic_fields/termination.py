@@ -27,7 +27,7 @@ render's device. ``quantiles`` is exact up to a bisection on u inside one interv
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import torch
 from torch import Tensor
@@ -38,6 +38,19 @@ from .rays import PackedRaySamples, RayBundle
 #: Bisection steps on the fraction u in [0, 1] of the interval holding a quantile: 2^-52 of the
 #: interval, float64's resolution.
 TERMINATION_BISECTION_STEPS: int = 52
+
+
+def _log_clear(alpha: Tensor) -> Tensor:
+    """log(1 - alpha), finite for an opaque interval (alpha clamped below 1; ``_mass_inside`` treats alpha = 1)."""
+    return torch.log1p(-alpha.clamp(max=1.0 - 1e-16))
+
+
+def _mass_inside(T: Tensor, alpha: Tensor, log_clear: Tensor, u: Tensor) -> Tensor:
+    """T (1 - (1 - alpha)^u): the mass a constant-density interval stops in its first fraction u
+    (module doc), for transmittance T at its start, opacity alpha and ``_log_clear(alpha)``; an
+    opaque interval (alpha = 1) stops all of T at its front."""
+    inside = T * -torch.expm1(u * log_clear)
+    return torch.where(alpha >= 1.0, torch.where(u > 0, T, torch.zeros_like(T)), inside)
 
 
 @dataclass
@@ -65,18 +78,35 @@ class TerminationMixture:
     def num_rays(self) -> int:
         return self.t_starts.shape[0]
 
-    def _parts(self) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def _parts(self) -> tuple[Tensor, Tensor, Tensor]:
         """(C [R, K, S + 1]: each trajectory's mass before each interval and after the last;
-        alpha [R, K, S]; scale [R, K]: 1 / A_k for a trajectory that hits something, else 0;
-        passing [R, K]: 1 for a trajectory that hits nothing (its mass at far), else 0)."""
+        alpha [R, K, S]; scale [R, K]: 1 / A_k for a trajectory that hits something, else 0, so a
+        trajectory that hits nothing keeps all its mass at far)."""
         w = self.weights.clamp_min(0.0)
         C = torch.cat([torch.zeros_like(w[..., :1]), w.cumsum(-1)], dim=-1).clamp(max=1.0)
         T = (1.0 - C[..., :-1]).clamp_min(0.0)
         alpha = torch.where(T > 0, w / T.clamp_min(torch.finfo(w.dtype).tiny), torch.zeros_like(w)).clamp(0.0, 1.0)
         acc = C[..., -1]
-        hit = acc >= OPACITY_EPS
-        scale = torch.where(hit, 1.0 / acc.clamp_min(OPACITY_EPS), torch.zeros_like(acc))
-        return C, alpha, scale, (~hit).to(acc.dtype)
+        scale = torch.where(acc >= OPACITY_EPS, 1.0 / acc.clamp_min(OPACITY_EPS), torch.zeros_like(acc))
+        return C, alpha, scale
+
+    def select(self, index: Tensor) -> "TerminationMixture":
+        """The mixtures of rays ``index`` (indices or a mask over R)."""
+        return TerminationMixture(*(getattr(self, f.name)[index] for f in fields(self)))
+
+    @classmethod
+    def concatenate(cls, parts: list["TerminationMixture"]) -> "TerminationMixture":
+        """The rays of ``parts`` in order, each padded to the most intervals with zero-length,
+        zero-weight intervals at its ``far``."""
+        S = max(m.t_starts.shape[1] for m in parts)
+
+        def pad(m: TerminationMixture) -> TerminationMixture:
+            edge = m.far[:, None].expand(-1, S - m.t_starts.shape[1])
+            return cls(torch.cat([m.t_starts, edge], 1), torch.cat([m.t_ends, edge], 1),
+                       torch.nn.functional.pad(m.weights, (0, edge.shape[1])), m.far, m.z_scale)
+
+        padded = [pad(m) for m in parts]
+        return cls(*(torch.cat([getattr(m, f.name) for m in padded]) for f in fields(cls)))
 
     def cdf(self, depth: Tensor) -> Tensor:
         """F(d) at camera-z depths ``depth`` [R, Q] (or [R]) -> [R, Q] (or [R]): the mixture's
@@ -84,7 +114,7 @@ class TerminationMixture:
         flat = depth.ndim == 1
         d = (depth[:, None] if flat else depth).to(self.t_starts)
         t = d / self.z_scale[:, None]  # ray distance [R, Q]
-        C, alpha, scale, _ = self._parts()
+        C, alpha, scale = self._parts()
         i = torch.searchsorted(self.t_ends.contiguous(), t.contiguous(), right=True)  # intervals ended by t [R, Q]
         S = self.t_starts.shape[1]
         ic = i.clamp(max=S - 1)
@@ -95,8 +125,7 @@ class TerminationMixture:
         before = C.gather(2, i[:, None, :].expand(-1, K, -1))  # [R, K, Q]
         a = alpha.gather(2, ic[:, None, :].expand(-1, K, -1))
         T = 1.0 - C.gather(2, ic[:, None, :].expand(-1, K, -1))
-        inside = T * -torch.expm1(u[:, None, :] * torch.log1p(-a.clamp(max=1.0 - 1e-16)))
-        inside = torch.where(a >= 1.0, torch.where(u[:, None, :] > 0, T, torch.zeros_like(T)), inside)
+        inside = _mass_inside(T, a, _log_clear(a), u[:, None, :])
         G = before + torch.where((i < S)[:, None, :], inside, torch.zeros_like(inside))
         F = (scale[..., None] * G).mean(1)
         F = torch.where(t >= self.far[:, None], torch.ones_like(F), F.clamp(0.0, 1.0))
@@ -109,7 +138,7 @@ class TerminationMixture:
     def quantiles(self, levels: Tensor) -> Tensor:
         """F^-1(p) at ``levels`` [Q] (shared) or [R, Q] in (0, 1) -> camera-z depths [R, Q]: the
         smallest d with F(d) >= p; ``far`` where p exceeds the mass of the trajectories that hit something."""
-        C, alpha, scale, _ = self._parts()
+        C, alpha, scale = self._parts()
         R, K, _ = C.shape
         S = self.t_starts.shape[1]
         p = levels.to(self.t_starts)
@@ -122,14 +151,11 @@ class TerminationMixture:
         ic = i.clamp(max=S - 1)
         Cb = C.gather(2, ic[:, None, :].expand(-1, K, -1))  # [R, K, Q]
         a = alpha.gather(2, ic[:, None, :].expand(-1, K, -1))
-        opaque = a >= 1.0  # all of T stops at the interval's front
-        T = 1.0 - Cb
-        log1m = torch.log1p(-a.clamp(max=1.0 - 1e-16))
+        T, log_clear = 1.0 - Cb, _log_clear(a)
         lo, hi = torch.zeros_like(p), torch.ones_like(p)
         for _ in range(TERMINATION_BISECTION_STEPS):
             mid = 0.5 * (lo + hi)  # > 0
-            G = Cb + T * torch.where(opaque, torch.ones_like(a), -torch.expm1(mid[:, None, :] * log1m))
-            F = (scale[..., None] * G).mean(1)
+            F = (scale[..., None] * (Cb + _mass_inside(T, a, log_clear, mid[:, None, :]))).mean(1)
             below = F < p
             lo, hi = torch.where(below, mid, lo), torch.where(below, hi, mid)
         ts, te = self.t_starts.gather(1, ic), self.t_ends.gather(1, ic)
@@ -177,17 +203,4 @@ def render_termination(model, rays: RayBundle, options=None, *, generator: torch
         stats["depth_std"].append(out.stats.depth_var_total.double().clamp_min(0).sqrt() * z)
         stats["opacity"].append(out.stats.opacity.double())
         parts.append(termination_mixture(out.samples, out.extras["weights"], chunk))
-    S = max(p.t_starts.shape[1] for p in parts)
-
-    def pad(m: TerminationMixture) -> TerminationMixture:
-        extra = S - m.t_starts.shape[1]
-        if extra == 0:
-            return m
-        edge = m.far[:, None].expand(-1, extra)
-        return TerminationMixture(torch.cat([m.t_starts, edge], 1), torch.cat([m.t_ends, edge], 1),
-                                  torch.nn.functional.pad(m.weights, (0, extra)), m.far, m.z_scale)
-
-    parts = [pad(p) for p in parts]
-    mixture = TerminationMixture(*(torch.cat([getattr(p, f) for p in parts]) for f in
-                                   ("t_starts", "t_ends", "weights", "far", "z_scale")))
-    return {k: torch.cat(v) for k, v in stats.items()}, mixture
+    return {k: torch.cat(v) for k, v in stats.items()}, TerminationMixture.concatenate(parts)
