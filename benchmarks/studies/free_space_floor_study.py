@@ -1,0 +1,207 @@
+"""Study 22: the free-space check beside the depth-proportional term (docs/studies.md, "Study 22").
+
+Question: today's map standardises the depth errors by sqrt(sigma^2 + (rho d)^2) (study 20b): the
+depth-proportional term covers the points rendered on the wrong surface by widening every band in
+proportion to the depth. The free-space check (``calibrate --free-space``; studies 13-13c) adds
+e, how far the rendered point lies in front of a training view's rendered surface, which marks
+many of those points one by one. Studies 13-13c judged the check before the term existed. Does
+``sqrt(sigma^2 + e^2 + (rho d)^2)`` (rho refitted on the checked std, as ``calibrate --free-space``
+fits it today) narrow the bands and keep every level, now that the term can carry what e misses?
+
+Both maps are fitted as a user's run fits its map (every held-out capture point seen from the
+virtual calibration views, 5 cross-fitted fold maps) and scored as ``eval`` scores them, on photos
+no map and no training saw (study 20's protocol, ``relative_floor_study.scored_views``): the capture
+split's held-out photos, the paper split's unused test photos, the embedded scene's unused views.
+The check's reference is the training views' rendered depth (``free_space.render_training_depth``,
+what ``calibrate --free-space`` stores), the violation of a scored point is that of its rendered
+point (``free_space.rendered_points``), as ``eval`` computes it per pixel.
+
+Rule (written before any run of the study was trained; study 20b's checks). Per run: coverage at
+each of 50, 68.3, 90 and 95% within 5 points of nominal (four checks), the median 95% half-width at
+most 15% of the depth (5% on the synthetic scene), and the mean depth Spearman (|error| against the
+calibrated std, per scored photo) no more than 0.02 below today's. The check becomes the default
+(``DEPTH_FREE_SPACE``) if, on every run, it passes every check today passes, on the runs together it
+passes at least one check today fails, and the 95% interval score / depth averaged over the real runs
+does not rise. Runs: fresh seed-3 runs (nobody has looked at them).
+
+    OMP_NUM_THREADS=1 python benchmarks/studies/free_space_floor_study.py \\
+        --run capture/fern=runs/capture_seed3/fern/snerf/run --run capture/flower=... \\
+        --run paper/fern=runs/paper_seed3/fern/snerf_default --run paper/flower=... \\
+        --run synthetic=runs/demo_seed3 --out benchmarks/results/free_space_floor_study
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.stats import spearmanr
+
+from stochastic_fields import metrics as M
+from stochastic_fields.calibration import (QuantileCalibration, cross_fitted_depth_quantiles,
+                                          depth_calibration_renders, fit_depth_folds, render_at_points)
+from stochastic_fields.cameras import camera_to_world
+from stochastic_fields.capture_points import SCORE, block_keys, load_capture_points
+from stochastic_fields.free_space import (checked_std, free_space_violation, render_training_depth,
+                                          rendered_points)
+from stochastic_fields.io_utils import atomic_write_text
+from stochastic_fields.plots import plot_interval_reliability
+from stochastic_fields.trainer import load_trained_model
+from stochastic_fields.view_maps import OPACITY_MASK
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
+from relative_floor_study import checks, scored_views  # noqa: E402
+from study_helpers import photo_points  # noqa: E402
+
+#: The candidates: name -> whether the std is free-space checked (both fit rho).
+CANDIDATES: dict[str, bool] = {"today (sigma, rho)": False, "checked (sigma, e, rho)": True}
+RULE = ("per run: coverage at each of 50/68.3/90/95% within 5 points, median 95% half-width <= 15% (synthetic 5%), "
+        "mean depth Spearman no more than 0.02 below today's; the check is taken if on every run it passes every "
+        "check today passes, gains at least one, and the real runs' mean 95% interval score / depth does not rise")
+
+
+def collect(run_dir: Path) -> dict:
+    """The fitting renders (plain and checked, as ``calibrate --points held-out [--free-space]``) and
+    the scored points of one run, each with its free-space violation."""
+    cfg, model, dataset = load_trained_model(run_dir)
+    capture = load_capture_points(dataset)
+    t0 = time.perf_counter()
+    ref = render_training_depth(model, dataset, progress=False)
+    reference_s = time.perf_counter() - t0
+    plain = depth_calibration_renders(model, dataset, points="held-out")
+    checked = depth_calibration_renders(model, dataset, points="held-out", free_space=ref)
+    if not np.array_equal(plain["index"], checked["index"]):
+        raise RuntimeError(f"{run_dir}: the plain and checked calibration renders kept different points")
+    views = scored_views(dataset, cfg.data.split)
+    sparse = photo_points(dataset, capture, views, SCORE)
+    r = render_at_points(model, dataset.cameras, dataset.near, dataset.far, sparse,
+                         generator=torch.Generator().manual_seed(0))
+    order = [v for v, sd in sparse.items() if len(sd)]
+    index = np.concatenate([sparse[v].point_index for v in order])
+    view = np.concatenate([np.full(len(sparse[v]), v) for v in order])
+    keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(r["depth_mean"]) & (r["depth_std"] > 0)
+    centres = camera_to_world(dataset.cameras).double()[:, :3, 3].numpy()[view[keep]]
+    e = free_space_violation(rendered_points(centres, capture.xyz[index[keep]], r["gt"][keep], r["depth_mean"][keep]), ref)
+    keys = block_keys(capture.xyz, capture.xyz)
+    return {"fit": {"abs_err": plain["abs_err"], "depth": plain["depth"],
+                    "std": {False: plain["std"], True: checked["std"]}},
+            "fit_keys": keys[plain["index"]], "score_blocks": keys[capture.roles == SCORE],
+            "fit_violated": float((checked["std"] > plain["std"] * (1 + 1e-9)).mean()),
+            "scored": {"gt": r["gt"][keep], "pred": r["depth_mean"][keep],
+                       "std": {False: r["depth_std"][keep], True: checked_std(r["depth_std"][keep], e)},
+                       "violation": e, "keys": keys[index[keep]], "view": view[keep]},
+            "views": views, "reference_s": reference_s}
+
+
+def evaluate_candidate(data: dict, check: bool) -> tuple[dict, dict]:
+    f, s = data["fit"], data["scored"]
+    fit_std, std = f["std"][check], s["std"][check]
+    run_map = QuantileCalibration.fit_errors(f["abs_err"], fit_std, quantity="depth_std", depth=f["depth"])
+    folds = fit_depth_folds(f["abs_err"], fit_std, data["fit_keys"], data["score_blocks"], depth=f["depth"])
+    iv = M.interval_sharpness(s["gt"], cross_fitted_depth_quantiles(s["pred"], std, folds.fold_of(s["keys"]), folds))
+    calibrated = run_map.calibrated_std(std, depth=s["pred"])
+    err = np.abs(s["gt"] - s["pred"])
+    per_view = [float(spearmanr(err[s["view"] == v], calibrated[s["view"] == v])[0])
+                for v in np.unique(s["view"]) if (s["view"] == v).sum() >= 10]
+    row = {k: v for k, v in iv.items() if k != "halfwidth"}
+    row.update({"rho": run_map.relative_floor, "rho_folds": [m.relative_floor for m in folds.maps],
+                "s68": run_map.std_scale, "s95": float(run_map.scale_at(0.95)),
+                "spearman_per_view": per_view, "spearman_mean": float(np.mean(per_view)),
+                "median_abs_rel": float(np.median(err / s["gt"])), "points": int(s["gt"].size)})
+    return row, iv
+
+
+def violation_share(data: dict) -> dict:
+    """How often the check fires, and whether it fires where the errors are large: the share of
+    scored points with e > 0, and of those among the 10% largest relative errors."""
+    s = data["scored"]
+    rel = np.abs(s["gt"] - s["pred"]) / s["gt"]
+    top = rel >= np.quantile(rel, 0.9)
+    return {"scored_violated": float((s["violation"] > 0).mean()),
+            "worst_decile_violated": float((s["violation"][top] > 0).mean()),
+            "fit_violated": data["fit_violated"]}
+
+
+def decide(runs: dict) -> str:
+    today, cand = CANDIDATES
+    lost, gained = [], []
+    for name, r in runs.items():
+        old, new = checks(name, r[today], r[today]), checks(name, r[cand], r[today])
+        lost += [f"{name}: {c}" for c in old if old[c] and not new[c]]
+        gained += [f"{name}: {c}" for c in old if new[c] and not old[c]]
+    real = [n for n in runs if not n.startswith("synthetic")]
+    is_old = float(np.mean([runs[n][today]["interval_score_95"] for n in real]))
+    is_new = float(np.mean([runs[n][cand]["interval_score_95"] for n in real]))
+    fails = [f"loses {c}" for c in lost]
+    if not gained:
+        fails.append("gains no check")
+    if is_new > is_old:
+        fails.append(f"the mean 95% interval score / depth rises from {is_old:.3f} to {is_new:.3f}")
+    if fails:
+        return "not taken: " + "; ".join(fails)
+    return (f"taken: loses no check, gains {', '.join(gained)}; mean 95% interval score / depth "
+            f"{is_old:.3f} -> {is_new:.3f}")
+
+
+def report(results: dict) -> str:
+    names = "/".join(M.level_name(p) for p in M.INTERVAL_LEVELS)
+    lines = ["# Study 22: the free-space check beside the depth-proportional term", "",
+             f"Command: `{results['command']}`", "", f"Rule (written before any run was trained): {results['rule']}", "",
+             f"Decision: **{results['decision']}**", "",
+             f"| run | map | points | rho | coverage {names} | median 95% half-width / depth | p90 | IS 95% / depth "
+             "| CRPS / depth | depth Spearman (mean over photos) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for run, r in results["runs"].items():
+        for cand in CANDIDATES:
+            c = r[cand]
+            cov = "/".join(f"{100 * x:.1f}" for x in c["coverage"])
+            lines.append(f"| {run} | {cand} | {c['points']} | {c['rho']:.3g} | {cov} | {100 * c['halfwidth_median_95']:.1f}% "
+                         f"| {100 * c['halfwidth_p90_95']:.0f}% | {c['interval_score_95']:.3f} | {c['crps']:.4f} "
+                         f"| {c['spearman_mean']:.3f} |")
+    lines += ["", "Where the check fires (share of points with a free-space violation e > 0):", "",
+              "| run | fitting points | scored points | scored points among the 10% largest relative errors |",
+              "|---|---|---|---|"]
+    for run, r in results["runs"].items():
+        v = r["violations"]
+        lines.append(f"| {run} | {100 * v['fit_violated']:.1f}% | {100 * v['scored_violated']:.1f}% "
+                     f"| {100 * v['worst_decile_violated']:.1f}% |")
+    lines += ["", "Cost: the training views' reference depth renders once per run (`reference_s` in results.json, "
+              "one thread); a view's check then costs what `calibrate --free-space` documents."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", action="append", required=True, metavar="NAME=RUN")
+    p.add_argument("--out", type=Path, required=True)
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    args.out.mkdir(parents=True, exist_ok=True)
+    results: dict = {"command": "python benchmarks/studies/free_space_floor_study.py "
+                                + " ".join(sys.argv[1:] if argv is None else argv), "rule": RULE, "runs": {}}
+    for spec in args.run:
+        name, run = spec.split("=", 1)
+        data = collect(Path(run))
+        res, curves = {"views": [int(v) for v in data["views"]], "violations": violation_share(data),
+                       "reference_s": data["reference_s"]}, {}
+        for cand, check in CANDIDATES.items():
+            res[cand], curves[cand] = evaluate_candidate(data, check)
+            print(f"[{name}] {cand}: rho {res[cand]['rho']:.3g}, coverage "
+                  + "/".join(f"{100 * x:.1f}" for x in res[cand]["coverage"])
+                  + f", 95% half-width {100 * res[cand]['halfwidth_median_95']:.1f}%, "
+                  f"IS95 {res[cand]['interval_score_95']:.3f}, Spearman {res[cand]['spearman_mean']:.3f}", flush=True)
+        plot_interval_reliability(args.out / f"{name.replace('/', '_')}.png", curves, title=f"{name}: photos no map saw")
+        results["runs"][name] = res
+        atomic_write_text(args.out / "results.json", json.dumps(results, indent=2))
+    results["decision"] = decide(results["runs"])
+    atomic_write_text(args.out / "results.json", json.dumps(results, indent=2))
+    atomic_write_text(args.out / "README.md", report(results))
+    print(results["decision"])
+
+
+if __name__ == "__main__":
+    main()
