@@ -105,3 +105,28 @@ def test_cross_fitted_quantiles_use_each_fold_map():
         np.testing.assert_allclose(q[i], ref, rtol=1e-12)
     with pytest.raises(ValueError, match="no fold"):
         cross_fitted_depth_quantiles(pred, std, np.full(600, 2), folds)
+
+
+def test_event_reliability_by_hand():
+    p = np.array([0.0, 0.1, 0.15, 0.9, 0.95, 1.0, 0.5])
+    o = np.array([0, 0, 1, 1, 1, 0, 1])
+    r = M.event_reliability(p, o)
+    # (0 + 0.01 + 0.7225 + 0.01 + 0.0025 + 1 + 0.25) / 7
+    assert r["brier"] == pytest.approx(1.995 / 7, abs=1e-12)
+    # bins [0, .1): {0} -> 0; [.1, .2): {.1, .15} vs 1/2 -> 2 * .375; [.5, .6): {.5} vs 1; [.9, 1]: {.9, .95, 1} vs 2/3
+    assert r["ece"] == pytest.approx((0 + 0.75 + 0.5 + 3 * abs(0.95 - 2 / 3)) / 7, abs=1e-12)
+    assert r["accuracy"] == pytest.approx(4 / 7)
+    np.testing.assert_allclose(r["bin_count"], [1, 2, 1, 3])
+    np.testing.assert_allclose(r["bin_freq"], [0, 0.5, 1, 2 / 3])
+    assert (r["confident"], r["confident_wrong"]) == (2, 1)  # p = 0 (right) and p = 1 (wrong); 0.95 is not > 0.95
+
+
+def test_event_reliability_of_perfect_and_bad_input():
+    r = M.event_reliability([1.0, 0.0, 1.0], [1, 0, 1])
+    assert r["brier"] == 0.0 and r["ece"] == 0.0 and r["accuracy"] == 1.0
+    with pytest.raises(ValueError, match="outcomes must be 0 or 1"):
+        M.event_reliability([0.5], [2])
+    with pytest.raises(ValueError, match=r"lie in \[0, 1\]"):
+        M.event_reliability([1.5], [1])
+    with pytest.raises(ValueError, match="at least one event"):
+        M.event_reliability([], [])

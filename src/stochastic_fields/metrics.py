@@ -765,6 +765,45 @@ def gaussian_quantiles(mean: Any, std: Any, levels: Any, interval_scale: Any = N
     return m + np.sign(t - 0.5) * z * s
 
 
+#: Equal-width probability bins of ``event_reliability``.
+EVENT_RELIABILITY_BINS: int = 10
+
+
+def event_reliability(prob: Any, outcome: Any, num_bins: int = EVENT_RELIABILITY_BINS) -> dict[str, Any]:
+    """How well probabilities of a yes/no event (for example "this segment is free") match what
+    happened: prob [N] in [0, 1], outcome [N] in {0, 1}.
+
+        brier        (1 / N) sum_i (p_i - o_i)^2            (0 is perfect; 0.25: always saying 1/2)
+        ece          sum_b (n_b / N) |mean_b(p) - mean_b(o)|  (bins b: [0, 1/B), ..., [(B-1)/B, 1])
+        accuracy     share of events with (p_i > 1/2) == o_i
+    with the reliability curve per non-empty bin ("bin_prob", "bin_freq", "bin_count": mean
+    probability, observed frequency, count) and the counts of confident answers (p < 0.05 or
+    p > 0.95: "confident", and how many of them were wrong: "confident_wrong")."""
+    p, o = (t.reshape(-1) for t in _f64_all(prob=prob, outcome=outcome))
+    _same_shape(prob=p, outcome=o)
+    if p.numel() == 0:
+        raise ValueError("event_reliability: needs at least one event")
+    if not bool(((p >= 0) & (p <= 1)).all()):
+        raise ValueError("event_reliability: probabilities must lie in [0, 1]")
+    if not bool(((o == 0) | (o == 1)).all()):
+        raise ValueError("event_reliability: outcomes must be 0 or 1")
+    if num_bins < 1:
+        raise ValueError(f"event_reliability: num_bins must be >= 1, got {num_bins}")
+    b = torch.clamp((p * num_bins).long(), max=num_bins - 1)
+    count = torch.bincount(b, minlength=num_bins).to(torch.float64)
+    sum_p = torch.zeros(num_bins, dtype=torch.float64, device=p.device).index_add_(0, b, p)
+    sum_o = torch.zeros(num_bins, dtype=torch.float64, device=p.device).index_add_(0, b, o)
+    used = count > 0
+    bin_p, bin_o = sum_p[used] / count[used], sum_o[used] / count[used]
+    confident = (p < 0.05) | (p > 0.95)
+    return {"brier": float(((p - o) ** 2).mean()),
+            "ece": float(((count[used] / p.numel()) * (bin_p - bin_o).abs()).sum()),
+            "accuracy": float(((p > 0.5).to(torch.float64) == o).to(torch.float64).mean()),
+            "bin_prob": bin_p.cpu().numpy(), "bin_freq": bin_o.cpu().numpy(), "bin_count": count[used].cpu().numpy(),
+            "confident": int(confident.sum()), "confident_wrong": int((confident & ((p > 0.5).to(torch.float64) != o)).sum()),
+            "events": int(p.numel())}
+
+
 # --------------------------------------------------------------------------------------------
 # reports
 # --------------------------------------------------------------------------------------------

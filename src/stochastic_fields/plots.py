@@ -164,6 +164,38 @@ def plot_interval_reliability(path: str | os.PathLike, intervals: Mapping, title
     return _save_atomic(interval_reliability_figure(intervals, title), path, dpi)
 
 
+def event_reliability_figure(results: Mapping[str, Mapping], title: str | None = None) -> Figure:
+    """Reliability diagram of yes/no probabilities: the observed frequency against the mean
+    probability per bin, one line per name, from ``metrics.event_reliability`` outputs {name:
+    result}, marker area by the bin's count; the legend gives each Brier score and ECE (a Figure)."""
+    if not results:
+        raise ValueError("event_reliability_figure needs at least one result")
+    fig = Figure(figsize=(5.5, 5.0))
+    ax = fig.add_subplot(1, 1, 1)
+    ax.plot([0.0, 1.0], [0.0, 1.0], color="0.5", linestyle=":", label="ideal")
+    for i, (name, r) in enumerate(results.items()):
+        count = np.asarray(r["bin_count"], dtype=np.float64)
+        ax.plot(r["bin_prob"], r["bin_freq"], "-", color=f"C{i % 10}",
+                label=f"{name}: Brier {r['brier']:.3f}, ECE {r['ece']:.3f}")
+        ax.scatter(r["bin_prob"], r["bin_freq"], s=10 + 200 * count / count.sum(), color=f"C{i % 10}")
+    ax.set_xlabel("stated probability")
+    ax.set_ylabel("observed frequency")
+    ax.set_xlim(0.0, 1.0)
+    ax.set_ylim(0.0, 1.0)
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize="small", loc="upper left")
+    if title:
+        ax.set_title(title, fontsize="medium")
+    fig.tight_layout()
+    return fig
+
+
+def plot_event_reliability(path: str | os.PathLike, results: Mapping[str, Mapping], title: str | None = None,
+                           dpi: int = 110) -> Path:
+    """Write ``event_reliability_figure`` to ``path`` (atomic)."""
+    return _save_atomic(event_reliability_figure(results, title), path, dpi)
+
+
 def plot_resplit_coverage(
     coverages: Mapping[str, np.ndarray],
     today: Mapping[str, Sequence[float]],

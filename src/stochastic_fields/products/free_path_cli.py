@@ -55,15 +55,10 @@ def run(args: argparse.Namespace) -> None:
     if not hasattr(model, "field") or not hasattr(model, "region"):
         raise ValueError(f"{args.run}: free-path needs an S-NeRF run (a stochastic field)")
     device = model.region.box.device
-    step = args.step
-    if step is None:
-        H, W = image_size(dataset.cameras)
-        step = 0.5 * footprint_voxel_size(model.region, intrinsics_3x3(dataset.cameras).to(device),
-                                          dataset.cameras.extrinsics.to(device), H, W, dataset.near.to(device),
-                                          dataset.far.to(device))
+    step = default_step(model, dataset) if args.step is None else args.step
     shared = model.render_settings.shared_noise if args.shared_noise == "run" else args.shared_noise == "true"
     gen = torch.Generator(device=device).manual_seed(args.seed)
-    field = _FloatField(model.field)
+    field = FloatField(model.field)
     answer: dict = {"step": step, "shared_noise": shared, "units": "scene units"}
     if segs is not None:
         r = segment_free_probability(field, segs[:, 0].to(device), segs[:, 1].to(device), num_draws=args.num_draws,
@@ -81,7 +76,17 @@ def run(args: argparse.Namespace) -> None:
         print(text)
 
 
-class _FloatField:
+def default_step(model, dataset) -> float:
+    """The step along segments when none is given: half the occupancy map's voxel size from the
+    images' footprint (``occupancy_map.footprint_voxel_size``)."""
+    device = model.region.box.device
+    H, W = image_size(dataset.cameras)
+    return 0.5 * footprint_voxel_size(model.region, intrinsics_3x3(dataset.cameras).to(device),
+                                      dataset.cameras.extrinsics.to(device), H, W, dataset.near.to(device),
+                                      dataset.far.to(device))
+
+
+class FloatField:
     """Evaluates a float32 field at float64 query points."""
 
     def __init__(self, field) -> None:

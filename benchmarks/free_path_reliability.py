@@ -1,0 +1,187 @@
+"""Are the free-space answers honest? P(segment free) against what the held-out photos show.
+
+A planner asks ``free-path`` whether a straight segment is free, and reads P(depth > d) from the
+pixels ``export`` writes. Both are probabilities of the same kind of event, and on a pixel's own ray
+they are the probability of the same event: the segment from the ray's near point to camera depth
+d is free exactly when the pixel's surface lies beyond d. This benchmark asks them that question
+where the answer is known.
+
+For every run, a sample of the capture points of the SCORE role seen from the run's test photos
+(photos no training and no map saw; at most ``--points`` per run, seeded), at true camera depth y
+along the photo's pixel ray, and each margin m of ``--margins``:
+- the segment to camera depth (1 - m) y is free (outcome 1: the photo sees the point, so nothing
+  stands in front of it),
+- the segment to (1 + m) y is blocked (outcome 0: it runs through the surface the point lies on).
+Each segment gets two answers:
+- *pixel*: P(depth > d) of the pixel's recalibrated predictive distribution (the run's
+  calibration.json; what ``export --free-space-thresholds`` writes,
+  ``products.free_space.predictive_prob_depth_greater``);
+- *free-path*: the share of K density trajectories whose transmittance along the segment exceeds
+  the level (``products.free_path.segment_free_probability``, the ``free-path`` command's answer,
+  with its default draws, level and step).
+Scored by ``metrics.event_reliability`` (Brier score, expected calibration error, accuracy, the
+confident answers that were wrong), with their mean absolute disagreement on the same segments.
+Segments that would start beyond their end (y (1 - m) below the near plane) are left out.
+
+    OMP_NUM_THREADS=1 python benchmarks/free_path_reliability.py --run capture/fern=RUN ... \\
+        --out benchmarks/results/free_path_reliability
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from stochastic_fields import metrics as M
+from stochastic_fields.calibration import load_run_calibration
+from stochastic_fields.capture_points import SCORE, load_capture_points, rays_through_points, restrict_sparse_depth
+from stochastic_fields.io_utils import atomic_write_text
+from stochastic_fields.plots import plot_event_reliability
+from stochastic_fields.products.free_path import FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, segment_free_probability
+from stochastic_fields.products.free_path_cli import FloatField, default_step
+from stochastic_fields.products.free_space import predictive_prob_depth_greater
+from stochastic_fields.trainer import load_trained_model
+from stochastic_fields.view_maps import OPACITY_MASK
+
+sys.path.insert(0, str(Path(__file__).resolve().parent / "studies"))
+from study_helpers import photo_points  # noqa: E402
+
+#: Relative margins in front of and behind the true surface.
+MARGINS: tuple[float, ...] = (0.05, 0.1, 0.2)
+#: Most scored points per run.
+MAX_POINTS: int = 1500
+
+
+def sample_points(sparse: dict, limit: int, seed: int) -> dict:
+    """At most ``limit`` of the points of {view: SparseDepth}, drawn uniformly without replacement."""
+    sizes = {v: len(sd) for v, sd in sparse.items()}
+    total = sum(sizes.values())
+    if total <= limit:
+        return sparse
+    chosen = np.zeros(total, bool)
+    chosen[np.random.default_rng(seed).choice(total, limit, replace=False)] = True
+    out, at = {}, 0
+    for v, sd in sparse.items():
+        out[v] = restrict_sparse_depth(sd, chosen[at:at + sizes[v]])
+        at += sizes[v]
+    return out
+
+
+def measure(run_dir: Path, *, margins, limit: int, seed: int) -> dict:
+    cfg, model, dataset = load_trained_model(run_dir)
+    if not hasattr(model, "field"):
+        raise ValueError(f"{run_dir}: free-path needs an S-NeRF run (a stochastic field)")
+    calibration = load_run_calibration(run_dir)
+    depth_map = None if calibration is None else calibration.depth
+    capture = load_capture_points(dataset)
+    if capture is None:
+        raise ValueError(f"{run_dir}: the scene has no capture points to score free space on")
+    views = list(dataset.test_indices)
+    sparse = sample_points(photo_points(dataset, capture, views, SCORE), limit, seed)
+    rays, gt = rays_through_points(dataset.cameras, dataset.near, dataset.far, sparse)
+    with torch.no_grad():
+        maps = model.render_view(rays.reshape(1, len(gt)), generator=torch.Generator().manual_seed(seed))
+    z = maps["z_scale"].double().reshape(-1).numpy()
+    mean = maps["depth_mean"].double().reshape(-1).numpy() * z
+    raw = maps["depth_var_total"].double().clamp_min(0).sqrt().reshape(-1).numpy() * z
+    keep = (maps["opacity"].double().reshape(-1).numpy() > OPACITY_MASK) & np.isfinite(mean) & (raw > 0)
+    if depth_map is not None and depth_map.free_space:
+        raise ValueError(f"{run_dir}: a free-space-checked map needs each pixel's violation; not measured here")
+    std = raw if depth_map is None else depth_map.calibrated_std(raw, depth=mean)
+    multiplier = None if depth_map is None else (lambda level: float(depth_map.relative_scale(level)))
+    step = default_step(model, dataset)
+    origins, dirs = rays.origins.double(), rays.directions.double()
+    near = rays.near.double().reshape(-1)
+    field = FloatField(model.field)
+    shared = model.render_settings.shared_noise
+    out = {"run": str(run_dir), "split": cfg.data.split, "views": views, "step": step, "shared_noise": bool(shared),
+           "num_draws": FREE_PATH_NUM_DRAWS, "level": FREE_TRANSMITTANCE_LEVEL, "calibrated": depth_map is not None,
+           "points": int(keep.sum()), "margins": {}}
+    t0 = time.perf_counter()
+    pooled = {"pixel": ([], []), "free-path": ([], [])}
+    for m in margins:
+        d = np.concatenate([(1.0 - m) * gt, (1.0 + m) * gt])
+        outcome = np.concatenate([np.ones_like(gt), np.zeros_like(gt)])
+        i = np.concatenate([np.arange(len(gt))] * 2)
+        t = torch.from_numpy(d / z[i])
+        ok = keep[i] & (t.numpy() > near[i].numpy())
+        i, d, outcome, t = i[ok], d[ok], outcome[ok], t[ok]
+        starts = origins[i] + near[i, None] * dirs[i]
+        ends = origins[i] + t[:, None] * dirs[i]
+        gen = torch.Generator().manual_seed(seed)
+        path = segment_free_probability(field, starts, ends, step=step, shared_noise=shared, generator=gen)
+        answers = {"pixel": predictive_prob_depth_greater(mean[i], std[i], d, multiplier),
+                   "free-path": path.probability.numpy()}
+        row = {k: {kk: (vv.tolist() if isinstance(vv, np.ndarray) else vv)
+                   for kk, vv in M.event_reliability(p, outcome).items()} for k, p in answers.items()}
+        row["disagreement"] = float(np.mean(np.abs(answers["pixel"] - answers["free-path"])))
+        row["segments"] = int(len(d))
+        out["margins"][str(m)] = row
+        for k, p in answers.items():
+            pooled[k][0].append(p)
+            pooled[k][1].append(outcome)
+    out["seconds"] = time.perf_counter() - t0
+    out["pooled"] = {k: M.event_reliability(np.concatenate(p), np.concatenate(o)) for k, (p, o) in pooled.items()}
+    return out
+
+
+def report(results: dict) -> str:
+    lines = ["# Free-space answers against the held-out photos", "", f"Command: `{results['command']}`", "",
+             "Segments from a test photo's pixel ray's near point to (1 - m) times the true depth of a capture point of "
+             "the SCORE role (free) and to (1 + m) times it (blocked); *pixel*: P(depth > d) of the recalibrated "
+             "per-pixel distribution (`export`'s); *free-path*: the `free-path` command's answer (share of density "
+             "trajectories whose transmittance exceeds the level). Brier score (0 perfect, 0.25 a coin), ECE "
+             "(10 bins), accuracy at 1/2, confident answers (P < 5% or > 95%) that were wrong.", "",
+             "| run | margin m | segments | pixel Brier / ECE / accuracy | pixel confident wrong | free-path Brier / "
+             "ECE / accuracy | free-path confident wrong | mean disagreement |", "|---|---|---|---|---|---|---|---|"]
+    for name, r in results["runs"].items():
+        for m, row in r["margins"].items():
+            px, fp = row["pixel"], row["free-path"]
+            lines.append(f"| {name} | {float(m):.0%} | {row['segments']} | {px['brier']:.3f} / {px['ece']:.3f} / "
+                         f"{px['accuracy']:.3f} | {px['confident_wrong']} of {px['confident']} | {fp['brier']:.3f} / "
+                         f"{fp['ece']:.3f} / {fp['accuracy']:.3f} | {fp['confident_wrong']} of {fp['confident']} "
+                         f"| {row['disagreement']:.3f} |")
+    lines += ["", "Runs: " + "; ".join(f"{k}: `{r['run']}` ({r['split']} split, {r['points']} points, step "
+                                      f"{r['step']:.4g}, K = {r['num_draws']}, {r['seconds']:.0f} s)"
+                                      for k, r in results["runs"].items()), ""]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", action="append", required=True, metavar="NAME=RUN")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--margins", nargs="+", type=float, default=list(MARGINS))
+    p.add_argument("--points", type=int, default=MAX_POINTS, help="Most scored points per run.")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--threads", type=int, default=1, help="torch CPU threads.")
+    args = p.parse_args(argv)
+    if not all(0.0 < m < 1.0 for m in args.margins):
+        p.error(f"--margins must lie in (0, 1), got {args.margins}")
+    torch.set_num_threads(args.threads)
+    args.out.mkdir(parents=True, exist_ok=True)
+    results: dict = {"command": "python benchmarks/free_path_reliability.py " + " ".join(sys.argv[1:] if argv is None else argv),
+                     "threads": args.threads, "runs": {}}
+    for spec in args.run:
+        name, run = spec.split("=", 1)
+        r = measure(Path(run), margins=args.margins, limit=args.points, seed=args.seed)
+        plot_event_reliability(args.out / f"{name.replace('/', '_')}.png", r["pooled"],
+                               title=f"{name}: is the segment free? (test photos, margins pooled)")
+        r["pooled"] = {k: {kk: (vv.tolist() if isinstance(vv, np.ndarray) else vv) for kk, vv in v.items()}
+                       for k, v in r["pooled"].items()}
+        results["runs"][name] = r
+        print(f"[{name}] pixel Brier {r['pooled']['pixel']['brier']:.3f} ECE {r['pooled']['pixel']['ece']:.3f}; "
+              f"free-path Brier {r['pooled']['free-path']['brier']:.3f} ECE {r['pooled']['free-path']['ece']:.3f}",
+              flush=True)
+        atomic_write_text(args.out / "results.json", json.dumps(results, indent=2))
+    atomic_write_text(args.out / "README.md", report(results))
+
+
+if __name__ == "__main__":
+    main()
