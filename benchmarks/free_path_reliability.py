@@ -46,6 +46,7 @@ from stochastic_fields.plots import plot_event_reliability
 from stochastic_fields.products.free_path import FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, segment_free_probability
 from stochastic_fields.products.free_path_cli import FloatField, default_step
 from stochastic_fields.products.free_space import predictive_prob_depth_greater
+from stochastic_fields.products.occupancy_map import blocking_threshold, probability_density_exceeds, run_voxel_size
 from stochastic_fields.trainer import load_trained_model
 from stochastic_fields.view_maps import OPACITY_MASK
 
@@ -126,9 +127,38 @@ def measure(run_dir: Path, *, margins, limit: int, seed: int) -> dict:
         for k, p in answers.items():
             pooled[k][0].append(p)
             pooled[k][1].append(outcome)
+    out["occupancy"] = voxel_events(model, dataset, origins, dirs, torch.from_numpy(gt / z), margins)
     out["seconds"] = time.perf_counter() - t0
     out["pooled"] = {k: M.event_reliability(np.concatenate(p), np.concatenate(o)) for k, (p, o) in pooled.items()}
     return out
+
+
+def voxel_events(model, dataset, origins, dirs, t_true, margins) -> dict:
+    """The occupancy map's answers (``occupancy``'s default voxel size and threshold, P at the voxel
+    centre) for the voxel holding each point (outcome 1, a surface passes through it) and the voxel
+    at (1 - m) of the way to it (outcome 0), where that voxel lies inside the region and at least
+    two voxels from the point's own (Chebyshev distance of their indices)."""
+    vs = run_voxel_size(model, dataset)
+    tau = blocking_threshold(vs)
+    point = origins + t_true[:, None] * dirs
+    key_point = torch.floor(point / vs)
+    keys, outcome = [key_point], [torch.ones(len(point), dtype=torch.float64)]
+    for m in margins:
+        key = torch.floor((origins + (1.0 - m) * t_true[:, None] * dirs) / vs)
+        apart = (key - key_point).abs().amax(-1) >= 2
+        keys.append(key[apart])
+        outcome.append(torch.zeros(int(apart.sum()), dtype=torch.float64))
+    centres = (torch.cat(keys) + 0.5) * vs
+    outcome = torch.cat(outcome)
+    inside = model.region.contains(centres.float())
+    with torch.no_grad():
+        loc, scale = model.field.density_params(centres[inside].float())
+    p = probability_density_exceeds(loc.double(), scale.double(), tau).numpy()
+    r = M.event_reliability(p, outcome[inside].numpy())
+    r = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in r.items()}
+    r.update(voxel_size=vs, density_threshold=tau, occupied=int(outcome[inside].sum()),
+             free=int((outcome[inside] == 0).sum()))
+    return r
 
 
 def report(results: dict) -> str:
@@ -147,6 +177,15 @@ def report(results: dict) -> str:
                          f"{px['accuracy']:.3f} | {px['confident_wrong']} of {px['confident']} | {fp['brier']:.3f} / "
                          f"{fp['ece']:.3f} / {fp['accuracy']:.3f} | {fp['confident_wrong']} of {fp['confident']} "
                          f"| {row['disagreement']:.3f} |")
+    lines += ["", "The occupancy map's answers (`occupancy`'s default voxel size and density threshold, P(density > "
+              "threshold) at the voxel centre): the voxel holding each scored point (occupied) and the voxels at (1 - m) "
+              "of the way to it (free; only those inside the region and two or more voxels from the point's). Its "
+              "reliability depends on that mix of occupied and free voxels, which is the benchmark's choice:", "",
+              "| run | voxel size | occupied / free voxels | Brier / ECE / accuracy | confident wrong |", "|---|---|---|---|---|"]
+    for name, r in results["runs"].items():
+        o = r["occupancy"]
+        lines.append(f"| {name} | {o['voxel_size']:.4g} | {o['occupied']} / {o['free']} | {o['brier']:.3f} / "
+                     f"{o['ece']:.3f} / {o['accuracy']:.3f} | {o['confident_wrong']} of {o['confident']} |")
     lines += ["", "Runs: " + "; ".join(f"{k}: `{r['run']}` ({r['split']} split, {r['points']} points, step "
                                       f"{r['step']:.4g}, K = {r['num_draws']}, {r['seconds']:.0f} s)"
                                       for k, r in results["runs"].items()), ""]
@@ -171,7 +210,7 @@ def main(argv=None) -> None:
     for spec in args.run:
         name, run = spec.split("=", 1)
         r = measure(Path(run), margins=args.margins, limit=args.points, seed=args.seed)
-        plot_event_reliability(args.out / f"{name.replace('/', '_')}.png", r["pooled"],
+        plot_event_reliability(args.out / f"{name.replace('/', '_')}.png", {**r["pooled"], "occupancy": r["occupancy"]},
                                title=f"{name}: is the segment free? (test photos, margins pooled)")
         r["pooled"] = {k: {kk: (vv.tolist() if isinstance(vv, np.ndarray) else vv) for kk, vv in v.items()}
                        for k, v in r["pooled"].items()}

@@ -21,9 +21,8 @@ import torch
 
 
 def main() -> None:
-    from stochastic_fields.cameras import image_size, intrinsics_3x3
     from stochastic_fields.products.free_path import path_free_probability
-    from stochastic_fields.products.occupancy_map import footprint_voxel_size, occupancy_map
+    from stochastic_fields.products.occupancy_map import occupancy_map, run_voxel_size
     from stochastic_fields.products.plan import plan_voxel_path, simplify_voxel_path
     from stochastic_fields.trainer import load_trained_model
 
@@ -41,9 +40,7 @@ def main() -> None:
     goal = np.array([float(v) for v in args.goal.split(",")])
 
     _, model, ds = load_trained_model(Path(args.run), device="cpu")
-    H, W = image_size(ds.cameras)
-    voxel = footprint_voxel_size(model.region, intrinsics_3x3(ds.cameras), ds.cameras.extrinsics, H, W, ds.near, ds.far,
-                                 max_cells=500_000)
+    voxel = run_voxel_size(model, ds, max_cells=500_000)
     occ = occupancy_map(model.field, model.region, voxel, blocking_length=args.blocking_length, progress=True)
     print(f"occupancy: voxel {voxel:.4f}, grid {occ.shape}, {int((occ.probability > 0.5).sum())} voxels with P > 0.5")
     vox, risk = plan_voxel_path(occ, start, goal)

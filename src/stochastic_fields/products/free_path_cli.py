@@ -17,9 +17,8 @@ import torch
 
 from ..io_utils import atomic_write_text, read_json
 from .free_path import FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, path_free_probability, segment_free_probability
-from ..cameras import image_size, intrinsics_3x3
 from ..trainer import load_trained_model
-from .occupancy_map import footprint_voxel_size
+from .occupancy_map import run_voxel_size
 
 
 def _points(path: Path, key: str, value, shape_tail: tuple[int, ...]) -> torch.Tensor:
@@ -78,12 +77,8 @@ def run(args: argparse.Namespace) -> None:
 
 def default_step(model, dataset) -> float:
     """The step along segments when none is given: half the occupancy map's voxel size from the
-    images' footprint (``occupancy_map.footprint_voxel_size``)."""
-    device = model.region.box.device
-    H, W = image_size(dataset.cameras)
-    return 0.5 * footprint_voxel_size(model.region, intrinsics_3x3(dataset.cameras).to(device),
-                                      dataset.cameras.extrinsics.to(device), H, W, dataset.near.to(device),
-                                      dataset.far.to(device))
+    images' footprint (``occupancy_map.run_voxel_size``)."""
+    return 0.5 * run_voxel_size(model, dataset)
 
 
 class FloatField:

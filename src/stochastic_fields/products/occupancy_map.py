@@ -272,6 +272,17 @@ def occupancy_metadata(occ: OccupancyMap) -> dict:
             "min_probability": occ.min_probability, "units": occ.units, "metres_per_unit": occ.metres_per_unit}
 
 
+def run_voxel_size(model, dataset, *, pixels_per_voxel: float = OCCUPANCY_PIXELS_PER_VOXEL,
+                   max_cells: int = OCCUPANCY_MAX_CELLS) -> float:
+    """The voxel size of a run's occupancy map when none is given: ``footprint_voxel_size`` of the
+    dataset's cameras and bounds over the model's region."""
+    H, W = image_size(dataset.cameras)
+    dev = model.region.box.device
+    return footprint_voxel_size(model.region, intrinsics_3x3(dataset.cameras).to(dev),
+                                dataset.cameras.extrinsics.to(dev), H, W, dataset.near.to(dev),
+                                dataset.far.to(dev), pixels_per_voxel=pixels_per_voxel, max_cells=max_cells)
+
+
 def occupancy_from_run(run_dir: str | Path, out: str | Path, *, voxel_size: float | None = None,
                        pixels_per_voxel: float = OCCUPANCY_PIXELS_PER_VOXEL, max_cells: int = OCCUPANCY_MAX_CELLS,
                        blocked_opacity: float = BLOCKED_OPACITY, blocking_length: float | None = None,
@@ -283,11 +294,7 @@ def occupancy_from_run(run_dir: str | Path, out: str | Path, *, voxel_size: floa
     if not hasattr(model, "region") or not hasattr(model, "field"):
         raise ValueError(f"{run_dir}: occupancy needs an S-NeRF run (a stochastic field and its region)")
     if voxel_size is None:
-        H, W = image_size(dataset.cameras)
-        dev = model.region.box.device
-        voxel_size = footprint_voxel_size(model.region, intrinsics_3x3(dataset.cameras).to(dev),
-                                          dataset.cameras.extrinsics.to(dev), H, W, dataset.near.to(dev),
-                                          dataset.far.to(dev), pixels_per_voxel=pixels_per_voxel, max_cells=max_cells)
+        voxel_size = run_voxel_size(model, dataset, pixels_per_voxel=pixels_per_voxel, max_cells=max_cells)
     occ = occupancy_map(model.field, model.region, voxel_size, blocked_opacity=blocked_opacity,
                         blocking_length=blocking_length, density_threshold=density_threshold, progress=progress)
     occ.metres_per_unit = metres_per_unit
