@@ -67,7 +67,7 @@ from stochastic_fields.trainer import load_trained_model
 from stochastic_fields.view_maps import OPACITY_MASK
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
-from relative_floor_study import checks, scored_views  # noqa: E402
+from relative_floor_study import decide_by_checks, scored_views  # noqa: E402
 from study_helpers import photo_points  # noqa: E402
 
 #: The maps: name -> (the calibration views' bounds, whether the std is free-space checked); all fit rho.
@@ -147,36 +147,7 @@ def violation_share(data: dict) -> dict:
 
 
 def decide(runs: dict) -> str:
-    """The rule (module doc) for each candidate against today's, then the choice between them."""
-    verdicts = {cand: judge(runs, cand) for cand in CANDIDATES if cand != TODAY}
-    taken = [c for c, v in verdicts.items() if v.startswith("taken")]
-    real = [n for n in runs if not n.startswith("synthetic")]
-    text = " | ".join(f"{c}: {v}" for c, v in verdicts.items())
-    if len(taken) > 1:
-        best = min(taken, key=lambda c: np.mean([runs[n][c]["interval_score_95"] for n in real]))
-        text += f" | both pass; the lower mean interval score: {best}"
-    return text
-
-
-def judge(runs: dict, cand: str) -> str:
-    today = TODAY
-    lost, gained = [], []
-    for name, r in runs.items():
-        old, new = checks(name, r[today], r[today]), checks(name, r[cand], r[today])
-        lost += [f"{name}: {c}" for c in old if old[c] and not new[c]]
-        gained += [f"{name}: {c}" for c in old if new[c] and not old[c]]
-    real = [n for n in runs if not n.startswith("synthetic")]
-    is_old = float(np.mean([runs[n][today]["interval_score_95"] for n in real]))
-    is_new = float(np.mean([runs[n][cand]["interval_score_95"] for n in real]))
-    fails = [f"loses {c}" for c in lost]
-    if not gained:
-        fails.append("gains no check")
-    if is_new > is_old:
-        fails.append(f"the mean 95% interval score / depth rises from {is_old:.3f} to {is_new:.3f}")
-    if fails:
-        return "not taken: " + "; ".join(fails)
-    return (f"taken: loses no check, gains {', '.join(gained)}; mean 95% interval score / depth "
-            f"{is_old:.3f} -> {is_new:.3f}")
+    return decide_by_checks(runs, TODAY, [c for c in CANDIDATES if c != TODAY])
 
 
 def report(results: dict) -> str:

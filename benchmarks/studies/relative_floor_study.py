@@ -153,25 +153,36 @@ def checks(name: str, row: dict, today: dict) -> dict[str, bool]:
     return out
 
 
+def decide_by_checks(runs: dict, today: str, candidates) -> str:
+    """Study 20b's rule (module doc) for each of ``candidates`` against ``today`` over {run: {name:
+    row}}: taken if on every run it passes every check today passes, passes at least one check today
+    fails, and the real runs' mean 95% interval score / depth does not rise; of several, the lowest
+    mean interval score. Studies 21 and 22 judge by it too."""
+    real = [n for n in runs if not n.startswith("synthetic")]
+    is_today = float(np.mean([runs[n][today]["interval_score_95"] for n in real]))
+    verdicts, winners = [], []
+    for cand in candidates:
+        lost, gained = [], []
+        for name, r in runs.items():
+            old, new = checks(name, r[today], r[today]), checks(name, r[cand], r[today])
+            lost += [f"{name}: {c}" for c in old if old[c] and not new[c]]
+            gained += [f"{name}: {c}" for c in old if new[c] and not old[c]]
+        is_new = float(np.mean([runs[n][cand]["interval_score_95"] for n in real]))
+        fails = [f"loses {c}" for c in lost] + ([] if gained else ["gains no check"])
+        if is_new > is_today:
+            fails.append(f"mean 95% interval score / depth rises {is_today:.3f} -> {is_new:.3f}")
+        if fails:
+            verdicts.append(f"{cand}: not taken ({'; '.join(fails)})")
+        else:
+            winners.append((is_new, cand))
+            verdicts.append(f"{cand}: passes (gains {', '.join(gained)}; mean IS95 {is_today:.3f} -> {is_new:.3f})")
+    head = f"taken: {min(winners)[1]}" if winners else "today's stays"
+    return head + ". " + " | ".join(verdicts)
+
+
 def decide_20b(runs: dict) -> str:
     today, cand = CANDIDATES
-    lost, gained = [], []
-    for name, r in runs.items():
-        old, new = checks(name, r[today], r[today]), checks(name, r[cand], r[today])
-        lost += [f"{name}: {c}" for c in old if old[c] and not new[c]]
-        gained += [f"{name}: {c}" for c in old if new[c] and not old[c]]
-    real = [n for n in runs if not n.startswith("synthetic")]
-    is_old = float(np.mean([runs[n][today]["interval_score_95"] for n in real]))
-    is_new = float(np.mean([runs[n][cand]["interval_score_95"] for n in real]))
-    fails = [f"loses {c}" for c in lost]
-    if not gained:
-        fails.append("gains no check")
-    if is_new > is_old:
-        fails.append(f"the mean 95% interval score / depth rises from {is_old:.3f} to {is_new:.3f}")
-    if fails:
-        return "not taken: " + "; ".join(fails)
-    return (f"taken: loses no check, gains {', '.join(gained)}; mean 95% interval score / depth "
-            f"{is_old:.3f} -> {is_new:.3f}")
+    return decide_by_checks(runs, today, [cand])
 
 
 def report(results: dict) -> str:

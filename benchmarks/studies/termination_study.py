@@ -63,7 +63,7 @@ from stochastic_fields.view_maps import OPACITY_MASK
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
 from study_helpers import photo_points  # noqa: E402
-from relative_floor_study import RULE_LEVELS, checks, scored_views  # noqa: E402  (study 20b's checks)
+from relative_floor_study import RULE_LEVELS, decide_by_checks, scored_views  # noqa: E402  (study 20b's checks)
 
 TODAY = "today"
 CANDIDATES: tuple[str, ...] = (TODAY, "termination + central map", "termination + PIT map")
@@ -173,26 +173,7 @@ def evaluate_candidate(data: dict, name: str) -> tuple[dict, dict]:
 
 
 def decide(runs: dict) -> str:
-    real = [n for n in runs if not n.startswith("synthetic")]
-    is_today = float(np.mean([runs[n][TODAY]["interval_score_95"] for n in real]))
-    verdicts, winners = [], []
-    for cand in CANDIDATES[1:]:
-        lost, gained = [], []
-        for name, r in runs.items():
-            old, new = checks(name, r[TODAY], r[TODAY]), checks(name, r[cand], r[TODAY])
-            lost += [f"{name}: {c}" for c in old if old[c] and not new[c]]
-            gained += [f"{name}: {c}" for c in old if new[c] and not old[c]]
-        is_new = float(np.mean([runs[n][cand]["interval_score_95"] for n in real]))
-        fails = [f"loses {c}" for c in lost] + ([] if gained else ["gains no check"])
-        if is_new > is_today:
-            fails.append(f"mean 95% interval score / depth rises {is_today:.3f} -> {is_new:.3f}")
-        if fails:
-            verdicts.append(f"{cand}: not taken ({'; '.join(fails)})")
-        else:
-            winners.append((is_new, cand))
-            verdicts.append(f"{cand}: passes (gains {', '.join(gained)}; mean IS95 {is_today:.3f} -> {is_new:.3f})")
-    head = f"taken: {min(winners)[1]}" if winners else "today's stays"
-    return head + ". " + " | ".join(verdicts)
+    return decide_by_checks(runs, TODAY, CANDIDATES[1:])
 
 
 def report(results: dict) -> str:
