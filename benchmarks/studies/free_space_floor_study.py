@@ -188,10 +188,17 @@ def main(argv=None) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     results: dict = {"command": "python benchmarks/studies/free_space_floor_study.py "
                                 + " ".join(sys.argv[1:] if argv is None else argv), "rule": RULE, "runs": {}}
+    done = {}
+    if (args.out / "results.json").is_file():  # resume: rows of the same run folders are kept
+        done = json.loads((args.out / "results.json").read_text())["runs"]
     for spec in args.run:
         name, run = spec.split("=", 1)
+        if done.get(name, {}).get("run") == run:
+            results["runs"][name] = done[name]
+            print(f"[{name}] kept from {args.out / 'results.json'}", flush=True)
+            continue
         data = collect(Path(run))
-        res, curves = {"views": [int(v) for v in data["views"]], "violations": violation_share(data),
+        res, curves = {"run": run, "views": [int(v) for v in data["views"]], "violations": violation_share(data),
                        "reference_s": data["reference_s"]}, {}
         for cand in CANDIDATES:
             res[cand], curves[cand] = evaluate_candidate(data, cand)
