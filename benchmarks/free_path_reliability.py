@@ -21,7 +21,14 @@ Each segment gets two answers:
   with its default draws, level and step).
 Scored by ``metrics.event_reliability`` (Brier score, expected calibration error, accuracy, the
 confident answers that were wrong), with their mean absolute disagreement on the same segments.
-Segments that would start beyond their end (y (1 - m) below the near plane) are left out.
+Segments that would start beyond their end (y (1 - m) below the near plane) are left out. Where the
+run has a free-path map (``products.free_path_calibration``: isotonic, fitted on the calibration
+views' held-out points, never on these photos), its answer is scored too.
+
+Rule for the map (written before any map was fitted on a real run): ``free-path`` reports the
+recalibrated answer by default, and ``train`` and ``calibrate`` fit the map, only if on every real
+run the recalibrated answers' pooled Brier score is at most the model's + 0.005, and the pooled ECE,
+averaged over the real runs, falls by at least a quarter.
 
     OMP_NUM_THREADS=1 python benchmarks/free_path_reliability.py --run capture/fern=RUN ... \\
         --out benchmarks/results/free_path_reliability
@@ -40,10 +47,12 @@ import torch
 
 from stochastic_fields import metrics as M
 from stochastic_fields.calibration import load_run_calibration
-from stochastic_fields.capture_points import SCORE, load_capture_points, rays_through_points, restrict_sparse_depth
+from stochastic_fields.capture_points import SCORE, load_capture_points, rays_through_points
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.plots import plot_event_reliability
 from stochastic_fields.products.free_path import FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, segment_free_probability
+from stochastic_fields.products.free_path_calibration import (FREE_PATH_CALIBRATION_MARGINS, known_segments,
+                                                             load_free_path_calibration, subsample_points)
 from stochastic_fields.products.free_path_cli import FloatField, default_step
 from stochastic_fields.products.free_space import predictive_prob_depth_greater
 from stochastic_fields.products.occupancy_map import blocking_threshold, probability_density_exceeds, run_voxel_size
@@ -53,25 +62,8 @@ from stochastic_fields.view_maps import OPACITY_MASK
 sys.path.insert(0, str(Path(__file__).resolve().parent / "studies"))
 from study_helpers import photo_points  # noqa: E402
 
-#: Relative margins in front of and behind the true surface.
-MARGINS: tuple[float, ...] = (0.05, 0.1, 0.2)
 #: Most scored points per run.
 MAX_POINTS: int = 1500
-
-
-def sample_points(sparse: dict, limit: int, seed: int) -> dict:
-    """At most ``limit`` of the points of {view: SparseDepth}, drawn uniformly without replacement."""
-    sizes = {v: len(sd) for v, sd in sparse.items()}
-    total = sum(sizes.values())
-    if total <= limit:
-        return sparse
-    chosen = np.zeros(total, bool)
-    chosen[np.random.default_rng(seed).choice(total, limit, replace=False)] = True
-    out, at = {}, 0
-    for v, sd in sparse.items():
-        out[v] = restrict_sparse_depth(sd, chosen[at:at + sizes[v]])
-        at += sizes[v]
-    return out
 
 
 def measure(run_dir: Path, *, margins, limit: int, seed: int) -> dict:
@@ -80,11 +72,12 @@ def measure(run_dir: Path, *, margins, limit: int, seed: int) -> dict:
         raise ValueError(f"{run_dir}: free-path needs an S-NeRF run (a stochastic field)")
     calibration = load_run_calibration(run_dir)
     depth_map = None if calibration is None else calibration.depth
+    path_map = load_free_path_calibration(run_dir)
     capture = load_capture_points(dataset)
     if capture is None:
         raise ValueError(f"{run_dir}: the scene has no capture points to score free space on")
     views = list(dataset.test_indices)
-    sparse = sample_points(photo_points(dataset, capture, views, SCORE), limit, seed)
+    sparse = subsample_points(photo_points(dataset, capture, views, SCORE), limit, seed)
     rays, gt = rays_through_points(dataset.cameras, dataset.near, dataset.far, sparse)
     with torch.no_grad():
         maps = model.render_view(rays.reshape(1, len(gt)), generator=torch.Generator().manual_seed(seed))
@@ -97,37 +90,34 @@ def measure(run_dir: Path, *, margins, limit: int, seed: int) -> dict:
     std = raw if depth_map is None else depth_map.calibrated_std(raw, depth=mean)
     multiplier = None if depth_map is None else (lambda level: float(depth_map.relative_scale(level)))
     step = default_step(model, dataset)
-    origins, dirs = rays.origins.double(), rays.directions.double()
-    near = rays.near.double().reshape(-1)
     field = FloatField(model.field)
     shared = model.render_settings.shared_noise
     out = {"run": str(run_dir), "split": cfg.data.split, "views": views, "step": step, "shared_noise": bool(shared),
            "num_draws": FREE_PATH_NUM_DRAWS, "level": FREE_TRANSMITTANCE_LEVEL, "calibrated": depth_map is not None,
-           "points": int(keep.sum()), "margins": {}}
+           "free_path_calibrated": path_map is not None, "points": int(keep.sum()), "margins": {}}
     t0 = time.perf_counter()
-    pooled = {"pixel": ([], []), "free-path": ([], [])}
+    pooled: dict[str, tuple[list, list]] = {}
     for m in margins:
-        d = np.concatenate([(1.0 - m) * gt, (1.0 + m) * gt])
-        outcome = np.concatenate([np.ones_like(gt), np.zeros_like(gt)])
-        i = np.concatenate([np.arange(len(gt))] * 2)
-        t = torch.from_numpy(d / z[i])
-        ok = keep[i] & (t.numpy() > near[i].numpy())
-        i, d, outcome, t = i[ok], d[ok], outcome[ok], t[ok]
-        starts = origins[i] + near[i, None] * dirs[i]
-        ends = origins[i] + t[:, None] * dirs[i]
-        gen = torch.Generator().manual_seed(seed)
-        path = segment_free_probability(field, starts, ends, step=step, shared_noise=shared, generator=gen)
+        seg = known_segments(rays, torch.from_numpy(gt), [m])
+        ok = keep[seg["ray"].numpy()]
+        i, d, outcome = seg["ray"].numpy()[ok], seg["depth"].numpy()[ok], seg["outcome"].numpy()[ok]
+        path = segment_free_probability(field, seg["starts"][ok], seg["ends"][ok], step=step, shared_noise=shared,
+                                        generator=torch.Generator().manual_seed(seed))
         answers = {"pixel": predictive_prob_depth_greater(mean[i], std[i], d, multiplier),
-                   "free-path": path.probability.numpy()}
+                   "free-path (model)": path.probability.numpy()}
+        if path_map is not None:
+            answers["free-path (recalibrated)"] = path_map(answers["free-path (model)"])
         row = {k: {kk: (vv.tolist() if isinstance(vv, np.ndarray) else vv)
                    for kk, vv in M.event_reliability(p, outcome).items()} for k, p in answers.items()}
-        row["disagreement"] = float(np.mean(np.abs(answers["pixel"] - answers["free-path"])))
+        row["disagreement"] = {k: float(np.mean(np.abs(answers["pixel"] - p))) for k, p in answers.items() if k != "pixel"}
         row["segments"] = int(len(d))
         out["margins"][str(m)] = row
         for k, p in answers.items():
+            pooled.setdefault(k, ([], []))
             pooled[k][0].append(p)
             pooled[k][1].append(outcome)
-    out["occupancy"] = voxel_events(model, dataset, origins, dirs, torch.from_numpy(gt / z), margins)
+    out["occupancy"] = voxel_events(model, dataset, rays.origins.double(), rays.directions.double(),
+                                    torch.from_numpy(gt / z), margins)
     out["seconds"] = time.perf_counter() - t0
     out["pooled"] = {k: M.event_reliability(np.concatenate(p), np.concatenate(o)) for k, (p, o) in pooled.items()}
     return out
@@ -165,18 +155,26 @@ def report(results: dict) -> str:
     lines = ["# Free-space answers against the held-out photos", "", f"Command: `{results['command']}`", "",
              "Segments from a test photo's pixel ray's near point to (1 - m) times the true depth of a capture point of "
              "the SCORE role (free) and to (1 + m) times it (blocked); *pixel*: P(depth > d) of the recalibrated "
-             "per-pixel distribution (`export`'s); *free-path*: the `free-path` command's answer (share of density "
-             "trajectories whose transmittance exceeds the level). Brier score (0 perfect, 0.25 a coin), ECE "
+             "per-pixel distribution (`export`'s); *free-path (model)*: the share of density trajectories whose "
+             "transmittance exceeds the level; *free-path (recalibrated)*: what `free-path` reports with the run's "
+             "free_path_calibration.json (fitted on calibration views, never on these photos). Brier score (0 perfect, 0.25 a coin), ECE "
              "(10 bins), accuracy at 1/2, confident answers (P < 5% or > 95%) that were wrong.", "",
-             "| run | margin m | segments | pixel Brier / ECE / accuracy | pixel confident wrong | free-path Brier / "
-             "ECE / accuracy | free-path confident wrong | mean disagreement |", "|---|---|---|---|---|---|---|---|"]
+             "| run | margin m | segments | answer | Brier / ECE / accuracy | confident answers wrong | mean "
+             "disagreement with the pixel's |", "|---|---|---|---|---|---|---|"]
     for name, r in results["runs"].items():
         for m, row in r["margins"].items():
-            px, fp = row["pixel"], row["free-path"]
-            lines.append(f"| {name} | {float(m):.0%} | {row['segments']} | {px['brier']:.3f} / {px['ece']:.3f} / "
-                         f"{px['accuracy']:.3f} | {px['confident_wrong']} of {px['confident']} | {fp['brier']:.3f} / "
-                         f"{fp['ece']:.3f} / {fp['accuracy']:.3f} | {fp['confident_wrong']} of {fp['confident']} "
-                         f"| {row['disagreement']:.3f} |")
+            for answer in (k for k in row if k not in ("segments", "disagreement")):
+                a = row[answer]
+                dis = row["disagreement"].get(answer)
+                lines.append(f"| {name} | {float(m):.0%} | {row['segments']} | {answer} | {a['brier']:.3f} / "
+                             f"{a['ece']:.3f} / {a['accuracy']:.3f} | {a['confident_wrong']} of {a['confident']} | "
+                             + ("-" if dis is None else f"{dis:.3f}") + " |")
+    lines += ["", "Pooled over the margins:", "", "| run | answer | Brier | ECE | confident answers wrong |",
+              "|---|---|---|---|---|"]
+    for name, r in results["runs"].items():
+        for answer, a in r["pooled"].items():
+            lines.append(f"| {name} | {answer} | {a['brier']:.3f} | {a['ece']:.3f} | {a['confident_wrong']} of "
+                         f"{a['confident']} |")
     lines += ["", "The occupancy map's answers (`occupancy`'s default voxel size and density threshold, P(density > "
               "threshold) at the voxel centre): the voxel holding each scored point (occupied) and the voxels at (1 - m) "
               "of the way to it (free; only those inside the region and two or more voxels from the point's). Its "
@@ -196,7 +194,7 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", action="append", required=True, metavar="NAME=RUN")
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--margins", nargs="+", type=float, default=list(MARGINS))
+    p.add_argument("--margins", nargs="+", type=float, default=list(FREE_PATH_CALIBRATION_MARGINS))
     p.add_argument("--points", type=int, default=MAX_POINTS, help="Most scored points per run.")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--threads", type=int, default=1, help="torch CPU threads.")
@@ -215,8 +213,7 @@ def main(argv=None) -> None:
         r["pooled"] = {k: {kk: (vv.tolist() if isinstance(vv, np.ndarray) else vv) for kk, vv in v.items()}
                        for k, v in r["pooled"].items()}
         results["runs"][name] = r
-        print(f"[{name}] pixel Brier {r['pooled']['pixel']['brier']:.3f} ECE {r['pooled']['pixel']['ece']:.3f}; "
-              f"free-path Brier {r['pooled']['free-path']['brier']:.3f} ECE {r['pooled']['free-path']['ece']:.3f}",
+        print(f"[{name}] " + "; ".join(f"{k} Brier {a['brier']:.3f} ECE {a['ece']:.3f}" for k, a in r["pooled"].items()),
               flush=True)
         atomic_write_text(args.out / "results.json", json.dumps(results, indent=2))
     atomic_write_text(args.out / "README.md", report(results))
