@@ -23,7 +23,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
                               "models.snerf", "models.baselines", "models.registry", "free_space",
                               "termination")),
     ("runs", ("scenes", "distributed", "trainer", "calibration", "evaluation")),
-    ("products", ("products", "products.free_path", "products.free_space", "products.occupancy_map",
+    ("products", ("products", "products.free_path", "products.free_path_calibration", "products.free_space", "products.occupancy_map",
                   "products.depth_maps", "products.free_path_cli", "products.plan", "products.planner_cli",
                   "products.export_options", "products.pointcloud", "products.ros_depth", "products.fusion", "products.render_cloud",
                   "products.rosbag", "products.export", "products.rerun_log", "products.next_view",

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from . import config as C
 from .constants import DISTRIBUTED_TIMEOUT_S
+from .defaults import FREE_PATH_RECALIBRATION
 from .launch import DistributedError, requested_by_environment
 from .settings import COLOUR_ESTIMATORS
 
@@ -130,6 +131,16 @@ def _calibrate_after_training(run_dir: Path, model, dataset):
         print(f"uncertainty not recalibrated: {exc}")
         return None
     print(f"uncertainty recalibrated ({run_dir / 'calibration.json'}): {describe(calibration)}")
+    if FREE_PATH_RECALIBRATION and calibration.depth is not None and hasattr(model, "field"):
+        from .products.free_path_calibration import describe_free_path_calibration, fit_free_path_calibration
+
+        try:
+            cal = fit_free_path_calibration(run_dir, model, dataset)
+        except ValueError as exc:
+            print(f"free-path not recalibrated: {exc}")
+        else:
+            print(f"free-path recalibrated ({run_dir / 'free_path_calibration.json'}): "
+                  f"{describe_free_path_calibration(cal)}")
     return calibration
 
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 
 from ..defaults import (CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS, DEPTH_FREE_SPACE,
-                        DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR)
+                        DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR, FREE_PATH_RECALIBRATION)
 
 
 def add_arguments(p) -> None:
@@ -37,7 +37,23 @@ def add_arguments(p) -> None:
                         f"studies 20 and 20b; default: {'on' if DEPTH_RELATIVE_FLOOR else 'off'}).")
 
 
+    p.add_argument("--free-path", action=argparse.BooleanOptionalAction, default=FREE_PATH_RECALIBRATION,
+                   help="Also fit the recalibration of free-path's P(free) on segments whose answer the held-out "
+                        "points know (RUN/free_path_calibration.json; docs/uncertainty.md; default: "
+                        f"{'on' if FREE_PATH_RECALIBRATION else 'off'}).")
+
+
 def run(args) -> None:
     from ..calibration import run as run_command  # deferred: loads only when this command runs (keeps --help fast)
 
     run_command(args)
+    if args.free_path:
+        from pathlib import Path
+
+        from ..products.free_path_calibration import describe_free_path_calibration, fit_free_path_calibration
+        from ..trainer import load_trained_model
+
+        _, model, dataset = load_trained_model(Path(args.run), device=args.device)
+        cal = fit_free_path_calibration(args.run, model, dataset, seed=args.seed)
+        print(f"free-path recalibrated ({Path(args.run) / 'free_path_calibration.json'}): "
+              f"{describe_free_path_calibration(cal)}")

@@ -24,6 +24,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="Share eps along a segment per draw (default: as the run renders).")
     p.add_argument("--seed", type=int, default=0, help="Seed of the draws.")
     p.add_argument("--device", default=None, help="auto, cpu or cuda (default: the run's).")
+    p.add_argument("--raw-probability", action="store_true",
+                   help="Report the model's P(free) as probability_free even where the run has a free-path "
+                        "recalibration (RUN/free_path_calibration.json; docs/uncertainty.md).")
 
 
 def run(args) -> None:

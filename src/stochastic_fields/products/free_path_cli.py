@@ -4,7 +4,10 @@ Input JSON (world coordinates, scene units): ``{"segments": [[[x0, y0, z0], [x1,
 and/or ``{"path": [[x, y, z], ...]}``. Output JSON (``--out``, else printed): per segment
 ``probability_free``, ``stderr``, ``bound_95``, ``transmittance_mean``, ``num_samples``; for
 the path also the whole path's. Step along segments: ``--step`` or half the occupancy voxel
-size from the images' footprint.
+size from the images' footprint. Where the run has a free-path map (``free_path_calibration``,
+fitted at the same level) ``probability_free`` is the recalibrated probability and
+``probability_free_model`` the model's; ``recalibrated`` says which (``--raw-probability``: the
+model's).
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import torch
 
 from ..io_utils import atomic_write_text, read_json
 from .free_path import FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, path_free_probability, segment_free_probability
+from .free_path_calibration import applies, describe_free_path_calibration, load_free_path_calibration
 from ..trainer import load_trained_model
 from .occupancy_map import run_voxel_size
 
@@ -58,21 +62,40 @@ def run(args: argparse.Namespace) -> None:
     shared = model.render_settings.shared_noise if args.shared_noise == "run" else args.shared_noise == "true"
     gen = torch.Generator(device=device).manual_seed(args.seed)
     field = FloatField(model.field)
-    answer: dict = {"step": step, "shared_noise": shared, "units": "scene units"}
+    cal = None if getattr(args, "raw_probability", False) else load_free_path_calibration(args.run)
+    recalibrate = applies(cal, args.level)
+    answer: dict = {"step": step, "shared_noise": shared, "units": "scene units", "recalibrated": recalibrate}
+    if recalibrate:
+        answer["recalibration"] = describe_free_path_calibration(cal)
+    elif cal is not None:
+        answer["recalibration"] = (f"none: the run's map was fitted at level {cal.level:g}, these answers are at "
+                                   f"level {args.level:g} (the model's probabilities)")
+    finish = (lambda d: recalibrated_answers(d, cal)) if recalibrate else (lambda d: d)
     if segs is not None:
         r = segment_free_probability(field, segs[:, 0].to(device), segs[:, 1].to(device), num_draws=args.num_draws,
                                      level=args.level, step=step, shared_noise=shared, generator=gen)
-        answer["segments"] = r.to_dict()
+        answer["segments"] = finish(r.to_dict())
     if way is not None:
         whole, parts = path_free_probability(field, way.to(device), num_draws=args.num_draws, level=args.level,
                                              step=step, shared_noise=shared, generator=gen)
-        answer["path"] = {"whole": whole.to_dict(), "segments": parts.to_dict()}
+        answer["path"] = {"whole": finish(whole.to_dict()), "segments": finish(parts.to_dict())}
     text = json.dumps(answer, indent=2)
     if args.out is not None:
         atomic_write_text(args.out, text)
         print(f"free-path answers written to {args.out}")
     else:
         print(text)
+
+
+def recalibrated_answers(answers: dict, cal) -> dict:
+    """``FreePathResult.to_dict`` output with ``probability_free`` mapped by the run's free-path map
+    ``cal`` (``free_path_calibration``) and the model's kept as ``probability_free_model``
+    (``stderr`` and ``bound_95`` stay the model's Monte-Carlo errors; ``every_segment_free``, another
+    event, stays the model's)."""
+    out = dict(answers)
+    out["probability_free_model"] = out["probability_free"]
+    out["probability_free"] = cal(out["probability_free"]).tolist()
+    return out
 
 
 def default_step(model, dataset) -> float:
