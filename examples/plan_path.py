@@ -22,6 +22,7 @@ import torch
 
 def main() -> None:
     from stochastic_fields.products.free_path import path_free_probability
+    from stochastic_fields.products.free_path_calibration import applies, load_free_path_calibration
     from stochastic_fields.products.occupancy_map import occupancy_map, run_voxel_size
     from stochastic_fields.products.plan import plan_voxel_path, simplify_voxel_path
     from stochastic_fields.trainer import load_trained_model
@@ -51,13 +52,18 @@ def main() -> None:
                                              torch.from_numpy(way), num_draws=args.num_draws, step=0.5 * voxel,
                                              shared_noise=model.render_settings.shared_noise,
                                              generator=torch.Generator().manual_seed(0))
+    cal = load_free_path_calibration(args.run)  # the run's free-path map, as `free-path` applies it
+    stated = (lambda p: float(cal(p))) if applies(cal, 0.5) else float
+    if cal is None:
+        print("P(free) below is the model's (the run has no free_path_calibration.json: `stochastic-fields "
+              "calibrate --run RUN --free-path` fits one)")
     for s in range(len(way) - 1):
         print(f"  segment {s}: {np.round(way[s], 3)} -> {np.round(way[s + 1], 3)}  "
-              f"P(free) = {parts.probability[s]:.3f} +- {parts.stderr[s]:.3f}  "
-              f"(mean transmittance {parts.transmittance_mean[s]:.3f})")
-    print(f"whole path: P(transmittance > 0.5) = {whole.probability[0]:.3f} +- {whole.stderr[0]:.3f} "
-          f"(mean {whole.transmittance_mean[0]:.3f}); P(every segment free) = {whole.every_segment_free[0]:.3f} "
-          f"(K = {args.num_draws})")
+              f"P(free) = {stated(parts.probability[s]):.3f} (model {parts.probability[s]:.3f} +- {parts.stderr[s]:.3f}; "
+              f"mean transmittance {parts.transmittance_mean[s]:.3f})")
+    print(f"whole path: P(transmittance > 0.5) = {stated(whole.probability[0]):.3f} (model {whole.probability[0]:.3f} "
+          f"+- {whole.stderr[0]:.3f}, mean {whole.transmittance_mean[0]:.3f}); P(every segment free) = "
+          f"{whole.every_segment_free[0]:.3f} (the model's; K = {args.num_draws})")
     if args.png is not None:
         import matplotlib
 
