@@ -120,3 +120,21 @@ def test_fit_and_the_free_path_command(tmp_path, run_dir):  # noqa: F811
     assert main(args + ["--level", "0.7", "--out", str(tmp_path / "other.json")]) == 0
     other = json.loads((tmp_path / "other.json").read_text())
     assert other["recalibrated"] is False and "fitted at level 0.5" in other["recalibration"]
+
+
+def test_free_path_benchmark_rule_by_hand(load_script):
+    bench = load_script("benchmarks/free_path_reliability.py")
+
+    def run(brier_model, ece_model, brier_cal, ece_cal):
+        return {"pooled": {"free-path (model)": {"brier": brier_model, "ece": ece_model},
+                           "free-path (recalibrated)": {"brier": brier_cal, "ece": ece_cal}}}
+
+    results = {"runs": {"capture/fern": run(0.05, 0.04, 0.04, 0.02), "paper/flower": run(0.10, 0.12, 0.104, 0.06),
+                        "synthetic": run(0.02, 0.02, 0.05, 0.09)}}  # the synthetic scene does not count
+    assert bench.decide(results).startswith("taken")  # Brier within +0.005, mean ECE 0.08 -> 0.04
+    results["runs"]["paper/flower"] = run(0.10, 0.12, 0.106, 0.06)  # Brier 0.006 worse
+    assert bench.decide(results).startswith("not taken: paper/flower: Brier")
+    results["runs"]["paper/flower"] = run(0.10, 0.12, 0.10, 0.10)  # mean ECE 0.08 -> 0.06: not a quarter
+    assert "mean ECE falls only" in bench.decide(results)
+    del results["runs"]["paper/flower"]["pooled"]["free-path (recalibrated)"]
+    assert bench.decide(results).startswith("undecided")

@@ -192,3 +192,22 @@ def test_termination_study_rule_by_hand(load_script):
     assert "capture/fern: coverage 50" in decision and "synthetic: depth Spearman" in decision
     runs["capture/fern"]["termination + central map"]["interval_score_95"] = 1.1  # now its IS rises
     assert study.decide(runs).startswith("today's stays")
+
+
+def test_study_22c_judges_only_the_interpolated_bounds(load_script):
+    study = load_script("benchmarks/studies/free_space_floor_study.py")
+    levels = ("50", "68", "90", "95")
+
+    def row(cov, width, is95):
+        return {**{f"coverage_{n}": c for n, c in zip(levels, cov)}, "halfwidth_median_95": width,
+                "interval_score_95": is95, "spearman_mean": 0.7}
+
+    honest, wide = (0.5, 0.683, 0.9, 0.95), (0.8, 0.9, 0.97, 0.99)
+    runs = {"paper/flower": {study.TODAY: row(wide, 1.5, 4.0), "checked (sigma, e, rho)": row(honest, 0.2, 1.0),
+                             study.CANDIDATE_22C: row(honest, 0.3, 1.5)},
+            "synthetic": {study.TODAY: row(honest, 0.04, 0.2), "checked (sigma, e, rho)": row(wide, 0.04, 0.2),
+                          study.CANDIDATE_22C: row(honest, 0.04, 0.2)}}
+    assert study.decide(runs, "22c").startswith(f"taken: {study.CANDIDATE_22C}")
+    assert "checked" not in study.decide(runs, "22c")  # reported beside, never judged
+    both = study.decide(runs, "22")  # study 22 judges both: the check loses the synthetic centre
+    assert both.startswith(f"taken: {study.CANDIDATE_22C}") and "checked (sigma, e, rho): not taken" in both
