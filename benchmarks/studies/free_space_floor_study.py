@@ -75,7 +75,7 @@ from stochastic_fields.trainer import load_trained_model
 from stochastic_fields.view_maps import OPACITY_MASK
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
-from relative_floor_study import decide_by_checks, scored_views  # noqa: E402
+from relative_floor_study import decide_by_checks, interval_cells, scored_views  # noqa: E402
 from study_helpers import photo_points  # noqa: E402
 
 #: The maps: name -> (the calibration views' bounds, whether the std is free-space checked); all fit rho.
@@ -177,11 +177,8 @@ def report(results: dict) -> str:
     for run, r in results["runs"].items():
         for cand in CANDIDATES:
             c = r[cand]
-            cov = "/".join(f"{100 * x:.1f}" for x in c["coverage"])
             lines.append(f"| {run} | {cand} | {c['points']} | {c['fit_points']} ({100 * c['fit_median_rel_err']:.1f}%) "
-                         f"| {c['rho']:.3g} | {cov} | {100 * c['halfwidth_median_95']:.1f}% "
-                         f"| {100 * c['halfwidth_p90_95']:.0f}% | {c['interval_score_95']:.3f} | {c['crps']:.4f} "
-                         f"| {c['spearman_mean']:.3f} |")
+                         f"| {c['rho']:.3g} | {interval_cells(c)} |")
     lines += ["", "Where the check fires (share of points with a free-space violation e > 0):", "",
               "| run | fitting points | scored points | scored points among the 10% largest relative errors |",
               "|---|---|---|---|"]

@@ -185,6 +185,13 @@ def decide_20b(runs: dict) -> str:
     return decide_by_checks(runs, today, [cand])
 
 
+def interval_cells(c: dict) -> str:
+    """A row's table cells: coverage per level, median and p90 95% half-width, IS95, CRPS, Spearman."""
+    cov = "/".join(f"{100 * x:.1f}" for x in c["coverage"])
+    return (f"{cov} | {100 * c['halfwidth_median_95']:.1f}% | {100 * c['halfwidth_p90_95']:.0f}% "
+            f"| {c['interval_score_95']:.3f} | {c['crps']:.4f} | {c['spearman_mean']:.3f}")
+
+
 def report(results: dict) -> str:
     names = "/".join(M.level_name(p) for p in M.INTERVAL_LEVELS)
     lines = [f"# Study {results.get('study', '20')}: a depth-proportional std term", "", f"Command: `{results['command']}`", "",
@@ -196,10 +203,7 @@ def report(results: dict) -> str:
     for run, r in results["runs"].items():
         for cand in CANDIDATES:
             c = r[cand]
-            cov = "/".join(f"{100 * x:.1f}" for x in c["coverage"])
-            lines.append(f"| {run} | {cand} | {c['points']} | {c['rho']:.3g} | {cov} | {100 * c['halfwidth_median_95']:.1f}% "
-                         f"| {100 * c['halfwidth_p90_95']:.0f}% | {c['interval_score_95']:.3f} | {c['crps']:.4f} "
-                         f"| {c['spearman_mean']:.3f} |")
+            lines.append(f"| {run} | {cand} | {c['points']} | {c['rho']:.3g} | {interval_cells(c)} |")
     return "\n".join(lines) + "\n"
 
 

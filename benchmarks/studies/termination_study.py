@@ -63,7 +63,7 @@ from stochastic_fields.view_maps import OPACITY_MASK
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
 from study_helpers import photo_points  # noqa: E402
-from relative_floor_study import RULE_LEVELS, decide_by_checks, scored_views  # noqa: E402  (study 20b's checks)
+from relative_floor_study import RULE_LEVELS, decide_by_checks, interval_cells, scored_views  # noqa: E402  (study 20b's checks)
 
 TODAY = "today"
 CANDIDATES: tuple[str, ...] = (TODAY, "termination + central map", "termination + PIT map")
@@ -187,10 +187,7 @@ def report(results: dict) -> str:
     for run, r in results["runs"].items():
         for cand in CANDIDATES:
             c = r[cand]
-            cov = "/".join(f"{100 * x:.1f}" for x in c["coverage"])
-            lines.append(f"| {run} | {cand} | {c['points']} | {cov} | {100 * c['halfwidth_median_95']:.1f}% "
-                         f"| {100 * c['halfwidth_p90_95']:.0f}% | {c['interval_score_95']:.3f} | {c['crps']:.4f} "
-                         f"| {c['spearman_mean']:.3f} |")
+            lines.append(f"| {run} | {cand} | {c['points']} | {interval_cells(c)} |")
         support.append(f"{run} {100 * r[TODAY]['outside_support']:.1f}% (fitting points "
                        f"{100 * r[TODAY]['outside_support_fit']:.1f}%)")
     lines += ["", "Scored points whose true depth lies where the termination mixture has no mass on one side "
