@@ -211,3 +211,15 @@ def test_study_22c_judges_only_the_interpolated_bounds(load_script):
     assert "checked" not in study.decide(runs, "22c")  # reported beside, never judged
     both = study.decide(runs, "22")  # study 22 judges both: the check loses the synthetic centre
     assert both.startswith(f"taken: {study.CANDIDATE_22C}") and "checked (sigma, e, rho): not taken" in both
+
+
+def test_study_22d_check_weight_follows_the_errors(load_script):
+    study = load_script("benchmarks/studies/free_space_floor_study.py")
+    rng = np.random.default_rng(0)
+    n = 4000
+    sigma, depth = np.full(n, 1.0), np.full(n, 100.0)
+    e = rng.exponential(3.0, n) * (rng.random(n) < 0.3)  # a violation at 30% of the points
+    explained = np.abs(rng.normal(size=n)) * np.hypot(sigma, e)  # errors as large as e says
+    assert study.fit_check_weight(explained, sigma, e, depth) == pytest.approx(1.0)
+    unrelated = np.abs(rng.normal(size=n)) * sigma  # e (now large) says nothing about these errors
+    assert study.fit_check_weight(unrelated, sigma, 30.0 * e, depth) == 0.0
