@@ -50,10 +50,11 @@ from stochastic_fields.calibration import load_run_calibration
 from stochastic_fields.capture_points import SCORE, load_capture_points, rays_through_points
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.plots import plot_event_reliability
-from stochastic_fields.products.free_path import FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, segment_free_probability
+from stochastic_fields.products.free_path import (FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, default_step,
+                                                  segment_free_probability)
 from stochastic_fields.products.free_path_calibration import (FREE_PATH_CALIBRATION_MARGINS, known_segments,
                                                              load_free_path_calibration, subsample_points)
-from stochastic_fields.products.free_path_cli import FloatField, default_step
+from stochastic_fields.products.free_path_cli import FloatField
 from stochastic_fields.products.free_space import predictive_prob_depth_greater
 from stochastic_fields.products.occupancy_map import blocking_threshold, probability_density_exceeds, run_voxel_size
 from stochastic_fields.trainer import load_trained_model

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 from ..defaults import (FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL)  # noqa: F401  (defaults the command line shows)
+from .occupancy_map import run_voxel_size
 
 #: Points per chunk (segments x samples) of field evaluations.
 FREE_PATH_CHUNK_POINTS: int = 262_144
@@ -108,6 +109,12 @@ def segment_optical_depths(density_params, starts: Tensor, ends: Tensor, *, num_
         alpha = torch.relu(loc + scale * eps)  # [b, K, n_max]
         tau[b0:b1] = (alpha * delta[b0:b1, None, :].double()).sum(-1)
     return tau, n
+
+
+def default_step(model, dataset) -> float:
+    """The step along segments when none is given: half the occupancy map's voxel size from the
+    images' footprint (``occupancy_map.run_voxel_size``)."""
+    return 0.5 * run_voxel_size(model, dataset)
 
 
 def _result(tau: Tensor, n: Tensor, level: float) -> FreePathResult:

@@ -15,7 +15,7 @@ et al. 2018 for regression), fitted on the same held-out points as the depth map
   that triangulated the point see it) and the one to (1 + m) y is blocked (outcome 0: it runs
   through the surface of the point);
 * p_i: free-path's answer for event i (``free_path.segment_free_probability`` with the run's noise,
-  the default draws and level, and the default step of ``free_path_cli.default_step``);
+  the default draws and level, and the default step of ``free_path.default_step``);
 * g: the isotonic (non-decreasing) regression of the outcomes on p, over the distinct values of p
   weighted by their counts (pool adjacent violators, ``scipy.optimize.isotonic_regression``),
   stored as knots (p_j, g(p_j)); between knots g is linear, outside them constant.
@@ -42,7 +42,7 @@ from scipy.optimize import isotonic_regression
 from ..calibration import calibration_view_points
 from ..capture_points import load_capture_points, rays_through_points, restrict_sparse_depth
 from ..io_utils import atomic_write_text, read_json
-from .free_path import FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, segment_free_probability
+from .free_path import FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, default_step, segment_free_probability
 
 #: File the map is stored in, in the run folder.
 FREE_PATH_CALIBRATION_FILE: str = "free_path_calibration.json"
@@ -184,9 +184,7 @@ def subsample_points(sparse: dict, limit: int, seed: int) -> dict:
 
 def fit_free_path_calibration(run_dir: str | Path, model, dataset, *, seed: int = 0) -> FreePathCalibration:
     """Fit the map of a trained S-NeRF run (module doc) and write ``RUN/free_path_calibration.json``."""
-    from .free_path_cli import default_step  # the step free-path answers with
-
-    step = default_step(model, dataset)
+    step = default_step(model, dataset)  # the step free-path answers with
     prob, outcome, source = calibration_events(model, dataset, step=step, seed=seed)
     cal = FreePathCalibration.fit(prob, outcome, level=FREE_TRANSMITTANCE_LEVEL, margins=FREE_PATH_CALIBRATION_MARGINS,
                                   num_draws=FREE_PATH_NUM_DRAWS, step=step, source=source)

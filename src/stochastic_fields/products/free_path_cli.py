@@ -19,10 +19,10 @@ from pathlib import Path
 import torch
 
 from ..io_utils import atomic_write_text, read_json
-from .free_path import FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, path_free_probability, segment_free_probability
+from .free_path import (FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, default_step, path_free_probability,
+                        segment_free_probability)
 from .free_path_calibration import applies, describe_free_path_calibration, load_free_path_calibration
 from ..trainer import load_trained_model
-from .occupancy_map import run_voxel_size
 
 
 def _points(path: Path, key: str, value, shape_tail: tuple[int, ...]) -> torch.Tensor:
@@ -96,12 +96,6 @@ def recalibrated_answers(answers: dict, cal) -> dict:
     out["probability_free_model"] = out["probability_free"]
     out["probability_free"] = cal(out["probability_free"]).tolist()
     return out
-
-
-def default_step(model, dataset) -> float:
-    """The step along segments when none is given: half the occupancy map's voxel size from the
-    images' footprint (``occupancy_map.run_voxel_size``)."""
-    return 0.5 * run_voxel_size(model, dataset)
 
 
 class FloatField:
