@@ -74,7 +74,7 @@ from scipy.stats import spearmanr
 from stochastic_fields import metrics as M
 from stochastic_fields.calibration import (QuantileCalibration, cross_fitted_depth_quantiles,
                                           depth_calibration_renders, fit_depth_folds, fit_relative_floor,
-                                          relative_crps, render_at_points)
+                                          relative_crps)
 from stochastic_fields.cameras import camera_to_world
 from stochastic_fields.capture_points import SCORE, block_keys, load_capture_points
 from stochastic_fields.free_space import (checked_std, free_space_violation, render_training_depth,
@@ -82,11 +82,9 @@ from stochastic_fields.free_space import (checked_std, free_space_violation, ren
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.plots import plot_interval_reliability
 from stochastic_fields.trainer import load_trained_model
-from stochastic_fields.view_maps import OPACITY_MASK
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
-from relative_floor_study import decide_by_checks, interval_cells, scored_views  # noqa: E402
-from study_helpers import photo_points  # noqa: E402
+from relative_floor_study import decide_by_checks, interval_cells, scored_photo_renders, scored_views  # noqa: E402
 
 #: The maps: name -> (the calibration views' bounds, the std: "plain" sigma, "checked" sqrt(sigma^2 +
 #: e^2), "weighted" sqrt(sigma^2 + (beta e)^2) with beta fitted, ``fit_check_weight``); all fit rho.
@@ -117,13 +115,7 @@ def collect(run_dir: Path) -> dict:
                                             free_space=ref if kind == "checked" else None)
             for name, (bounds, kind) in CANDIDATES.items() if kind != "weighted"}
     views = scored_views(dataset, cfg.data.split)
-    sparse = photo_points(dataset, capture, views, SCORE)
-    r = render_at_points(model, dataset.cameras, dataset.near, dataset.far, sparse,
-                         generator=torch.Generator().manual_seed(0))
-    order = [v for v, sd in sparse.items() if len(sd)]
-    index = np.concatenate([sparse[v].point_index for v in order])
-    view = np.concatenate([np.full(len(sparse[v]), v) for v in order])
-    keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(r["depth_mean"]) & (r["depth_std"] > 0)
+    r, index, view, keep = scored_photo_renders(model, dataset, capture, views)
     centres = camera_to_world(dataset.cameras).double()[:, :3, 3].numpy()[view[keep]]
     e = free_space_violation(rendered_points(centres, capture.xyz[index[keep]], r["gt"][keep], r["depth_mean"][keep]), ref)
     keys = block_keys(capture.xyz, capture.xyz)

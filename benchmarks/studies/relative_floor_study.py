@@ -81,12 +81,10 @@ def scored_views(dataset, split: str) -> list[int]:
     return [v for v in test if v not in scored]
 
 
-def collect(run_dir: Path) -> dict:
-    """The fitting renders (as ``calibrate --points held-out``) and the scored points of one run."""
-    cfg, model, dataset = load_trained_model(run_dir)
-    capture = load_capture_points(dataset)
-    fit = depth_calibration_renders(model, dataset, points="held-out")
-    views = scored_views(dataset, cfg.data.split)
+def scored_photo_renders(model, dataset, capture, views: list[int]) -> tuple[dict, np.ndarray, np.ndarray, np.ndarray]:
+    """Render the SCORE points the photos ``views`` observed (seed 0): (``render_at_points``' maps,
+    each point's capture index [N], its view [N], the mask [N] of renders the scores keep: opacity
+    above ``OPACITY_MASK``, a finite depth and a positive std)."""
     sparse = photo_points(dataset, capture, views, SCORE)
     r = render_at_points(model, dataset.cameras, dataset.near, dataset.far, sparse,
                          generator=torch.Generator().manual_seed(0))
@@ -94,6 +92,16 @@ def collect(run_dir: Path) -> dict:
     index = np.concatenate([sparse[v].point_index for v in order])
     view = np.concatenate([np.full(len(sparse[v]), v) for v in order])
     keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(r["depth_mean"]) & (r["depth_std"] > 0)
+    return r, index, view, keep
+
+
+def collect(run_dir: Path) -> dict:
+    """The fitting renders (as ``calibrate --points held-out``) and the scored points of one run."""
+    cfg, model, dataset = load_trained_model(run_dir)
+    capture = load_capture_points(dataset)
+    fit = depth_calibration_renders(model, dataset, points="held-out")
+    views = scored_views(dataset, cfg.data.split)
+    r, index, view, keep = scored_photo_renders(model, dataset, capture, views)
     keys = block_keys(capture.xyz, capture.xyz)
     return {"fit": {k: fit[k] for k in ("abs_err", "std", "depth")}, "fit_keys": keys[fit["index"]],
             "score_blocks": keys[capture.roles == SCORE],
