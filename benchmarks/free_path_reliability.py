@@ -46,15 +46,14 @@ import numpy as np
 import torch
 
 from stochastic_fields import metrics as M
-from stochastic_fields.calibration import load_run_calibration
+from stochastic_fields.calibration import load_run_calibration, render_at_points
 from stochastic_fields.capture_points import SCORE, load_capture_points, rays_through_points
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.plots import plot_event_reliability
-from stochastic_fields.products.free_path import (FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, default_step,
-                                                  segment_free_probability)
+from stochastic_fields.products.free_path import (FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, FloatField,
+                                                  default_step, segment_free_probability)
 from stochastic_fields.products.free_path_calibration import (FREE_PATH_CALIBRATION_MARGINS, known_segments,
                                                              load_free_path_calibration, subsample_points)
-from stochastic_fields.products.free_path_cli import FloatField
 from stochastic_fields.products.free_space import predictive_prob_depth_greater
 from stochastic_fields.products.occupancy_map import blocking_threshold, probability_density_exceeds, run_voxel_size
 from stochastic_fields.trainer import load_trained_model
@@ -79,13 +78,12 @@ def measure(run_dir: Path, *, margins, limit: int, seed: int) -> dict:
         raise ValueError(f"{run_dir}: the scene has no capture points to score free space on")
     views = list(dataset.test_indices)
     sparse = subsample_points(photo_points(dataset, capture, views, SCORE), limit, seed)
-    rays, gt = rays_through_points(dataset.cameras, dataset.near, dataset.far, sparse)
-    with torch.no_grad():
-        maps = model.render_view(rays.reshape(1, len(gt)), generator=torch.Generator().manual_seed(seed))
-    z = maps["z_scale"].double().reshape(-1).numpy()
-    mean = maps["depth_mean"].double().reshape(-1).numpy() * z
-    raw = maps["depth_var_total"].double().clamp_min(0).sqrt().reshape(-1).numpy() * z
-    keep = (maps["opacity"].double().reshape(-1).numpy() > OPACITY_MASK) & np.isfinite(mean) & (raw > 0)
+    rays, gt = rays_through_points(dataset.cameras, dataset.near, dataset.far, sparse)  # the segments' rays
+    r = render_at_points(model, dataset.cameras, dataset.near, dataset.far, sparse,
+                         generator=torch.Generator().manual_seed(seed))
+    z = rays.z_scale.double().reshape(-1).numpy()
+    mean, raw = r["depth_mean"], r["depth_std"]
+    keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(mean) & (raw > 0)
     if depth_map is not None and depth_map.free_space:
         raise ValueError(f"{run_dir}: a free-space-checked map needs each pixel's violation; not measured here")
     std = raw if depth_map is None else depth_map.calibrated_std(raw, depth=mean)

@@ -69,11 +69,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.stats import spearmanr
 
 from stochastic_fields import metrics as M
-from stochastic_fields.calibration import (QuantileCalibration, cross_fitted_depth_quantiles,
-                                          depth_calibration_renders, fit_depth_folds, fit_relative_floor,
+from stochastic_fields.calibration import (depth_calibration_renders, fit_relative_floor,
                                           relative_crps)
 from stochastic_fields.cameras import camera_to_world
 from stochastic_fields.capture_points import SCORE, block_keys, load_capture_points
@@ -84,7 +82,8 @@ from stochastic_fields.plots import plot_interval_reliability
 from stochastic_fields.trainer import load_trained_model
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
-from relative_floor_study import decide_by_checks, interval_cells, scored_photo_renders, scored_views  # noqa: E402
+from relative_floor_study import (decide_by_checks, interval_cells, score_map, scored_photo_renders,  # noqa: E402
+                                  scored_views)
 
 #: The maps: name -> (the calibration views' bounds, the std: "plain" sigma, "checked" sqrt(sigma^2 +
 #: e^2), "weighted" sqrt(sigma^2 + (beta e)^2) with beta fitted, ``fit_check_weight``); all fit rho.
@@ -151,20 +150,9 @@ def fit_check_weight(abs_err: np.ndarray, sigma: np.ndarray, e: np.ndarray, dept
 
 def evaluate_candidate(data: dict, name: str) -> tuple[dict, dict]:
     f, s = data["fit"][name], data["scored"]
-    std = s["std"][CANDIDATES[name][1]]
-    run_map = QuantileCalibration.fit_errors(f["abs_err"], f["std"], quantity="depth_std", depth=f["depth"])
-    folds = fit_depth_folds(f["abs_err"], f["std"], f["keys"], data["score_blocks"], depth=f["depth"])
-    iv = M.interval_sharpness(s["gt"], cross_fitted_depth_quantiles(s["pred"], std, folds.fold_of(s["keys"]), folds))
-    calibrated = run_map.calibrated_std(std, depth=s["pred"])
-    err = np.abs(s["gt"] - s["pred"])
-    per_view = [float(spearmanr(err[s["view"] == v], calibrated[s["view"] == v])[0])
-                for v in np.unique(s["view"]) if (s["view"] == v).sum() >= 10]
-    row = {k: v for k, v in iv.items() if k != "halfwidth"}
-    row.update({"rho": run_map.relative_floor, "rho_folds": [m.relative_floor for m in folds.maps],
-                "s68": run_map.std_scale, "s95": float(run_map.scale_at(0.95)),
-                "spearman_per_view": per_view, "spearman_mean": float(np.mean(per_view)),
-                "median_abs_rel": float(np.median(err / s["gt"])), "points": int(s["gt"].size),
-                "fit_points": int(f["abs_err"].size), "fit_median_rel_err": f["median_rel_err"]})
+    row, iv = score_map(f["abs_err"], f["std"], f["depth"], f["keys"], data["score_blocks"], s,
+                        s["std"][CANDIDATES[name][1]])
+    row.update({"fit_points": int(f["abs_err"].size), "fit_median_rel_err": f["median_rel_err"]})
     return row, iv
 
 

@@ -110,14 +110,15 @@ def collect(run_dir: Path) -> dict:
             "views": views}
 
 
-def evaluate_candidate(data: dict, relative: bool) -> tuple[dict, dict]:
-    f, s = data["fit"], data["scored"]
-    depth = f["depth"] if relative else None
-    run_map = QuantileCalibration.fit_errors(f["abs_err"], f["std"], quantity="depth_std", depth=depth)
-    folds = fit_depth_folds(f["abs_err"], f["std"], data["fit_keys"], data["score_blocks"], depth=depth)
-    fold = folds.fold_of(s["keys"])
-    iv = M.interval_sharpness(s["gt"], cross_fitted_depth_quantiles(s["pred"], s["std"], fold, folds))
-    calibrated = run_map.calibrated_std(s["std"], depth=s["pred"])
+def score_map(abs_err, fit_std, fit_depth, fit_keys, score_blocks, scored: dict, std) -> tuple[dict, dict]:
+    """Fit a depth map (and its 5 cross-fitted fold maps) on errors ``abs_err`` with stds ``fit_std``
+    (``fit_depth``: the rendered depths for a depth-proportional term, None for none) and score it on
+    the photos' points ``scored`` with their stds ``std`` as ``eval`` does: (row, interval output)."""
+    run_map = QuantileCalibration.fit_errors(abs_err, fit_std, quantity="depth_std", depth=fit_depth)
+    folds = fit_depth_folds(abs_err, fit_std, fit_keys, score_blocks, depth=fit_depth)
+    s = scored
+    iv = M.interval_sharpness(s["gt"], cross_fitted_depth_quantiles(s["pred"], std, folds.fold_of(s["keys"]), folds))
+    calibrated = run_map.calibrated_std(std, depth=s["pred"])
     err = np.abs(s["gt"] - s["pred"])
     per_view = [float(spearmanr(err[s["view"] == v], calibrated[s["view"] == v])[0])
                 for v in np.unique(s["view"]) if (s["view"] == v).sum() >= 10]
@@ -127,6 +128,12 @@ def evaluate_candidate(data: dict, relative: bool) -> tuple[dict, dict]:
                 "spearman_per_view": per_view, "spearman_mean": float(np.mean(per_view)),
                 "median_abs_rel": float(np.median(err / s["gt"])), "points": int(s["gt"].size)})
     return row, iv
+
+
+def evaluate_candidate(data: dict, relative: bool) -> tuple[dict, dict]:
+    f, s = data["fit"], data["scored"]
+    return score_map(f["abs_err"], f["std"], f["depth"] if relative else None, data["fit_keys"],
+                     data["score_blocks"], s, s["std"])
 
 
 def decide(runs: dict) -> str:

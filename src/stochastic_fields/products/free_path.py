@@ -111,6 +111,16 @@ def segment_optical_depths(density_params, starts: Tensor, ends: Tensor, *, num_
     return tau, n
 
 
+class FloatField:
+    """A float32 field evaluated at float64 query points (``density_params`` as free-path calls it)."""
+
+    def __init__(self, field) -> None:
+        self.field = field
+
+    def density_params(self, points: Tensor):
+        return self.field.density_params(points.float())
+
+
 def default_step(model, dataset) -> float:
     """The step along segments when none is given: half the occupancy map's voxel size from the
     images' footprint (``occupancy_map.run_voxel_size``)."""

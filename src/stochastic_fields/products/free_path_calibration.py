@@ -42,7 +42,8 @@ from scipy.optimize import isotonic_regression
 from ..calibration import calibration_view_points
 from ..capture_points import load_capture_points, rays_through_points, restrict_sparse_depth
 from ..io_utils import atomic_write_text, read_json
-from .free_path import FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, default_step, segment_free_probability
+from .free_path import (FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, FloatField, default_step,
+                        segment_free_probability)
 
 #: File the map is stored in, in the run folder.
 FREE_PATH_CALIBRATION_FILE: str = "free_path_calibration.json"
@@ -133,9 +134,8 @@ def calibration_events(model, dataset, *, step: float, margins=FREE_PATH_CALIBRA
     rays, gt = found
     device = model.region.box.device
     seg = known_segments(rays.to(device), torch.from_numpy(gt).to(device), margins)
-    field = model.field
     with torch.no_grad():
-        r = segment_free_probability(lambda x: field.density_params(x.float()), seg["starts"], seg["ends"],
+        r = segment_free_probability(FloatField(model.field), seg["starts"], seg["ends"],
                                      num_draws=num_draws, level=level, step=step,
                                      shared_noise=model.render_settings.shared_noise,
                                      generator=torch.Generator(device=device).manual_seed(seed))

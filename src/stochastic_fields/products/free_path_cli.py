@@ -19,8 +19,8 @@ from pathlib import Path
 import torch
 
 from ..io_utils import atomic_write_text, read_json
-from .free_path import (FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, default_step, path_free_probability,
-                        segment_free_probability)
+from .free_path import (FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, FloatField, default_step,
+                        path_free_probability, segment_free_probability)
 from .free_path_calibration import applies, describe_free_path_calibration, load_free_path_calibration
 from ..trainer import load_trained_model
 
@@ -96,13 +96,3 @@ def recalibrated_answers(answers: dict, cal) -> dict:
     out["probability_free_model"] = out["probability_free"]
     out["probability_free"] = cal(out["probability_free"]).tolist()
     return out
-
-
-class FloatField:
-    """Evaluates a float32 field at float64 query points."""
-
-    def __init__(self, field) -> None:
-        self.field = field
-
-    def density_params(self, points: torch.Tensor):
-        return self.field.density_params(points.float())
