@@ -188,10 +188,75 @@ def test_checked_calibration_file_needs_its_training_depths(tmp_path):
     assert not load_run_calibration(tmp_path).depth.free_space
 
 
+def _check_weight_data(seed: int = 0, n: int = 1500):
+    """Errors of N(0, sigma), sigma ~ U(0.01, 0.05), at depths ~ U(2, 10) where the check is silent; at
+    a fifth of the points a wrong surface with error ~ e |N(0, 1)| that sigma misses, e = 1: (abs_err,
+    sigma, e, depth). (Stds and depths vary, or rho = 1 would make every std alike and tie the grid.)"""
+    rng = np.random.default_rng(seed)
+    sigma, depth = rng.uniform(0.01, 0.05, n), rng.uniform(2.0, 10.0, n)
+    e = np.where(np.arange(n) % 5 == 0, 1.0, 0.0)
+    err = np.abs(rng.normal(size=n)) * np.hypot(sigma, e)
+    return err, sigma, e, depth
+
+
+def test_check_weight_follows_whether_the_violation_explains_the_errors():
+    """fit_check_weight: where the violation is the missed error, the full weight (the grid's end);
+    where it fires on points whose errors sigma already explains, 0 (the unchecked map); by hand,
+    the chosen weight has the smallest CRPS / depth of the grid."""
+    from stochastic_fields.calibration import (CHECK_WEIGHT_GRID, fit_check_weight, fit_relative_floor,
+                                              relative_crps)
+
+    err, sigma, e, depth = _check_weight_data()
+    assert fit_check_weight(err, sigma, e, depth) == 1.0
+    rng = np.random.default_rng(1)
+    honest = np.abs(rng.normal(size=err.size)) * sigma  # the same violations, errors that ignore them
+    assert fit_check_weight(honest, sigma, e, depth) == 0.0
+    half = np.abs(rng.normal(size=err.size)) * np.hypot(sigma, 0.3 * e)  # the violation at a third of its size
+    beta = fit_check_weight(half, sigma, e, depth)
+    crps = [relative_crps(half, checked_std(sigma, b * e), depth, fit_relative_floor(half, checked_std(sigma, b * e), depth))
+            for b in CHECK_WEIGHT_GRID]
+    assert beta == CHECK_WEIGHT_GRID[int(np.argmin(crps))] and 0.15 < beta < 0.6
+    with pytest.raises(ValueError, match="violation"):
+        fit_check_weight(err, sigma, -e - 1.0, depth)
+
+
+def test_a_weighted_check_round_trips_and_scales_only_the_violation():
+    """A map with weight beta applies s sqrt(raw^2 + (beta e)^2); the weight survives the file; files
+    without it read as the full check; a negative weight is refused naming the file; a fitted weight
+    of 0 leaves a map that needs no violation."""
+    from stochastic_fields.calibration import QuantileCalibration, _fit_depth_map
+
+    err, sigma, e, depth = _check_weight_data()
+    renders = {"abs_err": err, "std": checked_std(sigma, e), "std_raw": sigma, "violation": e, "depth": depth,
+               "source": "test"}
+    m, std = _fit_depth_map(renders, floor=False, relative_floor=True, check_weight=0.25)
+    assert m.free_space and m.free_space_weight == 0.25
+    np.testing.assert_allclose(std, np.hypot(sigma, 0.25 * e))
+    raw, v = np.array([0.1, 0.2]), np.array([0.0, 0.4])
+    np.testing.assert_allclose(m.calibrated_std(raw, v, np.array([1.0, 1.0])),
+                               m.std_scale * np.hypot(np.hypot(raw, 0.25 * v), m.relative_floor))
+    back = QuantileCalibration.from_dict(m.to_dict())
+    assert back.free_space_weight == 0.25
+    data = m.to_dict()
+    del data["free_space_weight"]
+    assert QuantileCalibration.from_dict(data).free_space_weight == 1.0
+    data["free_space_weight"] = -1.0
+    with pytest.raises(ValueError, match="calibration.json.*weight"):
+        QuantileCalibration.from_dict(data, where="RUN/calibration.json")
+    rng = np.random.default_rng(1)
+    unchecked, _ = _fit_depth_map({**renders, "abs_err": np.abs(rng.normal(size=err.size)) * sigma},
+                                  floor=False, relative_floor=True)
+    assert not unchecked.free_space
+    np.testing.assert_allclose(unchecked.calibrated_std(raw), unchecked.std_scale * raw)
+    with pytest.raises(ValueError, match="weight"):
+        _fit_depth_map(renders, floor=False, relative_floor=True, check_weight=float("nan"))
+
+
 @pytest.mark.slow
 def test_a_run_calibrated_with_the_free_space_check_applies_it_in_eval_and_export(tmp_path):
     """calibrate_run(free_space=True) stores the training views' depths first, then a map that says so;
-    eval writes each view's violation map and a depth std of s sqrt(raw^2 + e^2 + (rho d)^2); the depth products
+    eval writes each view's violation map and a depth std of s sqrt(raw^2 + (beta e)^2 + (rho d)^2) at the
+    given weight beta; the depth products
     (export, notebook) apply the same."""
     import torch
 
@@ -211,8 +276,8 @@ def test_a_run_calibrated_with_the_free_space_check_applies_it_in_eval_and_expor
     ds = load_dataset(make_synthetic_scene(tmp_path / "scene", num_views=20, width=192, height=144, seed=0),
                       split_every=5)
     model = Trainer(cfg, tmp_path, ds).train(progress=False)
-    cal = calibrate_run(tmp_path, model=model, dataset=ds, free_space=True, progress=False)
-    assert cal.depth.free_space and (tmp_path / TRAINING_DEPTH_FILE).is_file()
+    cal = calibrate_run(tmp_path, model=model, dataset=ds, free_space=True, check_weight=0.5, progress=False)
+    assert cal.depth.free_space and cal.depth.free_space_weight == 0.5 and (tmp_path / TRAINING_DEPTH_FILE).is_file()
     stored = load_run_calibration(tmp_path)
     np.testing.assert_array_equal(stored.training_depth.depth, cal.training_depth.depth)
     v = int(ds.test_indices[0])
@@ -220,7 +285,7 @@ def test_a_run_calibrated_with_the_free_space_check_applies_it_in_eval_and_expor
     with np.load(tmp_path / "eval" / "views" / f"view_{v:03d}.npz") as f:
         e, std, raw, depth = f["depth_free_space"], f["depth_std"], f["depth_std_raw"], f["depth_mean"]
     rho = cal.depth.relative_floor  # the depth-proportional term (default on) joins the check's e
-    np.testing.assert_allclose(std, cal.depth.std_scale * np.hypot(np.hypot(raw.astype(np.float64), e),
+    np.testing.assert_allclose(std, cal.depth.std_scale * np.hypot(np.hypot(raw.astype(np.float64), 0.5 * e),
                                                                    rho * depth.astype(np.float64)), rtol=1e-5)
     assert (tmp_path / "eval" / "views" / f"view_{v:03d}_depth_free_space.png").is_file()
     cam = view_camera_arrays(ds, v)
@@ -231,7 +296,7 @@ def test_a_run_calibrated_with_the_free_space_check_applies_it_in_eval_and_expor
     e = violation_map(products.depth_mean, cam["intrinsics"], cam["world_to_camera"], stored.training_depth,
                       mask=products.opacity > 0.5)
     np.testing.assert_allclose(products.depth_std,
-                               cal.depth.std_scale * np.hypot(np.hypot(products.depth_std_raw.astype(np.float64), e),
+                               cal.depth.std_scale * np.hypot(np.hypot(products.depth_std_raw.astype(np.float64), 0.5 * e),
                                                               rho * products.depth_mean.astype(np.float64)), rtol=1e-5)
 
 
@@ -383,3 +448,16 @@ def test_study_13c_decision_recomputed(load_script):
     assert committed["points"] == "held-out"
     assert again == committed["decision"] and again["worse_on"] == ["flower"] and not again["taken"]
     assert all(m["spearman_per_view_checked"] > m["spearman_per_view_plain"] for m in again["scenes"].values())
+
+
+def test_calibrate_command_takes_a_weight_or_refuses_it(capsys):
+    """``--free-space-weight``: a number >= 0 (default: fitted, None); anything else one clear line."""
+    from stochastic_fields.cli import build_parser
+
+    parser = build_parser()
+    assert parser.parse_args(["calibrate", "--run", "r"]).free_space_weight is None
+    assert parser.parse_args(["calibrate", "--run", "r", "--free-space-weight", "0.3"]).free_space_weight == 0.3
+    for bad in ("-1", "nan", "inf", "half"):
+        with pytest.raises(SystemExit):
+            parser.parse_args(["calibrate", "--run", "r", "--free-space-weight", bad])
+        assert "--free-space-weight: expected" in capsys.readouterr().err

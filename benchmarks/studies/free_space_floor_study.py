@@ -38,7 +38,7 @@ trained): on seeds 2 and 3 the check gave the narrowest bands and the best ranki
 and held paper flower's 68% band, but over-covered the synthetic scene's centre by 14-17 points
 (e > 0 at 81% of its scored points, at full weight). Candidate: the check with a weight beta,
 sqrt(sigma^2 + (beta e)^2 + (rho d)^2), beta chosen from ``CHECK_WEIGHT_GRID`` with rho by the mean
-CRPS / depth on the map's own points (``fit_check_weight``; beta = 0 is today's map, so a scene the
+CRPS / depth on the map's own points (``calibration.fit_check_weight``; beta = 0 is today's map, so a scene the
 check does not help can keep it). Judged alone against today's by the same rule, on fresh seed-4
 runs (the other rows reported beside).
 
@@ -84,8 +84,7 @@ import numpy as np
 import torch
 
 from stochastic_fields import metrics as M
-from stochastic_fields.calibration import (depth_calibration_renders, fit_relative_floor,
-                                          relative_crps)
+from stochastic_fields.calibration import depth_calibration_renders, fit_check_weight
 from stochastic_fields.cameras import camera_to_world
 from stochastic_fields.capture_points import SCORE, block_keys, load_capture_points
 from stochastic_fields.free_space import (checked_std, free_space_violation, render_training_depth,
@@ -99,7 +98,7 @@ from relative_floor_study import (RULE_LEVELS, decide_by_checks, interval_cells,
                                   scored_views)
 
 #: The maps: name -> (the calibration views' bounds, the std: "plain" sigma, "checked" sqrt(sigma^2 +
-#: e^2), "weighted" sqrt(sigma^2 + (beta e)^2) with beta fitted, ``fit_check_weight``); all fit rho.
+#: e^2), "weighted" sqrt(sigma^2 + (beta e)^2) with beta fitted, ``calibration.fit_check_weight``); all fit rho.
 TODAY: str = "today (sigma, rho)"
 CHECKED: str = "checked (sigma, e, rho)"
 WEIGHTED: str = "weighted check (sigma, beta e, rho)"
@@ -107,8 +106,6 @@ CANDIDATES: dict[str, tuple[str, str]] = {TODAY: ("widest", "plain"),
                                           CHECKED: ("widest", "checked"),
                                           "interpolated bounds (sigma, rho)": ("interpolated", "plain"),
                                           WEIGHTED: ("widest", "weighted")}
-#: Weights of the free-space violation tried by ``fit_check_weight``: 0 and 12 log-spaced values to 1.
-CHECK_WEIGHT_GRID: np.ndarray = np.concatenate([[0.0], np.geomspace(0.03, 1.0, 12)])
 RULE = ("per run: coverage at each of 50/68.3/90/95% within 5 points, median 95% half-width <= 15% (synthetic 5%), "
         "mean depth Spearman no more than 0.02 below today's; a candidate is taken if on every run it passes every "
         "check today passes, gains at least one, and the real runs' mean 95% interval score / depth does not rise; "
@@ -138,9 +135,8 @@ def collect(run_dir: Path, candidates=tuple(CANDIDATES)) -> dict:
     plain, checked = fits[TODAY], fits[CHECKED]
     if not np.array_equal(plain["index"], checked["index"]):
         raise RuntimeError(f"{run_dir}: the plain and checked calibration renders kept different points")
-    e_fit = np.sqrt(np.clip(checked["std"] ** 2 - plain["std"] ** 2, 0.0, None))  # same render, same sigma
-    beta = fit_check_weight(plain["abs_err"], plain["std"], e_fit, plain["depth"])
-    fits[WEIGHTED] = {**plain, "std": checked_std(plain["std"], beta * e_fit)}
+    beta = fit_check_weight(plain["abs_err"], plain["std"], checked["violation"], plain["depth"])
+    fits[WEIGHTED] = {**plain, "std": checked_std(plain["std"], beta * checked["violation"])}
     sigma = r["depth_std"][keep]
     return {"fit": {name: {"abs_err": f["abs_err"], "depth": f["depth"], "std": f["std"], "keys": keys[f["index"]],
                            "median_rel_err": float(np.median(f["abs_err"] / f["depth"]))} for name, f in fits.items()},
@@ -150,19 +146,6 @@ def collect(run_dir: Path, candidates=tuple(CANDIDATES)) -> dict:
                        "std": {"plain": sigma, "checked": checked_std(sigma, e), "weighted": checked_std(sigma, beta * e)},
                        "violation": e, "keys": keys[index[keep]], "view": view[keep]},
             "views": views, "reference_s": reference_s}
-
-
-def fit_check_weight(abs_err: np.ndarray, sigma: np.ndarray, e: np.ndarray, depth: np.ndarray) -> float:
-    """Study 22d's weight beta of the free-space violation: the value of ``CHECK_WEIGHT_GRID`` whose
-    std sqrt(sigma^2 + (beta e)^2), with rho fitted on it (``calibration.fit_relative_floor``), gives
-    the smallest mean CRPS / depth of the level-mapped distribution (``calibration.relative_crps``)
-    on the map's own points; ties go to the smaller beta. (One scalar for the run, also used by its
-    fold maps.)"""
-    scores = []
-    for beta in CHECK_WEIGHT_GRID:
-        std = checked_std(sigma, beta * e)
-        scores.append(relative_crps(abs_err, std, depth, fit_relative_floor(abs_err, std, depth)))
-    return float(CHECK_WEIGHT_GRID[int(np.argmin(scores))])
 
 
 def evaluate_candidate(data: dict, name: str) -> tuple[dict, dict]:

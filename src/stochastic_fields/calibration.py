@@ -103,6 +103,9 @@ STD_FLOOR_MAX_RATIO: float = 100.0
 #: Values of the depth-proportional term rho tried by ``fit_relative_floor``: 0 and 48 values
 #: spaced evenly in log from 0.1% to 100% of the depth (neighbours 15% apart).
 RELATIVE_FLOOR_GRID: np.ndarray = np.concatenate([[0.0], np.geomspace(1e-3, 1.0, 48)])
+#: Weights beta of the free-space violation a checked depth map tries (``fit_check_weight``): 0 (the
+#: unchecked map) and 12 log-spaced values to 1 (the full check); studies 22d and 22e.
+CHECK_WEIGHT_GRID: np.ndarray = np.concatenate([[0.0], np.geomspace(0.03, 1.0, 12)])
 
 
 @dataclass
@@ -118,11 +121,13 @@ class QuantileCalibration:
         floor: the std floor tau (units of the quantity; 0: none): errors are standardised by
             sqrt(sigma^2 + tau^2) (module doc, ``fit_std_floor``).
         free_space: the map was fitted on (and applies to) the free-space-checked std
-            sqrt(sigma^2 + e^2), e the rendered point's violation of the training views' free space
-            (``free_space``; depth only).
+            sqrt(sigma^2 + (beta e)^2), e the rendered point's violation of the training views' free
+            space (``free_space``; depth only) and beta ``free_space_weight``.
         relative_floor: the depth-proportional term rho (0: none): errors are standardised by
             sqrt(sigma^2 + tau^2 + (rho d)^2), d the rendered depth (module doc,
             ``fit_relative_floor``; depth only).
+        free_space_weight: beta, the weight of the free-space violation in a ``free_space`` map
+            (``fit_check_weight``; files without it: 1, the full check).
     """
 
     quantity: str
@@ -133,6 +138,7 @@ class QuantileCalibration:
     floor: float = 0.0
     free_space: bool = False
     relative_floor: float = 0.0
+    free_space_weight: float = 1.0
 
     @classmethod
     def fit(cls, abs_z: np.ndarray, *, quantity: str, source: str = "",
@@ -181,7 +187,7 @@ class QuantileCalibration:
 
     def calibrated_std(self, raw: np.ndarray, violation: np.ndarray | None = None,
                        depth: np.ndarray | None = None) -> np.ndarray:
-        """s(0.6827) sqrt(raw^2 + floor^2 [+ violation^2] [+ (relative_floor depth)^2]) in float64: the
+        """s(0.6827) sqrt(raw^2 + floor^2 [+ (beta violation)^2] [+ (relative_floor depth)^2]) in float64: the
         calibrated one-sigma std of raw stds [...]; a ``free_space`` map needs the free-space
         ``violation`` [...], a map with a ``relative_floor`` the rendered ``depth`` [...] (same shape)."""
         std = np.hypot(np.asarray(raw, dtype=np.float64), self.floor)
@@ -189,7 +195,7 @@ class QuantileCalibration:
             if violation is None:
                 raise ValueError(f"the {self.quantity} map was fitted on the free-space-checked std: it needs each "
                                  "pixel's free-space violation (free_space.violation_map)")
-            std = np.hypot(std, np.asarray(violation, dtype=np.float64))
+            std = np.hypot(std, self.free_space_weight * np.asarray(violation, dtype=np.float64))
         if self.relative_floor > 0.0:
             if depth is None:
                 raise ValueError(f"the {self.quantity} map has a depth-proportional term: it needs each pixel's "
@@ -213,7 +219,8 @@ class QuantileCalibration:
     def to_dict(self) -> dict[str, Any]:
         return {"quantity": self.quantity, "levels": self.levels.tolist(), "scales": self.scales.tolist(),
                 "num_samples": self.num_samples, "source": self.source, "std_scale": self.std_scale,
-                "floor": self.floor, "free_space": self.free_space, "relative_floor": self.relative_floor}
+                "floor": self.floor, "free_space": self.free_space, "relative_floor": self.relative_floor,
+                "free_space_weight": self.free_space_weight}
 
     @classmethod
     def from_dict(cls, data: dict, *, where: str = "calibration") -> "QuantileCalibration":
@@ -223,13 +230,16 @@ class QuantileCalibration:
             out = cls(str(data["quantity"]), levels, scales, int(data["num_samples"]), str(data.get("source", "")),
                       float(data.get("floor", 0.0)),  # files written before the floor: none
                       data.get("free_space", False),  # ... before the free-space check: none
-                      float(data.get("relative_floor", 0.0)))  # ... before the depth-proportional term: none
+                      float(data.get("relative_floor", 0.0)),  # ... before the depth-proportional term: none
+                      float(data.get("free_space_weight", 1.0)))  # ... before the check's weight: the full check
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{where}: malformed quantile calibration ({exc!r})") from exc
         if not isinstance(out.free_space, bool):
             raise ValueError(f"{where}: free_space must be true or false, got {out.free_space!r}")
         if not (math.isfinite(out.floor) and out.floor >= 0.0):
             raise ValueError(f"{where}: the std floor must be finite and >= 0, got {out.floor}")
+        if not (math.isfinite(out.free_space_weight) and out.free_space_weight >= 0.0):
+            raise ValueError(f"{where}: the free-space check's weight must be finite and >= 0, got {out.free_space_weight}")
         if not (math.isfinite(out.relative_floor) and out.relative_floor >= 0.0):
             raise ValueError(f"{where}: the depth-proportional term must be finite and >= 0, got {out.relative_floor}")
         if (levels.ndim != 1 or levels.shape != scales.shape or levels.size == 0 or not np.isfinite(levels).all()
@@ -455,6 +465,25 @@ def relative_crps(abs_err: np.ndarray, std: np.ndarray, depth: np.ndarray, rho: 
     return float((crps / depth).mean())
 
 
+def fit_check_weight(abs_err: np.ndarray, sigma: np.ndarray, violation: np.ndarray, depth: np.ndarray,
+                     grid: np.ndarray = CHECK_WEIGHT_GRID) -> float:
+    """The weight beta of the free-space violation (studies 22d, 22e): the value of ``grid`` whose std
+    sqrt(sigma^2 + (beta e)^2), with the depth-proportional term rho fitted on it
+    (``fit_relative_floor``), gives the smallest mean CRPS / depth (``relative_crps``) on these points;
+    ties go to the smaller beta (0 first: a scene the check does not help keeps the unchecked map).
+    ``abs_err`` [N] (>= 0), ``sigma`` [N] (> 0), ``violation`` e [N] (>= 0), ``depth`` [N] (> 0)."""
+    abs_err, sigma, violation, depth = (np.asarray(a, dtype=np.float64).reshape(-1)
+                                        for a in (abs_err, sigma, violation, depth))
+    if violation.shape != sigma.shape or not (np.isfinite(violation).all() and (violation >= 0).all()):
+        raise ValueError(f"fit_check_weight: needs one finite violation >= 0 per std, got {violation.size} for "
+                         f"{sigma.size}")
+    scores = []
+    for beta in np.asarray(grid, dtype=np.float64):
+        std = checked_std(sigma, beta * violation)
+        scores.append(relative_crps(abs_err, std, depth, fit_relative_floor(abs_err, std, depth)))
+    return float(np.asarray(grid, dtype=np.float64)[int(np.argmin(scores))])
+
+
 def standardised_errors(gt: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
     """|gt - mean| / std over the entries with a finite, positive std: [N] -> [N'] float64."""
     gt, mean, std = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (gt, mean, std))
@@ -635,9 +664,9 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     with rendered opacity above ``opacity_mask`` (as the depth scores), rendered with ``options``
     (default: the model's; a map fits the std of the K and estimator it is fitted with, so fit it
     with the options the run will render with; ``bounds``: the views' render bounds,
-    ``calibration_views``); with ``free_space`` (``free_space.TrainingDepth``) the stds are the
-    checked ones, sqrt(sigma^2 + e^2) with e the rendered point's free-space violation
-    (``free_space.checked_std``).
+    ``calibration_views``); with ``free_space`` (``free_space.TrainingDepth``) "std" holds the
+    checked ones at full weight, sqrt(sigma^2 + e^2) with e the rendered point's free-space violation
+    (``free_space.checked_std``), "std_raw" the raw sigma and "violation" e [N].
     ValueError when the scene has no capture points, or for an unknown ``points``."""
     if points not in CALIBRATION_POINTS:
         raise ValueError(f"calibration points must be one of {CALIBRATION_POINTS}, got {points!r}")
@@ -653,64 +682,81 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     roles = "calibrate role" if points == "calibrate" else "calibrate and score roles"
     source = (f"{int(keep.sum())} {capture.source} points of the {roles} seen from {len(pairs)} views halfway "
               f"between neighbouring training views (opacity > {mask})")
-    std = r["depth_std"]
+    std = sigma = r["depth_std"]
+    violation = None
     views = [v for v, sd in sparse.items() if len(sd)]  # the order of render_at_points' rays
     index = np.concatenate([sparse[v].point_index for v in views] or [np.zeros(0, np.int64)])
     if free_space is not None and len(std):
         centres = camera_to_world(cams).double()[:, :3, 3].numpy()[np.concatenate(
             [np.full(len(sparse[v]), v) for v in views])]
         where = rendered_points(centres, capture.xyz[index], r["gt"], np.where(keep, r["depth_mean"], r["gt"]))
-        std = checked_std(std, free_space_violation(where, free_space))
+        violation = free_space_violation(where, free_space)
+        std = checked_std(sigma, violation)
         source += ", std checked against the training views' free space"
-    return {"abs_err": np.abs(r["gt"][keep] - r["depth_mean"][keep]), "std": std[keep], "index": index[keep],
-            "depth": r["depth_mean"][keep], "source": source}
+    out = {"abs_err": np.abs(r["gt"][keep] - r["depth_mean"][keep]), "std": std[keep], "index": index[keep],
+           "depth": r["depth_mean"][keep], "source": source}
+    if violation is not None:
+        out.update({"std_raw": sigma[keep], "violation": violation[keep]})
+    return out
 
 
 def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
                           points: str = "calibrate", options=None, floor: bool = DEPTH_STD_FLOOR,
-                          free_space=None, relative_floor: bool = DEPTH_RELATIVE_FLOOR) -> QuantileCalibration:
+                          free_space=None, relative_floor: bool = DEPTH_RELATIVE_FLOOR,
+                          check_weight: float | None = None) -> QuantileCalibration:
     """The depth map fitted on ``depth_calibration_errors`` (same arguments, the default bounds);
     with ``floor``, a std floor first (``fit_std_floor``); with ``free_space``
     (``free_space.TrainingDepth``), on the free-space-checked std (the map's ``free_space``); with
-    ``relative_floor``, a depth-proportional term (``fit_relative_floor``). ValueError when the scene has no capture points or too few of those roles, or for an unknown
-    ``points``."""
+    ``relative_floor``, a depth-proportional term (``fit_relative_floor``); ``check_weight``: the
+    free-space violation's weight (None: fitted, ``fit_check_weight``). ValueError when the scene has no
+    capture points or too few of those roles, or for an unknown ``points``."""
     r = depth_calibration_renders(model, dataset, seed=seed, opacity_mask=opacity_mask, points=points,
                                   options=options, free_space=free_space)
-    return _fit_depth_map(r, floor=floor, free_space=free_space is not None, relative_floor=relative_floor)
+    return _fit_depth_map(r, floor=floor, relative_floor=relative_floor, check_weight=check_weight)[0]
 
 
-def _fit_depth_map(renders: dict[str, Any], *, floor: bool, free_space: bool,
-                   relative_floor: bool) -> QuantileCalibration:
-    """The depth map of ``depth_calibration_renders``' output."""
-    out = QuantileCalibration.fit_errors(renders["abs_err"], renders["std"], quantity="depth_std", floor=floor,
+def _fit_depth_map(renders: dict[str, Any], *, floor: bool, relative_floor: bool,
+                   check_weight: float | None = None) -> tuple[QuantileCalibration, np.ndarray]:
+    """The depth map of ``depth_calibration_renders``' output and the stds [N] it was fitted on. Renders
+    with the free-space check (a "violation" entry) weigh it by ``check_weight``, or when None by the
+    weight beta ``fit_check_weight`` fits (with rho when ``relative_floor``; without the term, the
+    full check); a weight of 0 leaves an unchecked map."""
+    std, weight = renders["std"], 1.0 if check_weight is None else float(check_weight)
+    if not (math.isfinite(weight) and weight >= 0.0):
+        raise ValueError(f"the free-space check's weight must be finite and >= 0, got {check_weight}")
+    if "violation" in renders:
+        if check_weight is None and relative_floor and renders["abs_err"].size >= MIN_CALIBRATION_SAMPLES:
+            weight = fit_check_weight(renders["abs_err"], renders["std_raw"], renders["violation"], renders["depth"])
+        std = checked_std(renders["std_raw"], weight * renders["violation"])
+    out = QuantileCalibration.fit_errors(renders["abs_err"], std, quantity="depth_std", floor=floor,
                                          depth=renders["depth"] if relative_floor else None, source=renders["source"])
-    out.free_space = free_space
-    return out
+    out.free_space, out.free_space_weight = "violation" in renders and weight > 0.0, weight if weight > 0.0 else 1.0
+    return out, std
 
 
 def fit_depth_calibration_and_folds(model, dataset, *, seed: int = 0, points: str = DEFAULT_CALIBRATION_POINTS,
                                     options=None, floor: bool = DEPTH_STD_FLOOR, free_space=None,
-                                    relative_floor: bool = DEPTH_RELATIVE_FLOOR,
+                                    relative_floor: bool = DEPTH_RELATIVE_FLOOR, check_weight: float | None = None,
                                     folds: int = CROSS_FIT_FOLDS) -> tuple[QuantileCalibration, DepthFolds | None]:
     """The depth map (as ``fit_depth_calibration``) and, when it is fitted on the SCORE points too
     (``points="held-out"``), its cross-fitted ``DepthFolds`` from the same renders; None otherwise,
     or with a warning when the scene has too few SCORE blocks or points to fit them. ValueError as
     ``fit_depth_calibration``."""
     r = depth_calibration_renders(model, dataset, seed=seed, points=points, options=options, free_space=free_space)
-    out = _fit_depth_map(r, floor=floor, free_space=free_space is not None, relative_floor=relative_floor)
+    out, std = _fit_depth_map(r, floor=floor, relative_floor=relative_floor, check_weight=check_weight)
     if points == "calibrate":
         return out, None
     capture = load_capture_points(dataset)
     keys = block_keys(capture.xyz, capture.xyz)
     try:
-        folded = fit_depth_folds(r["abs_err"], r["std"], keys[r["index"]], keys[capture.roles == SCORE], folds=folds,
+        folded = fit_depth_folds(r["abs_err"], std, keys[r["index"]], keys[capture.roles == SCORE], folds=folds,
                                  floor=floor, depth=r["depth"] if relative_floor else None, source=r["source"])
     except ValueError as exc:  # a scene too small to cross-fit: the map stands, its scores are not independent
         warnings.warn(f"{dataset.root}: the depth map's cross-fitted folds were not fitted ({exc}); depth interval "
                       "scores on the SCORE points will not be independent", stacklevel=2)
         return out, None
     for m in folded.maps:
-        m.free_space = out.free_space
+        m.free_space, m.free_space_weight = out.free_space, out.free_space_weight
     return out, folded
 
 
@@ -813,14 +859,16 @@ def load_run_calibration(run_dir: str | Path) -> RunCalibration | None:
 def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int = 0, model=None,
                   dataset=None, points: str = DEFAULT_CALIBRATION_POINTS, floor: bool = DEPTH_STD_FLOOR,
                   free_space: bool = DEPTH_FREE_SPACE, relative_floor: bool = DEPTH_RELATIVE_FLOOR,
-                  progress: bool = True) -> RunCalibration:
+                  check_weight: float | None = None, progress: bool = True) -> RunCalibration:
     """Fit the run's calibration and write ``RUN/calibration.json``: the depth map from its capture
     points (``points``: ``CALIBRATION_POINTS``; "held-out" adds the cross-fitted ``DepthFolds``
     that score it) and, when the run held pixels out of training
     (``train.holdout_fraction`` > 0 in its config.json), the colour map from them; ``floor``: whether
     the depth map fits a std floor (``fit_std_floor``); ``free_space``: whether it is fitted on the
-    free-space-checked std (the training views are rendered once and stored first, as
-    ``free_space.TRAINING_DEPTH_FILE``; ``progress``: a bar over them); ``relative_floor``: whether
+    free-space-checked std (the training views are rendered once, and stored as
+    ``free_space.TRAINING_DEPTH_FILE`` before calibration.json when the map keeps the check;
+    ``progress``: a bar over them), weighted by ``check_weight`` (None: fitted,
+    ``fit_check_weight``; a fitted 0 leaves the map unchecked); ``relative_floor``: whether
     it fits a depth-proportional term (``fit_relative_floor``). ValueError
     (the depth fit's reason) when neither can be fitted; a depth fit that fails beside a colour one
     leaves depth raw."""
@@ -832,17 +880,17 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
     if cfg.train.holdout_fraction > 0:
         colour = fit_colour_calibration(model, dataset, fraction=cfg.train.holdout_fraction,
                                         block=cfg.train.holdout_block, seed=seed)
-    reference = None
-    if free_space:
-        reference = render_training_depth(model, dataset, seed=seed, progress=progress)
-        save_training_depth(run_dir, reference)  # before the calibration.json that names it
+    reference = render_training_depth(model, dataset, seed=seed, progress=progress) if free_space else None
     try:
         depth, folds = fit_depth_calibration_and_folds(model, dataset, seed=seed, points=points, floor=floor,
-                                                       free_space=reference, relative_floor=relative_floor)
+                                                       free_space=reference, relative_floor=relative_floor,
+                                                       check_weight=check_weight)
     except ValueError:
         if colour is None:
             raise
         depth = folds = None
+    if depth is not None and depth.free_space:  # a fitted weight of 0 leaves the map unchecked: no file
+        save_training_depth(run_dir, reference)  # before the calibration.json that names it
     calibration = RunCalibration(depth=depth, points=points, colour=colour,
                                  training_depth=None if depth is None or not depth.free_space else reference,
                                  depth_folds=folds)
@@ -863,7 +911,9 @@ def describe(calibration: RunCalibration) -> str:
 
 
 def _std_formula(m: QuantileCalibration) -> str:
-    terms = (["raw^2"] + ([f"{m.floor:.3g}^2"] if m.floor else []) + (["free-space violation^2"] if m.free_space else [])
+    check = ("free-space violation^2" if m.free_space_weight == 1.0
+             else f"({m.free_space_weight:.3g} free-space violation)^2")
+    terms = (["raw^2"] + ([f"{m.floor:.3g}^2"] if m.floor else []) + ([check] if m.free_space else [])
              + ([f"({m.relative_floor:.3g} depth)^2"] if m.relative_floor else []))
     return "x" if len(terms) == 1 else f"sqrt({' + '.join(terms)}) x"
 
@@ -904,7 +954,8 @@ def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibrati
 
 def run(args) -> None:
     cal = calibrate_run(Path(args.run), device=args.device, seed=args.seed, points=args.points,
-                        floor=args.std_floor, free_space=args.free_space, relative_floor=args.relative_floor)
+                        floor=args.std_floor, free_space=args.free_space, relative_floor=args.relative_floor,
+                        check_weight=args.free_space_weight)
     print(f"calibrated {args.run}: {describe(cal)}")
     print(f"written: {Path(args.run) / CALIBRATION_FILE} (render, eval and export apply it; raw stds as depth_std_raw "
           "and colour_std_raw)")

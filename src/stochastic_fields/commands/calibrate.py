@@ -30,6 +30,11 @@ def add_arguments(p) -> None:
                         "surface, also written as depth_free_space (renders the training views once into "
                         "RUN/training_depth.npz; docs/uncertainty.md, study 13: ranks depth errors better on every "
                         f"scene, intervals transfer worse on fern; default: {'on' if DEPTH_FREE_SPACE else 'off'}).")
+    p.add_argument("--free-space-weight", type=_weight, default=None, metavar="BETA",
+                   help="Weight of the free-space violation, depth_std = s * sqrt(raw^2 + (BETA e)^2 + ...) "
+                        "(default: fitted with the depth-proportional term by the CRPS on the map's points; 0 "
+                        "keeps the map unchecked where the check does not help; docs/uncertainty.md, studies 22d "
+                        "and 22e).")
     p.add_argument("--relative-floor", action=argparse.BooleanOptionalAction, default=DEPTH_RELATIVE_FLOOR,
                    help="Fit a depth-proportional std term rho, so that depth_std = s * sqrt(raw^2 + (rho depth)^2): "
                         "a pixel rendered on the wrong surface errs by a fraction of its depth, not a multiple of its "
@@ -41,6 +46,16 @@ def add_arguments(p) -> None:
                    help="Also fit the recalibration of free-path's P(free) on segments whose answer the held-out "
                         "points know (RUN/free_path_calibration.json; docs/uncertainty.md; default: "
                         f"{'on' if FREE_PATH_RECALIBRATION else 'off'}).")
+
+
+def _weight(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--free-space-weight: expected a number >= 0, got {text!r}") from None
+    if not (value >= 0.0 and value != float("inf")):
+        raise argparse.ArgumentTypeError(f"--free-space-weight: expected a finite number >= 0, got {text!r}")
+    return value
 
 
 def run(args) -> None:
