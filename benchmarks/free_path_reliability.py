@@ -46,7 +46,7 @@ import numpy as np
 import torch
 
 from stochastic_fields import metrics as M
-from stochastic_fields.calibration import load_run_calibration, render_at_points
+from stochastic_fields.calibration import load_run_calibration, render_at_points, violation_at_points
 from stochastic_fields.capture_points import SCORE, load_capture_points, rays_through_points
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.plots import plot_event_reliability
@@ -84,9 +84,11 @@ def measure(run_dir: Path, *, margins, limit: int, seed: int) -> dict:
     z = rays.z_scale.double().reshape(-1).numpy()
     mean, raw = r["depth_mean"], r["depth_std"]
     keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(mean) & (raw > 0)
-    if depth_map is not None and depth_map.free_space:
-        raise ValueError(f"{run_dir}: a free-space-checked map needs each pixel's violation; not measured here")
-    std = raw if depth_map is None else depth_map.calibrated_std(raw, depth=mean)
+    violation = None
+    if depth_map is not None and depth_map.free_space:  # each pixel's violation, as export computes it
+        violation = violation_at_points(dataset.cameras, sparse, capture.xyz, r["gt"], np.where(keep, mean, r["gt"]),
+                                        calibration.training_depth)
+    std = raw if depth_map is None else depth_map.calibrated_std(raw, violation, depth=mean)
     multiplier = None if depth_map is None else (lambda level: float(depth_map.relative_scale(level)))
     step = default_step(model, dataset)
     field = FloatField(model.field)

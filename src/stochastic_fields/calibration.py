@@ -653,6 +653,22 @@ def calibration_view_points(dataset, capture, *, points: str = "calibrate", boun
     return cams, near, far, pairs, sparse
 
 
+def violation_at_points(cameras, sparse: dict, xyz: np.ndarray, gt: np.ndarray, depth: np.ndarray,
+                        reference) -> np.ndarray:
+    """The free-space violation e [N] (``free_space.free_space_violation`` against the training views'
+    depths ``reference``, a ``free_space.TrainingDepth``) of the points ``render_at_points`` rendered
+    for ``sparse`` ({view: SparseDepth} of ``cameras``, in its ray order): on each view's ray through
+    capture point ``xyz[point_index]`` [P, 3], whose camera z is ``gt`` [N], the point at the rendered
+    camera z ``depth`` [N] (finite; ``free_space.rendered_points``)."""
+    views = [v for v, sd in sparse.items() if len(sd)]
+    if not views:
+        return np.zeros(0)
+    centres = camera_to_world(cameras).double()[:, :3, 3].numpy()[np.concatenate(
+        [np.full(len(sparse[v]), v) for v in views])]
+    index = np.concatenate([sparse[v].point_index for v in views])
+    return free_space_violation(rendered_points(centres, np.asarray(xyz)[index], gt, depth), reference)
+
+
 def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
                               points: str = "calibrate", options=None, bounds: str = CALIBRATION_BOUNDS,
                               free_space=None) -> dict[str, Any]:
@@ -687,10 +703,8 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     views = [v for v, sd in sparse.items() if len(sd)]  # the order of render_at_points' rays
     index = np.concatenate([sparse[v].point_index for v in views] or [np.zeros(0, np.int64)])
     if free_space is not None and len(std):
-        centres = camera_to_world(cams).double()[:, :3, 3].numpy()[np.concatenate(
-            [np.full(len(sparse[v]), v) for v in views])]
-        where = rendered_points(centres, capture.xyz[index], r["gt"], np.where(keep, r["depth_mean"], r["gt"]))
-        violation = free_space_violation(where, free_space)
+        violation = violation_at_points(cams, sparse, capture.xyz, r["gt"], np.where(keep, r["depth_mean"], r["gt"]),
+                                        free_space)
         std = checked_std(sigma, violation)
         source += ", std checked against the training views' free space"
     out = {"abs_err": np.abs(r["gt"][keep] - r["depth_mean"][keep]), "std": std[keep], "index": index[keep],
