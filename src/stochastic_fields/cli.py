@@ -95,7 +95,7 @@ def cmd_train(args: argparse.Namespace) -> None:
     print(describe_split(dataset, cfg))
     model = Trainer(cfg, run_dir, dataset).train(progress=not args.quiet)
     print(f"trained: {run_dir / 'checkpoint.pt'}")
-    _calibrate_after_training(run_dir, model, dataset)
+    _calibrate_after_training(run_dir, model, dataset, progress=not args.quiet)
 
 
 def _train_distributed(args: argparse.Namespace, run_dir: Path, cfg: C.ExperimentConfig) -> None:
@@ -114,19 +114,20 @@ def _train_distributed(args: argparse.Namespace, run_dir: Path, cfg: C.Experimen
         model = Trainer(cfg, run_dir, dataset, distributed=ctx).train(progress=not args.quiet)
     if ctx.is_main:  # the other ranks are done; the calibration is rank 0's alone
         print(f"trained on {ctx.world_size} processes ({ctx.backend}): {run_dir / 'checkpoint.pt'}")
-        _calibrate_after_training(run_dir, model, dataset)
+        _calibrate_after_training(run_dir, model, dataset, progress=not args.quiet)
 
 
-def _calibrate_after_training(run_dir: Path, model, dataset):
+def _calibrate_after_training(run_dir: Path, model, dataset, *, progress: bool = True):
     """Fit the recalibration of an S-NeRF run (calibration.json): depth from its capture points,
     colour from the pixels it held out of training (``train.holdout_fraction``); a run with neither
-    keeps the raw stds (said, not an error). Returns the calibration or None."""
+    keeps the raw stds (said, not an error); ``progress``: a bar over the training views the
+    free-space check renders. Returns the calibration or None."""
     from .calibration import calibrate_run, describe  # deferred: loads only when this command runs (keeps --help fast)
 
     if not getattr(model, "accepts_depth", False):
         return None
     try:
-        calibration = calibrate_run(run_dir, model=model, dataset=dataset)
+        calibration = calibrate_run(run_dir, model=model, dataset=dataset, progress=progress)
     except ValueError as exc:
         print(f"uncertainty not recalibrated: {exc}")
         return None
@@ -256,7 +257,7 @@ def cmd_demo(args: argparse.Namespace) -> None:
     t0 = time.perf_counter()
     dataset = load_run_dataset(cfg, run_dir)
     model = Trainer(cfg, run_dir, dataset).train(progress=not args.quiet)
-    calibration = _calibrate_after_training(run_dir, model, dataset)
+    calibration = _calibrate_after_training(run_dir, model, dataset, progress=not args.quiet)
     t_train = time.perf_counter() - t0
     result = evaluate(model, dataset, run_dir, progress=not args.quiet, calibration=calibration)
     wall = time.perf_counter() - t0

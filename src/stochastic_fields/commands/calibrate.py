@@ -26,10 +26,11 @@ def add_arguments(p) -> None:
                         f"(docs/uncertainty.md, study 11; default: {'on' if DEPTH_STD_FLOOR else 'off'}).")
     p.add_argument("--free-space", action=argparse.BooleanOptionalAction, default=DEPTH_FREE_SPACE,
                    help="Check each rendered depth against the training views' free space: depth_std = "
-                        "s * sqrt(raw^2 + e^2), e how far the point lies in front of a training view's rendered "
-                        "surface, also written as depth_free_space (renders the training views once into "
-                        "RUN/training_depth.npz; docs/uncertainty.md, study 13: ranks depth errors better on every "
-                        f"scene, intervals transfer worse on fern; default: {'on' if DEPTH_FREE_SPACE else 'off'}).")
+                        "s * sqrt(raw^2 + (beta e)^2 + ...), e how far the point lies in front of a training view's "
+                        "rendered surface, also written as depth_free_space (renders the training views once into "
+                        "RUN/training_depth.npz; the weight beta is fitted, 0 where the check does not help; "
+                        "docs/uncertainty.md, studies 22d and 22e: narrower bands that hold on every scene measured; "
+                        f"default: {'on' if DEPTH_FREE_SPACE else 'off'}).")
     p.add_argument("--free-space-weight", type=_weight, default=None, metavar="BETA",
                    help="Weight of the free-space violation, depth_std = s * sqrt(raw^2 + (BETA e)^2 + ...) "
                         "(default: fitted with the depth-proportional term by the CRPS on the map's points; 0 "
