@@ -111,7 +111,7 @@ def run_one(scene: str, method: str, args) -> dict:
         t0 = time.perf_counter()
         final = mark == marks[-1]
         # the last mark is scored once, with the recalibration train fits (colour and depth means do not change)
-        calibration = calibrate_run(run_dir, model=model, dataset=dataset) \
+        calibration = calibrate_run(run_dir, model=model, dataset=dataset, progress=not args.quiet) \
             if final and getattr(model, "accepts_depth", False) else None
         with torch.no_grad():
             result = evaluate(model, dataset, run_dir / f"eval_{mark:06d}", views=views, sparse_depth=sparse,

@@ -18,6 +18,7 @@ from stochastic_fields.calibration import (CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_
                                            load_run_calibration)
 from stochastic_fields.config import (LEGACY_VALUES, ExperimentConfig, flatten, save_config, saved_config,
                                      set_dotted, to_dict)
+from stochastic_fields.defaults import DEPTH_FREE_SPACE
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.evaluation import evaluate, synchronize
 from stochastic_fields.trainer import RESUMABLE_OPTIONS, load_trained_model, Trainer
@@ -41,9 +42,12 @@ SCORED_PIXELS = "score-role blocks of the exact depth"
 
 
 #: How the depth recalibration is fitted (part of the calibrate fingerprint: a new protocol refits).
+#: (The free-space check joined it with study 22e; the text without it is the protocol runs fitted before.)
 CALIBRATION_PROTOCOL = (f"{DEFAULT_CALIBRATION_POINTS} (calibrate and score role) capture points from views halfway "
                         "between neighbouring training views, interval scores cross-fitted over "
-                        f"{CROSS_FIT_FOLDS} folds of the score blocks")
+                        f"{CROSS_FIT_FOLDS} folds of the score blocks"
+                        + (", std checked against the training views' free space with a fitted weight"
+                           if DEPTH_FREE_SPACE else ""))
 
 
 #: Config entries that do not change what a run computes (left out of fingerprints).
@@ -291,7 +295,8 @@ def run_method(spec: MethodSpec, dataset, scene_path: Path, run_dir: Path, setti
                 or (calibration is not None and not calibration.independent_depth_scores)):  # benchmarks score: refit
             t0 = time.perf_counter()
             try:
-                calibration = calibrate_run(run_dir, model=loaded(), dataset=dataset, seed=settings.seed)
+                calibration = calibrate_run(run_dir, model=loaded(), dataset=dataset, seed=settings.seed,
+                                            progress=progress)
                 stages["calibrate"] = {"fingerprint": fp_cal, "calibrate_s": time.perf_counter() - t0}
                 log(f"[{tag}] calibrate: {describe(calibration)}")
             except ValueError as exc:  # too few capture points: scored raw, and the reason kept
