@@ -106,6 +106,8 @@ RELATIVE_FLOOR_GRID: np.ndarray = np.concatenate([[0.0], np.geomspace(1e-3, 1.0,
 #: Weights beta of the free-space violation a checked depth map tries (``fit_check_weight``): 0 (the
 #: unchecked map) and 12 log-spaced values to 1 (the full check); studies 22d and 22e.
 CHECK_WEIGHT_GRID: np.ndarray = np.concatenate([[0.0], np.geomspace(0.03, 1.0, 12)])
+#: What the calibration renders' source says of a checked std (the fit names the weight it chose).
+CHECKED_SOURCE: str = ", std checked against the training views' free space"
 
 
 @dataclass
@@ -706,7 +708,7 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
         violation = violation_at_points(cams, sparse, capture.xyz, r["gt"], np.where(keep, r["depth_mean"], r["gt"]),
                                         free_space)
         std = checked_std(sigma, violation)
-        source += ", std checked against the training views' free space"
+        source += CHECKED_SOURCE
     out = {"abs_err": np.abs(r["gt"][keep] - r["depth_mean"][keep]), "std": std[keep], "index": index[keep],
            "depth": r["depth_mean"][keep], "source": source}
     if violation is not None:
@@ -742,8 +744,12 @@ def _fit_depth_map(renders: dict[str, Any], *, floor: bool, relative_floor: bool
         if check_weight is None and relative_floor and renders["abs_err"].size >= MIN_CALIBRATION_SAMPLES:
             weight = fit_check_weight(renders["abs_err"], renders["std_raw"], renders["violation"], renders["depth"])
         std = checked_std(renders["std_raw"], weight * renders["violation"])
+    source = renders["source"]
+    if "violation" in renders:
+        source = source.replace(CHECKED_SOURCE, f", std checked against the training views' free space (weight {weight:.3g})"
+                                if weight > 0.0 else ", the free-space check fitted with weight 0 (std unchecked)")
     out = QuantileCalibration.fit_errors(renders["abs_err"], std, quantity="depth_std", floor=floor,
-                                         depth=renders["depth"] if relative_floor else None, source=renders["source"])
+                                         depth=renders["depth"] if relative_floor else None, source=source)
     out.free_space, out.free_space_weight = "violation" in renders and weight > 0.0, weight if weight > 0.0 else 1.0
     return out, std
 
@@ -764,7 +770,7 @@ def fit_depth_calibration_and_folds(model, dataset, *, seed: int = 0, points: st
     keys = block_keys(capture.xyz, capture.xyz)
     try:
         folded = fit_depth_folds(r["abs_err"], std, keys[r["index"]], keys[capture.roles == SCORE], folds=folds,
-                                 floor=floor, depth=r["depth"] if relative_floor else None, source=r["source"])
+                                 floor=floor, depth=r["depth"] if relative_floor else None, source=out.source)
     except ValueError as exc:  # a scene too small to cross-fit: the map stands, its scores are not independent
         warnings.warn(f"{dataset.root}: the depth map's cross-fitted folds were not fitted ({exc}); depth interval "
                       "scores on the SCORE points will not be independent", stacklevel=2)
