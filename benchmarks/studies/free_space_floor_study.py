@@ -130,23 +130,30 @@ RULE_22E = (RULE + "; study 22e reads each run type's mean over seeds 2, 3 and 4
             "than 10 points from nominal")
 
 
-def collect(run_dir: Path, candidates=tuple(CANDIDATES)) -> dict:
-    """The fitting renders of ``candidates`` (plain and checked, as ``calibrate --points held-out
-    [--free-space]``; the weighted map needs today's and the checked one) and the scored points of one
-    run, each with its free-space violation."""
+def _scored_points(run_dir: Path):
+    """What every study here needs of a run: (model, dataset, capture points, the training views'
+    reference depth, its render seconds, the scored photos, their renders (r, index, view, keep),
+    the violation e of each kept scored point, the block key of every capture point)."""
     cfg, model, dataset = load_trained_model(run_dir)
     capture = load_capture_points(dataset)
     t0 = time.perf_counter()
     ref = render_training_depth(model, dataset, progress=False)
     reference_s = time.perf_counter() - t0
-    fits = {name: depth_calibration_renders(model, dataset, points="held-out", bounds=bounds,
-                                            free_space=ref if kind == "checked" else None)
-            for name, (bounds, kind) in CANDIDATES.items() if kind != "weighted" and name in candidates}
     views = scored_views(dataset, cfg.data.split)
     r, index, view, keep = scored_photo_renders(model, dataset, capture, views)
     centres = camera_to_world(dataset.cameras).double()[:, :3, 3].numpy()[view[keep]]
     e = free_space_violation(rendered_points(centres, capture.xyz[index[keep]], r["gt"][keep], r["depth_mean"][keep]), ref)
-    keys = block_keys(capture.xyz, capture.xyz)
+    return model, dataset, capture, ref, reference_s, views, (r, index, view, keep), e, block_keys(capture.xyz, capture.xyz)
+
+
+def collect(run_dir: Path, candidates=tuple(CANDIDATES)) -> dict:
+    """The fitting renders of ``candidates`` (plain and checked, as ``calibrate --points held-out
+    [--free-space]``; the weighted map needs today's and the checked one) and the scored points of one
+    run, each with its free-space violation."""
+    model, dataset, capture, ref, reference_s, views, (r, index, view, keep), e, keys = _scored_points(run_dir)
+    fits = {name: depth_calibration_renders(model, dataset, points="held-out", bounds=bounds,
+                                            free_space=ref if kind == "checked" else None)
+            for name, (bounds, kind) in CANDIDATES.items() if kind != "weighted" and name in candidates}
     plain, checked = fits[TODAY], fits[CHECKED]
     if not np.array_equal(plain["index"], checked["index"]):
         raise RuntimeError(f"{run_dir}: the plain and checked calibration renders kept different points")
@@ -167,16 +174,7 @@ def collect_weighted(run_dir: Path) -> dict:
     """Study 22f's renders: per bounds (widest: today's default; interpolated: the candidate) one
     calibration render with the check, beta fitted on it (``calibration.fit_check_weight``) and the
     weighted std, as ``calibrate`` fits today's map; the scored points with their violation."""
-    cfg, model, dataset = load_trained_model(run_dir)
-    capture = load_capture_points(dataset)
-    t0 = time.perf_counter()
-    ref = render_training_depth(model, dataset, progress=False)
-    reference_s = time.perf_counter() - t0
-    views = scored_views(dataset, cfg.data.split)
-    r, index, view, keep = scored_photo_renders(model, dataset, capture, views)
-    centres = camera_to_world(dataset.cameras).double()[:, :3, 3].numpy()[view[keep]]
-    e = free_space_violation(rendered_points(centres, capture.xyz[index[keep]], r["gt"][keep], r["depth_mean"][keep]), ref)
-    keys = block_keys(capture.xyz, capture.xyz)
+    model, dataset, capture, ref, reference_s, views, (r, index, view, keep), e, keys = _scored_points(run_dir)
     sigma = r["depth_std"][keep]
     fit, betas, scored_std, violated = {}, {}, {}, 0.0
     for name in (WEIGHTED, INTERP_WEIGHTED):
