@@ -223,3 +223,35 @@ def test_study_22d_check_weight_follows_the_errors(load_script):
     assert study.fit_check_weight(explained, sigma, e, depth) == pytest.approx(1.0)
     unrelated = np.abs(rng.normal(size=n)) * sigma  # e (now large) says nothing about these errors
     assert study.fit_check_weight(unrelated, sigma, 30.0 * e, depth) == 0.0
+
+
+def test_study_22e_reads_seed_means_and_guards_single_seeds(load_script):
+    """Study 22e's rule by hand: a candidate that misses paper fern's 90% level on one seed by under a
+    point but holds it on the mean over seeds is taken; the same candidate with one seed's level 12
+    points off nominal is stopped by the guard; 22f judges against the weighted map."""
+    study = load_script("benchmarks/studies/free_space_floor_study.py")
+    levels = ("50", "68", "90", "95", "99")
+
+    def row(cov, width=0.1, is95=1.0, spearman=0.7):
+        return {**{f"coverage_{n}": c for n, c in zip(levels, (*cov, 0.99))}, "halfwidth_median_95": width,
+                "interval_score_95": is95, "spearman_mean": spearman}
+
+    honest, wide = (0.5, 0.683, 0.9, 0.95), (0.8, 0.9, 0.97, 0.99)
+    runs = {}
+    for seed, fern90 in ((2, 0.846), (3, 0.872), (4, 0.857)):  # the candidate's paper fern 90% per seed
+        runs[f"seed{seed}/paper/fern"] = {study.TODAY: row((0.5, 0.683, 0.86, 0.95), 0.2, 1.5),
+                                         study.WEIGHTED: row((0.5, 0.683, fern90, 0.95), 0.2, 1.4)}
+        runs[f"seed{seed}/paper/flower"] = {study.TODAY: row(wide, 1.0, 3.0), study.WEIGHTED: row(honest, 0.2, 1.4)}
+        runs[f"seed{seed}/synthetic"] = {study.TODAY: row(honest, 0.04, 0.2), study.WEIGHTED: row(honest, 0.04, 0.2)}
+    assert study.run_type("seed2/paper/fern") == "paper/fern" and study.run_type("synthetic") == "synthetic"
+    means = study.seed_means(runs, (study.TODAY, study.WEIGHTED))
+    assert means["paper/fern"][study.WEIGHTED]["coverage_90"] == pytest.approx((0.846 + 0.872 + 0.857) / 3)
+    assert study.decide(runs, "22d").startswith("today's stays")  # one seed at a time: 84.6% loses the level
+    assert study.decide(runs, "22e").startswith("taken: " + study.WEIGHTED)
+    runs["seed3/synthetic"][study.WEIGHTED] = row((0.5, 0.563, 0.9, 0.95), 0.04, 0.2)  # 12 points under at 68%
+    runs["seed2/synthetic"][study.WEIGHTED] = row((0.5, 0.773, 0.9, 0.95), 0.04, 0.2)  # 9 over: the mean holds
+    verdict = study.decide(runs, "22e")
+    assert verdict.startswith("today's stays (the guard: seed3/synthetic: coverage 68 56.3%)")
+    for r in runs.values():  # 22f: the weighted map is today's; a copy of it gains nothing
+        r[study.INTERP_WEIGHTED] = dict(r[study.WEIGHTED])
+    assert "gains no check" in study.decide(runs, "22f")

@@ -261,7 +261,7 @@ def decide(runs: dict, study: str = "22") -> str:
     today = BASELINE.get(study, TODAY)
     if study not in SEED_MEAN_STUDIES:
         return decide_by_checks(runs, today, JUDGED[study])
-    verdict = decide_by_checks(seed_means(runs, RENDERED[study]), today, JUDGED[study])
+    verdict = decide_by_checks(seed_means(runs, (today, *JUDGED[study])), today, JUDGED[study])
     broken = single_run_guard(runs, JUDGED[study][0], today)
     if broken and verdict.startswith("taken"):
         return "today's stays (the guard: " + "; ".join(broken) + "). " + verdict.split(". ", 1)[1]
