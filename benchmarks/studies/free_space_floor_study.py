@@ -147,45 +147,28 @@ def _scored_points(run_dir: Path):
 
 
 def collect(run_dir: Path, candidates=tuple(CANDIDATES)) -> dict:
-    """The fitting renders of ``candidates`` (plain and checked, as ``calibrate --points held-out
-    [--free-space]``; the weighted map needs today's and the checked one) and the scored points of one
-    run, each with its free-space violation."""
-    model, dataset, capture, ref, reference_s, views, (r, index, view, keep), e, keys = _scored_points(run_dir)
-    fits = {name: depth_calibration_renders(model, dataset, points="held-out", bounds=bounds,
-                                            free_space=ref if kind == "checked" else None)
-            for name, (bounds, kind) in CANDIDATES.items() if kind != "weighted" and name in candidates}
-    plain, checked = fits[TODAY], fits[CHECKED]
-    if not np.array_equal(plain["index"], checked["index"]):
-        raise RuntimeError(f"{run_dir}: the plain and checked calibration renders kept different points")
-    beta = fit_check_weight(plain["abs_err"], plain["std"], checked["violation"], plain["depth"])
-    fits[WEIGHTED] = {**plain, "std": checked_std(plain["std"], beta * checked["violation"])}
-    sigma = r["depth_std"][keep]
-    return {"fit": {name: {"abs_err": f["abs_err"], "depth": f["depth"], "std": f["std"], "keys": keys[f["index"]],
-                           "median_rel_err": float(np.median(f["abs_err"] / f["depth"]))} for name, f in fits.items()},
-            "score_blocks": keys[capture.roles == SCORE], "check_weight": beta,
-            "fit_violated": float((checked["std"] > plain["std"] * (1 + 1e-9)).mean()),
-            "scored": {"gt": r["gt"][keep], "pred": r["depth_mean"][keep],
-                       "std": {"plain": sigma, "checked": checked_std(sigma, e), "weighted": checked_std(sigma, beta * e)},
-                       "violation": e, "keys": keys[index[keep]], "view": view[keep]},
-            "views": views, "reference_s": reference_s}
-
-
-def collect_weighted(run_dir: Path) -> dict:
-    """Study 22f's renders: per bounds (widest: today's default; interpolated: the candidate) one
-    calibration render with the check, beta fitted on it (``calibration.fit_check_weight``) and the
-    weighted std, as ``calibrate`` fits today's map; the scored points with their violation."""
+    """The fitting points of ``candidates`` and the scored points of one run. One calibration render
+    per bounds the candidates use, with the check (as ``calibrate --points held-out --free-space``):
+    its raw std is the plain map's, the full violation the checked one's, and the weighted maps fit
+    beta on it (``calibration.fit_check_weight``) as ``calibrate`` does; the scored points get the
+    same std with their own violation."""
     model, dataset, capture, ref, reference_s, views, (r, index, view, keep), e, keys = _scored_points(run_dir)
     sigma = r["depth_std"][keep]
-    fit, betas, scored_std, violated = {}, {}, {}, 0.0
-    for name in (WEIGHTED, INTERP_WEIGHTED):
-        f = depth_calibration_renders(model, dataset, points="held-out", bounds=CANDIDATES[name][0], free_space=ref)
-        beta = fit_check_weight(f["abs_err"], f["std_raw"], f["violation"], f["depth"])
+    renders = {bounds: depth_calibration_renders(model, dataset, points="held-out", bounds=bounds, free_space=ref)
+               for bounds in dict.fromkeys(CANDIDATES[name][0] for name in candidates)}
+    fit, betas, scored_std = {}, {}, {}
+    for name in candidates:
+        bounds, kind = CANDIDATES[name]
+        f = renders[bounds]
+        beta = {"plain": 0.0, "checked": 1.0}.get(kind)
+        if beta is None:  # weighted
+            beta = betas[name] = fit_check_weight(f["abs_err"], f["std_raw"], f["violation"], f["depth"])
         fit[name] = {"abs_err": f["abs_err"], "depth": f["depth"], "std": checked_std(f["std_raw"], beta * f["violation"]),
                      "keys": keys[f["index"]], "median_rel_err": float(np.median(f["abs_err"] / f["depth"]))}
-        betas[name], scored_std[name] = beta, checked_std(sigma, beta * e)
-        violated = violated or float((f["violation"] > 0).mean())
-    return {"fit": fit, "score_blocks": keys[capture.roles == SCORE], "check_weight": betas[WEIGHTED],
-            "check_weights": betas, "fit_violated": violated,
+        scored_std[name] = checked_std(sigma, beta * e)
+    first = renders.get("widest", next(iter(renders.values())))
+    return {"fit": fit, "score_blocks": keys[capture.roles == SCORE], "check_weight": betas.get(WEIGHTED),
+            "check_weights": betas, "fit_violated": float((first["std"] > first["std_raw"] * (1 + 1e-9)).mean()),
             "scored": {"gt": r["gt"][keep], "pred": r["depth_mean"][keep], "std": scored_std, "violation": e,
                        "keys": keys[index[keep]], "view": view[keep]},
             "views": views, "reference_s": reference_s}
@@ -193,8 +176,7 @@ def collect_weighted(run_dir: Path) -> dict:
 
 def evaluate_candidate(data: dict, name: str) -> tuple[dict, dict]:
     f, s = data["fit"][name], data["scored"]
-    std = s["std"][name] if name in s["std"] else s["std"][CANDIDATES[name][1]]
-    row, iv = score_map(f["abs_err"], f["std"], f["depth"], f["keys"], data["score_blocks"], s, std)
+    row, iv = score_map(f["abs_err"], f["std"], f["depth"], f["keys"], data["score_blocks"], s, s["std"][name])
     row.update({"fit_points": int(f["abs_err"].size), "fit_median_rel_err": f["median_rel_err"]})
     return row, iv
 
@@ -342,10 +324,10 @@ def main(argv=None) -> None:
             results["runs"][name] = done[name]
             print(f"[{name}] kept from {args.out / 'results.json'}", flush=True)
             continue
-        data = collect_weighted(Path(run)) if args.study == "22f" else collect(Path(run), RENDERED[args.study])
+        data = collect(Path(run), RENDERED[args.study])
         res, curves = {"run": run, "views": [int(v) for v in data["views"]], "violations": violation_share(data),
                        "reference_s": data["reference_s"], "check_weight": data["check_weight"],
-                       "check_weights": data.get("check_weights")}, {}
+                       "check_weights": data["check_weights"]}, {}
         for cand in RENDERED[args.study]:
             res[cand], curves[cand] = evaluate_candidate(data, cand)
             print(f"[{name}] {cand}: rho {res[cand]['rho']:.3g}, coverage "

@@ -240,8 +240,7 @@ class QuantileCalibration:
             raise ValueError(f"{where}: free_space must be true or false, got {out.free_space!r}")
         if not (math.isfinite(out.floor) and out.floor >= 0.0):
             raise ValueError(f"{where}: the std floor must be finite and >= 0, got {out.floor}")
-        if not (math.isfinite(out.free_space_weight) and out.free_space_weight >= 0.0):
-            raise ValueError(f"{where}: the free-space check's weight must be finite and >= 0, got {out.free_space_weight}")
+        _check_weight(out.free_space_weight, where)
         if not (math.isfinite(out.relative_floor) and out.relative_floor >= 0.0):
             raise ValueError(f"{where}: the depth-proportional term must be finite and >= 0, got {out.relative_floor}")
         if (levels.ndim != 1 or levels.shape != scales.shape or levels.size == 0 or not np.isfinite(levels).all()
@@ -465,6 +464,13 @@ def relative_crps(abs_err: np.ndarray, std: np.ndarray, depth: np.ndarray, rho: 
     q_minus_y = np.sign(t - 0.5)[None, :] * half[None, :] * total[:, None] - abs_err[:, None]  # y = d + |err|
     crps = 2.0 * (((q_minus_y > 0).astype(np.float64) - t[None, :]) * q_minus_y).mean(axis=1)
     return float((crps / depth).mean())
+
+
+def _check_weight(weight: float, where: str) -> float:
+    """``weight`` when it is a valid free-space check weight (finite, >= 0); ValueError naming ``where``."""
+    if not (math.isfinite(weight) and weight >= 0.0):
+        raise ValueError(f"{where}: the free-space check's weight must be finite and >= 0, got {weight}")
+    return weight
 
 
 def fit_check_weight(abs_err: np.ndarray, sigma: np.ndarray, violation: np.ndarray, depth: np.ndarray,
@@ -737,20 +743,18 @@ def _fit_depth_map(renders: dict[str, Any], *, floor: bool, relative_floor: bool
     with the free-space check (a "violation" entry) weigh it by ``check_weight``, or when None by the
     weight beta ``fit_check_weight`` fits (with rho when ``relative_floor``; without the term, the
     full check); a weight of 0 leaves an unchecked map."""
-    std, weight = renders["std"], 1.0 if check_weight is None else float(check_weight)
-    if not (math.isfinite(weight) and weight >= 0.0):
-        raise ValueError(f"the free-space check's weight must be finite and >= 0, got {check_weight}")
-    if "violation" in renders:
+    weight = 1.0 if check_weight is None else _check_weight(float(check_weight), "check_weight")
+    std, source, checked = renders["std"], renders["source"], "violation" in renders
+    if checked:
         if check_weight is None and relative_floor and renders["abs_err"].size >= MIN_CALIBRATION_SAMPLES:
             weight = fit_check_weight(renders["abs_err"], renders["std_raw"], renders["violation"], renders["depth"])
         std = checked_std(renders["std_raw"], weight * renders["violation"])
-    source = renders["source"]
-    if "violation" in renders:
-        source = source.replace(CHECKED_SOURCE, f", std checked against the training views' free space (weight {weight:.3g})"
-                                if weight > 0.0 else ", the free-space check fitted with weight 0 (std unchecked)")
+        source = source.replace(CHECKED_SOURCE, f"{CHECKED_SOURCE} (weight {weight:.3g})" if weight > 0.0
+                                else ", the free-space check fitted with weight 0 (std unchecked)")
     out = QuantileCalibration.fit_errors(renders["abs_err"], std, quantity="depth_std", floor=floor,
                                          depth=renders["depth"] if relative_floor else None, source=source)
-    out.free_space, out.free_space_weight = "violation" in renders and weight > 0.0, weight if weight > 0.0 else 1.0
+    if checked and weight > 0.0:  # a weight of 0 leaves the unchecked map (free_space False, weight 1)
+        out.free_space, out.free_space_weight = True, weight
     return out, std
 
 

@@ -7,6 +7,7 @@ loads the implementation when the command runs.
 from __future__ import annotations
 
 import argparse
+import math
 
 from ..defaults import (CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS, DEPTH_FREE_SPACE,
                         DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR, FREE_PATH_RECALIBRATION)
@@ -53,8 +54,8 @@ def _weight(text: str) -> float:
     try:
         value = float(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--free-space-weight: expected a number >= 0, got {text!r}") from None
-    if not (value >= 0.0 and value != float("inf")):
+        value = math.nan
+    if not (math.isfinite(value) and value >= 0.0):
         raise argparse.ArgumentTypeError(f"--free-space-weight: expected a finite number >= 0, got {text!r}")
     return value
 
