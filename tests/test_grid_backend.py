@@ -8,6 +8,7 @@ import torch
 import torch.nn.functional as F
 
 from stochastic_fields.fields.grid import GridField, trilinear_corners
+from stochastic_fields import row_kernels
 from stochastic_fields.fields.row_gather import gather_rows, row_gradient
 from stochastic_fields.optim import FieldOptimizer, RowSparseAdam
 from stochastic_fields.scene_region import SceneRegion
@@ -211,3 +212,85 @@ def test_row_sparse_adam_accepts_ordinary_sparse_and_dense_gradients():
             (F.embedding(idx, p, sparse=sparse) * coeff).sum().backward()
             o.step()
         torch.testing.assert_close(ours.detach(), ref.detach(), rtol=1e-12, atol=1e-12)
+
+
+def _torch_ops_only(monkeypatch):
+    """Make the row loops run as torch ops (what CUDA tensors and a machine without numba get)."""
+    monkeypatch.setattr(row_kernels, "available", lambda *tensors: False)
+
+
+@pytest.mark.skipif(row_kernels.numba is None, reason="numba not installed")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("channels", [None, slice(1, 3)])
+def test_compiled_row_scatter_matches_torch_ops(monkeypatch, dtype, channels):
+    g = torch.Generator().manual_seed(3)
+    N, C, M, J = 40, 4, 300, 8
+    table = torch.zeros(N, C, dtype=dtype, requires_grad=True)
+    idx = torch.randint(0, N // 2, (M, J), generator=g)  # many duplicates; rows N/2.. never touched
+    w = torch.rand(M, J, generator=g, dtype=dtype)
+    width = C if channels is None else channels.stop - channels.start
+    coeff = torch.randn(M, width, generator=g, dtype=dtype)
+
+    def accumulated():
+        row_gradient(table).zero()
+        (gather_rows(table, idx, w, channels=channels) * coeff).sum().backward()
+        return row_gradient(table).dense(table), row_gradient(table).touched_rows(table)
+
+    compiled, touched = accumulated()
+    with monkeypatch.context() as m:
+        _torch_ops_only(m)
+        reference, touched_ref = accumulated()
+    exact = dict(rtol=1e-12, atol=1e-12) if dtype == torch.float64 else dict(rtol=1e-6, atol=1e-6)
+    torch.testing.assert_close(compiled, reference, **exact)
+    assert torch.equal(touched, touched_ref) and touched[N // 2:].sum() == 0 and touched[: N // 2].any()
+    if channels is not None:
+        assert compiled[:, : channels.start].abs().sum() == 0 and compiled[:, channels.stop:].abs().sum() == 0
+
+
+@pytest.mark.skipif(row_kernels.numba is None, reason="numba not installed")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_compiled_adam_matches_torch_ops_and_is_used(monkeypatch, dtype):
+    """Five steps of RowSparseAdam with the compiled loop against the same steps as torch ops: same
+    table and moments (float rounding), untouched rows unchanged, and the loop really ran."""
+    calls = []
+    compiled_adam = row_kernels.adam_touched_rows
+    monkeypatch.setattr(row_kernels, "adam_touched_rows", lambda *a, **k: calls.append(1) or compiled_adam(*a, **k))
+
+    def train(torch_ops: bool):
+        g = torch.Generator().manual_seed(0)
+        table = torch.nn.Parameter(torch.randn(30, 3, generator=g, dtype=dtype))
+        opt = RowSparseAdam([table], lr=0.05, eps=1e-8)
+        with monkeypatch.context() as m:
+            if torch_ops:
+                _torch_ops_only(m)
+            for s in range(5):
+                idx = torch.randint(0, 15, (20, 8), generator=g) + s
+                w = torch.rand(20, 8, generator=g, dtype=dtype)
+                opt.zero_grad()
+                (gather_rows(table, idx, w) * torch.randn(20, 3, generator=g, dtype=dtype)).sum().backward()
+                opt.step()
+        return table.detach(), opt.state[table]
+
+    ours, state = train(torch_ops=False)
+    assert len(calls) == 5
+    ref, ref_state = train(torch_ops=True)
+    assert len(calls) == 5  # the torch ops ran the second time
+    tol = dict(rtol=1e-12, atol=1e-12) if dtype == torch.float64 else dict(rtol=2e-6, atol=2e-6)
+    torch.testing.assert_close(ours, ref, **tol)
+    for key in ("exp_avg", "exp_avg_sq"):
+        torch.testing.assert_close(state[key], ref_state[key], **tol)
+    assert float(state["step"]) == float(ref_state["step"]) == 5.0
+    start = torch.randn(30, 3, generator=torch.Generator().manual_seed(0), dtype=dtype)
+    assert torch.equal(ours[20:], start[20:])  # rows 20.. were never read: untouched
+
+
+def test_row_kernels_refuse_what_they_cannot_run():
+    a = torch.zeros(4, 3)
+    assert not row_kernels.available(a, a.double())  # mixed float dtypes
+    assert not row_kernels.available(a.T)  # not contiguous
+    assert not row_kernels.available(a.half())
+    if row_kernels.numba is not None:
+        assert row_kernels.available(a, torch.zeros(4, dtype=torch.bool), torch.zeros(2, 8, dtype=torch.int64))
+        with pytest.raises(ValueError, match="do not fit"):
+            row_kernels.scatter_weighted_rows(a, torch.zeros(4, dtype=torch.bool), torch.zeros(2, 8, dtype=torch.int64),
+                                              torch.zeros(2, 8), torch.zeros(2, 3), first_channel=1)

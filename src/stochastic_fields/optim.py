@@ -4,7 +4,8 @@ Grid cells (``fields.grid``) receive sparse gradients (only the cells a batch to
 ``torch.optim.Adam`` rejects. :class:`RowSparseAdam` updates their moments and values only in the
 rows where a gradient arrived (lazy Adam, as ``torch.optim.SparseAdam`` and instant-NGP), and
 finds those rows with a bitmap instead of sorting the gradient's indices: ``SparseAdam``'s
-coalesce (a sort of every corner index of the batch) was half of a training step at 2M cells.
+coalesce (a sort of every corner index of the batch) was half of a training step at 2M cells. On the CPU the
+update of a table is one compiled loop over its touched rows (``row_kernels``).
 Everything else (decoders, MLPs, priors) uses Adam. One object steps, zeroes, schedules and
 checkpoints both.
 
@@ -18,6 +19,7 @@ from __future__ import annotations
 import torch
 
 from .constants import ADAM_EPS
+from . import row_kernels
 
 
 class FieldOptimizer:
@@ -105,6 +107,30 @@ class RowSparseAdam(torch.optim.Optimizer):
         summed = torch.zeros(len(rows), values.shape[1], dtype=p.dtype, device=p.device)
         return rows, summed.index_add_(0, inverse, values)
 
+    def _state(self, p: torch.Tensor) -> dict:
+        state = self.state[p]
+        if not state:
+            state["step"] = torch.zeros((), dtype=torch.float64)
+            state["exp_avg"] = torch.zeros_like(p)
+            state["exp_avg_sq"] = torch.zeros_like(p)
+        return state
+
+    def _step_in_place(self, p: torch.Tensor, group: dict) -> bool:
+        """The update of a table whose whole gradient waits in its ``RowGradient`` (no ``.grad``), as
+        one compiled loop over the touched rows (``row_kernels``; CPU). False where it does not
+        apply (then ``step`` takes the rows and updates them with torch ops: same values)."""
+        acc = getattr(p, "row_gradient", None)
+        buffers = None if acc is None or p.grad is not None else acc.pending(p)
+        if buffers is None or not bool(buffers[1].any()):
+            return False
+        state = self._state(p)
+        if not row_kernels.available(p, state["exp_avg"], state["exp_avg_sq"], *buffers):
+            return False
+        state["step"] += 1
+        row_kernels.adam_touched_rows(p.data, state["exp_avg"], state["exp_avg_sq"], *buffers, lr=group["lr"],
+                                      betas=group["betas"], eps=group["eps"], step=int(state["step"]))
+        return True
+
     def zero_grad(self, set_to_none: bool = True) -> None:
         super().zero_grad(set_to_none=set_to_none)
         for group in self.param_groups:
@@ -119,15 +145,13 @@ class RowSparseAdam(torch.optim.Optimizer):
         for group in self.param_groups:
             b1, b2 = group["betas"]
             for p in group["params"]:
+                if self._step_in_place(p, group):
+                    continue
                 taken = self._gradient_rows(p)
                 if taken is None:
                     continue
                 rows, g = taken
-                state = self.state[p]
-                if not state:
-                    state["step"] = torch.zeros((), dtype=torch.float64)
-                    state["exp_avg"] = torch.zeros_like(p)
-                    state["exp_avg_sq"] = torch.zeros_like(p)
+                state = self._state(p)
                 state["step"] += 1
                 t = float(state["step"])
                 m = state["exp_avg"][rows].mul_(b1).add_(g, alpha=1 - b1)

@@ -7,9 +7,10 @@ sparse COO gradient costs a copy or a sort each time two of them are added (meas
 per add for 550k rows at N = 2M, more than the whole forward pass).
 
 Here the backward pass adds each row's gradient straight into a :class:`RowGradient` attached
-to the table (``index_add_`` into a scratch table plus a bitmap of touched rows), and returns no
-gradient for the table itself. The optimiser (``optim.RowSparseAdam``) takes the touched rows and
-their summed gradients from it, and zeroing costs O(touched rows).
+to the table (a scratch table plus a bitmap of touched rows), and returns no gradient for the
+table itself. The optimiser (``optim.RowSparseAdam``) updates the touched rows from it, and
+zeroing costs O(touched rows). On the CPU both loops are compiled (``row_kernels``: about 2.7x
+and 3x faster than the ``index_add_`` and gathers torch runs them as); on CUDA they are torch ops.
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import Tensor
+
+from .. import row_kernels
 
 
 class RowGradient:
@@ -54,6 +57,32 @@ class RowGradient:
         acc, touched = self._unreplace(table)
         (acc if channels is None else acc[:, channels]).index_add_(0, rows, values.to(acc.dtype))
         touched[rows] = True
+
+    def add_weighted(self, table: Tensor, idx: Tensor, weights: Tensor, grad: Tensor,
+                     channels: slice | None = None) -> None:
+        """Accumulate ``weights[m, j] grad[m, c]`` into rows ``idx[m, j]`` (idx, weights [M, J], grad
+        [M, c]; the channels of ``channels``, all by default): the backward of a weighted gather.
+        On the CPU one compiled loop (``row_kernels``), else the products and ``add``."""
+        acc, touched = self._unreplace(table)
+        first = 0 if channels is None else channels.indices(acc.shape[1])
+        contiguous_channels = channels is None or first[2] == 1
+        grad, weights = grad.to(acc.dtype).contiguous(), weights.to(acc.dtype).contiguous()
+        idx = idx.contiguous()
+        if contiguous_channels and row_kernels.available(acc, touched, idx, weights, grad):
+            row_kernels.scatter_weighted_rows(acc, touched, idx, weights, grad, 0 if channels is None else first[0])
+            return
+        # w_mj g_mc as one einsum: the broadcast product took ~3x as long on CPU in isolation (same values)
+        rows = torch.einsum("mj,mc->mjc", weights, grad).reshape(-1, grad.shape[-1])
+        self.add(table, idx.reshape(-1), rows, channels)
+
+    def pending(self, table: Tensor) -> tuple[Tensor, Tensor] | None:
+        """(accumulated gradient [N, C], touched rows [N] bool), the buffers themselves, when they hold
+        this step's whole gradient (nothing ``replace``d waits); None otherwise. For an optimiser that
+        updates the touched rows in place and resets both (``optim.RowSparseAdam``)."""
+        if self._replaced is not None or self._acc is None or self._acc.shape != table.shape \
+                or self._acc.dtype != table.dtype or self._acc.device != table.device:
+            return None
+        return self._acc, self._touched
 
     def take(self, table: Tensor) -> tuple[Tensor, Tensor]:
         """(rows [U] ascending, gradient [U, C]) accumulated since the last take; resets to zero."""
@@ -129,9 +158,7 @@ class _WeightedRowGather(torch.autograd.Function):
         channels = ctx.channels
         grad_w = None
         if ctx.needs_input_grad[0]:
-            # w_mj g_mc as one einsum: the broadcast product took ~3x as long on CPU in isolation (same values)
-            rows = torch.einsum("mj,mc->mjc", weights.to(grad_out.dtype), grad_out).reshape(-1, grad_out.shape[-1])
-            row_gradient(table).add(table, idx.reshape(-1), rows, channels)
+            row_gradient(table).add_weighted(table, idx, weights, grad_out, channels)
         if ctx.needs_input_grad[2]:
             M, J = idx.shape
             read = table if channels is None else table[:, channels]

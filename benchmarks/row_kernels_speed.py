@@ -1,0 +1,113 @@
+"""Training step time with the grid's compiled row loops against the same steps as torch ops.
+
+``row_kernels`` runs the backward of the grid's row gathers and the lazy Adam update as
+compiled loops on the CPU; the torch ops they replace still run on CUDA and without numba. This
+times both on the same trainer, in one process, alternating: each method trains ``--warmup``
+steps on the capture split (``--preset llff``, the default split: every 8th photo validates; past
+the empty-space occupancy warm-up), then ``--rounds`` times ``--steps`` steps with the compiled
+loops and ``--steps`` steps with torch ops, so drifts of the machine hit both alike. The trainer's
+loop clock; one torch thread.
+
+Both paths give the same values up to float rounding (tests/test_grid_backend.py), so the training
+itself is not compared here: ``benchmarks/capture_quality.py`` measures what the faster steps buy
+in ten minutes.
+
+    OMP_NUM_THREADS=1 python benchmarks/row_kernels_speed.py --out benchmarks/results/row_kernels
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from stochastic_fields import row_kernels
+from stochastic_fields.io_utils import atomic_write_text
+from stochastic_fields.scenes import load_run_dataset
+from stochastic_fields.trainer import Trainer
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from capture_quality import config_for  # noqa: E402  (the capture benchmark's configuration)
+
+
+@contextlib.contextmanager
+def torch_ops_only():
+    """Run the row loops as torch ops (what CUDA and a machine without numba get)."""
+    available = row_kernels.available
+    row_kernels.available = lambda *tensors: False
+    try:
+        yield
+    finally:
+        row_kernels.available = available
+
+
+def time_steps(trainer: Trainer, steps: int) -> float:
+    before = trainer.elapsed
+    trainer.train(progress=False, max_steps=steps)
+    return (trainer.elapsed - before) / steps
+
+
+def measure(scene: str, method: str, *, warmup: int, steps: int, rounds: int, work: Path) -> dict:
+    cfg = config_for(scene, method, warmup + 2 * rounds * steps, seed=0)
+    run_dir = work / f"{scene}_{method}"
+    dataset = load_run_dataset(cfg, run_dir)
+    trainer = Trainer(cfg, run_dir, dataset)
+    trainer.train(progress=False, max_steps=warmup)
+    compiled, torch_ops = [], []
+    for _ in range(rounds):
+        compiled.append(time_steps(trainer, steps))
+        with torch_ops_only():
+            torch_ops.append(time_steps(trainer, steps))
+    shutil.rmtree(run_dir, ignore_errors=True)
+    c, t = float(np.mean(compiled)), float(np.mean(torch_ops))
+    return {"scene": scene, "method": method, "train_views": len(dataset.train_indices),
+            "compiled_s_per_step": c, "torch_ops_s_per_step": t, "speedup": t / c,
+            "rounds_compiled": compiled, "rounds_torch_ops": torch_ops}
+
+
+def report(rows: list[dict], command: str) -> str:
+    lines = ["# Training step time: compiled row loops against torch ops", "",
+             f"Command: `{command}` (one torch thread; the trainer's loop clock; both paths on the same trainer, "
+             "alternating, after the warm-up).", "",
+             "| scene | method | training photos | s / step compiled | s / step torch ops | speed-up |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['scene']} | {r['method']} | {r['train_views']} | {r['compiled_s_per_step']:.3f} "
+                     f"| {r['torch_ops_s_per_step']:.3f} | {r['speedup']:.2f}x |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--scenes", nargs="+", default=["fern", "flower"])
+    p.add_argument("--methods", nargs="+", default=["snerf", "deterministic"])
+    p.add_argument("--warmup", type=int, default=300, help="Steps before timing (past the occupancy warm-up).")
+    p.add_argument("--steps", type=int, default=40, help="Steps per timed block.")
+    p.add_argument("--rounds", type=int, default=2, help="Blocks per path, alternating.")
+    p.add_argument("--out", type=Path, required=True)
+    args = p.parse_args(argv)
+    if row_kernels.numba is None:
+        raise SystemExit("numba is not installed: nothing to compare (pip install -r requirements-cpu.txt)")
+    torch.set_num_threads(1)
+    args.out.mkdir(parents=True, exist_ok=True)
+    command = "python benchmarks/row_kernels_speed.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    rows = []
+    with tempfile.TemporaryDirectory() as work:
+        for scene in args.scenes:
+            for method in args.methods:
+                rows.append(measure(scene, method, warmup=args.warmup, steps=args.steps, rounds=args.rounds,
+                                    work=Path(work)))
+                print(json.dumps({k: v for k, v in rows[-1].items() if not k.startswith("rounds")}), flush=True)
+                atomic_write_text(args.out / "results.json", json.dumps({"command": command, "rows": rows}, indent=2))
+                atomic_write_text(args.out / "README.md", report(rows, command))
+
+
+if __name__ == "__main__":
+    main()
