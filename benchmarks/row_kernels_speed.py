@@ -18,7 +18,6 @@ in ten minutes.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import shutil
 import sys
@@ -37,17 +36,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from capture_quality import config_for  # noqa: E402  (the capture benchmark's configuration)
 
 
-@contextlib.contextmanager
-def torch_ops_only():
-    """Run the row loops as torch ops (what CUDA and a machine without numba get)."""
-    available = row_kernels.available
-    row_kernels.available = lambda *tensors: False
-    try:
-        yield
-    finally:
-        row_kernels.available = available
-
-
 def time_steps(trainer: Trainer, steps: int) -> float:
     before = trainer.elapsed
     trainer.train(progress=False, max_steps=steps)
@@ -63,7 +51,7 @@ def measure(scene: str, method: str, *, warmup: int, steps: int, rounds: int, wo
     compiled, torch_ops = [], []
     for _ in range(rounds):
         compiled.append(time_steps(trainer, steps))
-        with torch_ops_only():
+        with row_kernels.torch_ops_only():
             torch_ops.append(time_steps(trainer, steps))
     shutil.rmtree(run_dir, ignore_errors=True)
     c, t = float(np.mean(compiled)), float(np.mean(torch_ops))

@@ -3,6 +3,8 @@ own grid_sample, dense autograd and torch.optim.SparseAdam."""
 
 from __future__ import annotations
 
+import contextlib
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -214,15 +216,10 @@ def test_row_sparse_adam_accepts_ordinary_sparse_and_dense_gradients():
         torch.testing.assert_close(ours.detach(), ref.detach(), rtol=1e-12, atol=1e-12)
 
 
-def _torch_ops_only(monkeypatch):
-    """Make the row loops run as torch ops (what CUDA tensors and a machine without numba get)."""
-    monkeypatch.setattr(row_kernels, "available", lambda *tensors: False)
-
-
 @pytest.mark.skipif(row_kernels.numba is None, reason="numba not installed")
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("channels", [None, slice(1, 3)])
-def test_compiled_row_scatter_matches_torch_ops(monkeypatch, dtype, channels):
+def test_compiled_row_scatter_matches_torch_ops(dtype, channels):
     g = torch.Generator().manual_seed(3)
     N, C, M, J = 40, 4, 300, 8
     table = torch.zeros(N, C, dtype=dtype, requires_grad=True)
@@ -237,8 +234,7 @@ def test_compiled_row_scatter_matches_torch_ops(monkeypatch, dtype, channels):
         return row_gradient(table).dense(table), row_gradient(table).touched_rows(table)
 
     compiled, touched = accumulated()
-    with monkeypatch.context() as m:
-        _torch_ops_only(m)
+    with row_kernels.torch_ops_only():
         reference, touched_ref = accumulated()
     exact = dict(rtol=1e-12, atol=1e-12) if dtype == torch.float64 else dict(rtol=1e-6, atol=1e-6)
     torch.testing.assert_close(compiled, reference, **exact)
@@ -260,9 +256,7 @@ def test_compiled_adam_matches_torch_ops_and_is_used(monkeypatch, dtype):
         g = torch.Generator().manual_seed(0)
         table = torch.nn.Parameter(torch.randn(30, 3, generator=g, dtype=dtype))
         opt = RowSparseAdam([table], lr=0.05, eps=1e-8)
-        with monkeypatch.context() as m:
-            if torch_ops:
-                _torch_ops_only(m)
+        with row_kernels.torch_ops_only() if torch_ops else contextlib.nullcontext():
             for s in range(5):
                 idx = torch.randint(0, 15, (20, 8), generator=g) + s
                 w = torch.rand(20, 8, generator=g, dtype=dtype)

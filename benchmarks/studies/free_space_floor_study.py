@@ -130,10 +130,12 @@ RULE_22E = (RULE + "; study 22e reads each run type's mean over seeds 2, 3 and 4
             "than 10 points from nominal")
 
 
-def _scored_points(run_dir: Path):
-    """What every study here needs of a run: (model, dataset, capture points, the training views'
-    reference depth, its render seconds, the scored photos, their renders (r, index, view, keep),
-    the violation e of each kept scored point, the block key of every capture point)."""
+def collect(run_dir: Path, candidates=tuple(CANDIDATES)) -> dict:
+    """The fitting points of ``candidates`` and the scored points of one run. One calibration render
+    per bounds the candidates use, with the check (as ``calibrate --points held-out --free-space``):
+    its raw std is the plain map's, the full violation the checked one's, and the weighted maps fit
+    beta on it (``calibration.fit_check_weight``) as ``calibrate`` does; the scored points get the
+    same std with their own violation."""
     cfg, model, dataset = load_trained_model(run_dir)
     capture = load_capture_points(dataset)
     t0 = time.perf_counter()
@@ -143,16 +145,7 @@ def _scored_points(run_dir: Path):
     r, index, view, keep = scored_photo_renders(model, dataset, capture, views)
     centres = camera_to_world(dataset.cameras).double()[:, :3, 3].numpy()[view[keep]]
     e = free_space_violation(rendered_points(centres, capture.xyz[index[keep]], r["gt"][keep], r["depth_mean"][keep]), ref)
-    return model, dataset, capture, ref, reference_s, views, (r, index, view, keep), e, block_keys(capture.xyz, capture.xyz)
-
-
-def collect(run_dir: Path, candidates=tuple(CANDIDATES)) -> dict:
-    """The fitting points of ``candidates`` and the scored points of one run. One calibration render
-    per bounds the candidates use, with the check (as ``calibrate --points held-out --free-space``):
-    its raw std is the plain map's, the full violation the checked one's, and the weighted maps fit
-    beta on it (``calibration.fit_check_weight``) as ``calibrate`` does; the scored points get the
-    same std with their own violation."""
-    model, dataset, capture, ref, reference_s, views, (r, index, view, keep), e, keys = _scored_points(run_dir)
+    keys = block_keys(capture.xyz, capture.xyz)
     sigma = r["depth_std"][keep]
     renders = {bounds: depth_calibration_renders(model, dataset, points="held-out", bounds=bounds, free_space=ref)
                for bounds in dict.fromkeys(CANDIDATES[name][0] for name in candidates)}

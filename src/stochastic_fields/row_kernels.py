@@ -30,6 +30,8 @@ two paths give the same values up to float rounding (tests/test_grid_backend.py)
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -41,6 +43,8 @@ except ImportError:  # pragma: no cover - exercised only on machines without num
 
 #: Table dtypes the loops are compiled for.
 KERNEL_DTYPES: tuple[torch.dtype, ...] = (torch.float32, torch.float64)
+#: Set by ``torch_ops_only``: every caller runs the torch ops.
+_disabled: bool = False
 
 if numba is not None:
     @numba.njit(cache=True, nogil=True)
@@ -59,11 +63,9 @@ if numba is not None:
     def _adam_touched(x, m1, m2, acc, touched, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2,
                       eps):  # pragma: no cover - compiled; tested through the wrappers
         N, C = x.shape
-        count = 0
         for r in range(N):
             if touched[r]:
                 touched[r] = False
-                count += 1
                 for c in range(C):
                     g = acc[r, c]
                     acc[r, c] = 0.0
@@ -72,17 +74,28 @@ if numba is not None:
                     m1[r, c] = a
                     m2[r, c] = b
                     x[r, c] -= step_size * (a / (np.sqrt(b / bias2) + eps))
-        return count
 
 
 def available(*tensors: Tensor) -> bool:
-    """Whether the compiled loops can run on ``tensors``: numba imported, all on the CPU, contiguous,
-    and the float ones of one dtype of ``KERNEL_DTYPES``."""
-    if numba is None:
+    """Whether the compiled loops can run on ``tensors``: numba imported, not inside
+    ``torch_ops_only``, all on the CPU, contiguous, and the float ones of one dtype of ``KERNEL_DTYPES``."""
+    if numba is None or _disabled:
         return False
     floats = {t.dtype for t in tensors if t.is_floating_point()}
     return (all(t.device.type == "cpu" and t.is_contiguous() for t in tensors)
             and len(floats) == 1 and floats <= set(KERNEL_DTYPES))
+
+
+@contextlib.contextmanager
+def torch_ops_only():
+    """Within it every row loop runs as torch ops (what CUDA tensors and a machine without numba
+    get): to compare the two paths (tests, ``benchmarks/row_kernels_speed.py``)."""
+    global _disabled
+    before, _disabled = _disabled, True
+    try:
+        yield
+    finally:
+        _disabled = before
 
 
 def scatter_weighted_rows(acc: Tensor, touched: Tensor, idx: Tensor, weights: Tensor, grad: Tensor,
@@ -99,13 +112,12 @@ def scatter_weighted_rows(acc: Tensor, touched: Tensor, idx: Tensor, weights: Te
 
 
 def adam_touched_rows(table: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor, acc: Tensor, touched: Tensor, *,
-                      lr: float, betas: tuple[float, float], eps: float, step: int) -> int:
+                      lr: float, betas: tuple[float, float], eps: float, step: int) -> None:
     """The lazy Adam update (module doc) of every row of ``table`` [N, C] marked in ``touched`` [N],
     with the summed gradient ``acc`` [N, C], the moments ``exp_avg``, ``exp_avg_sq`` [N, C] and the
-    table's step count ``step`` (>= 1, this update included); zeroes ``acc`` and ``touched`` there.
-    Returns the number of rows updated."""
+    table's step count ``step`` (>= 1, this update included); zeroes ``acc`` and ``touched`` there."""
     b1, b2 = betas
-    cast = np.dtype(str(table.dtype).removeprefix("torch.")).type
-    return int(_adam_touched(table.numpy(), exp_avg.numpy(), exp_avg_sq.numpy(), acc.numpy(), touched.numpy(),
-                             cast(lr / (1.0 - b1 ** step)), cast(b1), cast(1.0 - b1), cast(b2), cast(1.0 - b2),
-                             cast(1.0 - b2 ** step), cast(eps)))
+    x = table.numpy()
+    cast = x.dtype.type  # the scalars in the table's dtype, as torch's ops compute
+    _adam_touched(x, exp_avg.numpy(), exp_avg_sq.numpy(), acc.numpy(), touched.numpy(), cast(lr / (1.0 - b1 ** step)),
+                  cast(b1), cast(1.0 - b1), cast(b2), cast(1.0 - b2), cast(1.0 - b2 ** step), cast(eps))

@@ -14,8 +14,8 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import torch
 
-from stochastic_fields.calibration import (CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS, calibrate_run, describe,
-                                           load_run_calibration)
+from stochastic_fields.calibration import (CHECKED_SOURCE, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS, calibrate_run,
+                                           describe, load_run_calibration)
 from stochastic_fields.config import (LEGACY_VALUES, ExperimentConfig, flatten, save_config, saved_config,
                                      set_dotted, to_dict)
 from stochastic_fields.defaults import DEPTH_FREE_SPACE
@@ -46,8 +46,7 @@ SCORED_PIXELS = "score-role blocks of the exact depth"
 CALIBRATION_PROTOCOL = (f"{DEFAULT_CALIBRATION_POINTS} (calibrate and score role) capture points from views halfway "
                         "between neighbouring training views, interval scores cross-fitted over "
                         f"{CROSS_FIT_FOLDS} folds of the score blocks"
-                        + (", std checked against the training views' free space with a fitted weight"
-                           if DEPTH_FREE_SPACE else ""))
+                        + (f"{CHECKED_SOURCE} with a fitted weight" if DEPTH_FREE_SPACE else ""))
 
 
 #: Config entries that do not change what a run computes (left out of fingerprints).

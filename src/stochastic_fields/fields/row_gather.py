@@ -64,12 +64,10 @@ class RowGradient:
         [M, c]; the channels of ``channels``, all by default): the backward of a weighted gather.
         On the CPU one compiled loop (``row_kernels``), else the products and ``add``."""
         acc, touched = self._unreplace(table)
-        first = 0 if channels is None else channels.indices(acc.shape[1])
-        contiguous_channels = channels is None or first[2] == 1
-        grad, weights = grad.to(acc.dtype).contiguous(), weights.to(acc.dtype).contiguous()
-        idx = idx.contiguous()
-        if contiguous_channels and row_kernels.available(acc, touched, idx, weights, grad):
-            row_kernels.scatter_weighted_rows(acc, touched, idx, weights, grad, 0 if channels is None else first[0])
+        start, _, stride = (0, acc.shape[1], 1) if channels is None else channels.indices(acc.shape[1])
+        grad, weights, idx = grad.to(acc.dtype).contiguous(), weights.to(acc.dtype).contiguous(), idx.contiguous()
+        if stride == 1 and row_kernels.available(acc, touched, idx, weights, grad):
+            row_kernels.scatter_weighted_rows(acc, touched, idx, weights, grad, start)
             return
         # w_mj g_mc as one einsum: the broadcast product took ~3x as long on CPU in isolation (same values)
         rows = torch.einsum("mj,mc->mjc", weights, grad).reshape(-1, grad.shape[-1])
@@ -77,12 +75,12 @@ class RowGradient:
 
     def pending(self, table: Tensor) -> tuple[Tensor, Tensor] | None:
         """(accumulated gradient [N, C], touched rows [N] bool), the buffers themselves, when they hold
-        this step's whole gradient (nothing ``replace``d waits); None otherwise. For an optimiser that
-        updates the touched rows in place and resets both (``optim.RowSparseAdam``)."""
-        if self._replaced is not None or self._acc is None or self._acc.shape != table.shape \
-                or self._acc.dtype != table.dtype or self._acc.device != table.device:
+        the whole gradient since the last reset; None when a ``replace``d gradient waits or nothing was
+        ever accumulated. For an optimiser that updates the touched rows in place and resets both
+        (``optim.RowSparseAdam``)."""
+        if self._replaced is not None or self._acc is None:
             return None
-        return self._acc, self._touched
+        return self._buffers(table)
 
     def take(self, table: Tensor) -> tuple[Tensor, Tensor]:
         """(rows [U] ascending, gradient [U, C]) accumulated since the last take; resets to zero."""
