@@ -9,8 +9,8 @@ per add for 550k rows at N = 2M, more than the whole forward pass).
 Here the backward pass adds each row's gradient straight into a :class:`RowGradient` attached
 to the table (a scratch table plus a bitmap of touched rows), and returns no gradient for the
 table itself. The optimiser (``optim.RowSparseAdam``) updates the touched rows from it, and
-zeroing costs O(touched rows). On the CPU both loops are compiled (``row_kernels``: about 2.7x
-and 3x faster than the ``index_add_`` and gathers torch runs them as); on CUDA they are torch ops.
+zeroing costs O(touched rows). On the CPU both loops are compiled (``row_kernels``: a capture's
+training step 1.6-2.0x faster than with the ``index_add_`` and gathers); on CUDA they are torch ops.
 """
 
 from __future__ import annotations
