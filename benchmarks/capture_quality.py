@@ -35,7 +35,7 @@ import torch
 
 from stochastic_fields.calibration import calibrate_run
 from stochastic_fields.capture_points import score_sparse_depth
-from stochastic_fields.config import preset
+from stochastic_fields.config import preset, set_dotted, validate_experiment
 from stochastic_fields.evaluation import evaluate
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.scenes import describe_split, load_run_dataset
@@ -46,11 +46,26 @@ LLFF_ROOT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "ne
 #: Issue 40's targets after 10 minutes (dB, abs-rel, dB gap S-NeRF may lose to the deterministic NeRF).
 PSNR_TARGETS_DB = {"flower": 26.0, "fern": 24.5}
 ABS_REL_TARGET, SNERF_GAP_DB = 0.05, 0.3
-#: Steps timed to set the schedule (after a few warm-up steps).
+#: Steps timed to set the schedule, after the occupancy warm-up (``render.occupancy_warmup_steps``:
+#: before it no empty space is skipped and a step costs less than later ones, which made flower's
+#: ten-minute schedule run twelve) and a few more steps.
 PROBE_STEPS, WARMUP_STEPS = 40, 5
 
 
-def config_for(scene: str, method: str, iterations: int, seed: int):
+def parse_setting(text: str) -> tuple[str, object]:
+    """``KEY=VALUE`` of ``--set``: a dotted option and its value as JSON (a bare word stays a string)."""
+    key, sep, raw = text.partition("=")
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f"--set expects KEY=VALUE (a dotted option), got {text!r}")
+    try:
+        return key, json.loads(raw)
+    except json.JSONDecodeError:
+        return key, raw
+
+
+def config_for(scene: str, method: str, iterations: int, seed: int, settings: tuple = ()):
+    """The benchmark's config of ``method`` on ``scene``; ``settings``: (dotted option, value) pairs
+    applied on top (``--set``; every method alike), validated."""
     cfg = preset("llff")
     cfg.method = method
     cfg.data.path = str((LLFF_ROOT / scene).resolve())
@@ -58,6 +73,9 @@ def config_for(scene: str, method: str, iterations: int, seed: int):
     cfg.train.eval_every = 0
     cfg.train.checkpoint_every = 0
     cfg.train.seed = seed
+    for key, value in settings:
+        set_dotted(cfg, key, value)
+    validate_experiment(cfg)
     return cfg
 
 
@@ -65,11 +83,12 @@ def steps_per_second(cfg, dataset, work: Path) -> float:
     """Training speed of this machine for ``cfg`` on ``dataset``, from a short throwaway run (its
     folder is removed afterwards)."""
     cfg = copy.deepcopy(cfg)
-    cfg.train.iterations = WARMUP_STEPS + PROBE_STEPS
+    warmup = WARMUP_STEPS + (cfg.render.occupancy_warmup_steps if cfg.render.skip_empty_space else 0)
+    cfg.train.iterations = warmup + PROBE_STEPS
     run_dir = work / "probe"
     trainer = Trainer(cfg, run_dir, dataset)
     try:
-        trainer.train(progress=False, max_steps=WARMUP_STEPS)
+        trainer.train(progress=False, max_steps=warmup)
         before = trainer.elapsed
         trainer.train(progress=False, max_steps=PROBE_STEPS)
     finally:
@@ -93,7 +112,7 @@ def run_one(scene: str, method: str, args) -> dict:
     if record.exists():
         return json.loads(record.read_text())
     run_dir = args.work / scene / method / "run"
-    cfg = config_for(scene, method, 1, args.seed)
+    cfg = config_for(scene, method, 1, args.seed, args.set)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         dataset = load_run_dataset(cfg, run_dir)  # the split depends on the config, not on the steps
@@ -175,6 +194,25 @@ def plot(records: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def command_options(args) -> str:
+    """The options that reproduce this run (those that differ from the defaults, and ``--out``)."""
+    parts = [f"--out {args.out}"]
+    if args.scenes != ["fern", "flower"]:
+        parts.append("--scenes " + " ".join(args.scenes))
+    if args.methods != ["snerf", "deterministic"]:
+        parts.append("--methods " + " ".join(args.methods))
+    if args.minutes != 10.0:
+        parts.append(f"--minutes {args.minutes:g}")
+    if args.marks != [0.1, 0.25, 0.5, 0.75, 1.0]:
+        parts.append("--marks " + " ".join(f"{m:g}" for m in args.marks))
+    if args.seed != 0:
+        parts.append(f"--seed {args.seed}")
+    if args.threads != 1:
+        parts.append(f"--threads {args.threads}")
+    parts += [f"--set {key}={json.dumps(value)}" for key, value in args.set]
+    return " ".join(parts)
+
+
 def write_report(records: list[dict], args) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     v = verdict(records)
@@ -182,8 +220,8 @@ def write_report(records: list[dict], args) -> None:
                                                              "minutes": args.minutes}, indent=2))
     plot(records, args.out / "capture_quality.png")
     lines = ["# Quality per CPU-minute on a capture (capture split: every 8th photo validates)", "",
-             "Command: `OMP_NUM_THREADS=1 .venv/bin/python benchmarks/capture_quality.py --out "
-             "benchmarks/results/capture_quality` (one torch thread per training; the machine: 2 CPU cores).", "",
+             f"Command: `OMP_NUM_THREADS={args.threads} .venv/bin/python benchmarks/capture_quality.py "
+             f"{command_options(args)}` (one torch thread per training unless stated; the machine: 2 CPU cores).", "",
              "| scene | method | train / val photos | steps (steps/s) | minutes | PSNR dB | SSIM | depth abs-rel "
              "(points) | cov 68 / 95 after recal. | median 95% half-width |", "|" + "---|" * 10]
     for r in records:
@@ -213,6 +251,8 @@ def main() -> None:
     ap.add_argument("--marks", nargs="+", type=float, default=[0.1, 0.25, 0.5, 0.75, 1.0],
                     help="Fractions of the schedule at which the validation photos are scored.")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--set", type=parse_setting, action="append", default=[], metavar="KEY=VALUE",
+                    help="A config option for every method's run (repeatable), e.g. field.grid_max_cells=8000000.")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (stated in the results).")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/capture_quality"))
     ap.add_argument("--work", type=Path, default=Path("runs/capture_quality"), help="Runs (large).")
