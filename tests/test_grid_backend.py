@@ -278,6 +278,33 @@ def test_compiled_adam_matches_torch_ops_and_is_used(monkeypatch, dtype):
     assert torch.equal(ours[20:], start[20:])  # rows 20.. were never read: untouched
 
 
+@pytest.mark.parametrize("torch_ops", [False, True])
+def test_zero_grad_clears_only_what_no_step_took(torch_ops):
+    """A gradient accumulated and then dropped by zero_grad (a step that did not run) never reaches
+    a later step: the table equals the one trained without those backward passes. After a step the
+    buffers are clear, so zero_grad has nothing to write."""
+    def train(skipped_backward: bool):
+        g = torch.Generator().manual_seed(3)
+        table = torch.nn.Parameter(torch.randn(40, 3, generator=g, dtype=torch.float64))
+        opt, acc = RowSparseAdam([table], lr=0.05, eps=1e-8), row_gradient(table)
+        with row_kernels.torch_ops_only() if torch_ops else contextlib.nullcontext():
+            for s in range(6):
+                idx = torch.randint(0, 40, (25, 8), generator=g)
+                w, up = torch.rand(25, 8, generator=g, dtype=torch.float64), torch.randn(25, 3, generator=g, dtype=torch.float64)
+                opt.zero_grad()
+                runs = s % 3 != 1
+                if runs or skipped_backward:
+                    (gather_rows(table, idx, w) * up).sum().backward()
+                if not runs:
+                    assert acc._dirty == skipped_backward
+                    continue
+                opt.step()
+                assert not acc._dirty and acc.dense(table).abs().max() == 0 and not acc.touched_rows(table).any()
+        return table.detach()
+
+    assert torch.equal(train(skipped_backward=True), train(skipped_backward=False))
+
+
 def test_row_kernels_refuse_what_they_cannot_run():
     a = torch.zeros(4, 3)
     assert not row_kernels.available(a, a.double())  # mixed float dtypes

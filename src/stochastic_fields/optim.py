@@ -129,6 +129,7 @@ class RowSparseAdam(torch.optim.Optimizer):
         state["step"] += 1
         row_kernels.adam_touched_rows(p.data, state["exp_avg"], state["exp_avg_sq"], *buffers, lr=group["lr"],
                                       betas=group["betas"], eps=group["eps"], step=int(state["step"]))
+        acc.mark_reset()
         return True
 
     def zero_grad(self, set_to_none: bool = True) -> None:
