@@ -109,8 +109,13 @@ def scores_of(result: dict) -> dict:
 
 def run_one(scene: str, method: str, args) -> dict:
     record = args.work / scene / method / "record.json"
+    asked = {"seed": args.seed, "settings": [[key, value] for key, value in args.set], "minutes": args.minutes}
     if record.exists():
-        return json.loads(record.read_text())
+        done = json.loads(record.read_text())
+        kept = {key: done.get(key, default) for key, default in (("seed", 0), ("settings", []), ("minutes", 10.0))}
+        if kept != asked:
+            raise SystemExit(f"{record}: a finished run of {kept}, not of this command's {asked}; give another --work")
+        return done
     run_dir = args.work / scene / method / "run"
     cfg = config_for(scene, method, 1, args.seed, args.set)
     with warnings.catch_warnings():
@@ -143,7 +148,7 @@ def run_one(scene: str, method: str, args) -> dict:
             calibrated = scores_of(result)
     out = {"scene": scene, "method": method, "train_views": len(dataset.train_indices), "validation_views": views,
            "steps_per_s_probe": rate, "iterations": iterations, "curve": curve, "calibrated": calibrated,
-           "threads": torch.get_num_threads()}
+           "threads": torch.get_num_threads(), **asked}
     atomic_write_text(record, json.dumps(out, indent=2))
     return out
 
@@ -196,7 +201,7 @@ def plot(records: list[dict], path: Path) -> None:
 
 def command_options(args) -> str:
     """The options that reproduce this run (those that differ from the defaults, and ``--out``)."""
-    parts = [f"--out {args.out}"]
+    parts = [f"--out {args.out}"] + ([f"--work {args.work}"] if args.work != Path("runs/capture_quality") else [])
     if args.scenes != ["fern", "flower"]:
         parts.append("--scenes " + " ".join(args.scenes))
     if args.methods != ["snerf", "deterministic"]:
