@@ -46,9 +46,11 @@ LLFF_ROOT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "ne
 #: Issue 40's targets after 10 minutes (dB, abs-rel, dB gap S-NeRF may lose to the deterministic NeRF).
 PSNR_TARGETS_DB = {"flower": 26.0, "fern": 24.5}
 ABS_REL_TARGET, SNERF_GAP_DB = 0.05, 0.3
-#: Steps timed to set the schedule, after the occupancy warm-up (``render.occupancy_warmup_steps``:
-#: before it no empty space is skipped and a step costs less than later ones, which made flower's
-#: ten-minute schedule run twelve) and a few more steps.
+#: Steps timed to set the schedule, after the occupancy warm-up (``render.occupancy_warmup_steps``)
+#: and a few more steps: a step's time changes over training (flower's S-NeRF run of the published
+#: rows took 0.27-0.28 s a step in its first 440 steps and 0.30-0.39 s later, so a probe of the
+#: first steps let its ten-minute schedule run twelve). Load from other work during the run still
+#: moves the minutes.
 PROBE_STEPS, WARMUP_STEPS = 40, 5
 
 
