@@ -1,0 +1,87 @@
+"""benchmarks/capture_quality.py's options (``--set``, the reproducing command, the refusal to resume
+another row's run) and study 23's verdict (benchmarks/studies/grid_cells_study.py) on hand-made rows."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import pytest
+
+from stochastic_fields.validation import ConfigError
+
+
+@pytest.fixture(scope="module")
+def bench(load_script):
+    return load_script("benchmarks/capture_quality.py")
+
+
+def args_of(bench, argv: list[str]) -> argparse.Namespace:
+    """The namespace ``main`` would parse from ``argv`` (same options, same defaults)."""
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--scenes", nargs="+", default=["fern", "flower"])
+    ap.add_argument("--methods", nargs="+", default=["snerf", "deterministic"])
+    ap.add_argument("--minutes", type=float, default=10.0)
+    ap.add_argument("--marks", nargs="+", type=float, default=[0.1, 0.25, 0.5, 0.75, 1.0])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--set", type=bench.parse_setting, action="append", default=[])
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/capture_quality"))
+    ap.add_argument("--work", type=Path, default=Path("runs/capture_quality"))
+    return ap.parse_args(argv)
+
+
+def test_settings_reach_the_config_and_are_validated(bench):
+    assert bench.parse_setting("field.grid_max_cells=8000000") == ("field.grid_max_cells", 8000000)
+    assert bench.parse_setting("render.spacing=linear") == ("render.spacing", "linear")
+    assert bench.parse_setting("render.background=[1, 1, 1]") == ("render.background", [1, 1, 1])
+    with pytest.raises(argparse.ArgumentTypeError, match="KEY=VALUE"):
+        bench.parse_setting("field.grid_max_cells")
+    cfg = bench.config_for("fern", "snerf", 100, 1, (("field.grid_max_cells", 8000000),))
+    assert cfg.field.grid_max_cells == 8000000 and cfg.train.seed == 1 and cfg.train.iterations == 100
+    with pytest.raises(ValueError, match="unknown option"):
+        bench.config_for("fern", "snerf", 100, 0, (("field.no_such_option", 1),))
+    with pytest.raises(ConfigError, match="field.grid_max_cells"):
+        bench.config_for("fern", "snerf", 100, 0, (("field.grid_max_cells", 0),))
+
+
+def test_command_reproduces_the_options(bench):
+    argv = ["--out", "o", "--work", "w", "--methods", "snerf", "--seed", "1", "--marks", "0.5", "1",
+            "--set", "field.grid_max_cells=8000000"]
+    args = args_of(bench, argv)
+    command = bench.command_options(args)
+    assert command == ("--out o --work w --methods snerf --marks 0.5 1 --seed 1 "
+                       "--set field.grid_max_cells=8000000")
+    assert vars(args_of(bench, command.split())) == vars(args)
+    assert bench.command_options(args_of(bench, [])) == "--out benchmarks/results/capture_quality"
+
+
+def test_a_finished_row_of_other_settings_is_not_resumed(bench, tmp_path):
+    record = tmp_path / "fern" / "snerf" / "record.json"
+    record.parent.mkdir(parents=True)
+    record.write_text(json.dumps({"scene": "fern", "method": "snerf", "seed": 1, "minutes": 10.0,
+                                  "settings": [["field.grid_max_cells", 8000000]], "curve": []}))
+    same = args_of(bench, ["--work", str(tmp_path), "--seed", "1", "--set", "field.grid_max_cells=8000000"])
+    assert bench.run_one("fern", "snerf", same)["seed"] == 1  # read back, nothing trained
+    other = args_of(bench, ["--work", str(tmp_path), "--seed", "1"])
+    with pytest.raises(SystemExit, match="record.json.*another --work"):
+        bench.run_one("fern", "snerf", other)
+
+
+def test_grid_cells_verdict_follows_its_rule(load_script):
+    study = load_script("benchmarks/studies/grid_cells_study.py")
+
+    def row(psnr, abs_rel, c68=0.70, c95=0.94, minutes=10.0):
+        return {"psnr": psnr, "abs_rel": abs_rel, "coverage_68": c68, "coverage_95": c95, "minutes": minutes}
+
+    today = {"fern": row(22.8, 0.070), "flower": row(23.5, 0.065)}
+    passing = {"fern": row(23.05, 0.071), "flower": row(23.75, 0.066)}
+    assert study.verdict(today, passing)["taken"]
+    for scene, bad in [("fern", row(22.9, 0.070)),              # +0.1 dB: not enough
+                       ("flower", row(23.8, 0.0675)),           # abs-rel +0.0025
+                       ("fern", row(23.2, 0.070, c68=0.60)),    # 68% off by more than 5 points
+                       ("flower", row(23.8, 0.065, minutes=11.5))]:
+        v = study.verdict(today, {**passing, scene: bad})
+        assert not v["taken"] and not v["scenes"][scene]["passes"]
+    assert not study.verdict({"fern": today["fern"]}, {"fern": passing["fern"]})["taken"]  # flower missing
