@@ -93,8 +93,9 @@ def cmd_train(args: argparse.Namespace) -> None:
     resolve_device(cfg.train.device)  # an absent CUDA device is refused before the scene is generated
     dataset = load_run_dataset(cfg, run_dir)
     print(describe_split(dataset, cfg))
-    model = Trainer(cfg, run_dir, dataset).train(progress=not args.quiet)
-    print(f"trained: {run_dir / 'checkpoint.pt'}")
+    trainer = Trainer(cfg, run_dir, dataset)
+    model = trainer.train(progress=not args.quiet)
+    print(f"trained: {run_dir / 'checkpoint.pt'} ({trainer.step} steps, {trainer.elapsed / 60:.1f} training minutes)")
     _calibrate_after_training(run_dir, model, dataset, progress=not args.quiet)
 
 

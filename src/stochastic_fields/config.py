@@ -89,6 +89,8 @@ class TrainConfig:
 
     iterations: int = 3000
     """Optimiser steps. Range: an integer >= 1 and <= 1000000000."""
+    minutes: float = 0.0
+    """Training budget in minutes of the training loop's wall clock (0: none, the steps decide). With a budget the schedule (learning-rate decay, coarse to fine) follows the larger of step / iterations and elapsed / budget, and training stops at whichever end comes first: N minutes end with the schedule complete on any machine, and the machine's speed sets the steps (a resumed run continues its clock; not with data-parallel training). Range: a finite number >= 0."""
     rays_per_batch: int = 1024
     """Training rays per step. Range: an integer >= 1 and <= 16777216."""
     train_draws: int = 8
@@ -175,6 +177,7 @@ FIELD_CHECKS: dict[str, V.Checker] = {
 }
 TRAIN_CHECKS: dict[str, V.Checker] = {
     "iterations": V.integer(1, 10**9),
+    "minutes": V.real(0.0),
     "rays_per_batch": V.integer(1, 2**24),
     "train_draws": V.integer(1, 4096),
     "lr": V.real(0.0, lo_open=True),

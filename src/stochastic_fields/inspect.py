@@ -175,7 +175,8 @@ class RunInspector:
         depth = "yes" if getattr(ds, "depths", None) is not None else "no"
         return "\n".join([
             f"run:        {self.run_dir}",
-            f"method:     {self.cfg.method} ({self.cfg.field.backend} field), {self.cfg.train.iterations} iterations",
+            f"method:     {self.cfg.method} ({self.cfg.field.backend} field), {self.cfg.train.iterations} iterations"
+            + (f" or {self.cfg.train.minutes:g} minutes" if self.cfg.train.minutes > 0 else ""),
             f"scene:      {ds.name} ({ds.root})",
             f"views:      {len(ds.train_indices)} train, {len(ds.test_indices)} test, {self.width}x{self.height} px, "
             f"ground-truth depth: {depth}",

@@ -45,7 +45,12 @@ class FieldOptimizer:
 
     def set_step(self, step: int) -> None:
         """Learning rates for optimiser step ``step`` (0-based) of the decay schedule."""
-        factor = self.final_factor ** (min(step, self.total_steps) / self.total_steps)
+        self.set_progress(step / self.total_steps)
+
+    def set_progress(self, fraction: float) -> None:
+        """Learning rates at ``fraction`` of the schedule (clipped to [0, 1]):
+        ``lr = initial_lr * final_factor ** fraction`` (exponential decay)."""
+        factor = self.final_factor ** min(max(float(fraction), 0.0), 1.0)
         for g in self.param_groups:
             g["lr"] = g["initial_lr"] * factor
 

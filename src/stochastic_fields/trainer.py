@@ -38,7 +38,7 @@ from .scenes import load_run_dataset
 
 #: Options a resumed run may change: how long and how often, where, and render chunking. Any
 #: other difference (model shape, data, losses, learning rate, seed...) is refused on resume.
-RESUMABLE_OPTIONS: tuple[str, ...] = ("train.iterations", "train.eval_every", "train.checkpoint_every",
+RESUMABLE_OPTIONS: tuple[str, ...] = ("train.iterations", "train.minutes", "train.eval_every", "train.checkpoint_every",
                                       "train.device", "render.chunk_rays", "render.num_draws",
                                       "render.colour_estimator")
 LOG_NAME = "train_log.jsonl"
@@ -196,6 +196,9 @@ class Trainer:
         self.dist = distributed
         self.device = distributed.device if distributed is not None else resolve_device(cfg.train.device)
         rank, world = (distributed.rank, distributed.world_size) if distributed is not None else (0, 1)
+        if distributed is not None and cfg.train.minutes > 0:
+            raise ValueError(f"train.minutes = {cfg.train.minutes:g} with data-parallel training: each rank's clock "
+                             "would stop it at another step; give train.iterations instead (train.minutes 0)")
         if cfg.train.rays_per_batch < world:
             raise ValueError(f"train.rays_per_batch = {cfg.train.rays_per_batch} is smaller than the {world} ranks: "
                              "every rank needs at least one ray per step")
@@ -344,8 +347,20 @@ class Trainer:
             grid.set_level_weights(None if progress is None else
                                    coarse_to_fine_weights(len(grid.levels), progress, fraction))
 
-    def train(self, *, progress: bool = True, max_steps: int | None = None) -> RadianceModel:
-        """Train to ``cfg.train.iterations`` (or stop after ``max_steps`` more steps, for tests)."""
+    def schedule_progress(self) -> float:
+        """Fraction of the schedule done: step / iterations, or with a ``train.minutes`` budget the
+        larger of that and elapsed / budget (module doc of ``config.TrainConfig.minutes``)."""
+        done = self.step / self.cfg.train.iterations
+        budget_s = 60.0 * self.cfg.train.minutes
+        if budget_s > 0:
+            done = max(done, self.elapsed / budget_s)
+        return min(done, 1.0)
+
+    def train(self, *, progress: bool = True, max_steps: int | None = None,
+              max_elapsed_s: float | None = None) -> RadianceModel:
+        """Train to ``cfg.train.iterations`` or to the end of the ``train.minutes`` budget, whichever
+        comes first (or stop after ``max_steps`` more steps, or once the loop's clock reaches
+        ``max_elapsed_s`` seconds in all: for tests and for scoring along the way)."""
         if self.run_dir.exists() and not self.run_dir.is_dir():
             raise ValueError(f"--out {self.run_dir} exists and is not a folder")
         resumed = self.try_resume()  # validates the checkpoint against the config before any write
@@ -367,6 +382,11 @@ class Trainer:
                               "capture points in its training views: training without the depth term", stacklevel=2)
         total = self.cfg.train.iterations
         stop_at = total if max_steps is None else min(total, self.step + max_steps)
+        if self.dist is not None and max_elapsed_s is not None:
+            raise ValueError("max_elapsed_s with data-parallel training: each rank's clock would stop it at another step")
+        budget_s = 60.0 * self.cfg.train.minutes
+        clock_stop = min(s for s in (budget_s if budget_s > 0 else math.inf,
+                                     math.inf if max_elapsed_s is None else float(max_elapsed_s)))
         log_path = self.run_dir / LOG_NAME
         eval_view = self.dataset.test_indices[0] if len(self.dataset.test_indices) else None
         bar = tqdm(total=total, initial=self.step, desc="train" + (" (resumed)" if resumed else ""),
@@ -375,10 +395,11 @@ class Trainer:
         t_last = time.perf_counter()
         try:
             with open_append_no_follow(log_path) if main else contextlib.nullcontext() as log:
-                while self.step < stop_at:
-                    self._set_level_weights(self.step / total)
+                while self.step < stop_at and self.elapsed < clock_stop:
+                    done = self.schedule_progress()
+                    self._set_level_weights(done)
                     loss, logs = self.compute_gradients(data, depth_data)
-                    self.optimizer.set_step(self.step)
+                    self.optimizer.set_progress(done)
                     self.optimizer.step()
                     self.model.after_step(self.step)
                     self.step += 1
@@ -396,6 +417,7 @@ class Trainer:
                         bar.set_postfix({k: f"{v:.4g}" for k, v in record.items() if k in ("loss", "mse", "eval_psnr")})
                     if self.cfg.train.checkpoint_every and self.step % self.cfg.train.checkpoint_every == 0:
                         self.save()
+                        t_last = time.perf_counter()  # the clock counts training, not checkpoint writes
                     bar.update(1)
         finally:
             self._set_level_weights(None)  # the trained model reads every level
