@@ -43,7 +43,7 @@ bench: $(STAMP)
 # quality per CPU-minute on a capture: S-NeRF and the deterministic NeRF, 10 training minutes each on fern and
 # flower with the capture split (about 50 minutes on 2 CPU cores; resumable)
 bench-capture: $(STAMP)
-	OMP_NUM_THREADS=1 $(PY) benchmarks/capture_quality.py --out benchmarks/results/capture_quality
+	OMP_NUM_THREADS=2 $(PY) benchmarks/capture_quality.py --threads 2 --marks 0.25 0.5 1 --out benchmarks/results/capture_quality
 
 # next-view selection against random, farthest-camera and ensemble choices (about 75 minutes per scene on one thread; resumable)
 bench-next-view: $(STAMP)

@@ -15,7 +15,10 @@ and its depth intervals are scored on the validation photos.
 Targets (issue 40) after 10 minutes: flower >= 26.0 dB, fern >= 24.5 dB, depth abs-rel <= 0.05,
 S-NeRF within 0.3 dB of the deterministic NeRF.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/capture_quality.py --out benchmarks/results/capture_quality
+    OMP_NUM_THREADS=2 .venv/bin/python benchmarks/capture_quality.py --threads 2 --marks 0.25 0.5 1 \
+        --out benchmarks/results/capture_quality
+
+(``make bench-capture``: both cores of the 2-core machine, as ``train`` uses them by default.)
 
 Resumes: a finished (scene, method) is read from ``--work``; ``results.json``, ``README.md`` and
 ``capture_quality.png`` are rewritten in ``--out`` after each.
