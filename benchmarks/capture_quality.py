@@ -97,7 +97,8 @@ def run_one(scene: str, method: str, args) -> dict:
     asked = {"seed": args.seed, "settings": [[key, value] for key, value in args.set], "minutes": args.minutes}
     if record.exists():
         done = json.loads(record.read_text())
-        kept = {key: done.get(key, default) for key, default in (("seed", 0), ("settings", []), ("minutes", 10.0))}
+        defaults = vars(build_parser().parse_args([]))  # records older than these keys were made at the defaults
+        kept = {key: done.get(key, defaults.get(key, [])) for key in asked}
         if kept != asked:
             raise SystemExit(f"{record}: a finished run of {kept}, not of this command's {asked}; give another --work")
         return done
@@ -185,20 +186,15 @@ def plot(records: list[dict], path: Path) -> None:
 
 
 def command_options(args) -> str:
-    """The options that reproduce this run (those that differ from the defaults, and ``--out``)."""
-    parts = [f"--out {args.out}"] + ([f"--work {args.work}"] if args.work != Path("runs/capture_quality") else [])
-    if args.scenes != ["fern", "flower"]:
-        parts.append("--scenes " + " ".join(args.scenes))
-    if args.methods != ["snerf", "deterministic"]:
-        parts.append("--methods " + " ".join(args.methods))
-    if args.minutes != 10.0:
-        parts.append(f"--minutes {args.minutes:g}")
-    if args.marks != [0.1, 0.25, 0.5, 0.75, 1.0]:
-        parts.append("--marks " + " ".join(f"{m:g}" for m in args.marks))
-    if args.seed != 0:
-        parts.append(f"--seed {args.seed}")
-    if args.threads != 1:
-        parts.append(f"--threads {args.threads}")
+    """The options that reproduce this run: ``--out`` and every option that differs from its default."""
+    defaults = vars(build_parser().parse_args([]))
+    parts = [f"--out {args.out}"]
+    for name in ("work", "scenes", "methods", "minutes", "marks", "seed", "threads"):
+        value = getattr(args, name)
+        if value != defaults[name]:
+            shown = " ".join(f"{v:g}" if isinstance(v, float) else str(v) for v in
+                             (value if isinstance(value, list) else [value]))
+            parts.append(f"--{name} {shown}")
     parts += [f"--set {key}={json.dumps(value)}" for key, value in args.set]
     return " ".join(parts)
 
@@ -234,7 +230,7 @@ def write_report(records: list[dict], args) -> None:
     atomic_write_text(args.out / "README.md", "\n".join(lines))
 
 
-def main() -> None:
+def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=["fern", "flower"])
     ap.add_argument("--methods", nargs="+", default=["snerf", "deterministic"])
@@ -248,6 +244,11 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/capture_quality"))
     ap.add_argument("--work", type=Path, default=Path("runs/capture_quality"), help="Runs (large).")
     ap.add_argument("--quiet", action="store_true")
+    return ap
+
+
+def main() -> None:
+    ap = build_parser()
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     records = []

@@ -18,18 +18,8 @@ def bench(load_script):
 
 
 def args_of(bench, argv: list[str]) -> argparse.Namespace:
-    """The namespace ``main`` would parse from ``argv`` (same options, same defaults)."""
-    ap = argparse.ArgumentParser()
-    ap.add_argument("--scenes", nargs="+", default=["fern", "flower"])
-    ap.add_argument("--methods", nargs="+", default=["snerf", "deterministic"])
-    ap.add_argument("--minutes", type=float, default=10.0)
-    ap.add_argument("--marks", nargs="+", type=float, default=[0.1, 0.25, 0.5, 0.75, 1.0])
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--set", type=bench.parse_setting, action="append", default=[])
-    ap.add_argument("--threads", type=int, default=1)
-    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/capture_quality"))
-    ap.add_argument("--work", type=Path, default=Path("runs/capture_quality"))
-    return ap.parse_args(argv)
+    """The namespace ``main`` parses from ``argv``."""
+    return bench.build_parser().parse_args(argv)
 
 
 def test_settings_reach_the_config_and_are_validated(bench):

@@ -385,8 +385,8 @@ class Trainer:
         if self.dist is not None and max_elapsed_s is not None:
             raise ValueError("max_elapsed_s with data-parallel training: each rank's clock would stop it at another step")
         budget_s = 60.0 * self.cfg.train.minutes
-        clock_stop = min(s for s in (budget_s if budget_s > 0 else math.inf,
-                                     math.inf if max_elapsed_s is None else float(max_elapsed_s)))
+        clock_stop = min(budget_s if budget_s > 0 else math.inf,
+                         math.inf if max_elapsed_s is None else float(max_elapsed_s))
         log_path = self.run_dir / LOG_NAME
         eval_view = self.dataset.test_indices[0] if len(self.dataset.test_indices) else None
         bar = tqdm(total=total, initial=self.step, desc="train" + (" (resumed)" if resumed else ""),
