@@ -1,5 +1,5 @@
 """benchmarks/capture_quality.py's options (``--set``, the reproducing command, the refusal to resume
-another row's run) and study 23's verdict (benchmarks/studies/grid_cells_study.py) on hand-made rows."""
+another row's run) and studies 23 and 24's verdicts (benchmarks/studies/capture_grid_study.py) on hand-made rows."""
 
 from __future__ import annotations
 
@@ -59,19 +59,28 @@ def test_a_finished_row_of_other_settings_is_not_resumed(bench, tmp_path):
         bench.run_one("fern", "snerf", other)
 
 
-def test_grid_cells_verdict_follows_its_rule(load_script):
-    study = load_script("benchmarks/studies/grid_cells_study.py")
+def test_capture_grid_study_verdicts_follow_their_rules(load_script):
+    script = load_script("benchmarks/studies/capture_grid_study.py")
+    cells, rule = script.STUDIES["cells"], script.STUDIES["resolution_rule"]
 
     def row(psnr, abs_rel, c68=0.70, c95=0.94, minutes=10.0):
         return {"psnr": psnr, "abs_rel": abs_rel, "coverage_68": c68, "coverage_95": c95, "minutes": minutes}
 
     today = {"fern": row(22.8, 0.070), "flower": row(23.5, 0.065)}
     passing = {"fern": row(23.05, 0.071), "flower": row(23.75, 0.066)}
-    assert study.verdict(today, passing)["taken"]
-    for scene, bad in [("fern", row(22.9, 0.070)),              # +0.1 dB: not enough
-                       ("flower", row(23.8, 0.0675)),           # abs-rel +0.0025
-                       ("fern", row(23.2, 0.070, c68=0.60)),    # 68% off by more than 5 points
-                       ("flower", row(23.8, 0.065, minutes=11.5))]:
-        v = study.verdict(today, {**passing, scene: bad})
-        assert not v["taken"] and not v["scenes"][scene]["passes"]
-    assert not study.verdict({"fern": today["fern"]}, {"fern": passing["fern"]})["taken"]  # flower missing
+    for study in (cells, rule):
+        assert script.verdict(study, today, passing)["taken"]
+        for scene, bad in [("fern", row(22.9, 0.070)),              # +0.1 dB and no depth gain: not enough
+                           ("flower", row(23.8, 0.0675)),           # abs-rel +0.0025
+                           ("fern", row(23.2, 0.070, c68=0.60)),    # 68% off by more than 5 points
+                           ("flower", row(23.8, 0.065, minutes=11.5))]:
+            v = script.verdict(study, today, {**passing, scene: bad})
+            assert not v["taken"] and not v["scenes"][scene]["passes"]
+        assert not script.verdict(study, {"fern": today["fern"]}, {"fern": passing["fern"]})["taken"]  # flower missing
+    # study 24 also takes a depth gain of 0.005 at equal PSNR (study 23 does not) ...
+    depth_gain = {"fern": row(22.75, 0.064), "flower": row(23.5, 0.059)}
+    assert script.verdict(rule, today, depth_gain)["taken"]
+    assert not script.verdict(cells, today, depth_gain)["taken"]
+    # ... but not with more than 0.1 dB of PSNR lost
+    assert not script.verdict(rule, today, {**depth_gain, "fern": row(22.65, 0.060)})["taken"]
+    assert "or its depth abs-rel at least 0.005 below" in script.rule_text(rule)

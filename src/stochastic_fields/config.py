@@ -68,6 +68,8 @@ class FieldConfig:
     """Grid levels, each half the resolution of the next. Range: an integer >= 1 and <= 16."""
     grid_pixels_per_voxel: float = 1.5
     """Finest voxel size in pixel footprints (resolution follows the images). Range: a finite number > 0."""
+    grid_resolution_rule: Literal["footprint", "parallax"] = "footprint"
+    """How the finest level's cells per axis follow the training views (before the grid_max_cells cap): 'footprint': a voxel spans grid_pixels_per_voxel pixel footprints along every axis; 'parallax': along each axis, grid_pixels_per_voxel pixels of motion in the view that sees a step along that axis move most (on a forward-facing capture the depth axis gets the cells its baselines resolve, the image axes the rest; docs/design.md)."""
     grid_max_cells: int = 2_000_000
     """Cap on cells of the finest level. Range: an integer >= 8 and <= 2147483648."""
     grid_feature_dim: int = 8
@@ -163,6 +165,7 @@ DATA_CHECKS: dict[str, V.Checker] = {
 }
 FIELD_CHECKS: dict[str, V.Checker] = {
     "backend": V.choice("grid", "mlp"),
+    "grid_resolution_rule": V.choice("footprint", "parallax"),
     "init_std": V.real(0.0, lo_open=True),
     "mlp_depth": V.integer(1, 64),
     "mlp_width": V.integer(1, 8192),

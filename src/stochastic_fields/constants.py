@@ -152,3 +152,11 @@ LOGISTIC_TABLE_LOG_SCALE_STEP: float = 0.05
 #: stops answering. 30 minutes covers what rank 0 does alone while the others wait: generating
 #: the embedded scene, a quick evaluation, writing a checkpoint. ``train --dist-timeout`` sets it.
 DISTRIBUTED_TIMEOUT_S: float = 1800.0
+
+#: Step (in unit-cube coordinates, which span 2 per axis) by which the grid's parallax rule
+#: (fields.grid.resolution_from_parallax) moves a frustum point to measure how many pixels a unit
+#: of each axis spans: small enough that the projection is linear over it (a thousandth of the
+#: cube, well inside one finest voxel), large enough that float32 rounding of the pixel
+#: coordinates (about 1e-5 pixel at a few hundred pixels) stays far below the motion (on LLFF
+#: about 0.06 pixel along the depth axis, 0.4 across the image).
+PARALLAX_PROBE_STEP: float = 1e-3

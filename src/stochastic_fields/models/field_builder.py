@@ -5,7 +5,7 @@ from __future__ import annotations
 from ..cameras import image_size, intrinsics_3x3
 from ..config import ExperimentConfig
 from ..fields.base import StochasticField
-from ..fields.grid import GridField, resolution_from_footprint
+from ..fields.grid import GridField, RESOLUTION_RULES
 from ..fields.mlp import MLPField
 from ..scene_region import SceneRegion, fit_region
 
@@ -28,9 +28,10 @@ def build_field(cfg: ExperimentConfig, region: SceneRegion, dataset, *, noise_he
     if f.backend == "grid":
         H, W = image_size(dataset.cameras)
         idx = list(dataset.train_indices)
-        res = resolution_from_footprint(region, intrinsics_3x3(dataset.cameras)[idx], dataset.cameras.extrinsics[idx],
-                                        H, W, dataset.near[idx], dataset.far[idx],
-                                        pixels_per_voxel=f.grid_pixels_per_voxel, max_cells=f.grid_max_cells)
+        finest_resolution = RESOLUTION_RULES[f.grid_resolution_rule]
+        res = finest_resolution(region, intrinsics_3x3(dataset.cameras)[idx], dataset.cameras.extrinsics[idx],
+                                H, W, dataset.near[idx], dataset.far[idx],
+                                pixels_per_voxel=f.grid_pixels_per_voxel, max_cells=f.grid_max_cells)
         return GridField(region, res, num_levels=f.grid_levels, feature_dim=f.grid_feature_dim,
                          decoder_width=f.grid_decoder_width, init_density_loc=f.grid_init_density_loc,
                          init_std=f.init_std, noise_head=noise_head)

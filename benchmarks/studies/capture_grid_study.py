@@ -1,0 +1,155 @@
+"""Studies 23 and 24: the grid's finest level on a capture, each judged by its rule.
+
+Each study's rows are runs of the capture benchmark (``benchmarks/capture_quality.py``, S-NeRF,
+seed 1, the ten-minute schedule), today's setting and the candidate's (the commands are in
+``STUDIES``, and in each row folder's README). This script reads their ``results.json`` and writes
+the table and the rule's verdict (docs/studies.md; each rule fixed before its rows ran) to
+``--out``/README.md and ``verdict.json``::
+
+    python benchmarks/studies/capture_grid_study.py --study cells
+    python benchmarks/studies/capture_grid_study.py --study resolution_rule
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import NamedTuple
+
+
+class Study(NamedTuple):
+    """One factor on the capture benchmark and its rule: the candidate is taken if on both scenes
+    it gains ``min_psnr_gain_db`` of PSNR (or, where ``min_abs_rel_gain`` is set, lowers the depth
+    abs-rel by that much instead), loses at most ``max_psnr_loss_db`` of PSNR (where set) and
+    ``max_abs_rel_loss`` of abs-rel, keeps its recalibrated 68% and 95% coverage within
+    ``coverage_points`` of nominal and trains at most ``max_minutes``."""
+
+    number: str
+    title: str
+    out: str
+    rows: dict[str, str]  # label -> row folder under out (today's first)
+    commands: tuple[str, ...]
+    protocol: str
+    min_psnr_gain_db: float = 0.2
+    min_abs_rel_gain: float | None = None
+    max_psnr_loss_db: float | None = None
+    max_abs_rel_loss: float = 0.002
+    coverage_points: float = 5.0
+    max_minutes: float = 11.0
+
+
+STUDIES = {
+    "cells": Study(
+        "23", "the finest grid level's cell cap on a capture", "benchmarks/results/grid_cells_study",
+        {"today (2M cells)": "cells_2M", "candidate (8M cells)": "cells_8M"},
+        ("OMP_NUM_THREADS=1 python benchmarks/capture_quality.py --methods snerf --seed 1 --marks 0.5 1 "
+         "--out benchmarks/results/grid_cells_study/cells_2M --work runs/grid_cells/cells_2M",
+         "the same with --set field.grid_max_cells=8000000 into cells_8M"),
+        "S-NeRF default, capture split, seed 1, the probed ten-minute schedule (steps/s: the probe's), one thread, the two rows of "
+        "a scene side by side"),
+    "resolution_rule": Study(
+        "24", "the grid's depth cells sized by parallax", "benchmarks/results/resolution_rule_study",
+        {"today (footprint)": "footprint", "candidate (parallax)": "parallax"},
+        tuple(f"OMP_NUM_THREADS=2 python benchmarks/capture_quality.py --methods snerf --scenes {scene} --seed 1 "
+              f"--threads 2 --marks 0.5 1 --out benchmarks/results/resolution_rule_study/{rule} "
+              f"--work runs/resolution_rule/{rule} --set field.grid_resolution_rule={rule}"
+              for scene in ("fern", "flower") for rule in ("footprint", "parallax")),
+        "S-NeRF default, capture split, seed 1, ten minutes of training (train.minutes) on two threads, "
+        "one row at a time, the two rows of a scene one after the other",
+        min_abs_rel_gain=0.005, max_psnr_loss_db=0.1),
+}
+
+
+def last_scores(results: dict) -> dict[str, dict]:
+    """Per scene: the end of the schedule's scores, steps and minutes, and the recalibrated intervals."""
+    out = {}
+    for record in results["records"]:
+        last, cal = record["curve"][-1], record.get("calibrated") or {}
+        # study 23's rows were made when the benchmark probed its speed and fixed the steps
+        out[record["scene"]] = {"steps": record.get("steps", record.get("iterations")),
+                                "steps_per_s": record.get("steps_per_s", record.get("steps_per_s_probe")),
+                                "minutes": last["minutes"], "psnr": last["psnr"], "ssim": last["ssim"],
+                                "abs_rel": last["depth_abs_rel"], "coverage_68": cal.get("coverage_68"),
+                                "coverage_95": cal.get("coverage_95"), "halfwidth_95": cal.get("halfwidth_median_95"),
+                                "curve": [(c["minutes"], c["psnr"]) for c in record["curve"]]}
+    return out
+
+
+def verdict(study: Study, today: dict, candidate: dict) -> dict:
+    """Each scene's checks and whether the candidate passes on every scene."""
+    scenes = {}
+    for scene in sorted(set(today) & set(candidate)):
+        a, b = today[scene], candidate[scene]
+        psnr_gain, abs_rel_change = b["psnr"] - a["psnr"], b["abs_rel"] - a["abs_rel"]
+        gains = psnr_gain >= study.min_psnr_gain_db or (
+            study.min_abs_rel_gain is not None and -abs_rel_change >= study.min_abs_rel_gain)
+        checks = {
+            "gain": gains,
+            "psnr_kept": study.max_psnr_loss_db is None or psnr_gain >= -study.max_psnr_loss_db,
+            "abs_rel": abs_rel_change <= study.max_abs_rel_loss,
+            "coverage": (b["coverage_68"] is not None
+                         and abs(100 * b["coverage_68"] - 68.27) <= study.coverage_points
+                         and abs(100 * b["coverage_95"] - 95.0) <= study.coverage_points),
+            "minutes": b["minutes"] <= study.max_minutes,
+        }
+        scenes[scene] = {"psnr_gain_db": psnr_gain, "abs_rel_change": abs_rel_change,
+                         "checks": checks, "passes": all(checks.values())}
+    return {"scenes": scenes, "taken": {"fern", "flower"} <= set(scenes) and all(s["passes"] for s in scenes.values())}
+
+
+def rule_text(study: Study) -> str:
+    gain = f"its PSNR is at least {study.min_psnr_gain_db} dB above today's"
+    if study.min_abs_rel_gain is not None:
+        gain += f" or its depth abs-rel at least {study.min_abs_rel_gain} below"
+    if study.max_psnr_loss_db is not None:
+        gain += f", its PSNR at most {study.max_psnr_loss_db} dB below"
+    return (f"Rule (fixed before the rows): the candidate is taken if on both scenes {gain}, "
+            f"its depth abs-rel at most {study.max_abs_rel_loss} above, its "
+            f"recalibrated 68% and 95% coverage within {study.coverage_points:g} points of nominal and its "
+            f"training at most {study.max_minutes:g} minutes.")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--study", choices=sorted(STUDIES), required=True)
+    ap.add_argument("--out", type=Path, default=None, help="Default: the study's results folder.")
+    args = ap.parse_args()
+    study = STUDIES[args.study]
+    out = args.out or Path(study.out)
+    rows = {label: last_scores(json.loads((out / folder / "results.json").read_text()))
+            for label, folder in study.rows.items()}
+    (today_label, today), (cand_label, candidate) = rows.items()
+    v = verdict(study, today, candidate)
+    (out / "verdict.json").write_text(json.dumps({"rows": rows, "verdict": v}, indent=2) + "\n")
+    lines = [f"# Study {study.number}: {study.title}", "",
+             f"Rows: `benchmarks/capture_quality.py` ({study.protocol}); each row's own README in its folder:", ""]
+    lines += [f"    {command}" for command in study.commands]
+    lines += ["", f"Verdict: `python benchmarks/studies/capture_grid_study.py --study {args.study}`.", "",
+              "| scene | row | steps (steps/s) | minutes | PSNR dB (at half the schedule) | SSIM | depth abs-rel | "
+              "cov 68 / 95 | median 95% half-width |", "|" + "---|" * 9]
+    for scene in sorted(today):
+        for label, scores in rows.items():
+            s = scores.get(scene)
+            if s is None:
+                continue
+            half = s["curve"][0] if len(s["curve"]) > 1 else None
+            half_text = f" ({half[1]:.2f} at {half[0]:.1f} min)" if half else ""
+            cov = (f"{100 * s['coverage_68']:.1f} / {100 * s['coverage_95']:.1f}" if s["coverage_68"] is not None else "-")
+            width = f"{100 * s['halfwidth_95']:.1f}%" if s["halfwidth_95"] is not None else "-"
+            lines.append(f"| {scene} | {label} | {s['steps']} ({s['steps_per_s']:.2f}) | {s['minutes']:.1f} | "
+                         f"{s['psnr']:.2f}{half_text} | {s['ssim']:.3f} | {s['abs_rel']:.4f} | {cov} | {width} |")
+    lines += ["", rule_text(study), ""]
+    for scene, s in v["scenes"].items():
+        failed = [k for k, ok in s["checks"].items() if not ok]
+        lines.append(f"- {scene}: PSNR {s['psnr_gain_db']:+.2f} dB, abs-rel {s['abs_rel_change']:+.4f}: "
+                     + ("passes" if s["passes"] else "fails " + ", ".join(failed)))
+    for scene in sorted({"fern", "flower"} - set(v["scenes"])):
+        lines.append(f"- {scene}: no row of both settings (the rule needs it on every scene)")
+    lines += ["", f"**{'Taken' if v['taken'] else 'Not taken'}.**", ""]
+    (out / "README.md").write_text("\n".join(lines))
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
