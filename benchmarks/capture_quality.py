@@ -37,7 +37,7 @@ import torch
 
 from stochastic_fields.calibration import calibrate_run
 from stochastic_fields.capture_points import score_sparse_depth
-from stochastic_fields.config import preset, set_dotted, validate_experiment
+from stochastic_fields.config import flatten, preset, set_dotted, to_dict, validate_experiment
 from stochastic_fields.evaluation import evaluate
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.scenes import describe_split, load_run_dataset
@@ -92,19 +92,48 @@ def scores_of(result: dict) -> dict:
             "halfwidth_median_95": intervals.get("halfwidth_median_95")}
 
 
-def run_one(scene: str, method: str, args) -> dict:
-    record = args.work / scene / method / "record.json"
-    asked = {"seed": args.seed, "settings": [[key, value] for key, value in args.set], "minutes": args.minutes}
-    if record.exists():
-        done = json.loads(record.read_text())
-        defaults = vars(build_parser().parse_args([]))  # records older than these keys were made at the defaults
-        kept = {key: done.get(key, defaults.get(key, [])) for key in asked}
-        if kept != asked:
-            raise SystemExit(f"{record}: a finished run of {kept}, not of this command's {asked}; give another --work")
-        return done
-    run_dir = args.work / scene / method / "run"
+def run_config(scene: str, method: str, args):
+    """The config a row of this command trains (``config_for`` with the minutes budget)."""
     cfg = config_for(scene, method, STEP_CAP, args.seed, args.set)
     cfg.train.minutes = args.minutes
+    return cfg
+
+
+def recorded_options(cfg, args) -> dict:
+    """What a finished row's record must match to be read back instead of trained: the command's
+    seed, settings and minutes and every option of the run's config (but the scene's path, which
+    the row's folder names), so a row made before a default changed is not taken for today's."""
+    config = {key: value for key, value in flatten(to_dict(cfg)).items() if key != "data.path"}
+    return json.loads(json.dumps({"seed": args.seed, "settings": [[key, value] for key, value in args.set],
+                                  "minutes": args.minutes, "config": config}))
+
+
+def differing_options(done: dict, asked: dict, limit: int = 4) -> str:
+    """The first ``limit`` options in which a record differs from this command, as text."""
+    diffs = [f"{key} {done.get(key)!r} (asked {value!r})" for key, value in asked.items()
+             if key != "config" and done.get(key) != value]
+    if "config" not in done:
+        diffs.append("no config (a record from before records kept it)")
+    else:
+        old = done["config"]
+        diffs += [f"{key} {old.get(key)!r} (asked {value!r})" for key, value in asked["config"].items()
+                  if old.get(key) != value]
+        diffs += [f"{key} {value!r} (not an option now)" for key, value in old.items() if key not in asked["config"]]
+    more = f" and {len(diffs) - limit} more" if len(diffs) > limit else ""
+    return "; ".join(diffs[:limit]) + more
+
+
+def run_one(scene: str, method: str, args) -> dict:
+    record = args.work / scene / method / "record.json"
+    cfg = run_config(scene, method, args)
+    asked = recorded_options(cfg, args)
+    if record.exists():
+        done = json.loads(record.read_text())
+        if any(done.get(key) != value for key, value in asked.items()):
+            raise SystemExit(f"{record}: a finished run of other options ({differing_options(done, asked)}); "
+                             "give another --work")
+        return done
+    run_dir = args.work / scene / method / "run"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         dataset = load_run_dataset(cfg, run_dir)

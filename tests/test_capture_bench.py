@@ -47,16 +47,29 @@ def test_command_reproduces_the_options(bench):
     assert bench.command_options(args_of(bench, [])) == "--out benchmarks/results/capture_quality"
 
 
-def test_a_finished_row_of_other_settings_is_not_resumed(bench, tmp_path):
+def test_a_finished_row_of_other_options_is_not_resumed(bench, tmp_path):
+    """A record is read back only when the command's seed, settings, minutes and the run's whole
+    config match: a row trained before a default changed is refused, naming the option."""
     record = tmp_path / "fern" / "snerf" / "record.json"
     record.parent.mkdir(parents=True)
-    record.write_text(json.dumps({"scene": "fern", "method": "snerf", "seed": 1, "minutes": 10.0,
-                                  "settings": [["field.grid_max_cells", 8000000]], "curve": []}))
     same = args_of(bench, ["--work", str(tmp_path), "--seed", "1", "--set", "field.grid_max_cells=8000000"])
+    asked = bench.recorded_options(bench.run_config("fern", "snerf", same), same)
+    assert asked["config"]["field.grid_max_cells"] == 8000000 and "data.path" not in asked["config"]
+    record.write_text(json.dumps({"scene": "fern", "method": "snerf", "curve": [], **asked}))
     assert bench.run_one("fern", "snerf", same)["seed"] == 1  # read back, nothing trained
     other = args_of(bench, ["--work", str(tmp_path), "--seed", "1"])
-    with pytest.raises(SystemExit, match="record.json.*another --work"):
+    with pytest.raises(SystemExit, match=r"record.json.*settings.*grid_max_cells.*another --work"):
         bench.run_one("fern", "snerf", other)
+    # a row made under another default of an option the command does not set
+    stale = json.loads(record.read_text())
+    stale["config"]["field.grid_resolution_rule"] = "footprint"
+    record.write_text(json.dumps(stale))
+    with pytest.raises(SystemExit, match=r"field.grid_resolution_rule 'footprint' \(asked 'parallax'\)"):
+        bench.run_one("fern", "snerf", same)
+    del stale["config"]
+    record.write_text(json.dumps(stale))
+    with pytest.raises(SystemExit, match="no config"):
+        bench.run_one("fern", "snerf", same)
 
 
 def test_capture_grid_study_verdicts_follow_their_rules(load_script):

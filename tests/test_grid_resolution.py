@@ -136,3 +136,21 @@ def test_rules_refuse_a_region_no_frustum_reaches():
     far_away[:, 2, 3] = 1000.0  # every camera 1000 behind... in front of the region: frusta far past it
     with pytest.raises(ValueError, match="resolution_from_parallax: no camera frustum point"):
         resolution_from_parallax(region, K, far_away, H, W, near, far)
+
+
+def test_runs_saved_before_the_parallax_default_keep_their_footprint_grid():
+    """field.grid_resolution_rule went footprint -> parallax (study 24): a saved config without the
+    key loads with the footprint rule (the grid its checkpoint holds), a stored benchmark run keeps
+    its fingerprint and a run at the new default gets a new one, for every method (the backbone)."""
+    from stochastic_fields.config import ExperimentConfig, flatten, saved_config, to_dict
+    from stochastic_fields_bench.runner import _semantic, config_fingerprint
+
+    assert ExperimentConfig().field.grid_resolution_rule == "parallax"
+    old = to_dict(ExperimentConfig())
+    del old["field"]["grid_resolution_rule"]
+    assert saved_config(old).field.grid_resolution_rule == "footprint"
+    for method in ("snerf", "deterministic", "ensemble"):
+        stored, new = ExperimentConfig(method=method), ExperimentConfig(method=method)
+        stored.field.grid_resolution_rule = "footprint"
+        assert "field.grid_resolution_rule" not in _semantic(flatten(to_dict(stored)))
+        assert config_fingerprint(stored) != config_fingerprint(new)

@@ -68,8 +68,8 @@ class FieldConfig:
     """Grid levels, each half the resolution of the next. Range: an integer >= 1 and <= 16."""
     grid_pixels_per_voxel: float = 1.5
     """Finest voxel size in pixel footprints (resolution follows the images). Range: a finite number > 0."""
-    grid_resolution_rule: Literal["footprint", "parallax"] = "footprint"
-    """How the finest level's cells per axis follow the training views (before the grid_max_cells cap): 'footprint': a voxel spans grid_pixels_per_voxel pixel footprints along every axis; 'parallax': along each axis, grid_pixels_per_voxel pixels of motion in the view that sees a step along that axis move most (on a forward-facing capture the depth axis gets the cells its baselines resolve, the image axes the rest; docs/design.md)."""
+    grid_resolution_rule: Literal["footprint", "parallax"] = "parallax"
+    """How the finest level's cells per axis follow the training views (before the grid_max_cells cap): 'parallax' (default since study 24): along each axis, grid_pixels_per_voxel pixels of motion in the view that sees a step along that axis move most (on a forward-facing capture the depth axis gets the cells its baselines resolve, the image axes the rest; docs/design.md); 'footprint' (before): a voxel spans grid_pixels_per_voxel pixel footprints along every axis."""
     grid_max_cells: int = 2_000_000
     """Cap on cells of the finest level. Range: an integer >= 8 and <= 2147483648."""
     grid_feature_dim: int = 8
@@ -359,7 +359,8 @@ def save_config(cfg: ExperimentConfig, path: Path) -> None:
 #: the benchmark fingerprints count these values, not the defaults, as "unchanged", except where
 #: ``stochastic_fields_bench.runner._FINGERPRINT_REFERENCE`` names the value stored runs left out).
 LEGACY_VALUES: dict[str, Any] = {"loss.per_point_noise": False, "loss.noise_head_decoupled": False,
-                                 "loss.lambda_depth": 0.0, "data.split": "paper"}
+                                 "loss.lambda_depth": 0.0, "data.split": "paper",
+                                 "field.grid_resolution_rule": "footprint"}
 
 
 def saved_config(data: dict) -> ExperimentConfig:
