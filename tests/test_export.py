@@ -199,17 +199,19 @@ def test_interrupted_export_leaves_no_partial_file(tmp_path, dataset, exact_mode
 @pytest.fixture(scope="module")
 def run_dir(tiny_scene, tmp_path_factory, dataset):
     """A run folder as the trainer leaves it (config.json + checkpoint.pt) holding the tiny preset's
-    freshly initialised model: the export pipeline does not care how long it trained."""
+    freshly initialised model: the export pipeline does not care how long it trained. The model is
+    built from the run's own training views, as the trainer builds it (the grid's shape follows them)."""
     from stochastic_fields import config as C
     from stochastic_fields.checkpoint import save_checkpoint
     from stochastic_fields.models.registry import build_model
+    from stochastic_fields.scenes import load_run_dataset
 
     cfg = C.preset("tiny")
     cfg.data.path = str(tiny_scene)
     cfg.train.device = "cpu"
     run = tmp_path_factory.mktemp("run")
     torch.manual_seed(0)
-    model = build_model(cfg, dataset)
+    model = build_model(cfg, load_run_dataset(cfg, run))
     C.save_config(cfg, run / "config.json")
     save_checkpoint(run / "checkpoint.pt", {"model": model.state_dict(), "step": 0})
     return run

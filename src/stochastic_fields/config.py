@@ -67,7 +67,7 @@ class FieldConfig:
     grid_levels: int = 3
     """Grid levels, each half the resolution of the next. Range: an integer >= 1 and <= 16."""
     grid_pixels_per_voxel: float = 1.5
-    """Finest voxel size in pixel footprints (resolution follows the images). Range: a finite number > 0."""
+    """Finest voxel size in pixels: the pixels a voxel spans along each axis in the view that sees that axis best (field.grid_resolution_rule 'parallax'), or in pixel footprints ('footprint'). Range: a finite number > 0."""
     grid_resolution_rule: Literal["footprint", "parallax"] = "parallax"
     """How the finest level's cells per axis follow the training views (before the grid_max_cells cap): 'parallax' (default since study 24): along each axis, grid_pixels_per_voxel pixels of motion in the view that sees a step along that axis move most (on a forward-facing capture the depth axis gets the cells its baselines resolve, the image axes the rest; docs/design.md); 'footprint' (before): a voxel spans grid_pixels_per_voxel pixel footprints along every axis."""
     grid_max_cells: int = 2_000_000

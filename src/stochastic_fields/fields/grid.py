@@ -153,6 +153,12 @@ class GridField(StochasticField):
                 state_dict[key] = t[0].permute(1, 2, 3, 0).reshape(-1, t.shape[1])
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
+    def describe(self) -> str:
+        """One line for a user: the finest level's cells per axis (X x Y x Z of the unit cube), its
+        total and the number of levels."""
+        x, y, z = self.resolution
+        return f"{x} x {y} x {z} cells at the finest of {len(self.level_shapes)} levels ({x * y * z / 1e6:.2f}M)"
+
     def forward(self, positions: Tensor, directions: Tensor) -> FieldParams:
         unit = self.region.to_unit(positions.reshape(-1, 3))
         return self.decode(self._interpolate(unit), unit, directions, positions.shape[:-1])
