@@ -110,15 +110,12 @@ def recorded_options(cfg, args) -> dict:
 
 def differing_options(done: dict, asked: dict, limit: int = 4) -> str:
     """The first ``limit`` options in which a record differs from this command, as text."""
-    diffs = [f"{key} {done.get(key)!r} (asked {value!r})" for key, value in asked.items()
-             if key != "config" and done.get(key) != value]
     if "config" not in done:
-        diffs.append("no config (a record from before records kept it)")
-    else:
-        old = done["config"]
-        diffs += [f"{key} {old.get(key)!r} (asked {value!r})" for key, value in asked["config"].items()
-                  if old.get(key) != value]
-        diffs += [f"{key} {value!r} (not an option now)" for key, value in old.items() if key not in asked["config"]]
+        return "no config (a record from before records kept it)"
+    ours = {**asked["config"], **{key: value for key, value in asked.items() if key != "config"}}
+    theirs = {**done["config"], **{key: done.get(key) for key in asked if key != "config"}}
+    diffs = [f"{key} {theirs.get(key)!r} (asked {ours.get(key)!r})" for key in sorted(set(ours) | set(theirs))
+             if theirs.get(key) != ours.get(key)]
     more = f" and {len(diffs) - limit} more" if len(diffs) > limit else ""
     return "; ".join(diffs[:limit]) + more
 

@@ -197,7 +197,7 @@ def test_interrupted_export_leaves_no_partial_file(tmp_path, dataset, exact_mode
 
 # ----------------------------------------------------------------------------- a real run folder
 @pytest.fixture(scope="module")
-def run_dir(tiny_scene, tmp_path_factory, dataset):
+def run_dir(tiny_scene, tmp_path_factory):
     """A run folder as the trainer leaves it (config.json + checkpoint.pt) holding the tiny preset's
     freshly initialised model: the export pipeline does not care how long it trained. The model is
     built from the run's own training views, as the trainer builds it (the grid's shape follows them)."""
