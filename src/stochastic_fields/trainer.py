@@ -27,6 +27,7 @@ from .distributed import DistContext, GradientReducer, rank_seeds, shard_size
 from .io_utils import atomic_write_text, open_append_no_follow, remove_stale_temporaries
 from .fields.grid import GridField, coarse_to_fine_weights
 from .models.base import RadianceModel
+from .models.field_builder import trained_grid_resolution
 from .models.registry import build_model, resolve_device
 from .optim import FieldOptimizer
 from .rays import RayBundle
@@ -236,6 +237,7 @@ class Trainer:
             "batch_rng": self.generator.get_state(),
             "draw_rng": self.draw_generator.get_state().cpu(),
             "config_json": json.dumps(to_dict(self.cfg)),
+            **grid_resolution_state(self.model),
         }
 
     def save(self) -> None:
@@ -304,6 +306,11 @@ class Trainer:
         state = self._resume_state()
         if state is None:
             return False
+        stored, built = stored_grid_resolution(self.checkpoint_path, state), trained_grid_resolution(self.model)
+        if stored is not None and stored != built:
+            raise ValueError(f"checkpoint {self.checkpoint_path} was trained with a {' x '.join(map(str, stored))} grid "
+                             f"and this config's training views size it {' x '.join(map(str, built))}: resume with "
+                             "the run's own data and split, or train into another --out")
         try:
             self.model.load_state_dict(state["model"])
         except RuntimeError as exc:  # shapes or names differ from the config's model
@@ -466,6 +473,29 @@ class Trainer:
         return loss_all, logs_all
 
 
+#: Checkpoint key of the finest grid level's cells per axis (absent for an MLP field and in
+#: checkpoints from before it was stored, whose grid is sized again from the training views).
+GRID_RESOLUTION_KEY = "grid_resolution"
+
+
+def grid_resolution_state(model: RadianceModel) -> dict:
+    """``{GRID_RESOLUTION_KEY: [X, Y, Z]}`` for a model with a grid field, else ``{}``."""
+    res = trained_grid_resolution(model)
+    return {} if res is None else {GRID_RESOLUTION_KEY: list(res)}
+
+
+def stored_grid_resolution(path: Path, state: dict) -> tuple[int, int, int] | None:
+    """The finest grid level a checkpoint was trained with (ValueError naming the file when
+    the stored entry is not three positive integers), or None when it stores none."""
+    res = state.get(GRID_RESOLUTION_KEY)
+    if res is None:
+        return None
+    if (not isinstance(res, (list, tuple)) or len(res) != 3
+            or not all(isinstance(r, int) and not isinstance(r, bool) and r > 0 for r in res)):
+        raise ValueError(f"checkpoint {path}: {GRID_RESOLUTION_KEY} must be three positive integers, got {res!r}")
+    return tuple(res)
+
+
 def load_trained_model(run_dir: Path, dataset=None, device: str | None = None):
     """(cfg, model, dataset) from a run folder; the model is in eval mode.
 
@@ -498,7 +528,7 @@ def load_trained_model(run_dir: Path, dataset=None, device: str | None = None):
         cfg.train.device = dev_name
     dataset = load_run_dataset(cfg, run_dir) if dataset is None else dataset
     dev = resolve_device(cfg.train.device)
-    model = build_model(cfg, dataset).to(dev)
+    model = build_model(cfg, dataset, grid_resolution=stored_grid_resolution(ckpt, state)).to(dev)
     try:
         model.load_state_dict(state["model"])
     except RuntimeError as exc:

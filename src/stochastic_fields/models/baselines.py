@@ -436,20 +436,20 @@ def deterministic_density_init(cfg):
     return cfg
 
 
-def _build_field(cfg, dataset, region):
-    return build_field(cfg, region, dataset)
+def _build_field(cfg, dataset, region, grid_resolution):
+    return build_field(cfg, region, dataset, grid_resolution=grid_resolution)
 
 
-def build_deterministic(cfg, dataset, region) -> RadianceModel:
+def build_deterministic(cfg, dataset, region, *, grid_resolution=None) -> RadianceModel:
     c = deterministic_density_init(cfg)
-    return DeterministicNeRF(_build_field(c, dataset, region), cfg.render, cfg.loss, tv_weight=cfg.train.tv_weight)
+    return DeterministicNeRF(_build_field(c, dataset, region, grid_resolution), cfg.render, cfg.loss, tv_weight=cfg.train.tv_weight)
 
 
-def build_mc_dropout(cfg, dataset, region, *, passes: int = DEFAULT_MC_DROPOUT_PASSES) -> RadianceModel:
+def build_mc_dropout(cfg, dataset, region, *, passes: int = DEFAULT_MC_DROPOUT_PASSES, grid_resolution=None) -> RadianceModel:
     c = deterministic_density_init(cfg)
     rate = c.field.dropout if c.field.dropout > 0 else DEFAULT_DROPOUT_RATE
     c.field.dropout = rate
-    field = _build_field(c, dataset, region)
+    field = _build_field(c, dataset, region, grid_resolution)
     if isinstance(field, GridField):
         field = GridDropoutField(field, rate)
     elif isinstance(getattr(field, "dropout", None), nn.Dropout):
@@ -459,11 +459,11 @@ def build_mc_dropout(cfg, dataset, region, *, passes: int = DEFAULT_MC_DROPOUT_P
     return MCDropoutNeRF(field, cfg.render, cfg.loss, passes=passes, tv_weight=cfg.train.tv_weight)
 
 
-def build_ensemble(cfg, dataset, region, *, members: int = DEFAULT_ENSEMBLE_SIZE) -> RadianceModel:
+def build_ensemble(cfg, dataset, region, *, members: int = DEFAULT_ENSEMBLE_SIZE, grid_resolution=None) -> RadianceModel:
     c = deterministic_density_init(cfg)
     fields = []
     for _ in range(members):
-        field = _build_field(c, dataset, region)  # each draws its own initial weights
+        field = _build_field(c, dataset, region, grid_resolution)  # each draws its own initial weights
         if isinstance(field, GridField):
             noise = ENSEMBLE_GRID_DENSITY_NOISE * abs(c.field.grid_init_density_loc) / math.sqrt(len(field.levels))
             with torch.no_grad():
@@ -473,12 +473,12 @@ def build_ensemble(cfg, dataset, region, *, members: int = DEFAULT_ENSEMBLE_SIZE
     return DeepEnsemble(fields, cfg.render, cfg.loss, tv_weight=cfg.train.tv_weight)
 
 
-def build_nerfw(cfg, dataset, region) -> RadianceModel:
+def build_nerfw(cfg, dataset, region, *, grid_resolution=None) -> RadianceModel:
     c = deterministic_density_init(cfg)
-    return NeRFWUncertainty(_build_field(c, dataset, region), cfg.render, cfg.loss, tv_weight=cfg.train.tv_weight)
+    return NeRFWUncertainty(_build_field(c, dataset, region, grid_resolution), cfg.render, cfg.loss, tv_weight=cfg.train.tv_weight)
 
 
-#: Registry entries: method name -> builder(cfg, dataset, region).
+#: Registry entries: method name -> builder(cfg, dataset, region, *, grid_resolution=None).
 BASELINE_BUILDERS: dict[str, Callable] = {
     "deterministic": build_deterministic,
     "mc_dropout": build_mc_dropout,

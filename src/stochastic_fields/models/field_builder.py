@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from torch import nn
+
 from ..cameras import image_size, intrinsics_3x3
 from ..config import ExperimentConfig
 from ..fields.base import StochasticField
@@ -18,20 +20,36 @@ def fit_scene_region(dataset, cfg: ExperimentConfig) -> SceneRegion:
                       aabb=dataset.aabb)
 
 
-def build_field(cfg: ExperimentConfig, region: SceneRegion, dataset, *, noise_head: bool = False) -> StochasticField:
+def finest_grid_resolution(cfg: ExperimentConfig, region: SceneRegion, dataset) -> tuple[int, int, int]:
+    """Cells per axis of the grid's finest level, from the dataset's training views by
+    ``field.grid_resolution_rule`` under ``field.grid_max_cells``."""
+    f = cfg.field
+    H, W = image_size(dataset.cameras)
+    idx = list(dataset.train_indices)
+    rule = RESOLUTION_RULES[f.grid_resolution_rule]
+    return rule(region, intrinsics_3x3(dataset.cameras)[idx], dataset.cameras.extrinsics[idx], H, W,
+                dataset.near[idx], dataset.far[idx], pixels_per_voxel=f.grid_pixels_per_voxel,
+                max_cells=f.grid_max_cells)
+
+
+def trained_grid_resolution(model: nn.Module) -> tuple[int, int, int] | None:
+    """The finest level's cells per axis of the model's grid field (every member of an
+    ensemble has the same), or None for a model without one. Stored in the checkpoint, so a
+    saved run rebuilds the grid it was trained with whatever views or sizing code load it."""
+    return next((m.resolution for m in model.modules() if isinstance(m, GridField)), None)
+
+
+def build_field(cfg: ExperimentConfig, region: SceneRegion, dataset, *, noise_head: bool = False,
+                grid_resolution: tuple[int, int, int] | None = None) -> StochasticField:
     """The configured backend; ``noise_head``: with an observation-noise output (S-NeRF's
-    ``loss.per_point_noise``)."""
+    ``loss.per_point_noise``); ``grid_resolution``: the finest level's cells per axis (a saved
+    run's), instead of sizing it from the dataset's training views."""
     f = cfg.field
     if f.backend == "mlp":
         return MLPField(region, depth=f.mlp_depth, width=f.mlp_width, dropout=f.dropout, init_std=f.init_std,
                         noise_head=noise_head)
     if f.backend == "grid":
-        H, W = image_size(dataset.cameras)
-        idx = list(dataset.train_indices)
-        finest_resolution = RESOLUTION_RULES[f.grid_resolution_rule]
-        res = finest_resolution(region, intrinsics_3x3(dataset.cameras)[idx], dataset.cameras.extrinsics[idx],
-                                H, W, dataset.near[idx], dataset.far[idx],
-                                pixels_per_voxel=f.grid_pixels_per_voxel, max_cells=f.grid_max_cells)
+        res = finest_grid_resolution(cfg, region, dataset) if grid_resolution is None else grid_resolution
         return GridField(region, res, num_levels=f.grid_levels, feature_dim=f.grid_feature_dim,
                          decoder_width=f.grid_decoder_width, init_density_loc=f.grid_init_density_loc,
                          init_std=f.init_std, noise_head=noise_head)

@@ -14,23 +14,28 @@ from .field_builder import build_field, fit_scene_region
 from .snerf import SNeRF
 
 
-def build_snerf(cfg: ExperimentConfig, dataset, region: SceneRegion) -> RadianceModel:
-    return SNeRF(build_field(cfg, region, dataset, noise_head=cfg.loss.per_point_noise), region, cfg.render, cfg.loss,
+def build_snerf(cfg: ExperimentConfig, dataset, region: SceneRegion, *,
+                grid_resolution: tuple[int, int, int] | None = None) -> RadianceModel:
+    field = build_field(cfg, region, dataset, noise_head=cfg.loss.per_point_noise, grid_resolution=grid_resolution)
+    return SNeRF(field, region, cfg.render, cfg.loss,
                  train_draws=cfg.train.train_draws, tv_weight=cfg.train.tv_weight)
 
 
-#: method name -> builder(cfg, dataset, region), for every name of ``config.METHOD_NAMES``.
-METHODS: dict[str, Callable[[ExperimentConfig, object, SceneRegion], RadianceModel]] = {
+#: method name -> builder(cfg, dataset, region, *, grid_resolution=None), for every name of ``config.METHOD_NAMES``.
+METHODS: dict[str, Callable[..., RadianceModel]] = {
     "snerf": build_snerf, **BASELINE_BUILDERS}
 if tuple(METHODS) != METHOD_NAMES:
     raise ImportError(f"config.METHOD_NAMES {METHOD_NAMES} and the builders {tuple(METHODS)} disagree")
 
 
-def build_model(cfg: ExperimentConfig, dataset, region: SceneRegion | None = None) -> RadianceModel:
+def build_model(cfg: ExperimentConfig, dataset, region: SceneRegion | None = None, *,
+                grid_resolution: tuple[int, int, int] | None = None) -> RadianceModel:
+    """The configured method's model; ``grid_resolution``: a saved run's finest grid level
+    (``field_builder.trained_grid_resolution``) instead of sizing it from the training views."""
     if cfg.method not in METHODS:
         raise ValueError(f"unknown method {cfg.method!r}; choose from {sorted(METHODS)}")
     region = fit_scene_region(dataset, cfg) if region is None else region
-    return METHODS[cfg.method](cfg, dataset, region)
+    return METHODS[cfg.method](cfg, dataset, region, grid_resolution=grid_resolution)
 
 
 def resolve_device(name: str) -> torch.device:
