@@ -1,4 +1,4 @@
-"""Studies 23 and 24: the grid's finest level on a capture, each judged by its rule.
+"""Studies 23 to 25: the grid's finest level and the samples along a ray on a capture, each judged by its rule.
 
 Each study's rows are runs of the capture benchmark (``benchmarks/capture_quality.py``, S-NeRF,
 seed 1, the ten-minute schedule), today's setting and the candidate's (the commands are in
@@ -8,6 +8,7 @@ the table and the rule's verdict (docs/studies.md; each rule fixed before its ro
 
     python benchmarks/studies/capture_grid_study.py --study cells
     python benchmarks/studies/capture_grid_study.py --study resolution_rule
+    python benchmarks/studies/capture_grid_study.py --study samples
 """
 
 from __future__ import annotations
@@ -58,6 +59,18 @@ STUDIES = {
         "S-NeRF default, capture split, seed 1, ten minutes of training (train.minutes) on two threads, "
         "one row at a time, the two rows of a scene one after the other",
         min_abs_rel_gain=0.005, max_psnr_loss_db=0.1),
+    "samples": Study(
+        "25", "a sample per depth cell of the parallax grid", "benchmarks/results/samples_study",
+        {"today (64 samples)": "samples_64", "candidate (a sample per depth cell)": "samples_per_depth_cell"},
+        tuple(f"OMP_NUM_THREADS=2 python benchmarks/capture_quality.py --methods snerf --scenes {scene} --seed 1 "
+              f"--threads 2 --marks 0.5 1 --out benchmarks/results/samples_study/{row}/{scene} "
+              f"--work runs/samples_study/{row}" + (f" --set render.num_samples={cells}" if cells else "")
+              for scene, cells in (("fern", 47), ("flower", 42)) for row, cells in
+              (("samples_64", None), ("samples_per_depth_cell", cells))),
+        "S-NeRF default, capture split, seed 1, ten minutes of training (train.minutes) on two threads, "
+        "one row at a time, the two rows of a scene one after the other; the candidate's samples per ray are "
+        "the finest grid level's depth cells on each capture (fern 246 x 177 x 47, flower 266 x 182 x 42)",
+        min_abs_rel_gain=0.005, max_psnr_loss_db=0.1),
 }
 
 
@@ -74,6 +87,18 @@ def last_scores(results: dict) -> dict[str, dict]:
                                 "coverage_95": cal.get("coverage_95"), "halfwidth_95": cal.get("halfwidth_median_95"),
                                 "curve": [(c["minutes"], c["psnr"]) for c in record["curve"]]}
     return out
+
+
+def row_scores(folder: Path) -> dict[str, dict]:
+    """``last_scores`` of a row's ``results.json``, or merged over its per-scene sub-folders'
+    (a row whose setting differs per scene writes one capture-benchmark output per scene)."""
+    files = [folder / "results.json"] if (folder / "results.json").is_file() else sorted(folder.glob("*/results.json"))
+    if not files:
+        raise SystemExit(f"{folder}: no results.json (run the row's command first)")
+    scores = {}
+    for path in files:
+        scores.update(last_scores(json.loads(path.read_text())))
+    return scores
 
 
 def verdict(study: Study, today: dict, candidate: dict) -> dict:
@@ -117,8 +142,7 @@ def main() -> None:
     args = ap.parse_args()
     study = STUDIES[args.study]
     out = args.out or Path(study.out)
-    rows = {label: last_scores(json.loads((out / folder / "results.json").read_text()))
-            for label, folder in study.rows.items()}
+    rows = {label: row_scores(out / folder) for label, folder in study.rows.items()}
     (today_label, today), (cand_label, candidate) = rows.items()
     v = verdict(study, today, candidate)
     (out / "verdict.json").write_text(json.dumps({"rows": rows, "verdict": v}, indent=2) + "\n")
