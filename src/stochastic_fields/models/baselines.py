@@ -436,16 +436,17 @@ def deterministic_density_init(cfg):
     return cfg
 
 
-def _build_field(cfg, dataset, region, grid_resolution):
+def _build_field(cfg, dataset, region, grid_resolution: tuple[int, int, int] | None):
     return build_field(cfg, region, dataset, grid_resolution=grid_resolution)
 
 
-def build_deterministic(cfg, dataset, region, *, grid_resolution=None) -> RadianceModel:
+def build_deterministic(cfg, dataset, region, *, grid_resolution: tuple[int, int, int] | None = None) -> RadianceModel:
     c = deterministic_density_init(cfg)
     return DeterministicNeRF(_build_field(c, dataset, region, grid_resolution), cfg.render, cfg.loss, tv_weight=cfg.train.tv_weight)
 
 
-def build_mc_dropout(cfg, dataset, region, *, passes: int = DEFAULT_MC_DROPOUT_PASSES, grid_resolution=None) -> RadianceModel:
+def build_mc_dropout(cfg, dataset, region, *, passes: int = DEFAULT_MC_DROPOUT_PASSES,
+                     grid_resolution: tuple[int, int, int] | None = None) -> RadianceModel:
     c = deterministic_density_init(cfg)
     rate = c.field.dropout if c.field.dropout > 0 else DEFAULT_DROPOUT_RATE
     c.field.dropout = rate
@@ -459,7 +460,8 @@ def build_mc_dropout(cfg, dataset, region, *, passes: int = DEFAULT_MC_DROPOUT_P
     return MCDropoutNeRF(field, cfg.render, cfg.loss, passes=passes, tv_weight=cfg.train.tv_weight)
 
 
-def build_ensemble(cfg, dataset, region, *, members: int = DEFAULT_ENSEMBLE_SIZE, grid_resolution=None) -> RadianceModel:
+def build_ensemble(cfg, dataset, region, *, members: int = DEFAULT_ENSEMBLE_SIZE,
+                   grid_resolution: tuple[int, int, int] | None = None) -> RadianceModel:
     c = deterministic_density_init(cfg)
     fields = []
     for _ in range(members):
@@ -473,7 +475,7 @@ def build_ensemble(cfg, dataset, region, *, members: int = DEFAULT_ENSEMBLE_SIZE
     return DeepEnsemble(fields, cfg.render, cfg.loss, tv_weight=cfg.train.tv_weight)
 
 
-def build_nerfw(cfg, dataset, region, *, grid_resolution=None) -> RadianceModel:
+def build_nerfw(cfg, dataset, region, *, grid_resolution: tuple[int, int, int] | None = None) -> RadianceModel:
     c = deterministic_density_init(cfg)
     return NeRFWUncertainty(_build_field(c, dataset, region, grid_resolution), cfg.render, cfg.loss, tv_weight=cfg.train.tv_weight)
 
