@@ -63,7 +63,7 @@ STUDIES = {
         "25", "a sample per depth cell of the parallax grid", "benchmarks/results/samples_study",
         {"today (64 samples)": "samples_64", "candidate (a sample per depth cell)": "samples_per_depth_cell"},
         tuple(f"OMP_NUM_THREADS=2 python benchmarks/capture_quality.py --methods snerf --scenes {scene} --seed 1 "
-              f"--threads 2 --marks 0.5 1 --out benchmarks/results/samples_study/{row}/{scene} "
+              f"--threads 2 --marks 0.5 1 --out benchmarks/results/samples_study/{row}/capture_{scene} "
               f"--work runs/samples_study/{row}" + (f" --set render.num_samples={cells}" if cells else "")
               for scene, cells in (("fern", 47), ("flower", 42)) for row, cells in
               (("samples_64", None), ("samples_per_depth_cell", cells))),
