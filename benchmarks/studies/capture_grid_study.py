@@ -64,9 +64,9 @@ STUDIES = {
         {"today (64 samples)": "samples_64", "candidate (a sample per depth cell)": "samples_per_depth_cell"},
         tuple(f"OMP_NUM_THREADS=2 python benchmarks/capture_quality.py --methods snerf --scenes {scene} --seed 1 "
               f"--threads 2 --marks 0.5 1 --out benchmarks/results/samples_study/{row}/capture_{scene} "
-              f"--work runs/samples_study/{row}" + (f" --set render.num_samples={cells}" if cells else "")
-              for scene, cells in (("fern", 47), ("flower", 42)) for row, cells in
-              (("samples_64", None), ("samples_per_depth_cell", cells))),
+              f"--work runs/samples_study/{row}" + (f" --set render.num_samples={samples}" if samples else "")
+              for scene, depth_cells in (("fern", 47), ("flower", 42)) for row, samples in
+              (("samples_64", None), ("samples_per_depth_cell", depth_cells))),
         "S-NeRF default, capture split, seed 1, ten minutes of training (train.minutes) on two threads, "
         "one row at a time, the two rows of a scene one after the other; the candidate's samples per ray are "
         "the finest grid level's depth cells on each capture (fern 246 x 177 x 47, flower 266 x 182 x 42)",

@@ -80,7 +80,7 @@ def cmd_train(args: argparse.Namespace) -> None:
     from .models.registry import resolve_device  # deferred: loads only when this command runs (keeps --help fast)
     from .scenes import describe_split, load_run_dataset  # deferred: loads only when this command runs (keeps --help fast)
     from .trainer import Trainer  # deferred: loads only when this command runs (keeps --help fast)
-    from .fields.grid import GridField  # deferred: loads only when this command runs (keeps --help fast)
+    from .models.field_builder import grid_field  # deferred: loads only when this command runs (keeps --help fast)
 
     from .io_utils import check_output_folder  # deferred: loads only when this command runs (keeps --help fast)
     from .trainer import check_resume  # deferred: loads only when this command runs (keeps --help fast)
@@ -95,8 +95,8 @@ def cmd_train(args: argparse.Namespace) -> None:
     dataset = load_run_dataset(cfg, run_dir)
     print(describe_split(dataset, cfg))
     trainer = Trainer(cfg, run_dir, dataset)
-    grid = next((m for m in trainer.model.modules() if isinstance(m, GridField)), None)
-    if grid is not None:  # every grid of a run (an ensemble's members) has the same shape
+    grid = grid_field(trainer.model)
+    if grid is not None:
         print(f"grid: {grid.describe()}, sized by the {cfg.field.grid_resolution_rule} rule "
               f"(field.grid_resolution_rule) under the {cfg.field.grid_max_cells:,}-cell cap")
     model = trainer.train(progress=not args.quiet)

@@ -32,11 +32,18 @@ def finest_grid_resolution(cfg: ExperimentConfig, region: SceneRegion, dataset) 
                 max_cells=f.grid_max_cells)
 
 
+def grid_field(model: nn.Module) -> GridField | None:
+    """The model's (first) grid field, or None for a model without one; every member of an
+    ensemble has the same shape."""
+    return next((m for m in model.modules() if isinstance(m, GridField)), None)
+
+
 def trained_grid_resolution(model: nn.Module) -> tuple[int, int, int] | None:
-    """The finest level's cells per axis of the model's grid field (every member of an
-    ensemble has the same), or None for a model without one. Stored in the checkpoint, so a
-    saved run rebuilds the grid it was trained with whatever views or sizing code load it."""
-    return next((m.resolution for m in model.modules() if isinstance(m, GridField)), None)
+    """The finest level's cells per axis of the model's grid field, or None for a model without
+    one. Stored in the checkpoint, so a saved run rebuilds the grid it was trained with whatever
+    views or sizing code load it."""
+    grid = grid_field(model)
+    return None if grid is None else grid.resolution
 
 
 def build_field(cfg: ExperimentConfig, region: SceneRegion, dataset, *, noise_head: bool = False,
