@@ -20,6 +20,11 @@ S-NeRF within 0.3 dB of the deterministic NeRF.
 
 (``make bench-capture``: both cores of the 2-core machine, as ``train`` uses them by default.)
 
+On a GPU: ``--set train.device=cuda``; ``--reference benchmarks/results/capture_quality/results.json``
+adds the minutes each row takes to reach the CPU run's final PSNR and depth abs-rel (and draws the
+CPU's curves beside this run's); ``--llff-root`` names the scenes' folder where ``../shared`` is not
+beside the repository (``benchmarks/results/capture_quality_gpu/``).
+
 Resumes: a finished (scene, method) is read from ``--work``; ``results.json``, ``README.md`` and
 ``capture_quality.png`` are rewritten in ``--out`` after each.
 """
@@ -28,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 import warnings
 from pathlib import Path
@@ -65,12 +71,13 @@ def parse_setting(text: str) -> tuple[str, object]:
         return key, raw
 
 
-def config_for(scene: str, method: str, iterations: int, seed: int, settings: tuple = ()):
-    """The benchmark's config of ``method`` on ``scene``; ``settings``: (dotted option, value) pairs
-    applied on top (``--set``; every method alike), validated."""
+def config_for(scene: str, method: str, iterations: int, seed: int, settings: tuple = (),
+               llff_root: Path = LLFF_ROOT):
+    """The benchmark's config of ``method`` on ``scene`` (a folder of ``llff_root``); ``settings``:
+    (dotted option, value) pairs applied on top (``--set``; every method alike), validated."""
     cfg = preset("llff")
     cfg.method = method
-    cfg.data.path = str((LLFF_ROOT / scene).resolve())
+    cfg.data.path = str((Path(llff_root) / scene).resolve())
     cfg.train.iterations = int(iterations)
     cfg.train.eval_every = 0
     cfg.train.checkpoint_every = 0
@@ -94,7 +101,7 @@ def scores_of(result: dict) -> dict:
 
 def run_config(scene: str, method: str, args):
     """The config a row of this command trains (``config_for`` with the minutes budget)."""
-    cfg = config_for(scene, method, STEP_CAP, args.seed, args.set)
+    cfg = config_for(scene, method, STEP_CAP, args.seed, args.set, args.llff_root)
     cfg.train.minutes = args.minutes
     return cfg
 
@@ -160,9 +167,59 @@ def run_one(scene: str, method: str, args) -> dict:
     out = {"scene": scene, "method": method, "train_views": len(dataset.train_indices), "validation_views": views,
            "steps": trainer.step, "steps_per_s": trainer.step / max(trainer.elapsed, 1e-9), "curve": curve,
            "calibrated": calibrated,
-           "threads": torch.get_num_threads(), **asked}
+           "threads": torch.get_num_threads(), "device": device_name(trainer.device), "host_cpus": os.cpu_count(),
+           **asked}
     atomic_write_text(record, json.dumps(out, indent=2))
     return out
+
+
+def device_name(device: torch.device) -> str:
+    """The device a row trained on, as the report names it (the GPU's model on CUDA)."""
+    if device.type == "cuda":
+        return f"{device} ({torch.cuda.get_device_name(device)})"
+    return str(device)
+
+
+def first_reaching(curve: list[dict], key: str, target: float, higher_is_better: bool) -> dict | None:
+    """The first point of ``curve`` whose ``key`` reaches ``target`` (at least it when higher is
+    better, at most it otherwise), or None."""
+    for point in curve:
+        value = point.get(key)
+        if value is not None and (value >= target if higher_is_better else value <= target):
+            return point
+    return None
+
+
+def time_to_reference(records: list[dict], reference: list[dict]) -> dict:
+    """Per scene and method: where this run's curve first reaches the final PSNR and depth abs-rel of
+    the same row in ``reference`` (another run of this benchmark, e.g. on other hardware).
+
+    A curve's points are the ``--marks`` of one schedule, so a time read off it is an upper bound on
+    a schedule of that length (a shorter schedule decays its learning rate sooner)."""
+    out = {}
+    ref = {(r["scene"], r["method"]): r for r in reference}
+    for r in records:
+        other = ref.get((r["scene"], r["method"]))
+        if other is None:
+            continue
+        goal = other["curve"][-1]
+        row = {"reference_device": other.get("device", "cpu"), "reference_minutes": goal["minutes"],
+               "reference_psnr": goal["psnr"], "reference_abs_rel": goal["depth_abs_rel"],
+               "psnr": r["curve"][-1]["psnr"], "abs_rel": r["curve"][-1]["depth_abs_rel"],
+               "minutes": r["curve"][-1]["minutes"]}
+        for key, ref_value, higher in (("psnr", goal["psnr"], True), ("depth_abs_rel", goal["depth_abs_rel"], False)):
+            hit = None if ref_value is None else first_reaching(r["curve"], key, ref_value, higher)
+            row[f"minutes_to_reference_{key}"] = None if hit is None else hit["minutes"]
+        out.setdefault(r["scene"], {})[r["method"]] = row
+    return out
+
+
+def device_summary(records: list[dict]) -> str:
+    """What trained the rows, as the report's header names it."""
+    names = sorted({r.get("device", "cpu") for r in records})
+    cpus = sorted({r.get("host_cpus") for r in records if r.get("host_cpus")})
+    host = f" on a host of {', '.join(map(str, cpus))} CPU cores" if cpus else ""
+    return f"trained on {' and '.join(names)}{host}"
 
 
 def verdict(records: list[dict]) -> dict:
@@ -186,7 +243,7 @@ def verdict(records: list[dict]) -> dict:
     return out
 
 
-def plot(records: list[dict], path: Path) -> None:
+def plot(records: list[dict], path: Path, reference: list[dict] = ()) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -197,8 +254,15 @@ def plot(records: list[dict], path: Path) -> None:
     for row, scene in zip(axes, scenes):
         for r in (r for r in records if r["scene"] == scene):
             t = [c["minutes"] for c in r["curve"]]
-            row[0].plot(t, [c["psnr"] for c in r["curve"]], "o-", label=r["method"])
-            row[1].plot(t, [c["depth_abs_rel"] for c in r["curve"]], "o-", label=r["method"])
+            line, = row[0].plot(t, [c["psnr"] for c in r["curve"]], "o-", label=r["method"])
+            row[1].plot(t, [c["depth_abs_rel"] for c in r["curve"]], "o-", label=r["method"], color=line.get_color())
+            for other in (o for o in reference if o["scene"] == scene and o["method"] == r["method"]):
+                t = [c["minutes"] for c in other["curve"]]
+                label = f"{r['method']} ({other.get('device', 'cpu')}, reference)"
+                row[0].plot(t, [c["psnr"] for c in other["curve"]], "s--", color=line.get_color(), alpha=0.5,
+                            label=label)
+                row[1].plot(t, [c["depth_abs_rel"] for c in other["curve"]], "s--", color=line.get_color(),
+                            alpha=0.5, label=label)
         row[0].axhline(PSNR_TARGETS_DB.get(scene, np.nan), color="grey", ls="--", lw=1, label="target")
         row[1].axhline(ABS_REL_TARGET, color="grey", ls="--", lw=1, label="target")
         row[0].set(title=f"{scene}: validation PSNR", xlabel="training minutes", ylabel="dB")
@@ -215,7 +279,7 @@ def command_options(args) -> str:
     """The options that reproduce this run: ``--out`` and every option that differs from its default."""
     defaults = vars(build_parser().parse_args([]))
     parts = [f"--out {args.out}"]
-    for name in ("work", "scenes", "methods", "minutes", "marks", "seed", "threads"):
+    for name in ("work", "scenes", "methods", "minutes", "marks", "seed", "threads", "reference"):
         value = getattr(args, name)
         if value != defaults[name]:
             shown = " ".join(f"{v:g}" if isinstance(v, float) else str(v) for v in
@@ -225,15 +289,46 @@ def command_options(args) -> str:
     return " ".join(parts)
 
 
+def read_reference(path: Path | None) -> list[dict]:
+    """The records of another run's ``results.json`` (``--reference``), or none."""
+    if path is None:
+        return []
+    try:
+        return list(json.loads(Path(path).read_text())["records"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SystemExit(f"{path}: not a results.json of this benchmark ({type(exc).__name__}: {exc})") from exc
+
+
+def reference_lines(reach: dict) -> list[str]:
+    """The report's table of the minutes this run took to reach the reference's final quality."""
+    if not reach:
+        return []
+    lines = ["Minutes to reach the reference run's final quality (`--reference`; first mark at or past it, "
+             "so an upper bound on a schedule of that length):", "",
+             "| scene | method | reference: device, minutes, PSNR dB, abs-rel | this run: minutes, PSNR dB, abs-rel "
+             "| minutes to its PSNR | minutes to its abs-rel |", "|" + "---|" * 6]
+    for scene, methods in sorted(reach.items()):
+        for method, row in sorted(methods.items()):
+            def when(key):
+                m = row[f"minutes_to_reference_{key}"]
+                return f"{m:.2f}" if m is not None else f"not in {row['minutes']:.1f}"
+            lines.append(f"| {scene} | {method} | {row['reference_device']}, {row['reference_minutes']:.1f}, "
+                         f"{row['reference_psnr']:.2f}, {row['reference_abs_rel']:.4f} | {row['minutes']:.1f}, "
+                         f"{row['psnr']:.2f}, {row['abs_rel']:.4f} | {when('psnr')} | {when('depth_abs_rel')} |")
+    return lines + [""]
+
+
 def write_report(records: list[dict], args) -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     v = verdict(records)
-    atomic_write_text(args.out / "results.json", json.dumps({"records": records, "targets": v,
-                                                             "minutes": args.minutes}, indent=2))
-    plot(records, args.out / "capture_quality.png")
-    lines = ["# Quality per CPU-minute on a capture (capture split: every 8th photo validates)", "",
+    reference = read_reference(args.reference)
+    reach = time_to_reference(records, reference)
+    atomic_write_text(args.out / "results.json", json.dumps({"records": records, "targets": v, "minutes": args.minutes,
+                                                             "time_to_reference": reach}, indent=2))
+    plot(records, args.out / "capture_quality.png", reference)
+    lines = ["# Quality per training minute on a capture (capture split: every 8th photo validates)", "",
              f"Command: `OMP_NUM_THREADS={args.threads} .venv/bin/python benchmarks/capture_quality.py "
-             f"{command_options(args)}` (one torch thread per training unless stated; the machine: 2 CPU cores).", "",
+             f"{command_options(args)}` (torch CPU threads: {args.threads}; {device_summary(records)}).", "",
              "| scene | method | train / val photos | steps (steps/s) | minutes | PSNR dB | SSIM | depth abs-rel "
              "(points) | cov 68 / 95 after recal. | median 95% half-width |", "|" + "---|" * 10]
     for r in records:
@@ -251,7 +346,8 @@ def write_report(records: list[dict], args) -> None:
               "Depth abs-rel is scored at the validation photos' SfM points of the SCORE role (the points no "
               "step fitted), as `stochastic-fields eval` scores them; the interval columns use the map `train` "
               "fits (every held-out capture point, cross-fitted).",
-              "", f"Targets after {args.minutes:g} minutes:", "```", json.dumps(v, indent=1), "```", "",
+              "", *reference_lines(reach),
+              f"Targets after {args.minutes:g} minutes:", "```", json.dumps(v, indent=1), "```", "",
               "![curves](capture_quality.png)", ""]
     atomic_write_text(args.out / "README.md", "\n".join(lines))
 
@@ -267,8 +363,13 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--set", type=parse_setting, action="append", default=[], metavar="KEY=VALUE",
                     help="A config option for every method's run (repeatable), e.g. field.grid_max_cells=8000000.")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (stated in the results).")
+    ap.add_argument("--llff-root", type=Path, default=LLFF_ROOT,
+                    help="Folder holding the LLFF scenes (default: ../shared/data/nerf_llff_data).")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/capture_quality"))
     ap.add_argument("--work", type=Path, default=Path("runs/capture_quality"), help="Runs (large).")
+    ap.add_argument("--reference", type=Path, default=None,
+                    help="results.json of another run of this benchmark (e.g. the CPU's): the report adds the "
+                         "minutes this run takes to reach each row's final PSNR and depth abs-rel there.")
     ap.add_argument("--quiet", action="store_true")
     return ap
 
@@ -277,6 +378,7 @@ def main() -> None:
     ap = build_parser()
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    read_reference(args.reference)  # a bad --reference stops the command before any training
     records = []
     for scene in args.scenes:
         for method in args.methods:

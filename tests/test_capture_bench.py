@@ -97,3 +97,44 @@ def test_capture_grid_study_verdicts_follow_their_rules(load_script):
     # ... but not with more than 0.1 dB of PSNR lost
     assert not script.verdict(rule, today, {**depth_gain, "fern": row(22.65, 0.060)})["taken"]
     assert "or its depth abs-rel at least 0.005 below" in script.rule_text(rule)
+
+
+def test_time_to_reference_reads_the_first_mark_past_the_reference(bench, tmp_path):
+    """The report's minutes to another run's final quality: the first mark at or past its PSNR (higher
+    is better) and its depth abs-rel (lower is better); none when the curve never gets there."""
+    def point(minutes, psnr, abs_rel):
+        return {"minutes": minutes, "psnr": psnr, "depth_abs_rel": abs_rel}
+
+    cpu = [{"scene": "fern", "method": "snerf", "curve": [point(5.0, 22.0, 0.09), point(10.0, 23.0, 0.06)]},
+           {"scene": "fern", "method": "deterministic", "curve": [point(10.0, 22.5, 0.08)]}]
+    gpu = [{"scene": "fern", "method": "snerf", "device": "cuda:0 (H)",
+            "curve": [point(0.5, 22.5, 0.07), point(1.0, 23.0, 0.065), point(1.5, 23.4, 0.059)]},
+           {"scene": "fern", "method": "deterministic", "device": "cuda:0 (H)",
+            "curve": [point(0.5, 21.0, 0.09), point(1.5, 22.4, 0.07)]},
+           {"scene": "flower", "method": "snerf", "curve": [point(1.5, 24.0, 0.05)]}]  # no reference row
+    reach = bench.time_to_reference(gpu, cpu)
+    assert set(reach) == {"fern"}
+    snerf, det = reach["fern"]["snerf"], reach["fern"]["deterministic"]
+    assert snerf["minutes_to_reference_psnr"] == 1.0 and snerf["minutes_to_reference_depth_abs_rel"] == 1.5
+    assert snerf["reference_device"] == "cpu" and snerf["reference_psnr"] == 23.0
+    assert det["minutes_to_reference_psnr"] is None and det["minutes_to_reference_depth_abs_rel"] == 1.5
+    table = "\n".join(bench.reference_lines(reach))
+    assert "| fern | deterministic | cpu, 10.0, 22.50, 0.0800 | 1.5, 22.40, 0.0700 | not in 1.5 | 1.50 |" in table
+    assert bench.device_summary(gpu) == "trained on cpu and cuda:0 (H)"
+    assert bench.device_summary([{"device": "cpu", "host_cpus": 2}]) == "trained on cpu on a host of 2 CPU cores"
+    # --reference must be a results.json of this benchmark, named in the refusal
+    assert bench.read_reference(None) == []
+    path = tmp_path / "results.json"
+    path.write_text(json.dumps({"records": cpu}))
+    assert bench.read_reference(path) == cpu
+    path.write_text("{}")
+    with pytest.raises(SystemExit, match=r"results.json: not a results.json of this benchmark \(KeyError"):
+        bench.read_reference(path)
+    assert "--reference r.json" in bench.command_options(args_of(bench, ["--reference", "r.json"]))
+
+
+def test_llff_root_names_where_the_scenes_are(bench, tmp_path):
+    cfg = bench.config_for("fern", "snerf", 10, 0, (), llff_root=tmp_path)
+    assert cfg.data.path == str((tmp_path / "fern").resolve())
+    args = args_of(bench, ["--llff-root", str(tmp_path)])
+    assert bench.run_config("fern", "snerf", args).data.path == str((tmp_path / "fern").resolve())
