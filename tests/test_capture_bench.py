@@ -138,3 +138,34 @@ def test_llff_root_names_where_the_scenes_are(bench, tmp_path):
     assert cfg.data.path == str((tmp_path / "fern").resolve())
     args = args_of(bench, ["--llff-root", str(tmp_path)])
     assert bench.run_config("fern", "snerf", args).data.path == str((tmp_path / "fern").resolve())
+
+
+def test_capture_interval_seeds_reads_each_runs_last_evaluation(load_script, tmp_path):
+    """The seeds' summary reads the eval folder of the record's last step, averages the seeds and
+    applies issue 36's checks (every level within 5 points; median 95% half-width <= 15%)."""
+    script = load_script("benchmarks/studies/capture_interval_seeds.py")
+
+    def write_run(work, steps, cov, hw95):
+        run = work / "fern" / "snerf"
+        (run / "run" / f"eval_{steps:06d}").mkdir(parents=True)
+        (run / "record.json").write_text(json.dumps({"steps": steps, "curve": [{"minutes": 10.0, "psnr": 23.0}]}))
+        intervals = {f"coverage_{p}": c for p, c in zip(script.LEVELS, cov)}
+        intervals.update(halfwidth_median_68=0.02, halfwidth_median_95=hw95, halfwidth_p90_95=0.4,
+                         interval_score_68=0.3, interval_score_95=0.8, crps=0.05)
+        (run / "run" / f"eval_{steps:06d}" / "metrics.json").write_text(json.dumps(
+            {"pooled": {"depth_intervals": intervals, "depth": {"abs_rel": 0.06, "num_used": 2000}}}))
+
+    write_run(tmp_path / "s0", 2500, (0.48, 0.65, 0.89, 0.93, 0.98), 0.10)
+    write_run(tmp_path / "s1", 2600, (0.56, 0.74, 0.91, 0.95, 0.99), 0.22)
+    rows = [script.read_row(tmp_path / "s0", "fern", 0), script.read_row(tmp_path / "s1", "fern", 1)]
+    assert rows[0]["steps"] == 2500 and rows[1]["coverage_50"] == 0.56
+    assert script.read_row(tmp_path / "s0", "flower", 0) is None  # not run there
+    mean = script.mean_row(rows)
+    assert mean["coverage_68"] == pytest.approx(0.695) and mean["halfwidth_median_95"] == pytest.approx(0.16)
+    c = script.checks(mean)
+    assert c["levels_hold"] and not c["sharp"]
+    assert c["level_offsets_points"][50] == pytest.approx(2.0)
+    assert not script.checks({**mean, "coverage_90": 0.84})["levels_hold"]  # 6 points under
+    assert script.parse_run("2=runs/x") == (2, Path("runs/x"))
+    with pytest.raises(argparse.ArgumentTypeError, match="SEED=WORK_FOLDER"):
+        script.parse_run("runs/x")

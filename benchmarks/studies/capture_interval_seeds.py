@@ -1,0 +1,128 @@
+"""The capture split's depth intervals on several seeds: coverage at every level, width, interval
+score and CRPS, per seed and their mean (a measurement; it decides no default).
+
+Each ``--run SEED=WORK`` names the ``--work`` folder of one ``benchmarks/capture_quality.py`` run
+of S-NeRF (``--methods snerf``, the seed given there). Per scene the last evaluation of the run
+(``eval_<steps>/metrics.json``: the validation photos' SfM points of the SCORE role, after the
+recalibration ``train`` fits) is read; nothing is trained or rendered here.
+
+    python benchmarks/studies/capture_interval_seeds.py --run 0=runs/capture_quality_parallax \\
+        --run 1=runs/capture_interval_seeds/seed_1 --run 2=runs/capture_interval_seeds/seed_2 \\
+        --out benchmarks/results/capture_interval_seeds
+
+Issue 36's checks beside each mean: every level within ``LEVEL_TOLERANCE`` of nominal, and the
+median 95% half-width at most ``SHARPNESS_TARGET`` of the depth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from stochastic_fields.io_utils import atomic_write_text
+
+#: Nominal levels (percent) of the central intervals scored.
+LEVELS = (50, 68, 90, 95, 99)
+#: The levels issue 36 asks to hold within this many points (the 99% level is reported only).
+CHECKED_LEVELS, LEVEL_TOLERANCE = (50, 68, 90, 95), 5.0
+#: Issue 36's sharpness target: the median 95% half-width over the depth.
+SHARPNESS_TARGET = 0.15
+#: Columns of a row: (metrics.json key under pooled.depth_intervals, header, scale, format).
+COLUMNS = ([(f"coverage_{p}", f"cov {p}", 100.0, "{:.1f}") for p in LEVELS]
+           + [("halfwidth_median_68", "median 68% hw", 100.0, "{:.1f}%"),
+              ("halfwidth_median_95", "median 95% hw", 100.0, "{:.1f}%"),
+              ("halfwidth_p90_95", "p90 95% hw", 100.0, "{:.1f}%"),
+              ("interval_score_68", "IS68 / depth", 1.0, "{:.3f}"),
+              ("interval_score_95", "IS95 / depth", 1.0, "{:.3f}"),
+              ("crps", "CRPS / depth", 1.0, "{:.4f}")])
+
+
+def parse_run(text: str) -> tuple[int, Path]:
+    seed, sep, path = text.partition("=")
+    if not sep or not seed.strip().isdigit():
+        raise argparse.ArgumentTypeError(f"--run expects SEED=WORK_FOLDER, got {text!r}")
+    return int(seed), Path(path)
+
+
+def read_row(work: Path, scene: str, seed: int) -> dict | None:
+    """One seed's scores on ``scene`` from a capture benchmark's work folder, or None when the run
+    is not finished there."""
+    record = work / scene / "snerf" / "record.json"
+    if not record.is_file():
+        return None
+    rec = json.loads(record.read_text())
+    metrics_file = work / scene / "snerf" / "run" / f"eval_{rec['steps']:06d}" / "metrics.json"
+    try:
+        pooled = json.loads(metrics_file.read_text())["pooled"]
+        intervals, depth = pooled["depth_intervals"], pooled["depth"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SystemExit(f"{metrics_file}: no pooled depth intervals ({type(exc).__name__}: {exc})") from exc
+    last = rec["curve"][-1]
+    return {"scene": scene, "seed": seed, "steps": rec["steps"], "minutes": last["minutes"], "psnr": last["psnr"],
+            "abs_rel": depth.get("abs_rel"), "points": depth.get("num_used"),
+            **{key: intervals.get(key) for key, *_ in COLUMNS}}
+
+
+def mean_row(rows: list[dict]) -> dict:
+    keys = ["psnr", "abs_rel", *(key for key, *_ in COLUMNS)]
+    return {key: float(np.mean([r[key] for r in rows])) for key in keys}
+
+
+def checks(mean: dict) -> dict:
+    """Issue 36's targets 1 and 2 on a mean row."""
+    off = {p: 100.0 * mean[f"coverage_{p}"] - p for p in CHECKED_LEVELS}
+    return {"levels_hold": all(abs(v) <= LEVEL_TOLERANCE for v in off.values()),
+            "level_offsets_points": off,
+            "sharp": mean["halfwidth_median_95"] <= SHARPNESS_TARGET}
+
+
+def table(rows: list[dict]) -> list[str]:
+    head = ["scene", "seed", "steps", "PSNR dB", "abs-rel", *(h for _, h, *_ in COLUMNS)]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        cells = [r["scene"], str(r["seed"]), str(r.get("steps", "")), f"{r['psnr']:.2f}", f"{r['abs_rel']:.4f}"]
+        cells += [fmt.format(scale * r[key]) for key, _, scale, fmt in COLUMNS]
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--run", type=parse_run, action="append", required=True, metavar="SEED=WORK")
+    ap.add_argument("--scenes", nargs="+", default=["fern", "flower"])
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args()
+    rows, means = [], {}
+    for scene in args.scenes:
+        found = [row for seed, work in args.run if (row := read_row(work, scene, seed)) is not None]
+        rows += found
+        if found:
+            means[scene] = {**mean_row(found), "seeds": [r["seed"] for r in found]}
+            means[scene]["checks"] = checks(means[scene])
+    mean_rows = [{"scene": scene, "seed": "mean of " + ", ".join(map(str, m["seeds"])), "steps": "", **m}
+                 for scene, m in means.items()]
+    args.out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(args.out / "results.json", json.dumps({"rows": rows, "means": means}, indent=2))
+    runs = " ".join(f"--run {seed}={work}" for seed, work in args.run)
+    lines = ["# The capture split's depth intervals on several seeds", "",
+             f"Command: `python benchmarks/studies/capture_interval_seeds.py {runs} --out {args.out}` "
+             "(reads the runs of `benchmarks/capture_quality.py --methods snerf --seed SEED`; trains nothing).", "",
+             "Scored at the validation photos' SfM points of the SCORE role (every 8th photo validates), with "
+             "the recalibration `train` fits; widths, interval scores and CRPS relative to the depth.", "",
+             *table(rows + mean_rows), ""]
+    for scene, m in means.items():
+        c = m["checks"]
+        offsets = ", ".join(f"{p}%: {v:+.1f}" for p, v in c["level_offsets_points"].items())
+        lines.append(f"- {scene}: levels within {LEVEL_TOLERANCE:g} points of nominal: "
+                     f"{'yes' if c['levels_hold'] else 'no'} ({offsets}); median 95% half-width "
+                     f"{100 * m['halfwidth_median_95']:.1f}% (target {100 * SHARPNESS_TARGET:g}%): "
+                     f"{'met' if c['sharp'] else 'not met'}")
+    atomic_write_text(args.out / "README.md", "\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
