@@ -96,7 +96,8 @@ def scores_of(result: dict) -> dict:
             "depth_abs_rel": depth.get("abs_rel", summary.get("depth/abs_rel", {}).get("mean")),
             "depth_points": depth.get("num_used"),
             "coverage_68": intervals.get("coverage_68"), "coverage_95": intervals.get("coverage_95"),
-            "halfwidth_median_95": intervals.get("halfwidth_median_95")}
+            "halfwidth_median_95": intervals.get("halfwidth_median_95"),
+            "depth_intervals": dict(intervals)}  # every level, widths, interval scores, CRPS
 
 
 def run_config(scene: str, method: str, args):

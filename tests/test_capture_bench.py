@@ -169,3 +169,13 @@ def test_capture_interval_seeds_reads_each_runs_last_evaluation(load_script, tmp
     assert script.parse_run("2=runs/x") == (2, Path("runs/x"))
     with pytest.raises(argparse.ArgumentTypeError, match="SEED=WORK_FOLDER"):
         script.parse_run("runs/x")
+
+
+def test_a_rows_scores_keep_every_interval_level(bench):
+    intervals = {"coverage_50": 0.5, "coverage_68": 0.7, "coverage_95": 0.94, "halfwidth_median_95": 0.1, "crps": 0.05}
+    result = {"summary": {"psnr": {"mean": 23.0}, "ssim": {"mean": 0.7}},
+              "pooled": {"depth": {"abs_rel": 0.06, "num_used": 10}, "depth_intervals": intervals}}
+    scores = bench.scores_of(result)
+    assert scores["coverage_68"] == 0.7 and scores["depth_points"] == 10
+    assert scores["depth_intervals"] == intervals
+    assert bench.scores_of({"summary": result["summary"]})["depth_intervals"] == {}  # colour-only evaluation
