@@ -140,10 +140,10 @@ def test_llff_root_names_where_the_scenes_are(bench, tmp_path):
     assert bench.run_config("fern", "snerf", args).data.path == str((tmp_path / "fern").resolve())
 
 
-def test_capture_interval_seeds_reads_each_runs_last_evaluation(load_script, tmp_path):
+def test_depth_interval_seeds_reads_each_runs_last_evaluation(load_script, tmp_path):
     """The seeds' summary reads the eval folder of the record's last step, averages the seeds and
     applies issue 36's checks (every level within 5 points; median 95% half-width <= 15%)."""
-    script = load_script("benchmarks/studies/capture_interval_seeds.py")
+    script = load_script("benchmarks/studies/depth_interval_seeds.py")
 
     def write_run(work, steps, cov, hw95):
         run = work / "fern" / "snerf"
@@ -179,3 +179,18 @@ def test_a_rows_scores_keep_every_interval_level(bench):
     assert scores["coverage_68"] == 0.7 and scores["depth_points"] == 10
     assert scores["depth_intervals"] == intervals
     assert bench.scores_of({"summary": result["summary"]})["depth_intervals"] == {}  # colour-only evaluation
+
+
+def test_depth_interval_seeds_reads_the_tables_snerf_default_rows(load_script, tmp_path):
+    script = load_script("benchmarks/studies/depth_interval_seeds.py")
+    intervals = {key: 0.5 for key, *_ in script.COLUMNS}
+    row = {"psnr": 20.0, "depth": {"abs_rel": 0.12}, "pooled": {"depth_intervals": intervals}}
+    path = tmp_path / "tables.json"
+    path.write_text(json.dumps({"per_scene": {"fern": {"snerf_default": row, "deterministic": {"psnr": 18.0}},
+                                              "flower": {"deterministic": {"psnr": 19.0}}}}))
+    rows = script.read_table_rows(path, 3)
+    assert [(r["protocol"], r["scene"], r["seed"], r["abs_rel"]) for r in rows] == [("paper", "fern", 3, 0.12)]
+    assert rows[0]["coverage_95"] == 0.5
+    path.write_text(json.dumps({"per_scene": {"fern": {"snerf_default": {"psnr": 20.0}}}}))
+    with pytest.raises(SystemExit, match=r"tables.json: not an eval_tables.py tables.json"):
+        script.read_table_rows(path, 3)

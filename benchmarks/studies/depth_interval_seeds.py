@@ -1,4 +1,4 @@
-"""The capture split's depth intervals on several seeds: coverage at every level, width, interval
+"""The depth intervals of S-NeRF (default) on several seeds: coverage at every level, width, interval
 score and CRPS, per seed and their mean (a measurement; it decides no default).
 
 Each ``--run SEED=WORK`` names the ``--work`` folder of one ``benchmarks/capture_quality.py`` run
@@ -6,9 +6,13 @@ of S-NeRF (``--methods snerf``, the seed given there). Per scene the last evalua
 (``eval_<steps>/metrics.json``: the validation photos' SfM points of the SCORE role, after the
 recalibration ``train`` fits) is read; nothing is trained or rendered here.
 
-    python benchmarks/studies/capture_interval_seeds.py --run 0=runs/capture_quality_parallax \\
+    python benchmarks/studies/depth_interval_seeds.py --run 0=runs/capture_quality_parallax \\
         --run 1=runs/capture_interval_seeds/seed_1 --run 2=runs/capture_interval_seeds/seed_2 \\
-        --out benchmarks/results/capture_interval_seeds
+        --tables 0=benchmarks/results/eval_tables/tables.json --tables 1=T1 ... --out benchmarks/results/depth_interval_seeds
+
+``--tables SEED=TABLES_JSON`` adds the paper split: the S-NeRF (default) rows of a
+``benchmarks/eval_tables.py`` run (``--seed SEED``; its test views' SCORE points, the map
+cross-fitted), one ``tables.json`` per seed and scene or several scenes in one.
 
 Issue 36's checks beside each mean: every level within ``LEVEL_TOLERANCE`` of nominal, and the
 median 95% half-width at most ``SHARPNESS_TARGET`` of the depth.
@@ -61,9 +65,28 @@ def read_row(work: Path, scene: str, seed: int) -> dict | None:
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise SystemExit(f"{metrics_file}: no pooled depth intervals ({type(exc).__name__}: {exc})") from exc
     last = rec["curve"][-1]
-    return {"scene": scene, "seed": seed, "steps": rec["steps"], "minutes": last["minutes"], "psnr": last["psnr"],
+    return {"protocol": "capture", "scene": scene, "seed": seed, "steps": rec["steps"], "minutes": last["minutes"], "psnr": last["psnr"],
             "abs_rel": depth.get("abs_rel"), "points": depth.get("num_used"),
             **{key: intervals.get(key) for key, *_ in COLUMNS}}
+
+
+def read_table_rows(path: Path, seed: int) -> list[dict]:
+    """The S-NeRF (default) rows, one per scene, of an ``eval_tables.py`` run's ``tables.json``."""
+    try:
+        per_scene = json.loads(Path(path).read_text())["per_scene"]
+        rows = []
+        for scene, methods in per_scene.items():
+            m = methods.get("snerf_default")
+            if m is None:
+                continue
+            intervals = m["pooled"]["depth_intervals"]
+            rows.append({"protocol": "paper", "scene": scene, "seed": seed, "steps": "", "psnr": m["psnr"],
+                         "abs_rel": m["depth"]["abs_rel"], "points": None,
+                         **{key: intervals.get(key) for key, *_ in COLUMNS}})
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SystemExit(f"{path}: not an eval_tables.py tables.json with S-NeRF (default) depth intervals "
+                         f"({type(exc).__name__}: {exc})") from exc
+    return rows
 
 
 def mean_row(rows: list[dict]) -> dict:
@@ -80,10 +103,10 @@ def checks(mean: dict) -> dict:
 
 
 def table(rows: list[dict]) -> list[str]:
-    head = ["scene", "seed", "steps", "PSNR dB", "abs-rel", *(h for _, h, *_ in COLUMNS)]
+    head = ["protocol", "scene", "seed", "steps", "PSNR dB", "abs-rel", *(h for _, h, *_ in COLUMNS)]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in rows:
-        cells = [r["scene"], str(r["seed"]), str(r.get("steps", "")), f"{r['psnr']:.2f}", f"{r['abs_rel']:.4f}"]
+        cells = [r["protocol"], r["scene"], str(r["seed"]), str(r.get("steps", "")), f"{r['psnr']:.2f}", f"{r['abs_rel']:.4f}"]
         cells += [fmt.format(scale * r[key]) for key, _, scale, fmt in COLUMNS]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
@@ -91,32 +114,45 @@ def table(rows: list[dict]) -> list[str]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--run", type=parse_run, action="append", required=True, metavar="SEED=WORK")
+    ap.add_argument("--run", type=parse_run, action="append", default=[], metavar="SEED=WORK",
+                    help="A capture benchmark's --work folder of that seed (repeatable).")
+    ap.add_argument("--tables", type=parse_run, action="append", default=[], metavar="SEED=TABLES_JSON",
+                    help="An eval_tables.py run's tables.json of that seed (repeatable): the paper split's rows.")
     ap.add_argument("--scenes", nargs="+", default=["fern", "flower"])
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
-    rows, means = [], {}
+    if not args.run and not args.tables:
+        ap.error("give at least one --run or --tables")
+    rows = []
     for scene in args.scenes:
-        found = [row for seed, work in args.run if (row := read_row(work, scene, seed)) is not None]
-        rows += found
-        if found:
-            means[scene] = {**mean_row(found), "seeds": [r["seed"] for r in found]}
-            means[scene]["checks"] = checks(means[scene])
-    mean_rows = [{"scene": scene, "seed": "mean of " + ", ".join(map(str, m["seeds"])), "steps": "", **m}
-                 for scene, m in means.items()]
+        rows += [row for seed, work in args.run if (row := read_row(work, scene, seed)) is not None]
+    for seed, path in args.tables:
+        rows += [row for row in read_table_rows(path, seed) if row["scene"] in args.scenes]
+    rows.sort(key=lambda r: (r["protocol"], r["scene"], r["seed"]))
+    means = {}
+    for key in dict.fromkeys((r["protocol"], r["scene"]) for r in rows):
+        found = [r for r in rows if (r["protocol"], r["scene"]) == key]
+        mean = {**mean_row(found), "seeds": [r["seed"] for r in found]}
+        means[f"{key[0]} {key[1]}"] = {**mean, "checks": checks(mean)}
+    mean_rows = [{"protocol": name.split()[0], "scene": name.split()[1],
+                  "seed": "mean of " + ", ".join(map(str, m["seeds"])), "steps": "", **m}
+                 for name, m in means.items()]
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out / "results.json", json.dumps({"rows": rows, "means": means}, indent=2))
-    runs = " ".join(f"--run {seed}={work}" for seed, work in args.run)
-    lines = ["# The capture split's depth intervals on several seeds", "",
-             f"Command: `python benchmarks/studies/capture_interval_seeds.py {runs} --out {args.out}` "
-             "(reads the runs of `benchmarks/capture_quality.py --methods snerf --seed SEED`; trains nothing).", "",
-             "Scored at the validation photos' SfM points of the SCORE role (every 8th photo validates), with "
-             "the recalibration `train` fits; widths, interval scores and CRPS relative to the depth.", "",
+    runs = " ".join([f"--run {seed}={work}" for seed, work in args.run]
+                    + [f"--tables {seed}={path}" for seed, path in args.tables])
+    lines = ["# S-NeRF (default)'s depth intervals on several seeds", "",
+             f"Command: `python benchmarks/studies/depth_interval_seeds.py {runs} --out {args.out}` "
+             "(reads the runs of `benchmarks/capture_quality.py --methods snerf --seed SEED` and the tables of "
+             "`benchmarks/eval_tables.py --methods snerf_default --seed SEED`; trains nothing).", "",
+             "Capture: scored at the validation photos' SfM points of the SCORE role (every 8th photo validates), "
+             "with the recalibration `train` fits. Paper: the tables' test views' SCORE points, the map "
+             "cross-fitted. Widths, interval scores and CRPS relative to the depth.", "",
              *table(rows + mean_rows), ""]
-    for scene, m in means.items():
+    for name, m in means.items():
         c = m["checks"]
         offsets = ", ".join(f"{p}%: {v:+.1f}" for p, v in c["level_offsets_points"].items())
-        lines.append(f"- {scene}: levels within {LEVEL_TOLERANCE:g} points of nominal: "
+        lines.append(f"- {name}: levels within {LEVEL_TOLERANCE:g} points of nominal: "
                      f"{'yes' if c['levels_hold'] else 'no'} ({offsets}); median 95% half-width "
                      f"{100 * m['halfwidth_median_95']:.1f}% (target {100 * SHARPNESS_TARGET:g}%): "
                      f"{'met' if c['sharp'] else 'not met'}")
