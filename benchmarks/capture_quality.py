@@ -319,10 +319,11 @@ def reference_lines(reach: dict) -> list[str]:
     return lines + [""]
 
 
-def write_report(records: list[dict], args) -> None:
+def write_report(records: list[dict], args, reference: list[dict] = ()) -> None:
+    """``results.json``, ``capture_quality.png`` and ``README.md`` in ``args.out``; ``reference``:
+    the records of ``--reference`` (``read_reference``)."""
     args.out.mkdir(parents=True, exist_ok=True)
     v = verdict(records)
-    reference = read_reference(args.reference)
     reach = time_to_reference(records, reference)
     atomic_write_text(args.out / "results.json", json.dumps({"records": records, "targets": v, "minutes": args.minutes,
                                                              "time_to_reference": reach}, indent=2))
@@ -379,12 +380,12 @@ def main() -> None:
     ap = build_parser()
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    read_reference(args.reference)  # a bad --reference stops the command before any training
+    reference = read_reference(args.reference)  # read once; a bad one stops the command before any training
     records = []
     for scene in args.scenes:
         for method in args.methods:
             records.append(run_one(scene, method, args))
-            write_report(records, args)
+            write_report(records, args, reference)
     print(json.dumps(verdict(records), indent=1))
 
 
