@@ -1,0 +1,155 @@
+"""Study 26: the tables' cell cap at the paper split (250k against the product's 2M), judged by its rule.
+
+The rows are ``benchmarks/eval_tables.py`` runs (S-NeRF (default) and the deterministic NeRF, paper
+split, seed 1, one thread), today's cap and the candidate's::
+
+    OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes SCENE --methods deterministic snerf_default \\
+        --seed 1 --no-timing --out runs/cap_study/cap_250k
+    (the same with --set field.grid_max_cells=2000000 --out runs/cap_study/cap_2M)
+
+This script scores each run on its **validation views**, the paper split's held-out photos that the
+tables do not score (``budget.select_views`` picks the tables' four; the rest validate), with
+``stochastic-fields eval --views`` (the user's path: PSNR, depth against the SCORE capture points
+those photos see, intervals cross-fitted), then writes the table and the rule's verdict
+(docs/studies.md, fixed before the rows ran) to ``--out``/README.md and ``results.json``::
+
+    python benchmarks/studies/tables_cap_study.py --runs runs/cap_study --out benchmarks/results/tables_cap_study
+
+The tables' own test-view scores (each run's metrics.json) are not read.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+from stochastic_fields import metrics as M
+from stochastic_fields.io_utils import atomic_write_text
+from stochastic_fields_bench.budget import BenchmarkSettings, select_views
+from stochastic_fields_bench.runner import load_stages, scene_inputs
+
+#: The LLFF scenes, as eval_tables.py reads them.
+DATA_ROOT = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "nerf_llff_data"
+#: Row label -> the folder under --runs (today's first).
+ROWS = {"250k (today)": "cap_250k", "2M (candidate)": "cap_2M"}
+SCENES = ("fern", "flower")
+METHODS = ("snerf_default", "deterministic")
+#: Study 24's checks (S-NeRF): gain >= 0.2 dB PSNR or >= 0.005 abs-rel; lose <= 0.1 dB and <= 0.002.
+MIN_PSNR_GAIN_DB, MIN_ABS_REL_GAIN, MAX_PSNR_LOSS_DB, MAX_ABS_REL_LOSS = 0.2, 0.005, 0.1, 0.002
+#: The deterministic NeRF's PSNR may fall at most this much (the cap is every method's).
+MAX_BASELINE_PSNR_LOSS_DB = 0.1
+#: Issue 40's bound on the tables' budget: the candidate trains at most this many times as long.
+MAX_TRAIN_RATIO = 2.0
+#: Central levels judged, and how far from nominal their coverage may be (points).
+RULE_LEVELS, COVERAGE_POINTS = (0.5, 0.682689492137086, 0.9, 0.95), 5.0
+
+
+def validation_views(scene: str) -> list[int]:
+    """The paper split's held-out views the tables (CPU budget) do not score."""
+    _, dataset, scored, _ = scene_inputs(scene, BenchmarkSettings(), DATA_ROOT, log=lambda _: None)
+    assert scored == select_views(list(dataset.test_indices), BenchmarkSettings())
+    return [v for v in dataset.test_indices if v not in set(scored)]
+
+
+def score_run(run: Path, views: list[int], out: Path) -> dict:
+    """``stochastic-fields eval`` on ``views`` (cached in ``out``): PSNR, depth abs-rel and intervals."""
+    metrics = out / "metrics.json"
+    if not metrics.is_file():
+        cmd = [sys.executable, "-m", "stochastic_fields.cli", "eval", "--run", str(run), "--views",
+               ",".join(map(str, views)), "--no-products", "--quiet", "--out", str(out)]
+        subprocess.run(cmd, check=True)
+    result = json.loads(metrics.read_text())
+    depth = result.get("pooled", {}).get("depth") or {}
+    intervals = result.get("pooled", {}).get("depth_intervals") or {}
+    return {"psnr": result["summary"]["psnr"]["mean"], "ssim": result["summary"]["ssim"]["mean"],
+            "abs_rel": depth.get("abs_rel"), "spearman": depth.get("spearman"), "points": depth.get("num_used"),
+            "coverage": {M.level_name(p): intervals.get(f"coverage_{M.level_name(p)}") for p in M.INTERVAL_LEVELS},
+            "halfwidth_median_95": intervals.get("halfwidth_median_95"),
+            "interval_score_95": intervals.get("interval_score_95"), "crps": intervals.get("crps"),
+            "train_s": load_stages(run)["train"]["train_s"], "views": len(views)}
+
+
+def holds(coverage: float | None, level: float) -> bool:
+    return coverage is not None and abs(100.0 * coverage - 100.0 * level) <= COVERAGE_POINTS
+
+
+def verdict(rows: dict) -> tuple[bool, list[str]]:
+    """The rule: every check on both scenes (see the module docstring and docs/studies.md)."""
+    today, cand = ROWS.values()
+    failed = []
+    for scene in SCENES:
+        t, c = rows[today][scene]["snerf_default"], rows[cand][scene]["snerf_default"]
+        dpsnr, dabs = c["psnr"] - t["psnr"], c["abs_rel"] - t["abs_rel"]
+        if not (dpsnr >= MIN_PSNR_GAIN_DB or dabs <= -MIN_ABS_REL_GAIN):
+            failed.append(f"{scene}: S-NeRF gains neither {MIN_PSNR_GAIN_DB} dB nor {MIN_ABS_REL_GAIN} abs-rel "
+                          f"({dpsnr:+.2f} dB, {dabs:+.4f})")
+        if dpsnr < -MAX_PSNR_LOSS_DB:
+            failed.append(f"{scene}: S-NeRF PSNR {dpsnr:+.2f} dB")
+        if dabs > MAX_ABS_REL_LOSS:
+            failed.append(f"{scene}: S-NeRF abs-rel {dabs:+.4f}")
+        for p in RULE_LEVELS:
+            name = M.level_name(p)
+            if holds(t["coverage"][name], p) and not holds(c["coverage"][name], p):
+                failed.append(f"{scene}: {name}% coverage {100 * c['coverage'][name]:.1f}")
+        td, cd = rows[today][scene]["deterministic"], rows[cand][scene]["deterministic"]
+        if cd["psnr"] - td["psnr"] < -MAX_BASELINE_PSNR_LOSS_DB:
+            failed.append(f"{scene}: deterministic PSNR {cd['psnr'] - td['psnr']:+.2f} dB")
+        for m in METHODS:
+            ratio = rows[cand][scene][m]["train_s"] / rows[today][scene][m]["train_s"]
+            if ratio > MAX_TRAIN_RATIO:
+                failed.append(f"{scene}: {m} trains {ratio:.2f}x as long")
+    return not failed, failed
+
+
+def fmt(x, spec: str) -> str:
+    return "" if x is None else spec.format(x)
+
+
+def report(rows: dict, taken: bool, failed: list[str], views: dict, out: Path) -> str:
+    levels = [M.level_name(p) for p in M.INTERVAL_LEVELS]
+    lines = ["# Study 26: the tables' cell cap at the paper split", "",
+             "Paper split, seed 1, 1000 steps (the tables' CPU budget), one thread; scored on the validation views "
+             f"(held-out photos the tables do not score: {', '.join(f'{s} {len(v)}' for s, v in views.items())}) "
+             "with `stochastic-fields eval --views` (depth at the SCORE capture points they see; S-NeRF's intervals "
+             "cross-fitted). Commands: the module docstring of `benchmarks/studies/tables_cap_study.py`.", "",
+             "| scene | method | cap | train s | PSNR | SSIM | depth abs-rel | depth Spearman | points | cov "
+             + " / ".join(levels) + " | median 95% half-width | IS95 / depth | CRPS / depth |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for scene in SCENES:
+        for m in METHODS:
+            for label in ROWS:
+                r = rows[label][scene][m]
+                cov = " / ".join(fmt(None if r["coverage"][n] is None else 100 * r["coverage"][n], "{:.1f}")
+                                 for n in levels) if m == "snerf_default" else ""
+                lines.append(f"| {scene} | {m} | {label} | {r['train_s']:.0f} | {r['psnr']:.2f} | {r['ssim']:.3f} | "
+                             f"{fmt(r['abs_rel'], '{:.4f}')} | {fmt(r['spearman'], '{:.3f}')} | {r['points']} | {cov} | "
+                             f"{fmt(None if r['halfwidth_median_95'] is None else 100 * r['halfwidth_median_95'], '{:.1f}%')} | "
+                             f"{fmt(r['interval_score_95'], '{:.3f}')} | {fmt(r['crps'], '{:.4f}')} |")
+    lines += ["", f"**Rule: {'taken' if taken else 'not taken'}.**" + ("" if taken else " Failed checks:"), ""]
+    lines += [f"- {f}" for f in failed]
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--runs", type=Path, default=Path("runs/cap_study"), help="Folder holding cap_250k and cap_2M.")
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/tables_cap_study"))
+    args = ap.parse_args()
+    views = {scene: validation_views(scene) for scene in SCENES}
+    rows = {label: {scene: {m: score_run(args.runs / folder / scene / m, views[scene],
+                                         args.runs / "validation" / folder / scene / m)
+                            for m in METHODS} for scene in SCENES} for label, folder in ROWS.items()}
+    taken, failed = verdict(rows)
+    args.out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(args.out / "results.json", json.dumps({"rows": rows, "validation_views": views,
+                                                             "taken": taken, "failed": failed}, indent=2))
+    text = report(rows, taken, failed, views, args.out)
+    atomic_write_text(args.out / "README.md", text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
