@@ -78,7 +78,7 @@ def holds(coverage: float | None, level: float) -> bool:
 
 def verdict(rows: dict) -> tuple[bool, list[str]]:
     """The rule: every check on both scenes (see the module docstring and docs/studies.md)."""
-    today, cand = ROWS.values()
+    today, cand = ROWS
     failed = []
     for scene in SCENES:
         t, c = rows[today][scene]["snerf_default"], rows[cand][scene]["snerf_default"]
@@ -130,6 +130,10 @@ def report(rows: dict, taken: bool, failed: list[str], views: dict, out: Path) -
                              f"{fmt(r['interval_score_95'], '{:.3f}')} | {fmt(r['crps'], '{:.4f}')} |")
     lines += ["", f"**Rule: {'taken' if taken else 'not taken'}.**" + ("" if taken else " Failed checks:"), ""]
     lines += [f"- {f}" for f in failed]
+    lines += ["", "How this was run: the row commands of the script's docstring (fern's two caps one after the other "
+              "in one process, flower's in a second beside it, `OMP_NUM_THREADS=1`), then `python "
+              "benchmarks/studies/tables_cap_study.py --runs runs/cap_study --out benchmarks/results/tables_cap_study` "
+              "after the trainings. The decision and what it shows: docs/studies.md, study 26."]
     return "\n".join(lines) + "\n"
 
 
