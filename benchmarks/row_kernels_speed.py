@@ -6,13 +6,15 @@ times both on the same trainer, in one process, alternating: each method trains 
 steps on the capture split (``--preset llff``, the default split: every 8th photo validates; past
 the empty-space occupancy warm-up), then ``--rounds`` times ``--steps`` steps with the compiled
 loops and ``--steps`` steps with torch ops, so drifts of the machine hit both alike. The trainer's
-loop clock; one torch thread.
+loop clock; one torch thread, or ``--threads N``: then the compiled loops split over the N threads
+are also timed against the same loops on one thread (``row_kernels.serial_loops``).
 
 Both paths give the same values up to float rounding (tests/test_grid_backend.py), so the training
 itself is not compared here: ``benchmarks/capture_quality.py`` measures what the faster steps buy
 in ten minutes.
 
     OMP_NUM_THREADS=1 python benchmarks/row_kernels_speed.py --out benchmarks/results/row_kernels
+    OMP_NUM_THREADS=2 python benchmarks/row_kernels_speed.py --threads 2 --out benchmarks/results/row_kernels_threads
 """
 
 from __future__ import annotations
@@ -42,33 +44,47 @@ def time_steps(trainer: Trainer, steps: int) -> float:
     return (trainer.elapsed - before) / steps
 
 
-def measure(scene: str, method: str, *, warmup: int, steps: int, rounds: int, work: Path) -> dict:
-    cfg = config_for(scene, method, warmup + 2 * rounds * steps, seed=0)
+def measure(scene: str, method: str, *, warmup: int, steps: int, rounds: int, work: Path,
+            threads: int = 1) -> dict:
+    paths = 3 if threads > 1 else 2  # compiled, torch ops (and serial loops)
+    cfg = config_for(scene, method, warmup + paths * rounds * steps, seed=0)
     run_dir = work / f"{scene}_{method}"
     dataset = load_run_dataset(cfg, run_dir)
     trainer = Trainer(cfg, run_dir, dataset)
     trainer.train(progress=False, max_steps=warmup)
-    compiled, torch_ops = [], []
+    compiled, torch_ops, serial = [], [], []
     for _ in range(rounds):
         compiled.append(time_steps(trainer, steps))
         with row_kernels.torch_ops_only():
             torch_ops.append(time_steps(trainer, steps))
+        if threads > 1:
+            with row_kernels.serial_loops():
+                serial.append(time_steps(trainer, steps))
     shutil.rmtree(run_dir, ignore_errors=True)
-    c, t = float(np.mean(compiled)), float(np.mean(torch_ops))
-    return {"scene": scene, "method": method, "train_views": len(dataset.train_indices),
-            "compiled_s_per_step": c, "torch_ops_s_per_step": t, "speedup": t / c,
-            "rounds_compiled": compiled, "rounds_torch_ops": torch_ops}
+    c, t = float(np.median(compiled)), float(np.median(torch_ops))  # medians: robust to a disturbed block
+    row = {"scene": scene, "method": method, "train_views": len(dataset.train_indices), "threads": threads,
+           "compiled_s_per_step": c, "torch_ops_s_per_step": t, "speedup": t / c,
+           "rounds_compiled": compiled, "rounds_torch_ops": torch_ops}
+    if serial:
+        row.update(serial_loops_s_per_step=float(np.median(serial)), split_speedup=float(np.median(serial)) / c,
+                   rounds_serial_loops=serial)
+    return row
 
 
-def report(rows: list[dict], command: str) -> str:
+def report(rows: list[dict], command: str, threads: int = 1) -> str:
+    split = threads > 1
     lines = ["# Training step time: compiled row loops against torch ops", "",
-             f"Command: `{command}` (one torch thread; the trainer's loop clock; both paths on the same trainer, "
-             "alternating, after the warm-up).", "",
-             "| scene | method | training photos | s / step compiled | s / step torch ops | speed-up |",
-             "|---|---|---|---|---|---|"]
+             f"Command: `{command}` ({threads} torch thread{'s' if split else ''}; the trainer's loop clock; every "
+             "path on the same trainer, alternating, after the warm-up; the median over the rounds"
+             + ("; 'compiled' splits the loops' rows over the threads, 'serial loops' runs them on one" if split else "")
+             + ").", "",
+             "| scene | method | training photos | s / step compiled | s / step torch ops | speed-up |"
+             + (" s / step serial loops | split speed-up |" if split else ""),
+             "|---|---|---|---|---|---|" + ("---|---|" if split else "")]
     for r in rows:
         lines.append(f"| {r['scene']} | {r['method']} | {r['train_views']} | {r['compiled_s_per_step']:.3f} "
-                     f"| {r['torch_ops_s_per_step']:.3f} | {r['speedup']:.2f}x |")
+                     f"| {r['torch_ops_s_per_step']:.3f} | {r['speedup']:.2f}x |"
+                     + (f" {r['serial_loops_s_per_step']:.3f} | {r['split_speedup']:.2f}x |" if split else ""))
     return "\n".join(lines) + "\n"
 
 
@@ -79,11 +95,15 @@ def main(argv=None) -> None:
     p.add_argument("--warmup", type=int, default=300, help="Steps before timing (past the occupancy warm-up).")
     p.add_argument("--steps", type=int, default=40, help="Steps per timed block.")
     p.add_argument("--rounds", type=int, default=2, help="Blocks per path, alternating.")
+    p.add_argument("--threads", type=int, default=1,
+                   help="torch threads; above 1 the loops split over them are also timed against serial loops.")
     p.add_argument("--out", type=Path, required=True)
     args = p.parse_args(argv)
+    if args.threads < 1:
+        raise SystemExit(f"--threads must be >= 1, got {args.threads}")
     if row_kernels.numba is None:
         raise SystemExit("numba is not installed: nothing to compare (pip install -r requirements-cpu.txt)")
-    torch.set_num_threads(1)
+    torch.set_num_threads(args.threads)
     args.out.mkdir(parents=True, exist_ok=True)
     command = "python benchmarks/row_kernels_speed.py " + " ".join(sys.argv[1:] if argv is None else argv)
     rows = []
@@ -91,10 +111,10 @@ def main(argv=None) -> None:
         for scene in args.scenes:
             for method in args.methods:
                 rows.append(measure(scene, method, warmup=args.warmup, steps=args.steps, rounds=args.rounds,
-                                    work=Path(work)))
+                                    work=Path(work), threads=args.threads))
                 print(json.dumps({k: v for k, v in rows[-1].items() if not k.startswith("rounds")}), flush=True)
                 atomic_write_text(args.out / "results.json", json.dumps({"command": command, "rows": rows}, indent=2))
-                atomic_write_text(args.out / "README.md", report(rows, command))
+                atomic_write_text(args.out / "README.md", report(rows, command, args.threads))
 
 
 if __name__ == "__main__":
