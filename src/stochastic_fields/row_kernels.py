@@ -35,6 +35,7 @@ two paths give the same values up to float rounding (tests/test_grid_backend.py)
 from __future__ import annotations
 
 import contextlib
+import os
 
 import numpy as np
 import torch
@@ -44,6 +45,11 @@ try:  # a declared dependency; the torch ops stand in where it is missing
     import numba
 except ImportError:  # pragma: no cover - exercised only on machines without numba
     numba = None
+
+if numba is not None and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
+    # The split loops' threads: OpenMP first (what torch's CPU ops use), then numba's own pool; TBB,
+    # numba's first choice, last: an older TBB on the machine costs a warning at the first step.
+    numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
 #: Table dtypes the loops are compiled for.
 KERNEL_DTYPES: tuple[torch.dtype, ...] = (torch.float32, torch.float64)
@@ -65,21 +71,25 @@ if numba is not None:
                 for c in range(C):
                     acc[r, c0 + c] += wj * g[m, c]
 
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def _adam_row(x, m1, m2, acc, touched, r, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2,
+                  eps):  # pragma: no cover - compiled; tested through the wrappers
+        touched[r] = False
+        for c in range(x.shape[1]):
+            g = acc[r, c]
+            acc[r, c] = 0.0
+            a = b1 * m1[r, c] + one_minus_b1 * g
+            b = b2 * m2[r, c] + one_minus_b2 * g * g
+            m1[r, c] = a
+            m2[r, c] = b
+            x[r, c] -= step_size * (a / (np.sqrt(b / bias2) + eps))
+
     @numba.njit(cache=True, nogil=True)
     def _adam_touched(x, m1, m2, acc, touched, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2,
                       eps):  # pragma: no cover - compiled; tested through the wrappers
-        N, C = x.shape
-        for r in range(N):
+        for r in range(x.shape[0]):
             if touched[r]:
-                touched[r] = False
-                for c in range(C):
-                    g = acc[r, c]
-                    acc[r, c] = 0.0
-                    a = b1 * m1[r, c] + one_minus_b1 * g
-                    b = b2 * m2[r, c] + one_minus_b2 * g * g
-                    m1[r, c] = a
-                    m2[r, c] = b
-                    x[r, c] -= step_size * (a / (np.sqrt(b / bias2) + eps))
+                _adam_row(x, m1, m2, acc, touched, r, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2, eps)
 
 
     @numba.njit(cache=True, nogil=True, parallel=True)
@@ -104,19 +114,11 @@ if numba is not None:
     @numba.njit(cache=True, nogil=True, parallel=True)
     def _adam_touched_blocks(x, m1, m2, acc, touched, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2,
                              eps, blocks):  # pragma: no cover - compiled
-        N, C = x.shape
+        N = x.shape[0]
         for b in numba.prange(blocks):
             for r in range(N * b // blocks, N * (b + 1) // blocks):
                 if touched[r]:
-                    touched[r] = False
-                    for c in range(C):
-                        g = acc[r, c]
-                        acc[r, c] = 0.0
-                        a = b1 * m1[r, c] + one_minus_b1 * g
-                        bb = b2 * m2[r, c] + one_minus_b2 * g * g
-                        m1[r, c] = a
-                        m2[r, c] = bb
-                        x[r, c] -= step_size * (a / (np.sqrt(bb / bias2) + eps))
+                    _adam_row(x, m1, m2, acc, touched, r, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2, eps)
 
 
 def row_blocks() -> int:
