@@ -8,7 +8,7 @@ split, seed 1, one thread), today's cap and the candidate's::
     (the same with --set field.grid_max_cells=2000000 --out runs/cap_study/cap_2M)
 
 This script scores each run on its **validation views**, the paper split's held-out photos that the
-tables do not score (``budget.select_views`` picks the tables' four; the rest validate), with
+tables do not score (``runner.scene_inputs`` gives the tables' four; the rest validate), with
 ``stochastic-fields eval --views`` (the user's path: PSNR, depth against the SCORE capture points
 those photos see, intervals cross-fitted), then writes the table and the rule's verdict
 (docs/studies.md, fixed before the rows ran) to ``--out``/README.md and ``results.json``::
@@ -28,8 +28,11 @@ from pathlib import Path
 
 from stochastic_fields import metrics as M
 from stochastic_fields.io_utils import atomic_write_text
-from stochastic_fields_bench.budget import BenchmarkSettings, select_views
+from stochastic_fields_bench.budget import BenchmarkSettings
 from stochastic_fields_bench.runner import load_stages, scene_inputs
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared rules
+from relative_floor_study import COVERAGE_TOLERANCE, RULE_LEVELS  # noqa: E402  (issue 36's levels and tolerance)
 
 #: The LLFF scenes, as eval_tables.py reads them.
 DATA_ROOT = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "nerf_llff_data"
@@ -43,14 +46,11 @@ MIN_PSNR_GAIN_DB, MIN_ABS_REL_GAIN, MAX_PSNR_LOSS_DB, MAX_ABS_REL_LOSS = 0.2, 0.
 MAX_BASELINE_PSNR_LOSS_DB = 0.1
 #: Issue 40's bound on the tables' budget: the candidate trains at most this many times as long.
 MAX_TRAIN_RATIO = 2.0
-#: Central levels judged, and how far from nominal their coverage may be (points).
-RULE_LEVELS, COVERAGE_POINTS = (0.5, 0.682689492137086, 0.9, 0.95), 5.0
 
 
 def validation_views(scene: str) -> list[int]:
     """The paper split's held-out views the tables (CPU budget) do not score."""
     _, dataset, scored, _ = scene_inputs(scene, BenchmarkSettings(), DATA_ROOT, log=lambda _: None)
-    assert scored == select_views(list(dataset.test_indices), BenchmarkSettings())
     return [v for v in dataset.test_indices if v not in set(scored)]
 
 
@@ -73,7 +73,7 @@ def score_run(run: Path, views: list[int], out: Path) -> dict:
 
 
 def holds(coverage: float | None, level: float) -> bool:
-    return coverage is not None and abs(100.0 * coverage - 100.0 * level) <= COVERAGE_POINTS
+    return coverage is not None and abs(coverage - level) <= COVERAGE_TOLERANCE
 
 
 def verdict(rows: dict) -> tuple[bool, list[str]]:
@@ -108,7 +108,7 @@ def fmt(x, spec: str) -> str:
     return "" if x is None else spec.format(x)
 
 
-def report(rows: dict, taken: bool, failed: list[str], views: dict, out: Path) -> str:
+def report(rows: dict, taken: bool, failed: list[str], views: dict) -> str:
     levels = [M.level_name(p) for p in M.INTERVAL_LEVELS]
     lines = ["# Study 26: the tables' cell cap at the paper split", "",
              "Paper split, seed 1, 1000 steps (the tables' CPU budget), one thread; scored on the validation views "
@@ -150,7 +150,7 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out / "results.json", json.dumps({"rows": rows, "validation_views": views,
                                                              "taken": taken, "failed": failed}, indent=2))
-    text = report(rows, taken, failed, views, args.out)
+    text = report(rows, taken, failed, views)
     atomic_write_text(args.out / "README.md", text)
     print(text)
 

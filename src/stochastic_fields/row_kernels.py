@@ -59,66 +59,59 @@ _disabled: bool = False
 _serial: bool = False
 
 if numba is not None:
-    @numba.njit(cache=True, nogil=True)
-    def _scatter_weighted(acc, touched, idx, w, g, c0):  # pragma: no cover - compiled; tested through the wrappers
+    # Each loop is written once, over the rows [lo, hi): the serial kernels run it on every row (no
+    # thread pool is started on one thread), the split kernels on one contiguous block per thread.
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def _scatter_rows_in(acc, touched, idx, w, g, c0, lo, hi):  # pragma: no cover - compiled; tested through the wrappers
+        # every sample is read, only rows in [lo, hi) are added to, in the samples' then corners' order
         M, J = idx.shape
         C = g.shape[1]
         for m in range(M):
             for j in range(J):
                 r = idx[m, j]
-                wj = w[m, j]
-                touched[r] = True
-                for c in range(C):
-                    acc[r, c0 + c] += wj * g[m, c]
+                if r >= lo and r < hi:
+                    wj = w[m, j]
+                    touched[r] = True
+                    for c in range(C):
+                        acc[r, c0 + c] += wj * g[m, c]
 
     @numba.njit(cache=True, nogil=True, inline="always")
-    def _adam_row(x, m1, m2, acc, touched, r, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2,
-                  eps):  # pragma: no cover - compiled; tested through the wrappers
-        touched[r] = False
-        for c in range(x.shape[1]):
-            g = acc[r, c]
-            acc[r, c] = 0.0
-            a = b1 * m1[r, c] + one_minus_b1 * g
-            b = b2 * m2[r, c] + one_minus_b2 * g * g
-            m1[r, c] = a
-            m2[r, c] = b
-            x[r, c] -= step_size * (a / (np.sqrt(b / bias2) + eps))
+    def _adam_rows_in(x, m1, m2, acc, touched, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2, eps,
+                      lo, hi):  # pragma: no cover - compiled; tested through the wrappers
+        for r in range(lo, hi):
+            if touched[r]:
+                touched[r] = False
+                for c in range(x.shape[1]):
+                    g = acc[r, c]
+                    acc[r, c] = 0.0
+                    a = b1 * m1[r, c] + one_minus_b1 * g
+                    b = b2 * m2[r, c] + one_minus_b2 * g * g
+                    m1[r, c] = a
+                    m2[r, c] = b
+                    x[r, c] -= step_size * (a / (np.sqrt(b / bias2) + eps))
+
+    @numba.njit(cache=True, nogil=True)
+    def _scatter_weighted(acc, touched, idx, w, g, c0):  # pragma: no cover - compiled; tested through the wrappers
+        _scatter_rows_in(acc, touched, idx, w, g, c0, 0, acc.shape[0])
 
     @numba.njit(cache=True, nogil=True)
     def _adam_touched(x, m1, m2, acc, touched, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2,
                       eps):  # pragma: no cover - compiled; tested through the wrappers
-        for r in range(x.shape[0]):
-            if touched[r]:
-                _adam_row(x, m1, m2, acc, touched, r, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2, eps)
-
+        _adam_rows_in(x, m1, m2, acc, touched, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2, eps, 0, x.shape[0])
 
     @numba.njit(cache=True, nogil=True, parallel=True)
     def _scatter_weighted_blocks(acc, touched, idx, w, g, c0, blocks):  # pragma: no cover - compiled
-        # block b owns the rows [N b / blocks, N (b + 1) / blocks): every block reads all of idx and
-        # adds only into its own rows, in the serial loop's order (the same sums, bit for bit)
         N = acc.shape[0]
-        M, J = idx.shape
-        C = g.shape[1]
         for b in numba.prange(blocks):
-            lo = N * b // blocks
-            hi = N * (b + 1) // blocks
-            for m in range(M):
-                for j in range(J):
-                    r = idx[m, j]
-                    if r >= lo and r < hi:
-                        wj = w[m, j]
-                        touched[r] = True
-                        for c in range(C):
-                            acc[r, c0 + c] += wj * g[m, c]
+            _scatter_rows_in(acc, touched, idx, w, g, c0, N * b // blocks, N * (b + 1) // blocks)
 
     @numba.njit(cache=True, nogil=True, parallel=True)
     def _adam_touched_blocks(x, m1, m2, acc, touched, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2,
                              eps, blocks):  # pragma: no cover - compiled
         N = x.shape[0]
         for b in numba.prange(blocks):
-            for r in range(N * b // blocks, N * (b + 1) // blocks):
-                if touched[r]:
-                    _adam_row(x, m1, m2, acc, touched, r, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2, eps)
+            _adam_rows_in(x, m1, m2, acc, touched, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2, eps,
+                          N * b // blocks, N * (b + 1) // blocks)
 
 
 def row_blocks() -> int:
