@@ -76,27 +76,36 @@ def holds(coverage: float | None, level: float) -> bool:
     return coverage is not None and abs(coverage - level) <= COVERAGE_TOLERANCE
 
 
+def scene_checks(scene: str, today: dict, candidate: dict) -> list[str]:
+    """The failed checks of one scene, ``today`` and ``candidate`` holding each method's scores: S-NeRF
+    gains 0.2 dB or 0.005 abs-rel and loses at most 0.1 dB and 0.002; its coverage stays within the
+    tolerance at every rule level where today's is; the deterministic NeRF loses at most 0.1 dB."""
+    failed = []
+    t, c = today["snerf_default"], candidate["snerf_default"]
+    dpsnr, dabs = c["psnr"] - t["psnr"], c["abs_rel"] - t["abs_rel"]
+    if not (dpsnr >= MIN_PSNR_GAIN_DB or dabs <= -MIN_ABS_REL_GAIN):
+        failed.append(f"{scene}: S-NeRF gains neither {MIN_PSNR_GAIN_DB} dB nor {MIN_ABS_REL_GAIN} abs-rel "
+                      f"({dpsnr:+.2f} dB, {dabs:+.4f})")
+    if dpsnr < -MAX_PSNR_LOSS_DB:
+        failed.append(f"{scene}: S-NeRF PSNR {dpsnr:+.2f} dB")
+    if dabs > MAX_ABS_REL_LOSS:
+        failed.append(f"{scene}: S-NeRF abs-rel {dabs:+.4f}")
+    for p in RULE_LEVELS:
+        name = M.level_name(p)
+        if holds(t["coverage"][name], p) and not holds(c["coverage"][name], p):
+            failed.append(f"{scene}: {name}% coverage {100 * c['coverage'][name]:.1f}")
+    td, cd = today["deterministic"], candidate["deterministic"]
+    if cd["psnr"] - td["psnr"] < -MAX_BASELINE_PSNR_LOSS_DB:
+        failed.append(f"{scene}: deterministic PSNR {cd['psnr'] - td['psnr']:+.2f} dB")
+    return failed
+
+
 def verdict(rows: dict) -> tuple[bool, list[str]]:
     """The rule: every check on both scenes (see the module docstring and docs/studies.md)."""
     today, cand = ROWS
     failed = []
     for scene in SCENES:
-        t, c = rows[today][scene]["snerf_default"], rows[cand][scene]["snerf_default"]
-        dpsnr, dabs = c["psnr"] - t["psnr"], c["abs_rel"] - t["abs_rel"]
-        if not (dpsnr >= MIN_PSNR_GAIN_DB or dabs <= -MIN_ABS_REL_GAIN):
-            failed.append(f"{scene}: S-NeRF gains neither {MIN_PSNR_GAIN_DB} dB nor {MIN_ABS_REL_GAIN} abs-rel "
-                          f"({dpsnr:+.2f} dB, {dabs:+.4f})")
-        if dpsnr < -MAX_PSNR_LOSS_DB:
-            failed.append(f"{scene}: S-NeRF PSNR {dpsnr:+.2f} dB")
-        if dabs > MAX_ABS_REL_LOSS:
-            failed.append(f"{scene}: S-NeRF abs-rel {dabs:+.4f}")
-        for p in RULE_LEVELS:
-            name = M.level_name(p)
-            if holds(t["coverage"][name], p) and not holds(c["coverage"][name], p):
-                failed.append(f"{scene}: {name}% coverage {100 * c['coverage'][name]:.1f}")
-        td, cd = rows[today][scene]["deterministic"], rows[cand][scene]["deterministic"]
-        if cd["psnr"] - td["psnr"] < -MAX_BASELINE_PSNR_LOSS_DB:
-            failed.append(f"{scene}: deterministic PSNR {cd['psnr'] - td['psnr']:+.2f} dB")
+        failed += scene_checks(scene, rows[today][scene], rows[cand][scene])
         for m in METHODS:
             ratio = rows[cand][scene][m]["train_s"] / rows[today][scene][m]["train_s"]
             if ratio > MAX_TRAIN_RATIO:
@@ -108,26 +117,36 @@ def fmt(x, spec: str) -> str:
     return "" if x is None else spec.format(x)
 
 
+def table_head(factor: str) -> list[str]:
+    """The header lines of a study's table of scored runs, ``factor`` naming the column of the row labels."""
+    levels = " / ".join(M.level_name(p) for p in M.INTERVAL_LEVELS)
+    return [f"| scene | method | {factor} | train s | PSNR | SSIM | depth abs-rel | depth Spearman | points | cov {levels} "
+            "| median 95% half-width | IS95 / depth | CRPS / depth |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+
+
+def table_row(scene: str, method: str, label: str, r: dict) -> str:
+    """One scored run (``score_run``'s fields) as a row under ``table_head``; coverage for S-NeRF only."""
+    def pct(x, spec: str = "{:.1f}") -> str:
+        return fmt(None if x is None else 100 * x, spec)
+
+    cov = " / ".join(pct(r["coverage"][M.level_name(p)]) for p in M.INTERVAL_LEVELS) if method == "snerf_default" else ""
+    return (f"| {scene} | {method} | {label} | {r['train_s']:.0f} | {r['psnr']:.2f} | {r['ssim']:.3f} | "
+            f"{fmt(r['abs_rel'], '{:.4f}')} | {fmt(r['spearman'], '{:.3f}')} | {r['points']} | {cov} | "
+            f"{pct(r['halfwidth_median_95'], '{:.1f}%')} | {fmt(r['interval_score_95'], '{:.3f}')} | "
+            f"{fmt(r['crps'], '{:.4f}')} |")
+
+
 def report(rows: dict, taken: bool, failed: list[str], views: dict) -> str:
-    levels = [M.level_name(p) for p in M.INTERVAL_LEVELS]
     lines = ["# Study 26: the tables' cell cap at the paper split", "",
              "Paper split, seed 1, 1000 steps (the tables' CPU budget), one thread; scored on the validation views "
              f"(held-out photos the tables do not score: {', '.join(f'{s} {len(v)}' for s, v in views.items())}) "
              "with `stochastic-fields eval --views` (depth at the SCORE capture points they see; S-NeRF's intervals "
              "cross-fitted). Commands: the module docstring of `benchmarks/studies/tables_cap_study.py`.", "",
-             "| scene | method | cap | train s | PSNR | SSIM | depth abs-rel | depth Spearman | points | cov "
-             + " / ".join(levels) + " | median 95% half-width | IS95 / depth | CRPS / depth |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             *table_head("cap")]
     for scene in SCENES:
         for m in METHODS:
             for label in ROWS:
-                r = rows[label][scene][m]
-                cov = " / ".join(fmt(None if r["coverage"][n] is None else 100 * r["coverage"][n], "{:.1f}")
-                                 for n in levels) if m == "snerf_default" else ""
-                lines.append(f"| {scene} | {m} | {label} | {r['train_s']:.0f} | {r['psnr']:.2f} | {r['ssim']:.3f} | "
-                             f"{fmt(r['abs_rel'], '{:.4f}')} | {fmt(r['spearman'], '{:.3f}')} | {r['points']} | {cov} | "
-                             f"{fmt(None if r['halfwidth_median_95'] is None else 100 * r['halfwidth_median_95'], '{:.1f}%')} | "
-                             f"{fmt(r['interval_score_95'], '{:.3f}')} | {fmt(r['crps'], '{:.4f}')} |")
+                lines.append(table_row(scene, m, label, rows[label][scene][m]))
     lines += ["", f"**Rule: {'taken' if taken else 'not taken'}.**" + ("" if taken else " Failed checks:"), ""]
     lines += [f"- {f}" for f in failed]
     lines += ["", "How this was run: the row commands of the script's docstring (fern's two caps one after the other "
