@@ -91,8 +91,11 @@ def report(rows: dict, means: dict, taken: bool, failed: list[str], views: dict)
     lines += ["", f"**Rule: {'taken' if taken else 'not taken'}.**" + ("" if taken else " Failed checks:"), ""]
     lines += [f"- {f}" for f in failed]
     lines += ["", "How this was run: the row commands of the script's docstring, fern's one after the other in "
-              "one shell chain and flower's in a second beside it (`OMP_NUM_THREADS=1`), each run scored on its "
-              "validation views right after its training; then `python benchmarks/studies/tables_steps_study.py "
+              "one shell chain and flower's in a second beside it (`OMP_NUM_THREADS=1`; flower's seed-3 rows in two "
+              "processes once fern's chain had ended), each run scored on its "
+              "validation views right after its training. Other work shared the machine during some 2000-step rows, "
+              "so the training seconds are not a clean cost (the cost is the steps: twice). Then `python "
+              "benchmarks/studies/tables_steps_study.py "
               "--out benchmarks/results/tables_steps_study`. The decision and what it shows: docs/studies.md, study 27."]
     return "\n".join(lines) + "\n"
 

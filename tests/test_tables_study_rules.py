@@ -1,0 +1,73 @@
+"""The paper-split studies' rules (benchmarks/studies/tables_cap_study.py, study 26, and
+tables_steps_study.py, study 27) on hand-made scores, and the committed decisions recomputed from
+the committed results."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from conftest import REPO_ROOT
+
+LEVELS = ("50", "68", "90", "95", "99")
+
+
+def _row(psnr: float, abs_rel: float | None = 0.12, coverage: float | None = 0.5, train_s: float = 200.0) -> dict:
+    """One scored run as ``tables_cap_study.score_run`` returns it; every level's coverage at its nominal
+    value (``coverage`` scales the 50% level only, so that one level can leave the tolerance)."""
+    nominal = {"50": coverage, "68": 0.683, "90": 0.90, "95": 0.95, "99": 0.99}
+    return {"psnr": psnr, "ssim": 0.5, "abs_rel": abs_rel, "spearman": 0.6, "points": 100, "coverage": nominal,
+            "halfwidth_median_95": 0.2, "interval_score_95": 1.5, "crps": 0.1, "train_s": train_s, "views": 12}
+
+
+def _scene(snerf: dict, det: dict) -> dict:
+    return {"snerf_default": snerf, "deterministic": det}
+
+
+def test_scene_checks_by_hand(load_script):
+    study = load_script("benchmarks/studies/tables_cap_study.py")
+    today = _scene(_row(20.0), _row(18.0, coverage=None))
+    assert study.scene_checks("s", today, _scene(_row(20.25), _row(17.95, coverage=None))) == []  # +0.25 dB
+    assert study.scene_checks("s", today, _scene(_row(20.0, abs_rel=0.11), _row(18.0, coverage=None))) == []
+    gain = study.scene_checks("s", today, _scene(_row(20.19, abs_rel=0.1151), _row(18.0, coverage=None)))
+    assert len(gain) == 1 and "gains neither" in gain[0]
+    losses = study.scene_checks("s", today, _scene(_row(20.5, abs_rel=0.123), _row(17.89, coverage=None)))
+    assert [f.split(": ")[1].split(" ")[0] for f in losses] == ["S-NeRF", "deterministic"]  # abs-rel +0.003, -0.11 dB
+    coverage = study.scene_checks("s", today, _scene(_row(20.5, coverage=0.449), _row(18.0, coverage=None)))
+    assert coverage == ["s: 50% coverage 44.9"]
+    # a level today's row misses already is not the candidate's to hold
+    assert study.scene_checks("s", _scene(_row(20.0, coverage=0.40), _row(18.0, coverage=None)),
+                              _scene(_row(20.5, coverage=0.30), _row(18.0, coverage=None))) == []
+
+
+def test_steps_study_rule_on_seed_means(load_script):
+    study = load_script("benchmarks/studies/tables_steps_study.py")
+    seeds = [_row(19.0), _row(19.6, abs_rel=0.10), _row(19.0, abs_rel=None)]
+    mean = study.seed_mean(seeds)
+    assert mean["psnr"] == pytest.approx(19.2) and mean["abs_rel"] is None and mean["points"] == 100
+    assert mean["coverage"]["68"] == pytest.approx(0.683)
+    assert study.seed_mean([_row(19.0, coverage=None), _row(19.0)])["coverage"]["50"] is None
+
+    def means(fern_gain: float, flower_gain: float) -> dict:
+        def scene(gain: float) -> dict:
+            return _scene(study.seed_mean([_row(20.0 + gain), _row(20.2 + gain)]),
+                          study.seed_mean([_row(18.0, coverage=None)] * 3))
+        today, cand = study.ROWS
+        return {today: {"fern": scene(0.0), "flower": scene(0.0)},
+                cand: {"fern": scene(fern_gain), "flower": scene(flower_gain)}}
+
+    assert study.verdict(means(0.25, 0.4)) == (True, [])
+    taken, failed = study.verdict(means(-0.2, 0.4))  # one scene gains, the other loses: not taken
+    assert not taken and all(f.startswith("fern: ") for f in failed) and len(failed) == 2
+
+
+def test_committed_decisions_recomputed(load_script):
+    for script, folder in (("tables_cap_study", "tables_cap_study"), ("tables_steps_study", "tables_steps_study")):
+        results = REPO_ROOT / "benchmarks" / "results" / folder / "results.json"
+        if not results.is_file():
+            pytest.fail(f"{results} missing")
+        study = load_script(f"benchmarks/studies/{script}.py")
+        data = json.loads(results.read_text())
+        rows = data["means"] if "means" in data else data["rows"]
+        assert study.verdict(rows) == (data["taken"], data["failed"])
