@@ -64,10 +64,7 @@ def test_steps_study_rule_on_seed_means(load_script):
 
 def test_committed_decisions_recomputed(load_script):
     for script, folder in (("tables_cap_study", "tables_cap_study"), ("tables_steps_study", "tables_steps_study")):
-        results = REPO_ROOT / "benchmarks" / "results" / folder / "results.json"
-        if not results.is_file():
-            pytest.fail(f"{results} missing")
         study = load_script(f"benchmarks/studies/{script}.py")
-        data = json.loads(results.read_text())
+        data = json.loads((REPO_ROOT / "benchmarks" / "results" / folder / "results.json").read_text())
         rows = data["means"] if "means" in data else data["rows"]
         assert study.verdict(rows) == (data["taken"], data["failed"])

@@ -147,13 +147,26 @@ def report(rows: dict, taken: bool, failed: list[str], views: dict) -> str:
         for m in METHODS:
             for label in ROWS:
                 lines.append(table_row(scene, m, label, rows[label][scene][m]))
-    lines += ["", f"**Rule: {'taken' if taken else 'not taken'}.**" + ("" if taken else " Failed checks:"), ""]
-    lines += [f"- {f}" for f in failed]
+    lines += verdict_lines(taken, failed)
     lines += ["", "How this was run: the row commands of the script's docstring (fern's two caps one after the other "
               "in one process, flower's in a second beside it, `OMP_NUM_THREADS=1`), then `python "
               "benchmarks/studies/tables_cap_study.py --runs runs/cap_study --out benchmarks/results/tables_cap_study` "
               "after the trainings. The decision and what it shows: docs/studies.md, study 26."]
     return "\n".join(lines) + "\n"
+
+
+def verdict_lines(taken: bool, failed: list[str]) -> list[str]:
+    """The rule's verdict and its failed checks, as report lines."""
+    return ["", f"**Rule: {'taken' if taken else 'not taken'}.**" + ("" if taken else " Failed checks:"), "",
+            *[f"- {f}" for f in failed]]
+
+
+def write_study(out: Path, results: dict, text: str) -> None:
+    """A study's ``results.json`` and ``README.md`` in ``out`` (written atomically), the report printed."""
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "results.json", json.dumps(results, indent=2))
+    atomic_write_text(out / "README.md", text)
+    print(text)
 
 
 def main() -> None:
@@ -166,12 +179,8 @@ def main() -> None:
                                          args.runs / "validation" / folder / scene / m)
                             for m in METHODS} for scene in SCENES} for label, folder in ROWS.items()}
     taken, failed = verdict(rows)
-    args.out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out / "results.json", json.dumps({"rows": rows, "validation_views": views,
-                                                             "taken": taken, "failed": failed}, indent=2))
-    text = report(rows, taken, failed, views)
-    atomic_write_text(args.out / "README.md", text)
-    print(text)
+    write_study(args.out, {"rows": rows, "validation_views": views, "taken": taken, "failed": failed},
+                report(rows, taken, failed, views))
 
 
 if __name__ == "__main__":

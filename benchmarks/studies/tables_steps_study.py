@@ -20,16 +20,14 @@ The tables' own test-view scores (each run's metrics.json) are not read.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 from pathlib import Path
 
-from stochastic_fields.io_utils import atomic_write_text
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared rules and scoring
 from tables_cap_study import (METHODS, SCENES, fmt, scene_checks, score_run, table_head, table_row,  # noqa: E402
-                              validation_views)
+                              validation_views, verdict_lines, write_study)
 
 #: Row label -> training steps (today's first).
 ROWS = {"1000 (today)": 1000, "2000 (candidate)": 2000}
@@ -88,8 +86,7 @@ def report(rows: dict, means: dict, taken: bool, failed: list[str], views: dict)
                 cells = [f"{r['psnr']:.2f} / {fmt(r['abs_rel'], '{:.4f}')} / {r['train_s']:.0f}"
                          for r in rows[label][scene][m]]
                 lines.append(f"| {scene} | {m} | {label} | " + " | ".join(cells) + " |")
-    lines += ["", f"**Rule: {'taken' if taken else 'not taken'}.**" + ("" if taken else " Failed checks:"), ""]
-    lines += [f"- {f}" for f in failed]
+    lines += verdict_lines(taken, failed)
     lines += ["", "How this was run: the row commands of the script's docstring, fern's one after the other in "
               "one shell chain and flower's in a second beside it (`OMP_NUM_THREADS=1`; flower's seed-3 rows in two "
               "processes once fern's chain had ended), each run scored on its "
@@ -117,14 +114,8 @@ def main() -> None:
             for label, steps in ROWS.items()}
     means = {label: {scene: {m: seed_mean(rows[label][scene][m]) for m in METHODS} for scene in SCENES} for label in ROWS}
     taken, failed = verdict(means)
-    args.out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out / "results.json", json.dumps({"rows": rows, "means": means, "seeds": list(SEEDS),
-                                                             "validation_views": views, "taken": taken,
-                                                             "failed": failed}, indent=2))
-    text = report(rows, means, taken, failed, views)
-    atomic_write_text(args.out / "README.md", text)
-    print(text)
-
+    write_study(args.out, {"rows": rows, "means": means, "seeds": list(SEEDS), "validation_views": views,
+                           "taken": taken, "failed": failed}, report(rows, means, taken, failed, views))
 
 if __name__ == "__main__":
     main()
