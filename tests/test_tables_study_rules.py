@@ -1,6 +1,6 @@
 """The paper-split studies' rules (benchmarks/studies/tables_cap_study.py, study 26, and
-tables_steps_study.py, study 27) on hand-made scores, and the committed decisions recomputed from
-the committed results."""
+tables_steps_study.py, studies 27 and 28) on hand-made scores, and the committed decisions recomputed
+from the committed results."""
 
 from __future__ import annotations
 
@@ -60,6 +60,22 @@ def test_steps_study_rule_on_seed_means(load_script):
     assert study.verdict(means(0.25, 0.4)) == (True, [])
     taken, failed = study.verdict(means(-0.2, 0.4))  # one scene gains, the other loses: not taken
     assert not taken and all(f.startswith("fern: ") for f in failed) and len(failed) == 2
+
+
+def test_passes_study_judges_the_scenes_whose_steps_change(load_script):
+    study = load_script("benchmarks/studies/tables_steps_study.py")
+    passes = study.STUDIES[28]
+    assert passes.scenes == ("flower",) and list(passes.rows.values()) == [1000, 1750] and passes.seeds == (4, 5, 6)
+    # the rule's steps: fern's four photos keep 1000, flower's seven get 1000 * 7 / 4
+    assert [min(2000, max(1000, -(-1000 * n // 4))) for n in (4, 7)] == [1000, 1750]
+    today, cand = passes.rows
+
+    def scene(gain: float, det_gain: float = 0.0) -> dict:
+        return _scene(_row(21.0 + gain), _row(18.8 + det_gain, coverage=None))
+
+    assert study.verdict({today: {"flower": scene(0.0)}, cand: {"flower": scene(0.3)}}, passes) == (True, [])
+    taken, failed = study.verdict({today: {"flower": scene(0.0)}, cand: {"flower": scene(0.3, -0.2)}}, passes)
+    assert not taken and failed == ["flower: deterministic PSNR -0.20 dB"]
 
 
 def test_committed_decisions_recomputed(load_script):

@@ -1,18 +1,30 @@
-"""Study 27: twice the tables' training steps at the paper split (1000 against 2000), judged by its rule.
+"""Studies 27 and 28: the tables' training steps at the paper split, judged by their rules.
 
-The rows are ``benchmarks/eval_tables.py`` runs (S-NeRF (default) and the deterministic NeRF, paper
-split, one thread), seeds 1, 2 and 3, today's steps and the candidate's::
+**Study 27** (twice the steps, 1000 against 2000). The rows are ``benchmarks/eval_tables.py`` runs
+(S-NeRF (default) and the deterministic NeRF, paper split, one thread), seeds 1, 2 and 3, today's steps
+and the candidate's::
 
     OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes SCENE --methods deterministic snerf_default \\
         --seed SEED --iterations STEPS --no-timing --quiet --out runs/steps_study/sSEED/STEPS
 
 Seed 1 at 1000 steps is study 26's 250k row (``--seed1-runs``: ``runs/cap_study/cap_250k``, trained by
-the same code and command). Each run is scored on its **validation views** as study 26 scores them
+the same code and command).
+
+**Study 28** (``--study 28``: steps in passes over the training pixels). The passes rule gives fern
+1000 steps (today's, so its rows are not re-run) and flower 1750; flower's rows at 1000 and 1750
+steps on fresh seeds 4, 5 and 6::
+
+    OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes flower --methods deterministic snerf_default \\
+        --seed SEED --iterations STEPS --no-timing --quiet --out runs/passes_study/sSEED/STEPS
+
+Each run is scored on its **validation views** as study 26 scores them
 (``tables_cap_study.score_run``: ``stochastic-fields eval --views`` on the paper split's held-out
 photos the tables do not score), and the rule (docs/studies.md, fixed before the rows ran) is applied
 to the means over the seeds::
 
     python benchmarks/studies/tables_steps_study.py --out benchmarks/results/tables_steps_study
+    python benchmarks/studies/tables_steps_study.py --study 28 --runs runs/passes_study \\
+        --out benchmarks/results/tables_passes_study
 
 The tables' own test-view scores (each run's metrics.json) are not read.
 """
@@ -23,22 +35,53 @@ import argparse
 import statistics
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared rules and scoring
 from tables_cap_study import (METHODS, SCENES, fmt, scene_checks, score_run, table_head, table_row,  # noqa: E402
                               validation_views, verdict_lines, write_study)
 
-#: Row label -> training steps (today's first).
-ROWS = {"1000 (today)": 1000, "2000 (candidate)": 2000}
-SEEDS = (1, 2, 3)
+
+
+class Study(NamedTuple):
+    number: int
+    title: str
+    rows: dict  # row label -> training steps (today's first)
+    seeds: tuple[int, ...]
+    scenes: tuple[str, ...]  # the scenes whose steps the candidate changes (the rule judges these)
+    how_run: str  # the report's closing paragraph
+
+
+STUDIES = {
+    27: Study(27, "twice the tables' training steps at the paper split", {"1000 (today)": 1000, "2000 (candidate)": 2000},
+              (1, 2, 3), SCENES,
+              "How this was run: the row commands of the script's docstring, fern's one after the other in "
+              "one shell chain and flower's in a second beside it (`OMP_NUM_THREADS=1`; flower's seed-3 rows in two "
+              "processes once fern's chain had ended), each run scored on its "
+              "validation views right after its training. Other work shared the machine during some 2000-step rows, "
+              "so the training seconds are not a clean cost (the cost is the steps: twice). Then `python "
+              "benchmarks/studies/tables_steps_study.py "
+              "--out benchmarks/results/tables_steps_study`. The decision and what it shows: docs/studies.md, study 27."),
+    28: Study(28, "the tables' steps in passes over the training pixels", {"1000 (today)": 1000, "1750 (passes rule)": 1750},
+              (4, 5, 6), ("flower",),
+              "Fern is not a row: the passes rule gives its four photos 1000 steps, today's, so its scores cannot "
+              "move and its checks pass by construction. How this was run: the row commands of the script's "
+              "docstring in two shell chains side by side (`OMP_NUM_THREADS=1`; seed 4's and 5's rows first, then "
+              "seed 6's 1000-step row in one chain and its 1750-step row in the other), each run scored on its "
+              "validation views right after its training. Then `python benchmarks/studies/tables_steps_study.py "
+              "--study 28 --runs runs/passes_study --out benchmarks/results/tables_passes_study`. The decision and "
+              "what it shows: docs/studies.md, study 28."),
+}
+#: Study 27's rows and seeds (the names its tests read).
+ROWS, SEEDS = STUDIES[27].rows, STUDIES[27].seeds
 #: What each score's seed mean is taken of (None where a run has none: the deterministic NeRF's intervals).
 MEAN_KEYS = ("psnr", "ssim", "abs_rel", "spearman", "halfwidth_median_95", "interval_score_95", "crps", "train_s")
 
 
-def run_folders(runs: Path, seed1_runs: Path, seed: int, steps: int, scene: str, method: str) -> tuple[Path, Path]:
-    """(run folder, its validation scores' folder): seed 1's 1000-step rows are study 26's."""
-    if seed == 1 and steps == 1000:
+def run_folders(runs: Path, seed1_runs: Path | None, seed: int, steps: int, scene: str, method: str) -> tuple[Path, Path]:
+    """(run folder, its validation scores' folder): study 27's seed-1 1000-step rows are study 26's."""
+    if seed1_runs is not None and seed == 1 and steps == 1000:
         return seed1_runs / scene / method, seed1_runs.parent / "validation" / seed1_runs.name / scene / method
     return runs / f"s{seed}" / str(steps) / scene / method, runs / "validation" / f"s{seed}" / str(steps) / scene / method
 
@@ -57,65 +100,67 @@ def seed_mean(per_seed: list[dict]) -> dict:
     return out
 
 
-def verdict(means: dict) -> tuple[bool, list[str]]:
-    """The rule on the seed means: study 26's checks on both scenes (docs/studies.md, study 27)."""
-    today, cand = ROWS
-    failed = [f for scene in SCENES for f in scene_checks(scene, means[today][scene], means[cand][scene])]
+def verdict(means: dict, study: Study = STUDIES[27]) -> tuple[bool, list[str]]:
+    """The rule on the seed means: study 26's checks on every scene the candidate changes (docs/studies.md,
+    studies 27 and 28)."""
+    today, cand = study.rows
+    failed = [f for scene in study.scenes for f in scene_checks(scene, means[today][scene], means[cand][scene])]
     return not failed, failed
 
 
-def report(rows: dict, means: dict, taken: bool, failed: list[str], views: dict) -> str:
-    lines = ["# Study 27: twice the tables' training steps at the paper split", "",
-             f"Paper split, seeds {', '.join(map(str, SEEDS))}, the tables' CPU budget (250k cells) at 1000 and 2000 "
+def report(rows: dict, means: dict, taken: bool, failed: list[str], views: dict, study: Study = STUDIES[27]) -> str:
+    steps = " and ".join(str(s) for s in study.rows.values())
+    lines = [f"# Study {study.number}: {study.title}", "",
+             f"Paper split, seeds {', '.join(map(str, study.seeds))}, the tables' CPU budget (250k cells) at {steps} "
              "steps, one thread; scored on the validation views (held-out photos the tables do not score: "
              f"{', '.join(f'{s} {len(v)}' for s, v in views.items())}) with `stochastic-fields eval --views` (depth "
              "at the SCORE capture points they see; S-NeRF's intervals cross-fitted). Commands: the module "
              "docstring of `benchmarks/studies/tables_steps_study.py`.", "",
              "Means over the seeds:", "",
              *table_head("steps")]
-    for scene in SCENES:
+    for scene in study.scenes:
         for m in METHODS:
-            for label in ROWS:
+            for label in study.rows:
                 lines.append(table_row(scene, m, label, means[label][scene][m]))
     lines += ["", "Each seed (PSNR dB / depth abs-rel / train s):", "",
-              "| scene | method | steps | " + " | ".join(f"seed {s}" for s in SEEDS) + " |",
-              "|---|---|---|" + "---|" * len(SEEDS)]
-    for scene in SCENES:
+              "| scene | method | steps | " + " | ".join(f"seed {s}" for s in study.seeds) + " |",
+              "|---|---|---|" + "---|" * len(study.seeds)]
+    for scene in study.scenes:
         for m in METHODS:
-            for label in ROWS:
+            for label in study.rows:
                 cells = [f"{r['psnr']:.2f} / {fmt(r['abs_rel'], '{:.4f}')} / {r['train_s']:.0f}"
                          for r in rows[label][scene][m]]
                 lines.append(f"| {scene} | {m} | {label} | " + " | ".join(cells) + " |")
     lines += verdict_lines(taken, failed)
-    lines += ["", "How this was run: the row commands of the script's docstring, fern's one after the other in "
-              "one shell chain and flower's in a second beside it (`OMP_NUM_THREADS=1`; flower's seed-3 rows in two "
-              "processes once fern's chain had ended), each run scored on its "
-              "validation views right after its training. Other work shared the machine during some 2000-step rows, "
-              "so the training seconds are not a clean cost (the cost is the steps: twice). Then `python "
-              "benchmarks/studies/tables_steps_study.py "
-              "--out benchmarks/results/tables_steps_study`. The decision and what it shows: docs/studies.md, study 27."]
+    lines += ["", study.how_run]
     return "\n".join(lines) + "\n"
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--study", type=int, choices=sorted(STUDIES), default=27)
     ap.add_argument("--runs", type=Path, default=Path("runs/steps_study"), help="Folder holding sSEED/STEPS.")
     ap.add_argument("--seed1-runs", type=Path, default=Path("runs/cap_study/cap_250k"),
-                    help="Study 26's 250k runs: seed 1 at 1000 steps.")
+                    help="Study 27: study 26's 250k runs (seed 1 at 1000 steps).")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/tables_steps_study"))
     args = ap.parse_args()
-    views = {scene: validation_views(scene) for scene in SCENES}
+    study = STUDIES[args.study]
+    seed1_runs = args.seed1_runs if study.number == 27 else None
+    views = {scene: validation_views(scene) for scene in study.scenes}
 
     def score(seed: int, steps: int, scene: str, method: str) -> dict:
-        run, scores = run_folders(args.runs, args.seed1_runs, seed, steps, scene, method)
+        run, scores = run_folders(args.runs, seed1_runs, seed, steps, scene, method)
         return score_run(run, views[scene], scores)
 
-    rows = {label: {scene: {m: [score(seed, steps, scene, m) for seed in SEEDS] for m in METHODS} for scene in SCENES}
-            for label, steps in ROWS.items()}
-    means = {label: {scene: {m: seed_mean(rows[label][scene][m]) for m in METHODS} for scene in SCENES} for label in ROWS}
-    taken, failed = verdict(means)
-    write_study(args.out, {"rows": rows, "means": means, "seeds": list(SEEDS), "validation_views": views,
-                           "taken": taken, "failed": failed}, report(rows, means, taken, failed, views))
+    rows = {label: {scene: {m: [score(seed, steps, scene, m) for seed in study.seeds] for m in METHODS}
+                    for scene in study.scenes} for label, steps in study.rows.items()}
+    means = {label: {scene: {m: seed_mean(rows[label][scene][m]) for m in METHODS} for scene in study.scenes}
+             for label in study.rows}
+    taken, failed = verdict(means, study)
+    write_study(args.out, {"study": study.number, "rows": rows, "means": means, "seeds": list(study.seeds),
+                           "validation_views": views, "taken": taken, "failed": failed},
+                report(rows, means, taken, failed, views, study))
+
 
 if __name__ == "__main__":
     main()
