@@ -57,7 +57,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="Seed of every method (default 0).")
     p.add_argument("--device", default="auto", help="auto, cpu or cuda.")
     p.add_argument("--budget", choices=("cpu", "full"), default="cpu",
-                   help="'cpu' (default, the documented budget): 1000 steps, grid <= 250k cells, 4 test views per scene; "
+                   help="'cpu' (default, the documented budget): 1000 steps per 762k training pixels (fern 1000, flower 1750; "
+                   "at most 2000), grid <= 250k cells, 4 test views per scene; "
                    "'full': the llff preset (3000 steps, 2M cells, every test view; for a GPU).")
     p.add_argument("--protocol", choices=PROTOCOLS, default="paper",
                    help="The split: 'paper' (default; every 5th view trains, the others test), 'fewview' (every 8th "

@@ -439,6 +439,32 @@ def test_view_selection_and_budget():
         T.base_config(T.BenchmarkSettings(budget="gpu"))
 
 
+def test_cpu_budget_steps_follow_the_training_pixels():
+    """Study 28's rule by hand: min(2 base, max(base, ceil(base P / P_ref))), P_ref = 4 x 504 x 378."""
+    from types import SimpleNamespace
+
+    from stochastic_fields_bench.budget import CPU_BUDGET_REFERENCE_PIXELS, cpu_budget_steps
+
+    photo = 504 * 378
+    assert CPU_BUDGET_REFERENCE_PIXELS == 762_048
+    assert [cpu_budget_steps(1000, n * photo) for n in (1, 4, 5, 7, 8, 9, 17, 29)] == \
+        [1000, 1000, 1250, 1750, 2000, 2000, 2000, 2000]
+    assert cpu_budget_steps(1000, 4 * photo + 1) == 1001  # the ceiling, in integers
+    assert cpu_budget_steps(7, 0) == 7 and cpu_budget_steps(7, 10 * photo) == 14
+    with pytest.raises(ValueError, match="base_steps"):
+        cpu_budget_steps(0, photo)
+
+    def scene(views: int, height: int = 378, width: int = 504) -> SimpleNamespace:
+        return SimpleNamespace(train_indices=list(range(views)), height=height, width=width, forward_facing=True)
+
+    cpu = T.BenchmarkSettings()
+    assert [T.base_config(cpu, scene(n)).train.iterations for n in (4, 7, 29)] == [1000, 1750, 2000]
+    assert T.base_config(cpu, scene(7, 189, 252)).train.iterations == 1000  # images_16: a quarter of the pixels
+    assert T.base_config(T.BenchmarkSettings(iterations=1000), scene(7)).train.iterations == 1000  # explicit wins
+    assert T.base_config(T.BenchmarkSettings(budget="full"), scene(7)).train.iterations == 3000
+    assert T.base_config(T.BenchmarkSettings(tiny=True), scene(7)).train.iterations == 20
+
+
 def test_protocols_split_every_method_alike(shared_data):
     """--protocol: the paper's split, the few-view literature's (RegNeRF's training views, every 8th
     view tests, all of them scored) and the dense one, on fern (hand-worked indices as tests/test_split.py)."""

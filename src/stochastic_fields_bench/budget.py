@@ -12,14 +12,21 @@ from stochastic_fields.config import ExperimentConfig, preset, set_dotted
 
 
 #: The documented budget on a CPU (``budget="cpu"``, the default): every method trains 1000 steps
-#: of 1024 rays on a grid capped at 250k cells and is scored on 4 test views spread over each
+#: of 1024 rays per 762k training pixels (``cpu_budget_steps``: fern 1000, flower 1750 at the
+#: paper split) on a grid capped at 250k cells and is scored on 4 test views spread over each
 #: scene's test set (0.76M pixels per scene; MC-Dropout and the ensemble render each view 5
-#: times). Fern and flower, all 8 methods: about 1.5 hours on 2 CPU cores. The grid's three
+#: times). Fern and flower, all 9 methods: about 2 hours on 2 CPU cores. The grid's three
 #: levels then hold 2.9M values (250k cells x 10 channels x 1.14), about as many as the
 #: training pixels' colour values (fern: 4 views of 504x378 = 2.3M; flower: 7 views = 4.0M).
 #: ``budget="full"`` is the llff preset (3000 steps, 2M cells, every test view): about 8x the
 #: cost, for a GPU.
 CPU_BUDGET_OVERRIDES: tuple[tuple[str, Any], ...] = (("train.iterations", 1000), ("field.grid_max_cells", 250_000))
+#: The CPU budget's steps follow the training photos' pixels (docs/studies.md, study 28): the
+#: overrides' 1000 steps are for the paper split's smallest training set, fern's four photos at
+#: images_8 (762k pixels, which 1000 steps of 1024 rays pass over 1.34 times); a scene with more
+#: training pixels gets as many passes, up to twice the steps (issue 40's bound): ``cpu_budget_steps``.
+CPU_BUDGET_REFERENCE_PIXELS: int = 4 * 504 * 378
+CPU_BUDGET_MAX_STEP_FACTOR: int = 2
 
 #: The split protocols of the tables (``BenchmarkSettings.protocol``):
 #: "paper": the S-NeRF paper's (every 5th view trains, the others test; docs/definitions.md §7);
@@ -76,9 +83,29 @@ class BenchmarkSettings:
         return "the S-NeRF paper's protocol: every 5th view trains, the others test"
 
 
+def cpu_budget_steps(base_steps: int, training_pixels: int) -> int:
+    """The CPU budget's training steps for ``training_pixels`` (the training photos' pixels summed):
+
+        steps = min(F base, max(base, ceil(base P / P_ref)))      F = CPU_BUDGET_MAX_STEP_FACTOR
+
+    (P_ref = ``CPU_BUDGET_REFERENCE_PIXELS``): as many passes over the training pixels as ``base_steps``
+    give the reference set, never fewer steps than ``base_steps`` nor more than F times them. Paper
+    split at images_8: fern (4 photos) 1000, flower (7) 1750; the dense protocol's 17 and 29 photos 2000."""
+    if base_steps < 1 or training_pixels < 0:
+        raise ValueError(f"need base_steps >= 1 and training_pixels >= 0, got {base_steps} and {training_pixels}")
+    passes_steps = -(-base_steps * int(training_pixels) // CPU_BUDGET_REFERENCE_PIXELS)  # ceil, in integers
+    return min(CPU_BUDGET_MAX_STEP_FACTOR * base_steps, max(base_steps, passes_steps))
+
+
+def training_pixels(dataset) -> int:
+    """The pixels of a dataset's training photos (every photo of a scene has one size)."""
+    return len(dataset.train_indices) * int(dataset.height) * int(dataset.width)
+
+
 def base_config(settings: BenchmarkSettings, dataset=None) -> ExperimentConfig:
     """The shared configuration: the ``llff`` preset (disparity spacing, 64 samples; S-NeRF renders K = 8 with Rao-Blackwellised colours) or,
-    with ``tiny``, a configuration that runs in seconds. Scenes that are not forward-facing
+    with ``tiny``, a configuration that runs in seconds. At the CPU budget the steps follow ``dataset``'s
+    training pixels (``cpu_budget_steps``; the overrides' steps without a dataset). Scenes that are not forward-facing
     (``dataset.forward_facing`` False) sample linearly in distance and composite the dataset's
     background colour. ``settings.overrides`` apply last."""
     cfg = preset("llff")
@@ -120,6 +147,8 @@ def base_config(settings: BenchmarkSettings, dataset=None) -> ExperimentConfig:
     if settings.budget == "cpu" and not settings.tiny:
         for key, value in CPU_BUDGET_OVERRIDES:
             set_dotted(cfg, key, value)
+        if dataset is not None:  # the steps follow the training pixels (study 28)
+            cfg.train.iterations = cpu_budget_steps(cfg.train.iterations, training_pixels(dataset))
     if settings.iterations is not None:
         cfg.train.iterations = int(settings.iterations)
     for key, value in settings.overrides:
