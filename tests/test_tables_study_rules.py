@@ -79,8 +79,17 @@ def test_passes_study_judges_the_scenes_whose_steps_change(load_script):
 
 
 def test_committed_decisions_recomputed(load_script):
-    for script, folder in (("tables_cap_study", "tables_cap_study"), ("tables_steps_study", "tables_steps_study")):
+    for script, folder in (("tables_cap_study", "tables_cap_study"), ("tables_steps_study", "tables_steps_study"),
+                           ("tables_steps_study", "tables_passes_study")):
         study = load_script(f"benchmarks/studies/{script}.py")
         data = json.loads((REPO_ROOT / "benchmarks" / "results" / folder / "results.json").read_text())
         rows = data["means"] if "means" in data else data["rows"]
-        assert study.verdict(rows) == (data["taken"], data["failed"])
+        rule = (study.STUDIES[data["study"]],) if "study" in data else ()
+        assert study.verdict(rows, *rule) == (data["taken"], data["failed"])
+    # study 28's means are the seeds' means of the committed per-seed scores
+    study = load_script("benchmarks/studies/tables_steps_study.py")
+    data = json.loads((REPO_ROOT / "benchmarks" / "results" / "tables_passes_study" / "results.json").read_text())
+    for label, scenes in data["rows"].items():
+        for m, per_seed in scenes["flower"].items():
+            assert study.seed_mean(per_seed)["psnr"] == pytest.approx(data["means"][label]["flower"][m]["psnr"])
+    assert data["taken"] and data["seeds"] == [4, 5, 6]
