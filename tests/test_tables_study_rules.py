@@ -9,6 +9,7 @@ import json
 import pytest
 
 from conftest import REPO_ROOT
+from stochastic_fields_bench.budget import cpu_budget_steps
 
 LEVELS = ("50", "68", "90", "95", "99")
 
@@ -53,7 +54,7 @@ def test_steps_study_rule_on_seed_means(load_script):
         def scene(gain: float) -> dict:
             return _scene(study.seed_mean([_row(20.0 + gain), _row(20.2 + gain)]),
                           study.seed_mean([_row(18.0, coverage=None)] * 3))
-        today, cand = study.ROWS
+        today, cand = study.STUDIES[27].rows
         return {today: {"fern": scene(0.0), "flower": scene(0.0)},
                 cand: {"fern": scene(fern_gain), "flower": scene(flower_gain)}}
 
@@ -66,8 +67,8 @@ def test_passes_study_judges_the_scenes_whose_steps_change(load_script):
     study = load_script("benchmarks/studies/tables_steps_study.py")
     passes = study.STUDIES[28]
     assert passes.scenes == ("flower",) and list(passes.rows.values()) == [1000, 1750] and passes.seeds == (4, 5, 6)
-    # the rule's steps: fern's four photos keep 1000, flower's seven get 1000 * 7 / 4
-    assert [min(2000, max(1000, -(-1000 * n // 4))) for n in (4, 7)] == [1000, 1750]
+    # the rows are the rule's steps (budget.cpu_budget_steps): fern's four photos keep 1000, flower's seven get 1750
+    assert [cpu_budget_steps(1000, n * 504 * 378) for n in (4, 7)] == [1000, 1750] == list(passes.rows.values())
     today, cand = passes.rows
 
     def scene(gain: float, det_gain: float = 0.0) -> dict:

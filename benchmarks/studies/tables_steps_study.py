@@ -51,6 +51,7 @@ class Study(NamedTuple):
     seeds: tuple[int, ...]
     scenes: tuple[str, ...]  # the scenes whose steps the candidate changes (the rule judges these)
     how_run: str  # the report's closing paragraph
+    seed1_runs: Path | None = None  # runs that stand for the seed-1 1000-step rows (study 27: study 26's)
 
 
 STUDIES = {
@@ -62,7 +63,8 @@ STUDIES = {
               "validation views right after its training. Other work shared the machine during some 2000-step rows, "
               "so the training seconds are not a clean cost (the cost is the steps: twice). Then `python "
               "benchmarks/studies/tables_steps_study.py "
-              "--out benchmarks/results/tables_steps_study`. The decision and what it shows: docs/studies.md, study 27."),
+              "--out benchmarks/results/tables_steps_study`. The decision and what it shows: docs/studies.md, study 27.",
+              Path("runs/cap_study/cap_250k")),
     28: Study(28, "the tables' steps in passes over the training pixels", {"1000 (today)": 1000, "1750 (passes rule)": 1750},
               (4, 5, 6), ("flower",),
               "Fern is not a row: the passes rule gives its four photos 1000 steps, today's, so its scores cannot "
@@ -73,8 +75,6 @@ STUDIES = {
               "--study 28 --runs runs/passes_study --out benchmarks/results/tables_passes_study`. The decision and "
               "what it shows: docs/studies.md, study 28."),
 }
-#: Study 27's rows and seeds (the names its tests read).
-ROWS, SEEDS = STUDIES[27].rows, STUDIES[27].seeds
 #: What each score's seed mean is taken of (None where a run has none: the deterministic NeRF's intervals).
 MEAN_KEYS = ("psnr", "ssim", "abs_rel", "spearman", "halfwidth_median_95", "interval_score_95", "crps", "train_s")
 
@@ -140,12 +140,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--study", type=int, choices=sorted(STUDIES), default=27)
     ap.add_argument("--runs", type=Path, default=Path("runs/steps_study"), help="Folder holding sSEED/STEPS.")
-    ap.add_argument("--seed1-runs", type=Path, default=Path("runs/cap_study/cap_250k"),
-                    help="Study 27: study 26's 250k runs (seed 1 at 1000 steps).")
+    ap.add_argument("--seed1-runs", type=Path, default=None,
+                    help="Study 27: study 26's 250k runs (seed 1 at 1000 steps; default runs/cap_study/cap_250k).")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/tables_steps_study"))
     args = ap.parse_args()
     study = STUDIES[args.study]
-    seed1_runs = args.seed1_runs if study.number == 27 else None
+    seed1_runs = args.seed1_runs or study.seed1_runs
     views = {scene: validation_views(scene) for scene in study.scenes}
 
     def score(seed: int, steps: int, scene: str, method: str) -> dict:
