@@ -680,7 +680,8 @@ def violation_at_points(cameras, sparse: dict, xyz: np.ndarray, gt: np.ndarray, 
 def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
                               points: str = "calibrate", options=None, bounds: str = CALIBRATION_BOUNDS,
                               free_space=None) -> dict[str, Any]:
-    """What a depth map is fitted on: the absolute camera-z errors "abs_err" [N] and raw total stds
+    """What a depth map is fitted on: the absolute camera-z errors "abs_err" [N] (signed, true minus
+    rendered: "err") and raw total stds
     "std" [N] (> 0), with the capture point of each ("index" [N] int64), the rendered depth ("depth"
     [N]) and the data in words ("source"), at the CALIBRATE capture points (``points="held-out"``: CALIBRATE and SCORE, see
     ``CALIBRATION_POINTS``) seen from the calibration views (``calibration_views``: halfway between
@@ -715,7 +716,8 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
                                         free_space)
         std = checked_std(sigma, violation)
         source += CHECKED_SOURCE
-    out = {"abs_err": np.abs(r["gt"][keep] - r["depth_mean"][keep]), "std": std[keep], "index": index[keep],
+    out = {"abs_err": np.abs(r["gt"][keep] - r["depth_mean"][keep]), "err": r["gt"][keep] - r["depth_mean"][keep],
+           "std": std[keep], "index": index[keep],
            "depth": r["depth_mean"][keep], "source": source}
     if violation is not None:
         out.update({"std_raw": sigma[keep], "violation": violation[keep]})
