@@ -96,7 +96,7 @@ def test_signed_quantiles_hold_each_tail_of_a_skewed_error(anatomy):
     pred = np.full(n, 10.0)
     gt = pred + draw(n) * std
     t_outside = {0: draw(30000), 1: draw(30000)}
-    q = anatomy.signed_fold_quantiles(pred, {0: std, 1: std}, fold, t_outside)
+    q = anatomy.signed_fold_quantiles(pred, std, fold, t_outside)
     lo, hi = q(np.array([0.05, 0.95])).T
     assert np.mean(gt < lo) == pytest.approx(0.05, abs=0.006) and np.mean(gt > hi) == pytest.approx(0.05, abs=0.006)
     sym = anatomy.out_of_fold_level_quantiles(pred, np.abs(gt - pred), std, fold)

@@ -139,12 +139,12 @@ def out_of_fold_level_quantiles(pred: np.ndarray, abs_err: np.ndarray, std: np.n
     return quantiles
 
 
-def signed_fold_quantiles(pred: np.ndarray, std_by_fold: dict, fold: np.ndarray, t_outside: dict):
+def signed_fold_quantiles(pred: np.ndarray, std: np.ndarray, fold: np.ndarray, t_outside: dict):
     """The quantile function t [Q] -> [N, Q] from signed standardised calibration errors: point i of
-    fold f gets pred_i + Q_t(t_outside[f]) std_by_fold[f][i] (``std_by_fold[f]`` [N]: each point's
-    total std under fold f's map; ``t_outside[f]``: the signed errors (true - rendered) / std of the
-    calibration renders outside fold f's blocks)."""
-    pred = np.asarray(pred, dtype=np.float64)
+    fold f gets pred_i + Q_t(t_outside[f]) std_i (``std`` [N]: each point's total std under its own
+    fold's map; ``t_outside[f]``: the signed errors (true - rendered) / std of the calibration renders
+    outside fold f's blocks)."""
+    pred, std = np.asarray(pred, dtype=np.float64), np.asarray(std, dtype=np.float64)
     fold = np.asarray(fold)
 
     def quantiles(levels):
@@ -152,7 +152,7 @@ def signed_fold_quantiles(pred: np.ndarray, std_by_fold: dict, fold: np.ndarray,
         out = np.zeros((pred.size, t.size))
         for f, signed in t_outside.items():
             i = fold == f
-            out[i] = pred[i, None] + np.quantile(signed, t)[None, :] * std_by_fold[f][i, None]
+            out[i] = pred[i, None] + np.quantile(signed, t)[None, :] * std[i, None]
         return out
 
     return quantiles
@@ -189,12 +189,12 @@ def run_views(dataset, split: str) -> tuple[list[int], str]:
     return held_out, "validation photos"
 
 
-def anatomy_of_run(folder: Path, *, radius: float = NEIGHBOUR_RADIUS_PX, seed: int = SEED, progress: bool = False) -> dict:
+def anatomy_of_run(folder: Path, *, radius: float = NEIGHBOUR_RADIUS_PX, seed: int = SEED) -> dict:
     """Sections 1-4 of the module doc for one trained, calibrated run."""
     import torch
 
-    from stochastic_fields.calibration import depth_calibration_renders, load_run_calibration, render_at_points, \
-        violation_at_points
+    from stochastic_fields.calibration import cross_fitted_depth_quantiles, depth_calibration_renders, \
+        load_run_calibration, render_at_points, violation_at_points
     from stochastic_fields.capture_points import block_keys, load_capture_points, score_sparse_depth
     from stochastic_fields.view_maps import OPACITY_MASK
     from stochastic_fields.trainer import load_trained_model
@@ -242,14 +242,11 @@ def anatomy_of_run(folder: Path, *, radius: float = NEIGHBOUR_RADIUS_PX, seed: i
     fold = folds.fold_of(keys[index[keep]])
     if (fold < 0).any():
         raise SystemExit(f"{folder}: {int((fold < 0).sum())} SCORE points lie in no fold of its calibration")
-    std_by_fold = {f: m.calibrated_std(raw, e, pred) / m.std_scale for f, m in enumerate(folds.maps)}
-    total = np.zeros_like(raw)
-    for f in std_by_fold:
-        total[fold == f] = std_by_fold[f][fold == f]
+    total = np.zeros_like(raw)  # each point's total std under its own fold's map (before the level map)
+    for f, m in enumerate(folds.maps):
+        i = fold == f
+        total[i] = m.calibrated_std(raw[i], None if e is None else e[i], pred[i]) / m.std_scale
     abs_err = np.abs(pred - gt)
-
-    from stochastic_fields.calibration import cross_fitted_depth_quantiles
-
     product = cross_fitted_depth_quantiles(pred, raw, fold, folds, violation=e)
     # the calibration renders, signed, as the run's map was fitted on them
     cal = depth_calibration_renders(model, dataset, seed=seed, points=calibration.points,
@@ -273,7 +270,7 @@ def anatomy_of_run(folder: Path, *, radius: float = NEIGHBOUR_RADIUS_PX, seed: i
             "edges": edge_shares(gt, pred, delta, total),
             "edge_term": edge_rows,
             "calibration": {"product (symmetric level map)": interval_row(gt, product, abs_err),
-                            "signed calibration errors": interval_row(gt, signed_fold_quantiles(pred, std_by_fold, fold, t_outside), abs_err),
+                            "signed calibration errors": interval_row(gt, signed_fold_quantiles(pred, total, fold, t_outside), abs_err),
                             "calibration_t_quantiles": np.quantile(np.concatenate(list(t_outside.values())),
                                                                    [0.025, 0.25, 0.5, 0.75, 0.975]).tolist(),
                             "calibration_points": int(cal["err"].size)},
@@ -281,7 +278,10 @@ def anatomy_of_run(folder: Path, *, radius: float = NEIGHBOUR_RADIUS_PX, seed: i
 
 
 def _steps(folder: Path) -> int | None:
-    log = Path(folder) / "train_log.jsonl"
+    """The run's last logged training step (the log keeps every 10th, so up to 9 short of the last)."""
+    from stochastic_fields.trainer import LOG_NAME
+
+    log = Path(folder) / LOG_NAME
     if not log.is_file():
         return None
     lines = [line for line in log.read_text().splitlines() if line.strip()]
@@ -307,7 +307,7 @@ def report(records: dict[str, dict], command: str) -> str:
              "their exact pixels, opacity > 0.5. Errors relative "
              "to the true depth; \"in front\": rendered nearer than the truth.", "",
              "## 1. Size and side", "",
-             "| run | steps | points | median / p90 abs-rel | > 5% (in front) | > 15% (in front) | > 30% (in front) "
+             "| run | last logged step | points | median / p90 abs-rel | > 5% (in front) | > 15% (in front) | > 30% (in front) "
              "| rendered / true, > 15% in front | near third: median signed, > 15% (in front) | middle third | far third |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for label, r in records.items():

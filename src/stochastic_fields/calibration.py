@@ -716,8 +716,8 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
                                         free_space)
         std = checked_std(sigma, violation)
         source += CHECKED_SOURCE
-    out = {"abs_err": np.abs(r["gt"][keep] - r["depth_mean"][keep]), "err": r["gt"][keep] - r["depth_mean"][keep],
-           "std": std[keep], "index": index[keep],
+    err = r["gt"][keep] - r["depth_mean"][keep]
+    out = {"abs_err": np.abs(err), "err": err, "std": std[keep], "index": index[keep],
            "depth": r["depth_mean"][keep], "source": source}
     if violation is not None:
         out.update({"std_raw": sigma[keep], "violation": violation[keep]})
