@@ -315,7 +315,8 @@ def test_nerfw_loss_is_gaussian_nll(dataset):
     rays = dataset.rays(dataset.train_indices[0])[::6, ::6].flatten()
     target = dataset.images[dataset.train_indices[0]][::6, ::6].reshape(-1, 3)
     loss, logs = model.training_loss(rays, target, step=0, generator=_gen(8))
-    stats, var = model._render(rays, stratified=True, generator=_gen(8))
+    out, var = model._render(rays, stratified=True, generator=_gen(8))
+    stats = out.stats
     ref = -torch.distributions.Normal(stats.colour_mean.double(), var.double().sqrt()).log_prob(target.double())
     assert float(loss.detach()) == pytest.approx(float(ref.sum(-1).mean().detach()), rel=1e-5)
     assert logs["beta_rms"] > NERFW_BETA_MIN

@@ -54,6 +54,10 @@ class LossConfig:
     """Trajectories per capture-point ray in the depth likelihood (0: ``train.train_draws``, as the colour rays). Range: an integer >= 0 and <= 4096."""
     lambda_distortion: float = 0.0
     """Weight of the Mip-NeRF 360 distortion regulariser on every training trajectory (stochastic_fields.distortion): penalises weight spread along rays (floaters). 0 = off (the paper's objective); on fern at 1000 steps it did not empty space for skipping and cost PSNR at weight 20 (docs/design.md). Range: a finite number >= 0."""
+    lambda_occlusion: float = 0.0
+    """Weight of the occlusion regulariser (stochastic_fields.occlusion, after FreeNeRF): the mean over training rays of the expected optical depth in the near loss.occlusion_near_fraction of each ray's sampled range, against surfaces floating in front of the cameras that render pixels on the wrong surface. Every model applies it to its training rays (S-NeRF to the expected density, the mean-field baselines to their density). 0 = off (the paper's objective). Range: a finite number >= 0."""
+    occlusion_near_fraction: float = 0.25
+    """The near part of each ray the occlusion regulariser covers, as a fraction of the sampled range in the sampling coordinate (disparity for render.spacing='disparity'): 0.25 = the first 16 of 64 samples. Range: a finite number > 0 and <= 1."""
 
 
     def __post_init__(self) -> None:
@@ -80,6 +84,8 @@ def _loss_checks() -> dict:
         "depth_relative_std": real(0.0, lo_open=True),
         "depth_draws": integer(0, 4096),
         "lambda_distortion": real(0.0),
+        "lambda_occlusion": real(0.0),
+        "occlusion_near_fraction": real(0.0, 1.0, lo_open=True),
     }
 
 

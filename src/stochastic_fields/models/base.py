@@ -9,8 +9,9 @@ import abc
 import torch
 from torch import Tensor, nn
 
+from ..occlusion import expected_density, near_optical_depth
 from ..rays import RayBundle
-from ..renderer import ChunkGenerators, RenderOptions, RenderSettings
+from ..renderer import ChunkGenerators, RayRender, RenderOptions, RenderSettings
 from ..fields.grid import GridField
 
 
@@ -47,6 +48,25 @@ class RadianceModel(nn.Module, abc.ABC):
         """:meth:`default_render_options` with ``changes`` (``RenderOptions.with_changes``: names
         checked, values validated, None ignored)."""
         return self.default_render_options().with_changes(**changes)
+
+    def add_occlusion(self, loss: Tensor, logs: dict[str, float], renders: list[RayRender], *,
+                      mean_field: bool) -> Tensor:
+        """``loss + lambda_occlusion * sum over renders of the mean near optical depth of their rays``
+        (``stochastic_fields.occlusion``; ``loss`` unchanged at weight 0). ``renders``: the training
+        renders (one per ensemble member); ``mean_field``: their density is ``relu(mu)`` (else
+        S-NeRF's rectified normal, by its mean). Logs ``occlusion``, the mean over renders."""
+        cfg = self.loss_config
+        if cfg.lambda_occlusion <= 0:
+            return loss
+        terms = []
+        for out in renders:
+            scale = None if mean_field else out.params.density_scale
+            density = expected_density(out.params.density_loc, scale)
+            terms.append(near_optical_depth(density, out.samples, self.render_settings.spacing,
+                                            cfg.occlusion_near_fraction).mean())
+        total = torch.stack(terms).sum()
+        logs["occlusion"] = float(total.detach()) / len(terms)
+        return loss + cfg.lambda_occlusion * total
 
     def after_step(self, step: int) -> None:
         """Hook after each optimiser step (occupancy updates and similar)."""

@@ -233,7 +233,10 @@ class _MeanFieldModel(RadianceModel):
         return render_chunked(lambda r, g: chunk(r, g, K, settings), rays, options.chunk_rays, generator=generator,
                               keep_draws=options.keep_draws, progress=options.progress)
 
-    def _regularise(self, loss: Tensor, logs: dict[str, float], generator: torch.Generator | None) -> Tensor:
+    def _regularise(self, loss: Tensor, logs: dict[str, float], generator: torch.Generator | None,
+                    renders: list[RayRender]) -> Tensor:
+        """``loss`` plus the occlusion term of the training ``renders`` and the grid TV term."""
+        loss = self.add_occlusion(loss, logs, renders, mean_field=True)
         if self.tv_weight > 0:
             tv = grid_total_variation(self, generator)
             if tv is not None:
@@ -241,12 +244,14 @@ class _MeanFieldModel(RadianceModel):
                 return loss + self.tv_weight * tv
         return loss
 
-    def _likelihood_loss(self, stats: TrajectoryStatistics, target: Tensor,
+    def _likelihood_loss(self, out: RayRender, target: Tensor,
                          generator: torch.Generator | None) -> tuple[Tensor, dict[str, float]]:
-        """The Gaussian pixel likelihood (same sigma_n as S-NeRF) plus the grid TV term."""
+        """The Gaussian pixel likelihood (same sigma_n as S-NeRF) of the training render ``out``
+        plus the regularisers (``_regularise``)."""
+        stats = out.stats
         nll = gaussian_likelihood_nll(stats.colour_draws, target, self.loss_config.likelihood_std)
         logs = {"nll": float(nll.detach()), "mse": float(((stats.colour_mean.detach() - target) ** 2).mean())}
-        return self._regularise(nll, logs, generator), logs
+        return self._regularise(nll, logs, generator, [out]), logs
 
 
 # --------------------------------------------------------------------------------------------
@@ -265,7 +270,7 @@ class DeterministicNeRF(_MeanFieldModel):
     def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
                       generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
         out = render_mean_field(self.field, rays, self.render_settings, stratified=True, generator=generator)
-        return self._likelihood_loss(out.stats, target, generator)
+        return self._likelihood_loss(out, target, generator)
 
     def render_view(self, rays: RayBundle, options: RenderOptions | None = None, *,
                     generator: "torch.Generator | ChunkGenerators | None" = None) -> dict[str, Tensor]:
@@ -294,7 +299,7 @@ class MCDropoutNeRF(_MeanFieldModel):
                       generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
         with dropout_control(self, generator, always_on=True):
             out = render_mean_field(self.field, rays, self.render_settings, stratified=True, generator=generator)
-        return self._likelihood_loss(out.stats, target, generator)
+        return self._likelihood_loss(out, target, generator)
 
     @property
     def trajectories(self) -> int | None:
@@ -328,14 +333,15 @@ class DeepEnsemble(_MeanFieldModel):
                       generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
         """Sum over members of each member's Gaussian likelihood NLL (members are independent:
         the sum's gradient w.r.t. a member is that member's own gradient)."""
-        nlls, mses = [], []
+        nlls, mses, outs = [], [], []
         for field in self.members:
             out = render_mean_field(field, rays, self.render_settings, stratified=True, generator=generator)
+            outs.append(out)
             nlls.append(gaussian_likelihood_nll(out.stats.colour_draws, target, self.loss_config.likelihood_std))
             mses.append(float(((out.stats.colour_mean.detach() - target) ** 2).mean()))
         loss = torch.stack(nlls).sum()
         logs = {"nll": float(loss.detach()) / len(nlls), "mse": sum(mses) / len(mses)}
-        return self._regularise(loss, logs, generator), logs
+        return self._regularise(loss, logs, generator, outs), logs
 
     @property
     def trajectories(self) -> int | None:
@@ -389,28 +395,29 @@ class NeRFWUncertainty(_MeanFieldModel):
         self.beta_min = float(beta_min)
 
     def _render(self, rays: RayBundle, *, stratified: bool, generator: torch.Generator | None,
-                settings: RenderSettings | None = None) -> tuple[TrajectoryStatistics, Tensor]:
-        """(stats with K = 1, rendered variance [R, 3]); ``settings`` default: the model's."""
+                settings: RenderSettings | None = None) -> tuple[RayRender, Tensor]:
+        """(the render, with K = 1; its rendered variance [R, 3]); ``settings`` default: the model's."""
         out = render_mean_field(self.field, rays, settings or self.render_settings, stratified=stratified,
                                 generator=generator)
         weights = out.extras["weights"][:, 0]  # [R, S]
         var = nerfw_ray_variance(weights, nerfw_point_variance(out.params), self.beta_min)
-        return out.stats, var
+        return out, var
 
     def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
                       generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
-        stats, var = self._render(rays, stratified=True, generator=generator)
+        out, var = self._render(rays, stratified=True, generator=generator)
+        stats = out.stats
         nll = gaussian_nll_learned_variance(stats.colour_mean, target, var)
         logs = {"nll": float(nll.detach()), "mse": float(((stats.colour_mean.detach() - target) ** 2).mean()),
                 "beta_rms": float(var.detach().mean().sqrt())}
-        return self._regularise(nll, logs, generator), logs
+        return self._regularise(nll, logs, generator, [out]), logs
 
     def render_view(self, rays: RayBundle, options: RenderOptions | None = None, *,
                     generator: "torch.Generator | ChunkGenerators | None" = None) -> dict[str, Tensor]:
         """One trajectory (K = 1); ``colour_var`` is the rendered variance."""
         def chunk(r: RayBundle, gen, K: int, settings: RenderSettings) -> ChunkRender:
-            stats, var = self._render(r, stratified=False, generator=gen, settings=settings)
-            return ChunkRender(replace(stats, colour_var=var), 1)
+            out, var = self._render(r, stratified=False, generator=gen, settings=settings)
+            return ChunkRender(replace(out.stats, colour_var=var), 1)
 
         return self._render_chunks(chunk, rays, options, generator)
 
