@@ -1,5 +1,5 @@
 """The paper-split studies' rules (benchmarks/studies/tables_cap_study.py, study 26, and
-tables_steps_study.py, studies 27 and 28) on hand-made scores, and the committed decisions recomputed
+tables_steps_study.py, studies 27, 28 and 29) on hand-made scores, and the committed decisions recomputed
 from the committed results."""
 
 from __future__ import annotations
@@ -66,9 +66,10 @@ def test_steps_study_rule_on_seed_means(load_script):
 def test_passes_study_judges_the_scenes_whose_steps_change(load_script):
     study = load_script("benchmarks/studies/tables_steps_study.py")
     passes = study.STUDIES[28]
-    assert passes.scenes == ("flower",) and list(passes.rows.values()) == [1000, 1750] and passes.seeds == (4, 5, 6)
+    steps = [int(row) for row in passes.rows.values()]
+    assert passes.scenes == ("flower",) and steps == [1000, 1750] and passes.seeds == (4, 5, 6)
     # the rows are the rule's steps (budget.cpu_budget_steps): fern's four photos keep 1000, flower's seven get 1750
-    assert [cpu_budget_steps(1000, n * 504 * 378) for n in (4, 7)] == [1000, 1750] == list(passes.rows.values())
+    assert [cpu_budget_steps(1000, n * 504 * 378) for n in (4, 7)] == [1000, 1750] == steps
     today, cand = passes.rows
 
     def scene(gain: float, det_gain: float = 0.0) -> dict:
@@ -77,6 +78,33 @@ def test_passes_study_judges_the_scenes_whose_steps_change(load_script):
     assert study.verdict({today: {"flower": scene(0.0)}, cand: {"flower": scene(0.3)}}, passes) == (True, [])
     taken, failed = study.verdict({today: {"flower": scene(0.0)}, cand: {"flower": scene(0.3, -0.2)}}, passes)
     assert not taken and failed == ["flower: deterministic PSNR -0.20 dB"]
+
+
+def test_occlusion_study_also_asks_for_sharper_intervals(load_script):
+    """Study 29: study 26's checks on both scenes, and S-NeRF's median 95% half-width and 95% interval
+    score must not grow on either."""
+    study = load_script("benchmarks/studies/tables_steps_study.py")
+    occ = study.STUDIES[29]
+    assert occ.scenes == ("fern", "flower") and occ.seeds == (7, 8, 9) and occ.sharper
+    assert not study.STUDIES[27].sharper and not study.STUDIES[28].sharper
+    today, cand = occ.rows
+
+    def scene(gain: float, **snerf) -> dict:
+        return _scene({**_row(20.0 + gain), **snerf}, _row(18.8, coverage=None))
+
+    base = {"fern": scene(0.0), "flower": scene(0.0)}
+    assert study.verdict({today: base, cand: {"fern": scene(0.3, halfwidth_median_95=0.15),
+                                              "flower": scene(0.3, interval_score_95=1.5)}}, occ) == (True, [])
+    taken, failed = study.verdict({today: base, cand: {"fern": scene(0.3),
+                                                       "flower": scene(0.3, halfwidth_median_95=0.21)}}, occ)
+    assert not taken and failed == ["flower: S-NeRF median 95% half-width 0.2100 against 0.2000"]
+    taken, failed = study.verdict({today: base, cand: {"fern": scene(0.3, interval_score_95=None), "flower": scene(0.3)}},
+                                  occ)
+    assert not taken and failed == ["fern: S-NeRF 95% interval score  against 1.5000"]
+    # studies 27 and 28 do not ask it
+    today27, cand27 = study.STUDIES[27].rows
+    wider = {today27: base, cand27: {"fern": scene(0.3, halfwidth_median_95=0.3), "flower": scene(0.3)}}
+    assert study.verdict(wider, study.STUDIES[27]) == (True, [])
 
 
 def test_committed_decisions_recomputed(load_script):

@@ -1,4 +1,5 @@
-"""Studies 27 and 28: the tables' training steps at the paper split, judged by their rules.
+"""Studies 27, 28 and 29: one training factor of the tables at the paper split (27 and 28: the steps;
+29: the occlusion regulariser), judged by their rules.
 
 **Study 27** (twice the steps, 1000 against 2000). The rows are ``benchmarks/eval_tables.py`` runs
 (S-NeRF (default) and the deterministic NeRF, paper split, one thread), seeds 1, 2 and 3, today's steps
@@ -26,6 +27,15 @@ to the means over the seeds::
     python benchmarks/studies/tables_steps_study.py --study 28 --runs runs/passes_study \\
         --out benchmarks/results/tables_passes_study
 
+**Study 29** (``--study 29``: ``loss.lambda_occlusion`` 0 against 0.1, every method). Both scenes at the
+tables' CPU budget (fern 1000 steps, flower 1750), fresh seeds 7, 8 and 9; ARM ``off`` runs the
+command as is and ``occ`` adds ``--set loss.lambda_occlusion=0.1``::
+
+    OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes fern flower --methods deterministic snerf_default \
+        --seed SEED --no-timing --quiet --out runs/occlusion_study/sSEED/ARM
+    python benchmarks/studies/tables_steps_study.py --study 29 --runs runs/occlusion_study \
+        --out benchmarks/results/occlusion_study
+
 The tables' own test-view scores (each run's metrics.json) are not read.
 """
 
@@ -47,15 +57,18 @@ from tables_cap_study import (METHODS, SCENES, fmt, scene_checks, score_run, tab
 class Study(NamedTuple):
     number: int
     title: str
-    rows: dict  # row label -> training steps (today's first)
+    rows: dict  # row label -> the runs' folder under sSEED (today's first)
     seeds: tuple[int, ...]
     scenes: tuple[str, ...]  # the scenes whose steps the candidate changes (the rule judges these)
     how_run: str  # the report's closing paragraph
+    budget: str  # what the rows train, for the report's opening line
     seed1_runs: Path | None = None  # runs that stand for the seed-1 1000-step rows (study 27: study 26's)
+    row_name: str = "steps"  # the tables' column naming the rows
+    sharper: bool = False  # study 29: S-NeRF's median 95% half-width and 95% interval score must not grow either
 
 
 STUDIES = {
-    27: Study(27, "twice the tables' training steps at the paper split", {"1000 (today)": 1000, "2000 (candidate)": 2000},
+    27: Study(27, "twice the tables' training steps at the paper split", {"1000 (today)": "1000", "2000 (candidate)": "2000"},
               (1, 2, 3), SCENES,
               "How this was run: the row commands of the script's docstring, fern's one after the other in "
               "one shell chain and flower's in a second beside it (`OMP_NUM_THREADS=1`; flower's seed-3 rows in two "
@@ -64,8 +77,8 @@ STUDIES = {
               "so the training seconds are not a clean cost (the cost is the steps: twice). Then `python "
               "benchmarks/studies/tables_steps_study.py "
               "--out benchmarks/results/tables_steps_study`. The decision and what it shows: docs/studies.md, study 27.",
-              Path("runs/cap_study/cap_250k")),
-    28: Study(28, "the tables' steps in passes over the training pixels", {"1000 (today)": 1000, "1750 (passes rule)": 1750},
+              "the tables' CPU budget (250k cells) at 1000 and 2000 steps", Path("runs/cap_study/cap_250k")),
+    28: Study(28, "the tables' steps in passes over the training pixels", {"1000 (today)": "1000", "1750 (passes rule)": "1750"},
               (4, 5, 6), ("flower",),
               "Fern is not a row: the passes rule gives its four photos 1000 steps, today's, so its scores cannot "
               "move and its checks pass by construction. How this was run: the row commands of the script's "
@@ -73,17 +86,28 @@ STUDIES = {
               "seed 6's 1000-step row in one chain and its 1750-step row in the other), each run scored on its "
               "validation views right after its training. Then `python benchmarks/studies/tables_steps_study.py "
               "--study 28 --runs runs/passes_study --out benchmarks/results/tables_passes_study`. The decision and "
-              "what it shows: docs/studies.md, study 28."),
+              "what it shows: docs/studies.md, study 28.",
+              "the tables' CPU budget (250k cells) at 1000 and 1750 steps"),
+    29: Study(29, "an occlusion regulariser near the cameras", {"0 (today)": "off", "0.1 (candidate)": "occ"},
+              (7, 8, 9), SCENES,
+              "How this was run: the row commands of the script's docstring in two shell chains side by side "
+              "(`OMP_NUM_THREADS=1`; one chain the `off` rows of seeds 7, 8 and 9, the other the `occ` rows), each "
+              "run scored on its validation views right after its training. Then `python "
+              "benchmarks/studies/tables_steps_study.py --study 29 --runs runs/occlusion_study --out "
+              "benchmarks/results/occlusion_study`. The decision and what it shows: docs/studies.md, study 29.",
+              "the tables' CPU budget (fern 1000 steps, flower 1750), `loss.lambda_occlusion` 0 and 0.1",
+              row_name="loss.lambda_occlusion", sharper=True),
 }
 #: What each score's seed mean is taken of (None where a run has none: the deterministic NeRF's intervals).
 MEAN_KEYS = ("psnr", "ssim", "abs_rel", "spearman", "halfwidth_median_95", "interval_score_95", "crps", "train_s")
 
 
-def run_folders(runs: Path, seed1_runs: Path | None, seed: int, steps: int, scene: str, method: str) -> tuple[Path, Path]:
-    """(run folder, its validation scores' folder): study 27's seed-1 1000-step rows are study 26's."""
-    if seed1_runs is not None and seed == 1 and steps == 1000:
+def run_folders(runs: Path, seed1_runs: Path | None, seed: int, row: str, scene: str, method: str) -> tuple[Path, Path]:
+    """(run folder, its validation scores' folder) of one row (its folder under sSEED): study 27's seed-1
+    1000-step rows are study 26's."""
+    if seed1_runs is not None and seed == 1 and row == "1000":
         return seed1_runs / scene / method, seed1_runs.parent / "validation" / seed1_runs.name / scene / method
-    return runs / f"s{seed}" / str(steps) / scene / method, runs / "validation" / f"s{seed}" / str(steps) / scene / method
+    return runs / f"s{seed}" / row / scene / method, runs / "validation" / f"s{seed}" / row / scene / method
 
 
 def seed_mean(per_seed: list[dict]) -> dict:
@@ -100,30 +124,39 @@ def seed_mean(per_seed: list[dict]) -> dict:
     return out
 
 
+#: Study 29's sharpness checks: S-NeRF's scores that must not grow (key, what the report calls it).
+SHARPNESS_KEYS = (("halfwidth_median_95", "median 95% half-width"), ("interval_score_95", "95% interval score"))
+
+
 def verdict(means: dict, study: Study = STUDIES[27]) -> tuple[bool, list[str]]:
     """The rule on the seed means: study 26's checks on every scene the candidate changes (docs/studies.md,
-    studies 27 and 28)."""
+    studies 27-29), and with ``study.sharper`` S-NeRF's median 95% half-width and 95% interval score no
+    larger than today's."""
     today, cand = study.rows
     failed = [f for scene in study.scenes for f in scene_checks(scene, means[today][scene], means[cand][scene])]
+    if study.sharper:
+        for scene in study.scenes:
+            t, c = means[today][scene]["snerf_default"], means[cand][scene]["snerf_default"]
+            for key, name in SHARPNESS_KEYS:
+                if t[key] is None or c[key] is None or c[key] > t[key]:
+                    failed.append(f"{scene}: S-NeRF {name} {fmt(c[key], '{:.4f}')} against {fmt(t[key], '{:.4f}')}")
     return not failed, failed
 
 
 def report(rows: dict, means: dict, taken: bool, failed: list[str], views: dict, study: Study = STUDIES[27]) -> str:
-    steps = " and ".join(str(s) for s in study.rows.values())
     lines = [f"# Study {study.number}: {study.title}", "",
-             f"Paper split, seeds {', '.join(map(str, study.seeds))}, the tables' CPU budget (250k cells) at {steps} "
-             "steps, one thread; scored on the validation views (held-out photos the tables do not score: "
+             f"Paper split, seeds {', '.join(map(str, study.seeds))}, {study.budget}, one thread; scored on the validation views (held-out photos the tables do not score: "
              f"{', '.join(f'{s} {len(v)}' for s, v in views.items())}) with `stochastic-fields eval --views` (depth "
              "at the SCORE capture points they see; S-NeRF's intervals cross-fitted). Commands: the module "
              "docstring of `benchmarks/studies/tables_steps_study.py`.", "",
              "Means over the seeds:", "",
-             *table_head("steps")]
+             *table_head(study.row_name)]
     for scene in study.scenes:
         for m in METHODS:
             for label in study.rows:
                 lines.append(table_row(scene, m, label, means[label][scene][m]))
     lines += ["", "Each seed (PSNR dB / depth abs-rel / train s):", "",
-              "| scene | method | steps | " + " | ".join(f"seed {s}" for s in study.seeds) + " |",
+              f"| scene | method | {study.row_name} | " + " | ".join(f"seed {s}" for s in study.seeds) + " |",
               "|---|---|---|" + "---|" * len(study.seeds)]
     for scene in study.scenes:
         for m in METHODS:
@@ -139,7 +172,7 @@ def report(rows: dict, means: dict, taken: bool, failed: list[str], views: dict,
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--study", type=int, choices=sorted(STUDIES), default=27)
-    ap.add_argument("--runs", type=Path, default=Path("runs/steps_study"), help="Folder holding sSEED/STEPS.")
+    ap.add_argument("--runs", type=Path, default=Path("runs/steps_study"), help="Folder holding sSEED/ROW (ROW: the steps, or study 29's off and occ).")
     ap.add_argument("--seed1-runs", type=Path, default=None,
                     help="Study 27: study 26's 250k runs (seed 1 at 1000 steps; default runs/cap_study/cap_250k).")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/tables_steps_study"))
@@ -148,12 +181,12 @@ def main() -> None:
     seed1_runs = args.seed1_runs or study.seed1_runs
     views = {scene: validation_views(scene) for scene in study.scenes}
 
-    def score(seed: int, steps: int, scene: str, method: str) -> dict:
-        run, scores = run_folders(args.runs, seed1_runs, seed, steps, scene, method)
+    def score(seed: int, row: str, scene: str, method: str) -> dict:
+        run, scores = run_folders(args.runs, seed1_runs, seed, row, scene, method)
         return score_run(run, views[scene], scores)
 
-    rows = {label: {scene: {m: [score(seed, steps, scene, m) for seed in study.seeds] for m in METHODS}
-                    for scene in study.scenes} for label, steps in study.rows.items()}
+    rows = {label: {scene: {m: [score(seed, row, scene, m) for seed in study.seeds] for m in METHODS}
+                    for scene in study.scenes} for label, row in study.rows.items()}
     means = {label: {scene: {m: seed_mean(rows[label][scene][m]) for m in METHODS} for scene in study.scenes}
              for label in study.rows}
     taken, failed = verdict(means, study)
