@@ -148,3 +148,15 @@ def test_training_loss_adds_the_weighted_term(method, tiny_scene):
     assert logs1["occlusion"] > 0
     members = len(reg.members) if method == "ensemble" else 1
     torch.testing.assert_close(l1, l0 + 0.5 * members * logs1["occlusion"], rtol=1e-5, atol=1e-5)
+
+
+def test_llff_preset_trains_with_it_and_the_paper_rows_without():
+    """Study 29: the llff preset (forward-facing scenes) sets 0.1; the package default and the paper S-NeRF rows
+    (the paper's objective) keep 0, every other method of the tables takes the preset's."""
+    from stochastic_fields.config import ExperimentConfig, preset
+    from stochastic_fields_bench.methods import METHOD_SPECS
+
+    assert preset("llff").loss.lambda_occlusion == 0.1 and ExperimentConfig().loss.lambda_occlusion == 0.0
+    for name, spec in METHOD_SPECS.items():
+        paper = name in ("snerf", "snerf_predictive", "snerf_kl_none", "snerf_kl_fixed_prior")
+        assert (("loss.lambda_occlusion", 0.0) in spec.overrides) == paper, name

@@ -233,7 +233,7 @@ PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
     "demo": {"train.iterations": 2000, "render.background": (1.0, 1.0, 1.0), "data.split": "paper",
              "data.split_every": 4},
     "llff": {"data.images": "images_8", "render.spacing": "disparity", "render.num_samples": 64,
-             "train.iterations": 3000},
+             "train.iterations": 3000, "loss.lambda_occlusion": 0.1},
     "tiny": {"train.iterations": 150, "train.rays_per_batch": 256, "train.eval_every": 0,
              "train.checkpoint_every": 100, "render.num_samples": 32, "render.num_draws": 8,
              "render.background": (1.0, 1.0, 1.0), "data.split": "paper", "data.split_every": 4},

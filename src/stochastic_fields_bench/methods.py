@@ -27,12 +27,15 @@ class MethodSpec:
 #: quarter of that (the paper states no weight).
 PAPER_LAMBDA_OBSERVED: tuple[tuple[str, Any], ...] = (("loss.lambda_observed", 5e-2),)
 
+#: The paper's objective has no occlusion regulariser (the llff preset adds it since study 29).
+PAPER_NO_OCCLUSION: tuple[tuple[str, Any], ...] = (("loss.lambda_occlusion", 0.0),)
+
 #: The paper's S-NeRF objective and colour variance (docs/definitions.md §3, §4): fixed pixel noise, the variance over
-#: the K trajectories, no depth likelihood, the observed-ray KL weight those rows were trained with (explicit, since the
-#: package defaults differ).
+#: the K trajectories, no depth likelihood, no occlusion regulariser, the observed-ray KL weight those rows were trained
+#: with (explicit, since the package defaults differ).
 PAPER_SNERF: tuple[tuple[str, Any], ...] = (("loss.learn_likelihood_std", False),
                                             ("render.colour_variance", "epistemic"), ("loss.lambda_depth", 0.0),
-                                            ("loss.per_point_noise", False)) + PAPER_LAMBDA_OBSERVED
+                                            ("loss.per_point_noise", False)) + PAPER_LAMBDA_OBSERVED + PAPER_NO_OCCLUSION
 
 
 METHOD_SPECS: dict[str, MethodSpec] = {
@@ -45,7 +48,7 @@ METHOD_SPECS: dict[str, MethodSpec] = {
     "snerf_predictive": MethodSpec("snerf_predictive", "snerf", "S-NeRF + learned noise",
                                    (("loss.kl", "full"), ("loss.learn_likelihood_std", True),
                                     ("render.colour_variance", "predictive"), ("loss.lambda_depth", 0.0),
-                                    ("loss.per_point_noise", False)) + PAPER_LAMBDA_OBSERVED,
+                                    ("loss.per_point_noise", False)) + PAPER_LAMBDA_OBSERVED + PAPER_NO_OCCLUSION,
                                    calibrate=True),
     "snerf_kl_none": MethodSpec("snerf_kl_none", "snerf", "S-NeRF w/o KL", (("loss.kl", "none"),) + PAPER_SNERF),
     "snerf_kl_fixed_prior": MethodSpec("snerf_kl_fixed_prior", "snerf", "S-NeRF w/ KL (fixed prior)",
