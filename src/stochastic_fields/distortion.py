@@ -20,6 +20,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .rays import PackedRaySamples, RaySamples
 from .samplers import Spacing
 from .volume_rendering import exclusive_cumsum_packed
 
@@ -33,6 +34,15 @@ def normalised_coordinate(t: Tensor, near: Tensor, far: Tensor, spacing: Spacing
     if spacing == "disparity":
         return (1.0 / t - 1.0 / near) / (1.0 / far - 1.0 / near)
     raise ValueError(f"spacing must be 'linear' or 'disparity', got {spacing!r}")
+
+
+def sample_bounds(samples: RaySamples | PackedRaySamples) -> tuple[Tensor, Tensor]:
+    """Each sample's ray near/far, shaped to broadcast against its t: [R, 1] each for dense samples,
+    [N] each for packed ones."""
+    rays = samples.rays
+    if isinstance(samples, PackedRaySamples):
+        return rays.near[samples.ray_indices], rays.far[samples.ray_indices]
+    return rays.near[:, None], rays.far[:, None]
 
 
 def distortion_loss(weights: Tensor, s_starts: Tensor, s_ends: Tensor) -> Tensor:

@@ -28,7 +28,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .distortion import normalised_coordinate
+from .distortion import normalised_coordinate, sample_bounds
 from .distributions import RectifiedNormal
 from .rays import PackedRaySamples, RaySamples
 from .samplers import Spacing
@@ -49,11 +49,7 @@ def near_optical_depth(density: Tensor, samples: RaySamples | PackedRaySamples, 
     (packed) -> [R] (0 for rays with no sample there)."""
     if not 0.0 < near_fraction <= 1.0:
         raise ValueError(f"near_fraction must be in (0, 1], got {near_fraction}")
-    rays = samples.rays
-    if isinstance(samples, PackedRaySamples):
-        near, far = rays.near[samples.ray_indices], rays.far[samples.ray_indices]
-    else:
-        near, far = rays.near[:, None], rays.far[:, None]
+    near, far = sample_bounds(samples)
     mids = normalised_coordinate(samples.t_mids, near, far, spacing)
     per_sample = torch.where(mids < near_fraction, density * samples.deltas, torch.zeros_like(density))
     if isinstance(samples, PackedRaySamples):

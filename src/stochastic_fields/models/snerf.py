@@ -25,7 +25,7 @@ import torch
 from torch import Tensor, nn
 
 from ..adaptive import render_image_adaptive
-from ..distortion import distortion_loss, distortion_loss_packed, normalised_coordinate
+from ..distortion import distortion_loss, distortion_loss_packed, normalised_coordinate, sample_bounds
 from ..fields.base import StochasticField
 from ..fields.grid import GridField
 from ..losses import (LossConfig, Priors, decoupled_likelihood_nll, field_kl_means, gaussian_likelihood_nll,
@@ -252,16 +252,12 @@ class SNeRF(RadianceModel):
     def _distortion(self, out: RayRender, samples: RaySamples | PackedRaySamples) -> Tensor:
         """Mean distortion over training rays and trajectories (stochastic_fields.distortion)."""
         spacing = self.render_settings.spacing
-        rays = samples.rays
+        near, far = sample_bounds(samples)
+        s0 = normalised_coordinate(samples.t_starts, near, far, spacing)
+        s1 = normalised_coordinate(samples.t_ends, near, far, spacing)
         if isinstance(samples, PackedRaySamples):
-            near, far = rays.near[samples.ray_indices], rays.far[samples.ray_indices]
-            s0 = normalised_coordinate(samples.t_starts, near, far, spacing)
-            s1 = normalised_coordinate(samples.t_ends, near, far, spacing)
             return distortion_loss_packed(out.extras["weights"], s0, s1, samples.ray_indices, samples.num_rays).mean()
-        near, far = rays.near[:, None], rays.far[:, None]
-        s0 = normalised_coordinate(samples.t_starts, near, far, spacing)[:, None, :]
-        s1 = normalised_coordinate(samples.t_ends, near, far, spacing)[:, None, :]
-        return distortion_loss(out.extras["weights"], s0, s1).mean()
+        return distortion_loss(out.extras["weights"], s0[:, None, :], s1[:, None, :]).mean()
 
     def _occupied_for(self, settings: RenderSettings):
         """The occupancy test of a render with ``settings``: the grid where one is kept and the
