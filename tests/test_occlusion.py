@@ -46,7 +46,7 @@ def test_matches_a_loop_over_samples(spacing, fraction):
     rays = bundle([0.5, 1.0, 2.0], [4.0, 100.0, 3.0])
     samples = sample_along_rays(rays, 24, spacing=spacing, stratified=True, generator=g)
     density = torch.rand(3, 24, generator=g, dtype=torch.float64) * 5
-    got = near_optical_depth(density, samples, spacing, fraction)
+    got = near_optical_depth(density, None, samples, spacing, fraction)
     for r in range(3):
         ref = naive(density[r], samples.t_starts[r], samples.t_ends[r], float(rays.near[r]), float(rays.far[r]),
                     spacing, fraction)
@@ -59,12 +59,12 @@ def test_hand_values():
     rays = bundle([1.0], [5.0])
     samples = sample_along_rays(rays, 4, spacing="linear")
     ones = torch.ones(1, 4, dtype=torch.float64)
-    assert near_optical_depth(ones, samples, "linear", 0.25).item() == pytest.approx(1.0)
-    assert near_optical_depth(ones, samples, "linear", 1.0).item() == pytest.approx(4.0)
-    assert near_optical_depth(torch.zeros(1, 4, dtype=torch.float64), samples, "linear", 1.0).item() == 0.0
+    assert near_optical_depth(ones, None, samples, "linear", 0.25).item() == pytest.approx(1.0)
+    assert near_optical_depth(ones, None, samples, "linear", 1.0).item() == pytest.approx(4.0)
+    assert near_optical_depth(torch.zeros(1, 4, dtype=torch.float64), None, samples, "linear", 1.0).item() == 0.0
     rays = bundle([1.0], [100.0])
     samples = sample_along_rays(rays, 64, spacing="disparity")
-    got = near_optical_depth(torch.ones(1, 64, dtype=torch.float64), samples, "disparity", 0.25).item()
+    got = near_optical_depth(torch.ones(1, 64, dtype=torch.float64), None, samples, "disparity", 0.25).item()
     assert got == pytest.approx(1.0 / (1.0 - 0.25 * 0.99) - 1.0, rel=1e-12)
 
 
@@ -72,7 +72,7 @@ def test_huge_densities_stay_finite_and_exact():
     rays = bundle([1.0], [5.0])
     samples = sample_along_rays(rays, 4, spacing="linear")
     density = torch.tensor([[1e30, 0.0, 1e30, 1e30]], dtype=torch.float32)
-    got = near_optical_depth(density, samples, "linear", 0.5).item()
+    got = near_optical_depth(density, None, samples, "linear", 0.5).item()
     assert math.isfinite(got) and got == pytest.approx(1e30, rel=1e-6)  # only the first sample counts
 
 
@@ -84,8 +84,8 @@ def test_packed_equals_dense_when_skipped_samples_are_empty():
     keep[1] = False  # a ray with nothing kept
     density = torch.rand(4, 16, generator=g, dtype=torch.float64) * keep
     packed = pack_samples(samples, keep)
-    got = near_optical_depth(density[keep], packed, "disparity", 0.25)
-    torch.testing.assert_close(got, near_optical_depth(density, samples, "disparity", 0.25), rtol=1e-12, atol=0)
+    got = near_optical_depth(density[keep], None, packed, "disparity", 0.25)
+    torch.testing.assert_close(got, near_optical_depth(density, None, samples, "disparity", 0.25), rtol=1e-12, atol=0)
     assert got[1].item() == 0.0
 
 
@@ -93,17 +93,42 @@ def test_gradient_reaches_only_the_near_samples():
     rays = bundle([1.0, 2.0], [5.0, 6.0])
     samples = sample_along_rays(rays, 8, spacing="linear")
     density = torch.rand(2, 8, generator=torch.Generator().manual_seed(2), dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(lambda d: near_optical_depth(d, samples, "linear", 0.25), (density,))
-    near_optical_depth(density, samples, "linear", 0.25).sum().backward()
+    assert torch.autograd.gradcheck(lambda d: near_optical_depth(d, None, samples, "linear", 0.25), (density,))
+    near_optical_depth(density, None, samples, "linear", 0.25).sum().backward()
     torch.testing.assert_close(density.grad[:, :2], samples.deltas[:, :2])  # 2 of 8 samples are the near quarter
     assert torch.all(density.grad[:, 2:] == 0)
+
+
+def test_rectified_normal_density_matches_its_mean_on_every_sample():
+    """With a scale the term is the loop over samples of the rectified normal's mean (computed on all
+    samples, then restricted); gradients reach loc and scale of the near samples only."""
+    g = torch.Generator().manual_seed(3)
+    rays = bundle([0.5, 2.0], [40.0, 3.0])
+    samples = sample_along_rays(rays, 16, spacing="disparity", stratified=True, generator=g)
+    loc = (torch.randn(2, 16, generator=g, dtype=torch.float64) * 3).requires_grad_()
+    scale = (torch.rand(2, 16, generator=g, dtype=torch.float64) + 0.05).requires_grad_()
+    got = near_optical_depth(loc, scale, samples, "disparity", 0.25)
+    mean = expected_density(loc, scale).detach()
+    for r in range(2):
+        ref = naive(mean[r], samples.t_starts[r], samples.t_ends[r], float(rays.near[r]), float(rays.far[r]),
+                    "disparity", 0.25)
+        assert got[r].item() == pytest.approx(ref, rel=1e-12)
+    assert torch.autograd.gradcheck(lambda a, b: near_optical_depth(a, b, samples, "disparity", 0.25), (loc, scale))
+    got.sum().backward()
+    m = (1 / samples.t_mids - 1 / rays.near[:, None]) / (1 / rays.far[:, None] - 1 / rays.near[:, None])
+    near = (m < 0.25).double()
+    a, b = loc.detach().clone().requires_grad_(), scale.detach().clone().requires_grad_()
+    (expected_density(a, b) * samples.deltas * near).sum().backward()  # every sample's mean, far ones weighted 0
+    torch.testing.assert_close(loc.grad, a.grad, rtol=1e-12, atol=0)
+    torch.testing.assert_close(scale.grad, b.grad, rtol=1e-12, atol=0)
+    assert torch.all(loc.grad[near == 0] == 0) and torch.all(scale.grad[near == 0] == 0) and near.sum() > 0
 
 
 @pytest.mark.parametrize("fraction", [0.0, -0.1, 1.5])
 def test_rejects_a_fraction_outside_0_1(fraction):
     samples = sample_along_rays(bundle([1.0], [2.0]), 4)
     with pytest.raises(ValueError, match="near_fraction"):
-        near_optical_depth(torch.ones(1, 4), samples, "linear", fraction)
+        near_optical_depth(torch.ones(1, 4), None, samples, "linear", fraction)
     if fraction <= 0 or fraction > 1:
         with pytest.raises(ValueError, match="occlusion_near_fraction"):
             LossConfig(occlusion_near_fraction=fraction)

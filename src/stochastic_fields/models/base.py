@@ -9,7 +9,7 @@ import abc
 import torch
 from torch import Tensor, nn
 
-from ..occlusion import expected_density, near_optical_depth
+from ..occlusion import near_optical_depth
 from ..rays import RayBundle
 from ..renderer import ChunkGenerators, RayRender, RenderOptions, RenderSettings
 from ..fields.grid import GridField
@@ -61,9 +61,8 @@ class RadianceModel(nn.Module, abc.ABC):
         terms = []
         for out in renders:
             scale = None if mean_field else out.params.density_scale
-            density = expected_density(out.params.density_loc, scale)
-            terms.append(near_optical_depth(density, out.samples, self.render_settings.spacing,
-                                            cfg.occlusion_near_fraction).mean())
+            terms.append(near_optical_depth(out.params.density_loc, scale, out.samples,
+                                            self.render_settings.spacing, cfg.occlusion_near_fraction).mean())
         total = torch.stack(terms).sum()
         logs["occlusion"] = float(total.detach()) / len(terms)
         return loss + cfg.lambda_occlusion * total
