@@ -46,7 +46,7 @@ import numpy as np
 import torch
 
 from stochastic_fields import metrics as M
-from stochastic_fields.calibration import load_run_calibration, render_at_points, violation_at_points
+from stochastic_fields.calibration import edge_at_points, load_run_calibration, render_at_points, violation_at_points
 from stochastic_fields.capture_points import SCORE, load_capture_points, rays_through_points
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.plots import plot_event_reliability
@@ -88,7 +88,10 @@ def measure(run_dir: Path, *, margins, limit: int, seed: int) -> dict:
     if depth_map is not None and depth_map.free_space:  # each pixel's violation, as export computes it
         violation = violation_at_points(dataset.cameras, sparse, capture.xyz, r["gt"], np.where(keep, mean, r["gt"]),
                                         calibration.training_depth)
-    std = raw if depth_map is None else depth_map.calibrated_std(raw, violation, depth=mean)
+    edge = None
+    if depth_map is not None and depth_map.edge_weight > 0.0:  # each pixel's edge size, as export computes it
+        edge = edge_at_points(model, dataset.cameras, dataset.near, dataset.far, sparse, mean, seed=seed)
+    std = raw if depth_map is None else depth_map.calibrated_std(raw, violation, depth=mean, edge=edge)
     multiplier = None if depth_map is None else (lambda level: float(depth_map.relative_scale(level)))
     step = default_step(model, dataset)
     field = FloatField(model.field)

@@ -274,8 +274,9 @@ def test_metric_figures_plot_the_metric_curves(inspector, view):
 
 @pytest.mark.parametrize("name", list(MAP_SPECS))
 def test_map_figures_have_colour_bars_with_units(inspector, view, name):
-    if name not in inspector.map_names():  # the free-space map: its run is below
-        with pytest.raises(KeyError, match="calibrate --run RUN --free-space"):
+    if name not in inspector.map_names():  # the free-space map (its run is below) and the edge map
+        flag = "--edge-term" if MAP_SPECS[name].needs_edge_term else "--free-space"
+        with pytest.raises(KeyError, match=f"calibrate --run RUN {flag}"):
             inspector.map_figure(view, name)
         return
     fig = inspector.map_figure(view, name)

@@ -122,3 +122,28 @@ def test_committed_decisions_recomputed(load_script):
         for m, per_seed in scenes["flower"].items():
             assert study.seed_mean(per_seed)["psnr"] == pytest.approx(data["means"][label]["flower"][m]["psnr"])
     assert data["taken"] and data["seeds"] == [4, 5, 6]
+
+
+def test_edge_term_study_rule_by_hand(load_script):
+    """Study 30: levels held (or no farther from nominal where today's is out), no wider, no worse
+    interval score or CRPS, Spearman within 0.01, and sharper on one scene."""
+    study = load_script("benchmarks/studies/edge_term_study.py")
+    today, cand = study.ROWS
+
+    def row(**kw) -> dict:
+        r = _row(20.0)
+        r["coverage"] = {**r["coverage"], "90": 0.843}  # fern's 90% level today: 5.7 points short
+        return {**r, **kw}
+
+    base = {"fern": row(), "flower": row()}
+    sharper = {"fern": row(), "flower": row(halfwidth_median_95=0.18, interval_score_95=1.4, crps=0.09)}
+    assert study.verdict({today: base, cand: sharper}) == (True, [])
+    assert study.verdict({today: base, cand: base}) == (
+        False, ["neither scene's median 95% half-width nor 95% interval score fell"])
+    worse = {**sharper, "fern": row(coverage={**row()["coverage"], "90": 0.84}, crps=0.11, spearman=0.58)}
+    taken, failed = study.verdict({today: base, cand: worse})
+    assert not taken and failed == ["fern: 90% coverage 0.840 against 0.843", "fern: CRPS 0.1100 against 0.1000",
+                                    "fern: depth Spearman 0.580 against 0.600"]
+    held = {**sharper, "fern": row(coverage={**row()["coverage"], "50": 0.44})}
+    assert study.verdict({today: base, cand: held})[1] == ["fern: 50% coverage 0.440 against 0.500"]
+    assert study.level_ok(0.843, 0.85, 0.90) and not study.level_ok(0.843, 0.96, 0.90)

@@ -34,6 +34,11 @@ rho is the grid value that minimises the mean CRPS / depth of the fitted distrib
 fitting points (a proper score: it pays for width and for misses at every level at once);
 docs/uncertainty.md, study 20.
 
+A depth map may also hold an occlusion-edge term gamma (``fit_edge_weight``, ``DEPTH_EDGE_TERM``):
+the errors are standardised by sqrt(sigma^2 + (gamma Delta)^2 + ...), Delta the range of the depths
+rendered around the pixel (``depth_edges``): a pixel beside an occlusion edge may render the other
+surface, an error about the size of the step there whatever its own ray's std says.
+
 A map may also hold a std floor tau (``fit_std_floor``; depth only, ``DEPTH_STD_FLOOR``): the
 errors are standardised by sqrt(sigma^2 + tau^2) instead of sigma, and
 
@@ -59,7 +64,7 @@ import argparse
 import json
 import math
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -79,7 +84,8 @@ from .sparse_depth import COVERAGE_LEVELS, project_sparse_depth
 from .trainer import load_trained_model
 from .view_maps import OPACITY_MASK
 from .defaults import (CALIBRATION_FILE, CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS,
-                       DEPTH_FREE_SPACE, DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR)  # noqa: F401  (defaults the command line shows)
+                       DEPTH_EDGE_TERM, DEPTH_FREE_SPACE, DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR)  # noqa: F401  (defaults the command line shows)
+from .depth_edges import edge_range_at_points, edge_range_map
 from .free_space import (TRAINING_DEPTH_FILE, checked_std, free_space_violation, load_training_depth,
                          render_training_depth, rendered_points, save_training_depth, violation_map)
 
@@ -106,6 +112,9 @@ RELATIVE_FLOOR_GRID: np.ndarray = np.concatenate([[0.0], np.geomspace(1e-3, 1.0,
 #: Weights beta of the free-space violation a checked depth map tries (``fit_check_weight``): 0 (the
 #: unchecked map) and 12 log-spaced values to 1 (the full check); studies 22d and 22e.
 CHECK_WEIGHT_GRID: np.ndarray = np.concatenate([[0.0], np.geomspace(0.03, 1.0, 12)])
+#: Weights gamma of the occlusion-edge size Delta an edge-term depth map tries (``fit_edge_weight``): 0
+#: (no term) and 12 log-spaced values from 0.05 to 2 (the depth error anatomy measured 0.25 to 1).
+EDGE_WEIGHT_GRID: np.ndarray = np.concatenate([[0.0], np.geomspace(0.05, 2.0, 12)])
 #: What the calibration renders' source says of a checked std (the fit names the weight it chose).
 CHECKED_SOURCE: str = ", std checked against the training views' free space"
 
@@ -130,6 +139,9 @@ class QuantileCalibration:
             ``fit_relative_floor``; depth only).
         free_space_weight: beta, the weight of the free-space violation in a ``free_space`` map
             (``fit_check_weight``; files without it: 1, the full check).
+        edge_weight: gamma, the weight of the occlusion-edge size Delta (``depth_edges``; 0: no term,
+            files without it): errors are standardised by sqrt(sigma^2 + ... + (gamma Delta)^2)
+            (``fit_edge_weight``; depth only).
     """
 
     quantity: str
@@ -141,6 +153,7 @@ class QuantileCalibration:
     free_space: bool = False
     relative_floor: float = 0.0
     free_space_weight: float = 1.0
+    edge_weight: float = 0.0
 
     @classmethod
     def fit(cls, abs_z: np.ndarray, *, quantity: str, source: str = "",
@@ -188,16 +201,22 @@ class QuantileCalibration:
         return out
 
     def calibrated_std(self, raw: np.ndarray, violation: np.ndarray | None = None,
-                       depth: np.ndarray | None = None) -> np.ndarray:
-        """s(0.6827) sqrt(raw^2 + floor^2 [+ (beta violation)^2] [+ (relative_floor depth)^2]) in float64: the
-        calibrated one-sigma std of raw stds [...]; a ``free_space`` map needs the free-space
-        ``violation`` [...], a map with a ``relative_floor`` the rendered ``depth`` [...] (same shape)."""
+                       depth: np.ndarray | None = None, edge: np.ndarray | None = None) -> np.ndarray:
+        """s(0.6827) sqrt(raw^2 + floor^2 [+ (beta violation)^2] [+ (gamma edge)^2] [+ (relative_floor depth)^2])
+        in float64: the calibrated one-sigma std of raw stds [...]; a ``free_space`` map needs the
+        free-space ``violation`` [...], a map with an ``edge_weight`` the occlusion-edge size ``edge``
+        [...] (``depth_edges``), a map with a ``relative_floor`` the rendered ``depth`` [...] (same shape)."""
         std = np.hypot(np.asarray(raw, dtype=np.float64), self.floor)
         if self.free_space:
             if violation is None:
                 raise ValueError(f"the {self.quantity} map was fitted on the free-space-checked std: it needs each "
                                  "pixel's free-space violation (free_space.violation_map)")
             std = np.hypot(std, self.free_space_weight * np.asarray(violation, dtype=np.float64))
+        if self.edge_weight > 0.0:
+            if edge is None:
+                raise ValueError(f"the {self.quantity} map has an occlusion-edge term: it needs each pixel's edge size "
+                                 "(depth_edges.edge_range_map)")
+            std = np.hypot(std, self.edge_weight * np.asarray(edge, dtype=np.float64))
         if self.relative_floor > 0.0:
             if depth is None:
                 raise ValueError(f"the {self.quantity} map has a depth-proportional term: it needs each pixel's "
@@ -222,7 +241,7 @@ class QuantileCalibration:
         return {"quantity": self.quantity, "levels": self.levels.tolist(), "scales": self.scales.tolist(),
                 "num_samples": self.num_samples, "source": self.source, "std_scale": self.std_scale,
                 "floor": self.floor, "free_space": self.free_space, "relative_floor": self.relative_floor,
-                "free_space_weight": self.free_space_weight}
+                "free_space_weight": self.free_space_weight, "edge_weight": self.edge_weight}
 
     @classmethod
     def from_dict(cls, data: dict, *, where: str = "calibration") -> "QuantileCalibration":
@@ -233,7 +252,8 @@ class QuantileCalibration:
                       float(data.get("floor", 0.0)),  # files written before the floor: none
                       data.get("free_space", False),  # ... before the free-space check: none
                       float(data.get("relative_floor", 0.0)),  # ... before the depth-proportional term: none
-                      float(data.get("free_space_weight", 1.0)))  # ... before the check's weight: the full check
+                      float(data.get("free_space_weight", 1.0)),  # ... before the check's weight: the full check
+                      float(data.get("edge_weight", 0.0)))  # ... before the edge term: none
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{where}: malformed quantile calibration ({exc!r})") from exc
         if not isinstance(out.free_space, bool):
@@ -241,6 +261,7 @@ class QuantileCalibration:
         if not (math.isfinite(out.floor) and out.floor >= 0.0):
             raise ValueError(f"{where}: the std floor must be finite and >= 0, got {out.floor}")
         _check_weight(out.free_space_weight, where)
+        _edge_weight(out.edge_weight, where)
         if not (math.isfinite(out.relative_floor) and out.relative_floor >= 0.0):
             raise ValueError(f"{where}: the depth-proportional term must be finite and >= 0, got {out.relative_floor}")
         if (levels.ndim != 1 or levels.shape != scales.shape or levels.size == 0 or not np.isfinite(levels).all()
@@ -330,18 +351,21 @@ def fit_depth_folds(abs_err: np.ndarray, std: np.ndarray, keys: np.ndarray, scor
 
 def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, raw_std: np.ndarray, fold: np.ndarray,
                               folds: DepthFolds, *, violation: np.ndarray | None = None,
-                              var_floor: float | None = None, coverage_levels=None) -> dict[str, Any]:
+                              var_floor: float | None = None, coverage_levels=None,
+                              edge: np.ndarray | None = None) -> dict[str, Any]:
     """The interval scores of depths judged by their folds' maps (``DepthFolds``): each depth i of
     fold f = ``fold`` [N] gets std_i = map_f.calibrated_std(raw_std_i, violation_i) and the interval
     at level p pred_i +- z_p std_i s_f(p) / s_f(0.6827). ``raw_std`` [N]: the raw total std;
     ``violation`` [N]: each depth's free-space violation, which maps fitted with the free-space
-    check need (``QuantileCalibration.calibrated_std``). Pooled over the folds:
+    check need (``QuantileCalibration.calibrated_std``); ``edge`` [N]: each depth's occlusion-edge size,
+    which maps with an edge term need. Pooled over the folds:
     {"nll": mean Gaussian NLL (``metrics.depth_nll``), "coverage_68", "coverage_95", "coverage" (at
     ``coverage_levels`` [L], default ``sparse_depth.COVERAGE_LEVELS``: +-1 and +-2 std; the first two
     are "coverage_68" and "coverage_95"), "auce", "calibration": ``metrics.CalibrationResult`` at the
     default levels}. ValueError when a depth lies in no fold."""
     gt, pred, raw_std = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (gt, pred, raw_std))
     violation = None if violation is None else np.asarray(violation, dtype=np.float64).reshape(-1)
+    edge = None if edge is None else np.asarray(edge, dtype=np.float64).reshape(-1)
     fold = np.asarray(fold, dtype=np.int64).reshape(-1)
     if (fold < 0).any() or (fold >= len(folds.maps)).any():
         raise ValueError(f"cross-fitted depth scores: {int(((fold < 0) | (fold >= len(folds.maps))).sum())} of "
@@ -354,7 +378,8 @@ def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, raw_std: np.ndar
         i = fold == f
         if not i.any():
             continue
-        std = m.calibrated_std(raw_std[i], None if violation is None else violation[i], pred[i])
+        std = m.calibrated_std(raw_std[i], None if violation is None else violation[i], pred[i],
+                               None if edge is None else edge[i])
         inside += M.calibration_curve(gt[i], pred[i], std, interval_scale=m.relative_scale).coverage * i.sum()
         inside_cov += M.calibration_curve(gt[i], pred[i], std, levels=coverage_levels,
                                           interval_scale=m.relative_scale).coverage * i.sum()
@@ -368,7 +393,7 @@ def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, raw_std: np.ndar
 
 
 def cross_fitted_depth_quantiles(pred: np.ndarray, raw_std: np.ndarray, fold: np.ndarray, folds: DepthFolds, *,
-                                 violation: np.ndarray | None = None):
+                                 violation: np.ndarray | None = None, edge: np.ndarray | None = None):
     """The predictive quantile function of depths judged by their folds' maps: t [Q] -> [N, Q], depth i
     of fold f = ``fold`` [N] getting ``metrics.gaussian_quantiles`` of (pred_i, map_f's calibrated
     std of raw_std_i, map_f's interval scale): the distribution whose intervals
@@ -383,7 +408,8 @@ def cross_fitted_depth_quantiles(pred: np.ndarray, raw_std: np.ndarray, fold: np
     for f, m in enumerate(folds.maps):
         i = fold == f
         if i.any():
-            stds[i] = m.calibrated_std(raw_std[i], None if violation is None else np.asarray(violation)[i], pred[i])
+            stds[i] = m.calibrated_std(raw_std[i], None if violation is None else np.asarray(violation)[i], pred[i],
+                                       None if edge is None else np.asarray(edge)[i])
 
     def quantiles(levels: np.ndarray) -> np.ndarray:
         out = np.zeros((pred.size, np.asarray(levels).size))
@@ -466,6 +492,13 @@ def relative_crps(abs_err: np.ndarray, std: np.ndarray, depth: np.ndarray, rho: 
     return float((crps / depth).mean())
 
 
+def _edge_weight(weight: float, where: str) -> float:
+    """``weight`` when it is a valid occlusion-edge weight (finite, >= 0); ValueError naming ``where``."""
+    if not (math.isfinite(weight) and weight >= 0.0):
+        raise ValueError(f"{where}: the occlusion-edge weight must be finite and >= 0, got {weight}")
+    return weight
+
+
 def _check_weight(weight: float, where: str) -> float:
     """``weight`` when it is a valid free-space check weight (finite, >= 0); ValueError naming ``where``."""
     if not (math.isfinite(weight) and weight >= 0.0):
@@ -480,16 +513,32 @@ def fit_check_weight(abs_err: np.ndarray, sigma: np.ndarray, violation: np.ndarr
     (``fit_relative_floor``), gives the smallest mean CRPS / depth (``relative_crps``) on these points;
     ties go to the smaller beta (0 first: a scene the check does not help keeps the unchecked map).
     ``abs_err`` [N] (>= 0), ``sigma`` [N] (> 0), ``violation`` e [N] (>= 0), ``depth`` [N] (> 0)."""
-    abs_err, sigma, violation, depth = (np.asarray(a, dtype=np.float64).reshape(-1)
-                                        for a in (abs_err, sigma, violation, depth))
-    if violation.shape != sigma.shape or not (np.isfinite(violation).all() and (violation >= 0).all()):
-        raise ValueError(f"fit_check_weight: needs one finite violation >= 0 per std, got {violation.size} for "
-                         f"{sigma.size}")
+    return _fit_term_weight(abs_err, sigma, violation, depth, grid, "fit_check_weight", "violation")
+
+
+def fit_edge_weight(abs_err: np.ndarray, std: np.ndarray, edge: np.ndarray, depth: np.ndarray,
+                    grid: np.ndarray = EDGE_WEIGHT_GRID) -> float:
+    """The weight gamma of the occlusion-edge size (study 30): the value of ``grid`` whose std
+    sqrt(std^2 + (gamma Delta)^2), with rho fitted on it (``fit_relative_floor``), gives the smallest
+    mean CRPS / depth (``relative_crps``) on these points; ties go to the smaller gamma (0 first: no
+    term where edges do not explain the errors). ``abs_err`` [N] (>= 0), ``std`` [N] (> 0; the
+    checked std where the map checks free space), ``edge`` Delta [N] (>= 0), ``depth`` [N] (> 0)."""
+    return _fit_term_weight(abs_err, std, edge, depth, grid, "fit_edge_weight", "edge size")
+
+
+def _fit_term_weight(abs_err: np.ndarray, std: np.ndarray, term: np.ndarray, depth: np.ndarray, grid: np.ndarray,
+                     name: str, what: str) -> float:
+    """The value w of ``grid`` whose std sqrt(std^2 + (w term)^2), rho fitted on it, has the smallest
+    ``relative_crps`` (the first on ties); ``name`` and ``what`` name the caller and the term in errors."""
+    abs_err, std, term, depth = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (abs_err, std, term, depth))
+    if term.shape != std.shape or not (np.isfinite(term).all() and (term >= 0).all()):
+        raise ValueError(f"{name}: needs one finite {what} >= 0 per std, got {term.size} for {std.size}")
+    grid = np.asarray(grid, dtype=np.float64)
     scores = []
-    for beta in np.asarray(grid, dtype=np.float64):
-        std = checked_std(sigma, beta * violation)
-        scores.append(relative_crps(abs_err, std, depth, fit_relative_floor(abs_err, std, depth)))
-    return float(np.asarray(grid, dtype=np.float64)[int(np.argmin(scores))])
+    for w in grid:
+        total = np.hypot(std, w * term)
+        scores.append(relative_crps(abs_err, total, depth, fit_relative_floor(abs_err, total, depth)))
+    return float(grid[int(np.argmin(scores))])
 
 
 def standardised_errors(gt: np.ndarray, mean: np.ndarray, std: np.ndarray) -> np.ndarray:
@@ -561,6 +610,30 @@ def render_at_points(model, cameras, near, far, sparse: dict, *,
             "depth_mean": (maps["depth_mean"].double().cpu().reshape(-1) * z).numpy(),
             "depth_std": (maps["depth_var_total"].double().cpu().clamp_min(0).sqrt().reshape(-1) * z).numpy(),
             "opacity": maps["opacity"].double().cpu().reshape(-1).numpy()}
+
+
+def edge_at_points(model, cameras, near, far, sparse: dict, depth: np.ndarray, *, seed: int = 0,
+                   options=None) -> np.ndarray:
+    """The occlusion-edge size Delta [N] (``depth_edges.edge_range_at_points``) of the rays
+    ``render_at_points`` rendered for ``sparse`` (same arguments, its ray order), whose rendered
+    depths are ``depth`` [N]: the 8 neighbouring rays of each are rendered with the generator seeded
+    ``seed`` (as the centre's)."""
+    views = [v for v, sd in sparse.items() if len(sd)]
+    if not views:
+        return np.zeros(0)
+    sizes = [len(sparse[v]) for v in views]
+    uv = np.concatenate([sparse[v].uv for v in views])
+    device = next(model.parameters()).device
+
+    def render_depth(moved: np.ndarray) -> np.ndarray:
+        parts = np.split(moved, np.cumsum(sizes)[:-1])
+        shifted = {v: replace(sparse[v], uv=part.astype(sparse[v].uv.dtype)) for v, part in zip(views, parts)}
+        return render_at_points(model, cameras, near, far, shifted, options=options,
+                                generator=torch.Generator(device=device).manual_seed(seed))["depth_mean"]
+
+    width, height = (np.concatenate([np.full(n, float(size.reshape(-1)[v])) for v, n in zip(views, sizes)])
+                     for size in (cameras.width, cameras.height))
+    return edge_range_at_points(render_depth, uv, depth, width, height)
 
 
 #: Nearest training neighbours each training view is paired with for calibration views.
@@ -679,7 +752,7 @@ def violation_at_points(cameras, sparse: dict, xyz: np.ndarray, gt: np.ndarray, 
 
 def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
                               points: str = "calibrate", options=None, bounds: str = CALIBRATION_BOUNDS,
-                              free_space=None) -> dict[str, Any]:
+                              free_space=None, edges: bool = False) -> dict[str, Any]:
     """What a depth map is fitted on: the absolute camera-z errors "abs_err" [N] (signed, true minus
     rendered: "err") and raw total stds
     "std" [N] (> 0), with the capture point of each ("index" [N] int64), the rendered depth ("depth"
@@ -691,7 +764,8 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     with the options the run will render with; ``bounds``: the views' render bounds,
     ``calibration_views``); with ``free_space`` (``free_space.TrainingDepth``) "std" holds the
     checked ones at full weight, sqrt(sigma^2 + e^2) with e the rendered point's free-space violation
-    (``free_space.checked_std``), "std_raw" the raw sigma and "violation" e [N].
+    (``free_space.checked_std``), "std_raw" the raw sigma and "violation" e [N]; with ``edges``,
+    "edge" [N] holds each point's occlusion-edge size (``edge_at_points``: 8 more renders).
     ValueError when the scene has no capture points, or for an unknown ``points``."""
     if points not in CALIBRATION_POINTS:
         raise ValueError(f"calibration points must be one of {CALIBRATION_POINTS}, got {points!r}")
@@ -721,30 +795,38 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
            "depth": r["depth_mean"][keep], "source": source}
     if violation is not None:
         out.update({"std_raw": sigma[keep], "violation": violation[keep]})
+    if edges:
+        out["edge"] = edge_at_points(model, cams, near, far, sparse, r["depth_mean"], seed=seed, options=options)[keep]
     return out
 
 
 def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
                           points: str = "calibrate", options=None, floor: bool = DEPTH_STD_FLOOR,
                           free_space=None, relative_floor: bool = DEPTH_RELATIVE_FLOOR,
-                          check_weight: float | None = None) -> QuantileCalibration:
+                          check_weight: float | None = None, edges: bool = DEPTH_EDGE_TERM,
+                          edge_weight: float | None = None) -> QuantileCalibration:
     """The depth map fitted on ``depth_calibration_errors`` (same arguments, the default bounds);
     with ``floor``, a std floor first (``fit_std_floor``); with ``free_space``
     (``free_space.TrainingDepth``), on the free-space-checked std (the map's ``free_space``); with
     ``relative_floor``, a depth-proportional term (``fit_relative_floor``); ``check_weight``: the
-    free-space violation's weight (None: fitted, ``fit_check_weight``). ValueError when the scene has no
-    capture points or too few of those roles, or for an unknown ``points``."""
+    free-space violation's weight (None: fitted, ``fit_check_weight``); with ``edges``, an
+    occlusion-edge term weighted ``edge_weight`` (None: fitted, ``fit_edge_weight``). ValueError when
+    the scene has no capture points or too few of those roles, or for an unknown ``points``."""
     r = depth_calibration_renders(model, dataset, seed=seed, opacity_mask=opacity_mask, points=points,
-                                  options=options, free_space=free_space)
-    return _fit_depth_map(r, floor=floor, relative_floor=relative_floor, check_weight=check_weight)[0]
+                                  options=options, free_space=free_space, edges=edges)
+    return _fit_depth_map(r, floor=floor, relative_floor=relative_floor, check_weight=check_weight,
+                          edge_weight=edge_weight)[0]
 
 
 def _fit_depth_map(renders: dict[str, Any], *, floor: bool, relative_floor: bool,
-                   check_weight: float | None = None) -> tuple[QuantileCalibration, np.ndarray]:
+                   check_weight: float | None = None, edge_weight: float | None = None
+                   ) -> tuple[QuantileCalibration, np.ndarray]:
     """The depth map of ``depth_calibration_renders``' output and the stds [N] it was fitted on. Renders
     with the free-space check (a "violation" entry) weigh it by ``check_weight``, or when None by the
     weight beta ``fit_check_weight`` fits (with rho when ``relative_floor``; without the term, the
-    full check); a weight of 0 leaves an unchecked map."""
+    full check); a weight of 0 leaves an unchecked map. Renders with edge sizes (an "edge" entry)
+    then add the edge term weighted ``edge_weight``, or when None by the gamma ``fit_edge_weight``
+    fits on the checked std (without rho: no term); a weight of 0 leaves a map without it."""
     weight = 1.0 if check_weight is None else _check_weight(float(check_weight), "check_weight")
     std, source, checked = renders["std"], renders["source"], "violation" in renders
     if checked:
@@ -753,23 +835,37 @@ def _fit_depth_map(renders: dict[str, Any], *, floor: bool, relative_floor: bool
         std = checked_std(renders["std_raw"], weight * renders["violation"])
         source = source.replace(CHECKED_SOURCE, f"{CHECKED_SOURCE} (weight {weight:.3g})" if weight > 0.0
                                 else ", the free-space check fitted with weight 0 (std unchecked)")
+    gamma = 0.0
+    if "edge" in renders:
+        if edge_weight is not None:
+            gamma = _edge_weight(float(edge_weight), "edge_weight")
+        elif relative_floor and renders["abs_err"].size >= MIN_CALIBRATION_SAMPLES:
+            gamma = fit_edge_weight(renders["abs_err"], std, renders["edge"], renders["depth"])
+        std = np.hypot(std, gamma * renders["edge"])
+        source += (f", occlusion-edge term weight {gamma:.3g}" if gamma > 0.0
+                   else ", the occlusion-edge term fitted with weight 0 (none)")
     out = QuantileCalibration.fit_errors(renders["abs_err"], std, quantity="depth_std", floor=floor,
                                          depth=renders["depth"] if relative_floor else None, source=source)
     if checked and weight > 0.0:  # a weight of 0 leaves the unchecked map (free_space False, weight 1)
         out.free_space, out.free_space_weight = True, weight
+    out.edge_weight = gamma
     return out, std
 
 
 def fit_depth_calibration_and_folds(model, dataset, *, seed: int = 0, points: str = DEFAULT_CALIBRATION_POINTS,
                                     options=None, floor: bool = DEPTH_STD_FLOOR, free_space=None,
                                     relative_floor: bool = DEPTH_RELATIVE_FLOOR, check_weight: float | None = None,
-                                    folds: int = CROSS_FIT_FOLDS) -> tuple[QuantileCalibration, DepthFolds | None]:
+                                    folds: int = CROSS_FIT_FOLDS, edges: bool = DEPTH_EDGE_TERM,
+                                    edge_weight: float | None = None
+                                    ) -> tuple[QuantileCalibration, DepthFolds | None]:
     """The depth map (as ``fit_depth_calibration``) and, when it is fitted on the SCORE points too
     (``points="held-out"``), its cross-fitted ``DepthFolds`` from the same renders; None otherwise,
     or with a warning when the scene has too few SCORE blocks or points to fit them. ValueError as
     ``fit_depth_calibration``."""
-    r = depth_calibration_renders(model, dataset, seed=seed, points=points, options=options, free_space=free_space)
-    out, std = _fit_depth_map(r, floor=floor, relative_floor=relative_floor, check_weight=check_weight)
+    r = depth_calibration_renders(model, dataset, seed=seed, points=points, options=options, free_space=free_space,
+                                  edges=edges)
+    out, std = _fit_depth_map(r, floor=floor, relative_floor=relative_floor, check_weight=check_weight,
+                              edge_weight=edge_weight)
     if points == "calibrate":
         return out, None
     capture = load_capture_points(dataset)
@@ -781,8 +877,8 @@ def fit_depth_calibration_and_folds(model, dataset, *, seed: int = 0, points: st
         warnings.warn(f"{dataset.root}: the depth map's cross-fitted folds were not fitted ({exc}); depth interval "
                       "scores on the SCORE points will not be independent", stacklevel=2)
         return out, None
-    for m in folded.maps:
-        m.free_space, m.free_space_weight = out.free_space, out.free_space_weight
+    for m in folded.maps:  # the weights the run's map chose; each fold's own s(p) and rho
+        m.free_space, m.free_space_weight, m.edge_weight = out.free_space, out.free_space_weight, out.edge_weight
     return out, folded
 
 
@@ -885,7 +981,8 @@ def load_run_calibration(run_dir: str | Path) -> RunCalibration | None:
 def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int = 0, model=None,
                   dataset=None, points: str = DEFAULT_CALIBRATION_POINTS, floor: bool = DEPTH_STD_FLOOR,
                   free_space: bool = DEPTH_FREE_SPACE, relative_floor: bool = DEPTH_RELATIVE_FLOOR,
-                  check_weight: float | None = None, progress: bool = True) -> RunCalibration:
+                  check_weight: float | None = None, progress: bool = True, edges: bool = DEPTH_EDGE_TERM,
+                  edge_weight: float | None = None) -> RunCalibration:
     """Fit the run's calibration and write ``RUN/calibration.json``: the depth map from its capture
     points (``points``: ``CALIBRATION_POINTS``; "held-out" adds the cross-fitted ``DepthFolds``
     that score it) and, when the run held pixels out of training
@@ -895,9 +992,10 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
     ``free_space.TRAINING_DEPTH_FILE`` before calibration.json when the map keeps the check;
     ``progress``: a bar over them), weighted by ``check_weight`` (None: fitted,
     ``fit_check_weight``; a fitted 0 leaves the map unchecked); ``relative_floor``: whether
-    it fits a depth-proportional term (``fit_relative_floor``). ValueError
-    (the depth fit's reason) when neither can be fitted; a depth fit that fails beside a colour one
-    leaves depth raw."""
+    it fits a depth-proportional term (``fit_relative_floor``); ``edges``: whether it adds an
+    occlusion-edge term (``depth_edges``) weighted ``edge_weight`` (None: fitted, ``fit_edge_weight``;
+    a fitted 0 leaves it out). ValueError (the depth fit's reason) when neither can be fitted; a depth
+    fit that fails beside a colour one leaves depth raw."""
     if model is None:
         cfg, model, dataset = load_trained_model(Path(run_dir), dataset=dataset, device=device)
     else:
@@ -910,7 +1008,8 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
     try:
         depth, folds = fit_depth_calibration_and_folds(model, dataset, seed=seed, points=points, floor=floor,
                                                        free_space=reference, relative_floor=relative_floor,
-                                                       check_weight=check_weight)
+                                                       check_weight=check_weight, edges=edges,
+                                                       edge_weight=edge_weight)
     except ValueError:
         if colour is None:
             raise
@@ -940,6 +1039,7 @@ def _std_formula(m: QuantileCalibration) -> str:
     check = ("free-space violation^2" if m.free_space_weight == 1.0
              else f"({m.free_space_weight:.3g} free-space violation)^2")
     terms = (["raw^2"] + ([f"{m.floor:.3g}^2"] if m.floor else []) + ([check] if m.free_space else [])
+             + ([f"({m.edge_weight:.3g} edge size)^2"] if m.edge_weight else [])
              + ([f"({m.relative_floor:.3g} depth)^2"] if m.relative_floor else []))
     return "x" if len(terms) == 1 else f"sqrt({' + '.join(terms)}) x"
 
@@ -951,8 +1051,10 @@ def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibrati
     stored in the raw one's dtype), the raw ones kept as ``depth_std_raw`` and ``colour_std_raw``.
     A ``free_space`` depth map also adds ``depth_free_space`` [H, W], each pixel's free-space
     violation (``free_space.violation_map`` at pixels with opacity above ``OPACITY_MASK``), which
-    needs the view's ``camera`` (intrinsics [3, 3], OpenCV world-to-camera [4, 4]). Returns a new
-    dict (unchanged entries where a map is missing)."""
+    needs the view's ``camera`` (intrinsics [3, 3], OpenCV world-to-camera [4, 4]); a depth map with
+    an occlusion-edge term adds ``depth_edge`` [H, W], each pixel's edge size
+    (``depth_edges.edge_range_map`` of ``depth_mean``). Returns a new dict (unchanged entries where a
+    map is missing)."""
     out = dict(products)
     if calibration is None:
         return out
@@ -964,12 +1066,17 @@ def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibrati
         violation = violation_map(products["depth_mean"], camera[0], camera[1], calibration.training_depth,
                                   mask=products["opacity"] > OPACITY_MASK)
         out["depth_free_space"] = violation
+    edge = None
+    if calibration.depth is not None and calibration.depth.edge_weight > 0.0 and "depth_std" in products:
+        edge = np.nan_to_num(edge_range_map(products["depth_mean"]), nan=0.0).astype(products["depth_std"].dtype)
+        out["depth_edge"] = edge
     for key, cal in (("depth_std", calibration.depth), ("colour_std", calibration.colour)):
         if cal is not None and key in products:
             raw = products[key]
             extra = violation if key == "depth_std" else None
             depth = products.get("depth_mean") if key == "depth_std" else None
-            out.update({f"{key}_raw": raw, key: cal.calibrated_std(raw, extra, depth).astype(raw.dtype)})
+            std = cal.calibrated_std(raw, extra, depth, edge if key == "depth_std" else None)
+            out.update({f"{key}_raw": raw, key: std.astype(raw.dtype)})
     return out
 
 
@@ -981,7 +1088,7 @@ def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibrati
 def run(args) -> None:
     cal = calibrate_run(Path(args.run), device=args.device, seed=args.seed, points=args.points,
                         floor=args.std_floor, free_space=args.free_space, relative_floor=args.relative_floor,
-                        check_weight=args.free_space_weight)
+                        check_weight=args.free_space_weight, edges=args.edge_term, edge_weight=args.edge_weight)
     print(f"calibrated {args.run}: {describe(cal)}")
     print(f"written: {Path(args.run) / CALIBRATION_FILE} (render, eval and export apply it; raw stds as depth_std_raw "
           "and colour_std_raw)")

@@ -33,6 +33,10 @@ DEPTH_FREE_SPACE: bool = True
 #: loses none of issue 36's checks and halves the mean 95% interval score; rho is fitted as 0 where
 #: sigma already explains the errors).
 DEPTH_RELATIVE_FLOOR: bool = True
+#: Whether depth maps add an occlusion-edge term, depth_std = s sqrt(raw^2 + ... + (gamma Delta)^2), Delta
+#: the range of the depths rendered within 2 pixels (``depth_edges``, ``calibration.fit_edge_weight``;
+#: docs/studies.md, study 30).
+DEPTH_EDGE_TERM: bool = False
 
 # free_space
 #: File of a run's rendered training-view depths (``save_training_depth``).

@@ -70,9 +70,9 @@ def write_view_products(out_dir: Path, name: str, products: dict[str, np.ndarray
     depth_img, lo, hi = colourise(products["depth_mean"], cmap="turbo", mask=mask)
     _save_png(out_dir / f"{name}_depth_mean.png", depth_img)
     _save_png(out_dir / f"{name}_depth_std.png", colourise(products["depth_std"], cmap="magma", mask=mask, vmin=0.0)[0])
-    if "depth_free_space" in products:  # the free-space check's violation (calibrate --free-space)
-        _save_png(out_dir / f"{name}_depth_free_space.png",
-                  colourise(products["depth_free_space"], cmap="magma", mask=mask, vmin=0.0)[0])
+    for key in ("depth_free_space", "depth_edge"):  # the free-space check's violation, the edge size (calibrate)
+        if key in products:
+            _save_png(out_dir / f"{name}_{key}.png", colourise(products[key], cmap="magma", mask=mask, vmin=0.0)[0])
     if gt_colour is not None:
         _save_png(out_dir / f"{name}_gt_colour.png", to_uint8_rgb(gt_colour))
     if gt_depth is not None:
@@ -96,6 +96,8 @@ class DepthSamples:
     block: np.ndarray | None = None
     """Block of space of each sample's surface (``capture_points.block_keys``), where the run's
     calibration has cross-fitted folds that judge the samples by block."""
+    edge: np.ndarray | None = None
+    """Each sample's occlusion-edge size, where the products have it (``depth_edge``)."""
 
 
 def depth_samples(products: dict[str, np.ndarray], gt_depth: np.ndarray | None = None,
@@ -107,18 +109,21 @@ def depth_samples(products: dict[str, np.ndarray], gt_depth: np.ndarray | None =
     d, op, s = products["depth_mean"], products["opacity"], products["depth_std"]
     s_raw = products.get("depth_std_raw", s)
     e = products.get("depth_free_space")
+    edge = products.get("depth_edge")
     parts = {name: products[key] for name, key in DEPTH_STD_PARTS.items() if key in products}
     if sparse is not None:
         keep = sparse.sample(op) > OPACITY_MASK
         return DepthSamples(sparse.depth[keep], sparse.sample(d)[keep], sparse.sample(s)[keep],
                             sparse.sample(s_raw)[keep], {k: sparse.sample(v)[keep] for k, v in parts.items()},
                             None if e is None else sparse.sample(e)[keep],
-                            None if blocks is None else np.asarray(blocks)[keep])
+                            None if blocks is None else np.asarray(blocks)[keep],
+                            None if edge is None else sparse.sample(edge)[keep])
     if gt_depth is None:
         return None
     mask = (gt_depth > 0) & (op > OPACITY_MASK)
     return DepthSamples(gt_depth[mask], d[mask], s[mask], s_raw[mask], {k: v[mask] for k, v in parts.items()},
-                        None if e is None else e[mask], None if blocks is None else np.asarray(blocks)[mask])
+                        None if e is None else e[mask], None if blocks is None else np.asarray(blocks)[mask],
+                        None if edge is None else edge[mask])
 
 
 def _pool_depth_samples(pool: Sequence[DepthSamples]) -> DepthSamples:
@@ -131,7 +136,8 @@ def _pool_depth_samples(pool: Sequence[DepthSamples]) -> DepthSamples:
     return DepthSamples(*(cat(getattr(p, k) for p in pool) for k in ("gt", "pred", "std", "std_raw")),
                         {k: cat(p.parts[k] for p in pool) for k in names},
                         cat(p.violation for p in pool) if every("violation") else None,
-                        np.concatenate([p.block for p in pool]).astype(np.int64) if every("block") else None)
+                        np.concatenate([p.block for p in pool]).astype(np.int64) if every("block") else None,
+                        cat(p.edge for p in pool) if every("edge") else None)
 
 
 def depth_part_rankings(samples: DepthSamples) -> dict[str, M.CorrelationResult]:
@@ -168,9 +174,9 @@ def calibrated_depth_scores(samples: DepthSamples, calibration=None) -> dict[str
     if folds is not None and samples.block is not None and samples.gt.size >= 2:
         fold = folds.fold_of(samples.block)
         scores.update(cross_fitted_depth_scores(samples.gt, samples.pred, samples.std_raw, fold, folds,
-                                                violation=samples.violation))
+                                                violation=samples.violation, edge=samples.edge))
         quantiles = cross_fitted_depth_quantiles(samples.pred, samples.std_raw, fold, folds,
-                                                 violation=samples.violation)
+                                                 violation=samples.violation, edge=samples.edge)
     scores["intervals"] = M.interval_sharpness(samples.gt, quantiles) if samples.gt.size >= 2 else None
     return scores
 

@@ -72,8 +72,8 @@ COLOUR_UNITS = "colour units [0, 1]"
 @dataclass(frozen=True)
 class MapSpec:
     """How one map is shown: label, colour-bar unit, colour map, and whether it is a depth
-    quantity (masked by opacity), needs ground truth, or needs a depth map fitted with the
-    free-space check (``calibrate --free-space``)."""
+    quantity (masked by opacity), needs ground truth, needs a depth map fitted with the
+    free-space check (``calibrate --free-space``) or with the occlusion-edge term (``--edge-term``)."""
 
     label: str
     unit: str
@@ -81,6 +81,7 @@ class MapSpec:
     depth: bool = False
     needs_gt_depth: bool = False
     needs_free_space: bool = False
+    needs_edge_term: bool = False
 
 
 #: Every map ``RunInspector.render`` returns that can be shown, in the notebook's order.
@@ -93,6 +94,8 @@ MAP_SPECS: dict[str, MapSpec] = {
     "depth_std": MapSpec("depth std, total", DEPTH_UNITS, "magma", depth=True),
     "depth_free_space": MapSpec("free-space violation (in front of a training view's surface)", DEPTH_UNITS,
                                 "magma", depth=True, needs_free_space=True),
+    "depth_edge": MapSpec("occlusion-edge size (depth range within 2 pixels)", DEPTH_UNITS, "magma", depth=True,
+                          needs_edge_term=True),
     "opacity": MapSpec("opacity (accumulated)", "[0, 1]", "gray"),
     "colour_abs_error": MapSpec("|colour mean - GT| (mean over RGB)", COLOUR_UNITS, "inferno"),
     "depth_abs_error": MapSpec("|depth mean - GT depth|", DEPTH_UNITS, "inferno", depth=True, needs_gt_depth=True),
@@ -274,12 +277,15 @@ class RunInspector:
 
     def map_names(self) -> list[str]:
         """Names of the maps this run can show (error against GT depth only where it exists, the
-        free-space violation only where the run's depth map checks it)."""
+        free-space violation only where the run's depth map checks it, the edge size only where it
+        has the occlusion-edge term)."""
         has_depth = getattr(self.dataset, "depths", None) is not None
         cal = self.calibration
         checks = cal is not None and cal.depth is not None and cal.depth.free_space
+        edges = cal is not None and cal.depth is not None and cal.depth.edge_weight > 0.0
         return [n for n, s in MAP_SPECS.items()
-                if (has_depth or not s.needs_gt_depth) and (checks or not s.needs_free_space)]
+                if (has_depth or not s.needs_gt_depth) and (checks or not s.needs_free_space)
+                and (edges or not s.needs_edge_term)]
 
     # ------------------------------------------------------------------ figures of maps
     def map_figure(self, view: int, name: str, num_draws: int | None = None, quadrature: Quadrature | None = None,
@@ -290,8 +296,11 @@ class RunInspector:
             raise KeyError(f"unknown map {name!r}; choose from {list(MAP_SPECS)}")
         products = self.render(view, num_draws, quadrature)
         if name not in products:
+            spec = MAP_SPECS[name]
             need = ("a depth map fitted with the free-space check (stochastic-fields calibrate --run RUN --free-space)"
-                    if MAP_SPECS[name].needs_free_space else "ground-truth depth")
+                    if spec.needs_free_space else
+                    "a depth map fitted with the occlusion-edge term (stochastic-fields calibrate --run RUN --edge-term)"
+                    if spec.needs_edge_term else "ground-truth depth")
             raise KeyError(f"map {name!r} needs {need}, which run {self.run_dir} has not")
         K, q = self._args(num_draws, quadrature)
         fig = Figure(figsize=figsize)

@@ -9,8 +9,8 @@ from __future__ import annotations
 import argparse
 import math
 
-from ..defaults import (CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS, DEPTH_FREE_SPACE,
-                        DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR, FREE_PATH_RECALIBRATION)
+from ..defaults import (CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS, DEPTH_EDGE_TERM,
+                        DEPTH_FREE_SPACE, DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR, FREE_PATH_RECALIBRATION)
 
 
 def add_arguments(p) -> None:
@@ -42,22 +42,33 @@ def add_arguments(p) -> None:
                         "a pixel rendered on the wrong surface errs by a fraction of its depth, not a multiple of its "
                         "std, and without the term those few pixels widen every 95%% band (docs/uncertainty.md, "
                         f"studies 20 and 20b; default: {'on' if DEPTH_RELATIVE_FLOOR else 'off'}).")
-
-
+    p.add_argument("--edge-term", action=argparse.BooleanOptionalAction, default=DEPTH_EDGE_TERM,
+                   help="Add an occlusion-edge term, depth_std = s * sqrt(raw^2 + ... + (gamma Delta)^2), Delta the range "
+                        "of the depths rendered within 2 pixels, written as depth_edge: a pixel beside an occlusion "
+                        "edge may render the other surface (8 more renders of the calibration points; gamma fitted, "
+                        f"0 where edges do not explain the errors; docs/studies.md, study 30; default: "
+                        f"{'on' if DEPTH_EDGE_TERM else 'off'}).")
+    p.add_argument("--edge-weight", type=_edge_weight, default=None, metavar="GAMMA",
+                   help="Weight of the occlusion-edge size with --edge-term (default: fitted with the depth-proportional "
+                        "term by the CRPS on the map's points).")
     p.add_argument("--free-path", action=argparse.BooleanOptionalAction, default=FREE_PATH_RECALIBRATION,
                    help="Also fit the recalibration of free-path's P(free) on segments whose answer the held-out "
                         "points know (RUN/free_path_calibration.json; docs/uncertainty.md; default: "
                         f"{'on' if FREE_PATH_RECALIBRATION else 'off'}).")
 
 
-def _weight(text: str) -> float:
+def _weight(text: str, option: str = "--free-space-weight") -> float:
     try:
         value = float(text)
     except ValueError:
         value = math.nan
     if not (math.isfinite(value) and value >= 0.0):
-        raise argparse.ArgumentTypeError(f"--free-space-weight: expected a finite number >= 0, got {text!r}")
+        raise argparse.ArgumentTypeError(f"{option}: expected a finite number >= 0, got {text!r}")
     return value
+
+
+def _edge_weight(text: str) -> float:
+    return _weight(text, "--edge-weight")
 
 
 def run(args) -> None:
