@@ -6,7 +6,7 @@ and 9, fern 1000 steps and flower 1750), trained once. Today's row is each run a
 calibration.json (``stochastic-fields calibrate``'s defaults) and its scores on the validation views,
 study 29's. The candidate's row copies each run (checkpoint, config, stages) into
 ``--work``/sSEED/SCENE/snerf_default, fits its calibration again with the edge term
-(``stochastic-fields calibrate --run COPY --edge-term``: gamma fitted by the CRPS on the held-out
+(``stochastic-fields calibrate --run COPY --edge-term --no-free-path``: gamma fitted by the CRPS on the held-out
 capture points, 0 where edges do not explain the errors) and scores it on the same validation views
 with ``stochastic-fields eval --views`` (cached in ``--work``/validation)::
 
@@ -52,8 +52,8 @@ def candidate_run(source: Path, copy: Path) -> Path:
     copy.mkdir(parents=True, exist_ok=True)
     for name in RUN_FILES:
         shutil.copy2(source / name, copy / name)
-    subprocess.run([sys.executable, "-m", "stochastic_fields.cli", "calibrate", "--run", str(copy), "--edge-term"],
-                   check=True)
+    subprocess.run([sys.executable, "-m", "stochastic_fields.cli", "calibrate", "--run", str(copy), "--edge-term",
+                    "--no-free-path"], check=True)  # the scores read the depth map only
     return copy
 
 
