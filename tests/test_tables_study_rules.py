@@ -147,3 +147,8 @@ def test_edge_term_study_rule_by_hand(load_script):
     held = {**sharper, "fern": row(coverage={**row()["coverage"], "50": 0.44})}
     assert study.verdict({today: base, cand: held})[1] == ["fern: 50% coverage 0.440 against 0.500"]
     assert study.level_ok(0.843, 0.85, 0.90) and not study.level_ok(0.843, 0.96, 0.90)
+    data = json.loads((REPO_ROOT / "benchmarks" / "results" / "edge_term_study" / "results.json").read_text())
+    assert study.verdict(data["means"]) == (data["taken"], data["failed"]) and not data["taken"]
+    for label in study.ROWS:  # the means are the seeds' means of the committed per-seed scores
+        for scene in ("fern", "flower"):
+            assert study.seed_mean(data["rows"][label][scene])["crps"] == pytest.approx(data["means"][label][scene]["crps"])
