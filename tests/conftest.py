@@ -44,3 +44,20 @@ def load_script():
         return module
 
     return load
+
+
+def train_tiny_synthetic_run(run_dir: Path):
+    """A tiny preset trained 200 steps in ``run_dir`` on a 20-view synthetic scene (every 5th view
+    trains): (model, dataset). The slow calibration tests' shared run."""
+    from stochastic_fields.config import preset
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.data.synthetic import make_synthetic_scene
+    from stochastic_fields.trainer import Trainer
+
+    cfg = preset("tiny")
+    cfg.train.iterations = 200
+    cfg.train.rays_per_batch = 512
+    cfg.render.num_samples = 24
+    ds = load_dataset(make_synthetic_scene(run_dir / "scene", num_views=20, width=192, height=144, seed=0),
+                      split_every=5)
+    return Trainer(cfg, run_dir, ds).train(progress=False), ds

@@ -181,21 +181,13 @@ def test_a_run_calibrated_with_the_edge_term_applies_it_in_eval_and_export(tmp_p
     import torch
 
     from stochastic_fields.calibration import calibrate_run, load_run_calibration
-    from stochastic_fields.config import preset
-    from stochastic_fields.data import load_dataset
-    from stochastic_fields.data.synthetic import make_synthetic_scene
     from stochastic_fields.evaluation import evaluate
     from stochastic_fields.products.depth_maps import compute_depth_products
-    from stochastic_fields.trainer import Trainer
     from stochastic_fields.view_maps import view_camera_arrays
 
-    cfg = preset("tiny")
-    cfg.train.iterations = 200
-    cfg.train.rays_per_batch = 512
-    cfg.render.num_samples = 24
-    ds = load_dataset(make_synthetic_scene(tmp_path / "scene", num_views=20, width=192, height=144, seed=0),
-                      split_every=5)
-    model = Trainer(cfg, tmp_path, ds).train(progress=False)
+    from conftest import train_tiny_synthetic_run
+
+    model, ds = train_tiny_synthetic_run(tmp_path)
     cal = calibrate_run(tmp_path, model=model, dataset=ds, free_space=False, edges=True, edge_weight=0.5,
                         progress=False)
     assert cal.depth.edge_weight == 0.5
