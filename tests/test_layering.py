@@ -14,11 +14,11 @@ from test_layout import import_graph
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("foundations", ("", "constants", "defaults", "validation", "io_utils", "launch", "settings", "data.errors",
                      "visualize", "holdout", "pose_alignment", "predictive")),
-    ("geometry and maths", ("rays", "scene_region", "cameras", "distortion", "distributions", "occlusion", "depth_edges", "logistic_normal_table",
+    ("geometry and maths", ("rays", "scene_region", "cameras", "distortion", "distributions", "occlusion", "depth_edges", "depth_smoothness", "logistic_normal_table",
                             "volume_rendering", "samplers", "metrics", "row_kernels", "optim", "checkpoint", "view_maps", "plots")),
     ("fields", ("fields", "fields.encoding", "fields.row_gather", "fields.base", "fields.grid", "fields.mlp")),
     ("data", ("data", "data.colmap", "data.capture", "data.dataset", "data.synthetic", "data.blender", "data.llff",
-              "data.colmap_scene", "data.loading", "data.prepare", "sparse_depth", "capture_points")),
+              "data.colmap_scene", "data.loading", "data.prepare", "sparse_depth", "capture_points", "virtual_views")),
     ("rendering and models", ("occupancy", "losses", "renderer", "adaptive", "config", "models", "models.base", "models.field_builder",
                               "models.snerf", "models.baselines", "models.registry", "free_space",
                               "termination")),

@@ -1,5 +1,5 @@
-"""Studies 27, 28 and 29: one training factor of the tables at the paper split (27 and 28: the steps;
-29: the occlusion regulariser), judged by their rules.
+"""Studies 27, 28, 29 and 31: one training factor of the tables at the paper split (27 and 28: the steps;
+29: the occlusion regulariser; 31: the unseen-view depth smoothness), judged by their rules.
 
 **Study 27** (twice the steps, 1000 against 2000). The rows are ``benchmarks/eval_tables.py`` runs
 (S-NeRF (default) and the deterministic NeRF, paper split, one thread), seeds 1, 2 and 3, today's steps
@@ -35,6 +35,15 @@ command as is and ``occ`` adds ``--set loss.lambda_occlusion=0.1``::
         --seed SEED --no-timing --quiet --out runs/occlusion_study/sSEED/ARM
     python benchmarks/studies/tables_steps_study.py --study 29 --runs runs/occlusion_study \
         --out benchmarks/results/occlusion_study
+
+**Study 31** (``--study 31``: ``loss.lambda_smoothness`` 0 against 60, every method, on the llff preset).
+Both scenes at the tables' CPU budget, seeds 7, 8 and 9; the 0 rows are study 29's ``occ`` rows (the same
+configuration), linked as ``runs/smoothness_study/sSEED/occ`` and ``validation/sSEED/occ``::
+
+    OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes SCENE --methods deterministic snerf_default \
+        --seed SEED --no-timing --quiet --set loss.lambda_smoothness=60 --out runs/smoothness_study/sSEED/smooth
+    python benchmarks/studies/tables_steps_study.py --study 31 --runs runs/smoothness_study \
+        --out benchmarks/results/smoothness_study
 
 The tables' own test-view scores (each run's metrics.json) are not read.
 """
@@ -97,6 +106,16 @@ STUDIES = {
               "benchmarks/results/occlusion_study`. The decision and what it shows: docs/studies.md, study 29.",
               "the tables' CPU budget (fern 1000 steps, flower 1750), `loss.lambda_occlusion` 0 and 0.1",
               row_name="loss.lambda_occlusion", sharper=True),
+    31: Study(31, "depth smoothness of patches seen from between the training views",
+              {"0 (today)": "occ", "60 (candidate)": "smooth"}, (7, 8, 9), SCENES,
+              "How this was run: the `smooth` row commands of the script's docstring in two shell chains side by "
+              "side (`OMP_NUM_THREADS=1`; one chain fern's seeds 7, 8, 9, the other flower's), each run scored on "
+              "its validation views right after its training; the `0` rows are study 29's `occ` rows (linked, "
+              "not re-trained). Then `python benchmarks/studies/tables_steps_study.py --study 31 --runs "
+              "runs/smoothness_study --out benchmarks/results/smoothness_study`. The decision and what it shows: "
+              "docs/studies.md, study 31.",
+              "the tables' CPU budget (fern 1000 steps, flower 1750), the llff preset, `loss.lambda_smoothness` 0 and 60",
+              row_name="loss.lambda_smoothness", sharper=True),
 }
 #: What each score's seed mean is taken of (None where a run has none: the deterministic NeRF's intervals).
 MEAN_KEYS = ("psnr", "ssim", "abs_rel", "spearman", "halfwidth_median_95", "interval_score_95", "crps", "train_s")

@@ -71,10 +71,9 @@ from typing import Any
 import numpy as np
 import torch
 from scipy.special import ndtri
-from scipy.spatial.transform import Rotation, Slerp
 from scipy.stats import spearmanr
 from . import metrics as M
-from .cameras import camera_centres, camera_to_world, intrinsics_3x3, make_cameras
+from .cameras import camera_to_world
 from .capture_points import CALIBRATE, SCORE, block_keys, load_capture_points, rays_through_points
 from .config import load_config
 from .constants import DEPTH_NLL_VARIANCE_FLOOR
@@ -82,6 +81,7 @@ from .holdout import holdout_masks
 from .io_utils import atomic_write_text, read_json
 from .sparse_depth import COVERAGE_LEVELS, project_sparse_depth
 from .trainer import load_trained_model
+from .virtual_views import BOUNDS_CHOICES, views_between  # noqa: F401 (BOUNDS_CHOICES: studies read it here)
 from .view_maps import OPACITY_MASK
 from .defaults import (CALIBRATION_FILE, CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS,
                        DEPTH_EDGE_TERM, DEPTH_FREE_SPACE, DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR)  # noqa: F401  (defaults the command line shows)
@@ -645,61 +645,21 @@ CALIBRATION_FRACTIONS: tuple[float, ...] = (0.5,)
 #: flower a 3% nearer near plane quadruples the depth error of a training view's own pixels):
 #: docs/uncertainty.md, study 12.
 CALIBRATION_BOUNDS: str = "widest"
-BOUNDS_CHOICES: tuple[str, ...] = ("widest", "interpolated")
 
 
 def calibration_views(dataset, *, neighbours: int = CALIBRATION_NEIGHBOURS,
                       fractions: tuple[float, ...] = CALIBRATION_FRACTIONS, bounds: str = CALIBRATION_BOUNDS
                       ) -> tuple[object, torch.Tensor, torch.Tensor, list[tuple[int, int]]]:
     """Virtual cameras between each training view and its ``neighbours`` nearest other training
-    views, at each of ``fractions`` of the way (default: halfway between nearest neighbours).
-    Centre: along the arc around the scene box's centre o (at the pair's interpolated distance
-    from o); rotation: slerp at the fraction; intrinsics and size of the first view; bounds: the
-    pair's widest, or interpolated at the fraction (``bounds``, ``CALIBRATION_BOUNDS``). Novel
-    viewpoints among the training ones, like the test views a user renders, made without any test
-    view. Returns (cameras [P], near [P], far [P], the (i, j) view pair of
-    each camera), the pairs (i < j) sorted and each pair's fractions in the given order."""
-    train = list(dataset.train_indices)
-    if len(train) < 2:
-        raise ValueError(f"{dataset.root}: calibration views need at least 2 training views, got {len(train)}")
-    if neighbours < 1:
-        raise ValueError(f"calibration views need neighbours >= 1, got {neighbours}")
-    if bounds not in BOUNDS_CHOICES:
-        raise ValueError(f"calibration view bounds must be one of {BOUNDS_CHOICES}, got {bounds!r}")
-    if not fractions or not all(0.0 < float(f) < 1.0 for f in fractions):
-        raise ValueError(f"calibration view fractions must lie strictly between 0 and 1, got {tuple(fractions)}")
-    centres = camera_centres(dataset.cameras).double()[train]
-    dist = torch.cdist(centres, centres)
-    dist.fill_diagonal_(float("inf"))
-    nearest = dist.argsort(dim=1)[:, :min(neighbours, len(train) - 1)]
-    pairs = sorted({tuple(sorted((train[a], train[int(b)]))) for a in range(len(train)) for b in nearest[a]})
-    w2c = dataset.cameras.extrinsics.double()
-    K = intrinsics_3x3(dataset.cameras).double()
-    o = dataset.aabb.double().mean(0)
-    views, Ks, view_pairs, nears, fars = [], [], [], [], []
-    for i, j in pairs:
-        slerp = Slerp([0.0, 1.0], Rotation.from_matrix(np.stack([w2c[i, :3, :3].numpy(), w2c[j, :3, :3].numpy()])))
-        ci, cj = centres[train.index(i)] - o, centres[train.index(j)] - o
-        for f in fractions:
-            f = float(f)
-            R = torch.from_numpy(slerp([f]).as_matrix()[0])
-            # on the arc around the scene centre o (orbits stay outside the scene; forward-facing
-            # captures, far from o, move by a negligible amount)
-            direction = (1.0 - f) * ci + f * cj
-            c = o + direction / direction.norm().clamp_min(1e-12) * ((1.0 - f) * ci.norm() + f * cj.norm())
-            m = torch.eye(4, dtype=torch.float64)
-            m[:3, :3], m[:3, 3] = R, -R @ c
-            views.append(m)
-            Ks.append(K[i])
-            view_pairs.append((i, j))
-            if bounds == "widest":
-                nears.append(torch.minimum(dataset.near[i], dataset.near[j]))
-                fars.append(torch.maximum(dataset.far[i], dataset.far[j]))
-            else:
-                nears.append((1.0 - f) * dataset.near[i] + f * dataset.near[j])
-                fars.append((1.0 - f) * dataset.far[i] + f * dataset.far[j])
-    cams = make_cameras(torch.stack(Ks).float(), torch.stack(views).float(), int(dataset.height), int(dataset.width))
-    return cams, torch.stack(nears).float(), torch.stack(fars).float(), view_pairs
+    views, at each of ``fractions`` of the way (default: halfway between nearest neighbours), with
+    the pair's widest or interpolated bounds (``bounds``, ``CALIBRATION_BOUNDS``):
+    ``virtual_views.views_between``. Novel viewpoints among the training ones, like the test views a
+    user renders, made without any test view. Returns (cameras [P], near [P], far [P], the (i, j)
+    view pair of each camera), the pairs (i < j) sorted and each pair's fractions in the given order."""
+    if len(dataset.train_indices) < 2:
+        raise ValueError(f"{dataset.root}: calibration views need at least 2 training views, "
+                         f"got {len(dataset.train_indices)}")
+    return views_between(dataset, neighbours=neighbours, fractions=fractions, bounds=bounds)
 
 
 def pair_visible_points(capture, pairs: list[tuple[int, int]], keep: np.ndarray) -> list[np.ndarray]:

@@ -58,6 +58,12 @@ class LossConfig:
     """Weight of the occlusion regulariser (stochastic_fields.occlusion, after FreeNeRF): the mean over training rays of the expected optical depth in the near loss.occlusion_near_fraction of each ray's sampled range, against surfaces floating in front of the cameras that render pixels on the wrong surface. Every model applies it to its training rays (S-NeRF to the expected density, the mean-field baselines to their density). 0 = off (the paper's objective); the llff preset (forward-facing scenes) sets 0.1: on the paper split's validation photos (fresh seeds 7-9) S-NeRF gained 0.56 / 0.31 dB on fern / flower, depth abs-rel 0.120 -> 0.102 / 0.111 -> 0.100, and a median 95% depth band of 16.8% / 18.3% of the depth instead of 23.2% / 23.9%, every level held as before (benchmarks/results/occlusion_study, study 29). Untested on scenes around an object, where the near part of a ray may hold the object. Range: a finite number >= 0."""
     occlusion_near_fraction: float = 0.25
     """The near part of each ray the occlusion regulariser covers, as a fraction of the sampled range in the sampling coordinate (disparity for render.spacing='disparity'): 0.25 = the first 16 of 64 samples. Range: a finite number > 0 and <= 1."""
+    lambda_smoothness: float = 0.0
+    """Weight of the unseen-view depth smoothness regulariser (stochastic_fields.depth_smoothness, after RegNeRF): each step renders loss.smoothness_patches patches of loss.smoothness_patch_size^2 pixels from virtual cameras between neighbouring training views (stochastic_fields.virtual_views) with the expected density, and penalises the squared differences of neighbouring pixels' expected depths in the sampling coordinate (normalised to [0, 1]). Every model applies it (S-NeRF to the expected density, the mean-field baselines to their density). 0 = off (the paper's objective). Range: a finite number >= 0."""
+    smoothness_patches: int = 8
+    """Patches the depth smoothness regulariser renders per training step (loss.lambda_smoothness > 0). Range: an integer from 1 to 4096."""
+    smoothness_patch_size: int = 8
+    """Side of each depth smoothness patch, in pixels of the training images (8: 64 rays a patch). Range: an integer from 2 to 64."""
 
 
     def __post_init__(self) -> None:
@@ -86,6 +92,9 @@ def _loss_checks() -> dict:
         "lambda_distortion": real(0.0),
         "lambda_occlusion": real(0.0),
         "occlusion_near_fraction": real(0.0, 1.0, lo_open=True),
+        "lambda_smoothness": real(0.0),
+        "smoothness_patches": integer(1, 4096),
+        "smoothness_patch_size": integer(2, 64),
     }
 
 

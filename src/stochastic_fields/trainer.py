@@ -35,6 +35,7 @@ from .capture_points import FIT, load_capture_points, rays_through_points, spars
 from .holdout import holdout_masks
 from .metrics import psnr
 from .scenes import load_run_dataset
+from .virtual_views import PatchSampler
 
 
 #: Options a resumed run may change: how long and how often, where, and render chunking. Any
@@ -43,6 +44,8 @@ RESUMABLE_OPTIONS: tuple[str, ...] = ("train.iterations", "train.minutes", "trai
                                       "train.device", "render.chunk_rays", "render.num_draws",
                                       "render.colour_estimator")
 LOG_NAME = "train_log.jsonl"
+#: Added to the depth smoothness patches' seed so they draw apart from the batches of the same seed.
+SMOOTHNESS_SEED_OFFSET = 0x5A17
 
 
 def _comparable_data_path(value: str) -> str:
@@ -387,6 +390,13 @@ class Trainer:
             if depth_data is None and main:
                 warnings.warn(f"loss.lambda_depth = {self.cfg.loss.lambda_depth} but {self.dataset.root} has no "
                               "capture points in its training views: training without the depth term", stacklevel=2)
+        patch_sampler = None
+        if self.cfg.loss.lambda_smoothness > 0:
+            patch_sampler = PatchSampler.for_dataset(self.dataset, self.device)
+            if patch_sampler is None and main:
+                warnings.warn(f"loss.lambda_smoothness = {self.cfg.loss.lambda_smoothness} but {self.dataset.root} has "
+                              "fewer than 2 training views to place virtual cameras between: training without the "
+                              "depth smoothness term", stacklevel=2)
         total = self.cfg.train.iterations
         stop_at = total if max_steps is None else min(total, self.step + max_steps)
         if self.dist is not None and max_elapsed_s is not None:
@@ -405,7 +415,7 @@ class Trainer:
                 while self.step < stop_at and self.elapsed < clock_stop:
                     done = self.schedule_progress()
                     self._set_level_weights(done)
-                    loss, logs = self.compute_gradients(data, depth_data)
+                    loss, logs = self.compute_gradients(data, depth_data, patch_sampler)
                     self.optimizer.set_progress(done)
                     self.optimizer.step()
                     self.model.after_step(self.step)
@@ -433,9 +443,30 @@ class Trainer:
         self.model.eval()
         return self.model
 
-    def compute_gradients(self, data: TrainingRays, depth_data: TrainingDepth | None) -> tuple[float, dict[str, float]]:
+    def smoothness_generators(self) -> tuple[torch.Generator, torch.Generator]:
+        """(CPU, device) generators of this step's depth smoothness patches, both seeded from the
+        run's seed, the rank and the step alone: the patches leave the ray batches and the draws
+        as they are without the term, and a resumed run draws the same patches."""
+        rank, world = (self.dist.rank, self.dist.world_size) if self.dist is not None else (0, 1)
+        batch_seed, _ = rank_seeds(self.cfg.train.seed, rank, world)
+        seed = (int(batch_seed) * 1_000_003 + self.step + SMOOTHNESS_SEED_OFFSET) % 2**63
+        return torch.Generator().manual_seed(seed), torch.Generator(device=self.device).manual_seed(seed)
+
+    def _add_smoothness(self, loss: torch.Tensor, logs: dict[str, float],
+                        sampler: PatchSampler | None) -> torch.Tensor:
+        """``loss`` plus the model's depth smoothness term of this step's patches (``sampler``
+        None: unchanged)."""
+        if sampler is None:
+            return loss
+        cpu, device = self.smoothness_generators()
+        patches = sampler.sample(self.cfg.loss.smoothness_patches, self.cfg.loss.smoothness_patch_size, cpu)
+        return self.model.add_smoothness(loss, logs, patches, generator=device)
+
+    def compute_gradients(self, data: TrainingRays, depth_data: TrainingDepth | None,
+                          patch_sampler: PatchSampler | None = None) -> tuple[float, dict[str, float]]:
         """Draw this step's batch, compute the loss and leave its gradients in the parameters
         (``.grad`` and the grid tables' ``RowGradient``). Returns (loss, logged scalars).
+        ``patch_sampler``: the depth smoothness patches' cameras (``loss.lambda_smoothness``).
 
         Distributed: this rank draws ``shard_size(rays_per_batch, rank, W)`` rays (and its share
         of the depth rays), back-propagates its loss scaled by ``n_r W / B``, and the gradients are
@@ -449,6 +480,7 @@ class Trainer:
             if depth_data is not None:
                 extra["depth"] = depth_data.batch(cfg.loss.depth_rays_per_batch, self.generator)
             loss, logs = self.model.training_loss(rays, target, step=self.step, generator=self.draw_generator, **extra)
+            loss = self._add_smoothness(loss, logs, patch_sampler)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"loss is {float(loss)} at step {self.step}: {logs}")
             self.optimizer.zero_grad(set_to_none=True)
@@ -461,6 +493,7 @@ class Trainer:
         if depth_data is not None:
             extra["depth"] = depth_data.batch(shard_size(cfg.loss.depth_rays_per_batch, rank, world), self.generator)
         loss, logs = self.model.training_loss(rays, target, step=self.step, generator=self.draw_generator, **extra)
+        loss = self._add_smoothness(loss, logs, patch_sampler)
         self.optimizer.zero_grad(set_to_none=True)
         (loss * (n * world / total)).backward()
         keys = sorted(logs)

@@ -9,8 +9,10 @@ import abc
 import torch
 from torch import Tensor, nn
 
-from ..occlusion import near_optical_depth
+from ..depth_smoothness import expected_normalised_depth, patch_smoothness
+from ..occlusion import expected_density, near_optical_depth
 from ..rays import RayBundle
+from ..samplers import sample_along_rays
 from ..renderer import ChunkGenerators, RayRender, RenderOptions, RenderSettings
 from ..fields.grid import GridField
 
@@ -66,6 +68,36 @@ class RadianceModel(nn.Module, abc.ABC):
         total = torch.stack(terms).sum()
         logs["occlusion"] = float(total.detach()) / len(terms)
         return loss + cfg.lambda_occlusion * total
+
+    #: Whether the density this model renders is a mean field ``relu(mu)`` (False: S-NeRF's
+    #: rectified normal, whose regularisers read its mean).
+    mean_field_density: bool = True
+
+    def density_fields(self) -> list[nn.Module]:
+        """Every field whose density this model renders (one; an ensemble's members)."""
+        return [self.field]
+
+    def add_smoothness(self, loss: Tensor, logs: dict[str, float], patches: RayBundle | None, *,
+                       generator: torch.Generator | None = None) -> Tensor:
+        """``loss + lambda_smoothness * sum over density_fields() of L_smooth`` of ``patches``
+        [P, h, w] (``stochastic_fields.depth_smoothness``: stratified samples drawn with
+        ``generator``, the expected density, the expected normalised depth per ray); ``loss``
+        unchanged at weight 0 or without patches. Logs ``smoothness``, the mean over fields."""
+        cfg = self.loss_config
+        if patches is None or cfg.lambda_smoothness <= 0:
+            return loss
+        settings = self.render_settings
+        samples = sample_along_rays(patches.reshape(-1), settings.num_samples, spacing=settings.spacing,
+                                    stratified=True, generator=generator)
+        terms = []
+        for field in self.density_fields():
+            loc, scale = field.density_params(samples.positions)  # [R, S] each
+            density = expected_density(loc, None if self.mean_field_density else scale)
+            depth = expected_normalised_depth(density, samples, settings.spacing, settings.quadrature)
+            terms.append(patch_smoothness(depth.reshape(patches.shape)))
+        total = torch.stack(terms).sum()
+        logs["smoothness"] = float(total.detach()) / len(terms)
+        return loss + cfg.lambda_smoothness * total
 
     def after_step(self, step: int) -> None:
         """Hook after each optimiser step (occupancy updates and similar)."""

@@ -329,6 +329,10 @@ class DeepEnsemble(_MeanFieldModel):
         super().__init__(render_settings, loss, tv_weight=tv_weight)
         self.members = nn.ModuleList(fields)
 
+    def density_fields(self) -> list[nn.Module]:
+        """Every member's field (each renders its own density)."""
+        return list(self.members)
+
     def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
                       generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
         """Sum over members of each member's Gaussian likelihood NLL (members are independent:

@@ -158,6 +158,8 @@ class SNeRF(RadianceModel):
 
     #: the trainer passes capture-point depth batches (``depth=``) to this model
     accepts_depth = True
+    #: the density is a rectified normal; its regularisers read its mean
+    mean_field_density = False
 
     def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
                       generator: torch.Generator | None = None,
