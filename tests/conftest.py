@@ -61,3 +61,18 @@ def train_tiny_synthetic_run(run_dir: Path):
     ds = load_dataset(make_synthetic_scene(run_dir / "scene", num_views=20, width=192, height=144, seed=0),
                       split_every=5)
     return Trainer(cfg, run_dir, ds).train(progress=False), ds
+
+
+def rays_along_z(near, far):
+    """RayBundle [R] (float64) from the origin along +z, with the given near and far distances [R]."""
+    import torch
+
+    from stochastic_fields.rays import RayBundle
+
+    near = torch.as_tensor(near, dtype=torch.float64)
+    far = torch.as_tensor(far, dtype=torch.float64)
+    R = len(near)
+    dirs = torch.zeros(R, 3, dtype=torch.float64)
+    dirs[:, 2] = 1.0
+    return RayBundle(origins=torch.zeros(R, 3, dtype=torch.float64), directions=dirs, near=near, far=far,
+                     z_scale=torch.ones(R, dtype=torch.float64))

@@ -9,22 +9,14 @@ import copy
 import math
 
 import pytest
+from conftest import rays_along_z
 import torch
 
 from stochastic_fields.depth_smoothness import expected_normalised_depth, patch_smoothness
 from stochastic_fields.losses import LossConfig
-from stochastic_fields.rays import RayBundle
 from stochastic_fields.samplers import sample_along_rays
 
 
-def bundle(near, far) -> RayBundle:
-    near = torch.as_tensor(near, dtype=torch.float64)
-    far = torch.as_tensor(far, dtype=torch.float64)
-    R = len(near)
-    dirs = torch.zeros(R, 3, dtype=torch.float64)
-    dirs[:, 2] = 1.0
-    return RayBundle(origins=torch.zeros(R, 3, dtype=torch.float64), directions=dirs, near=near, far=far,
-                     z_scale=torch.ones(R, dtype=torch.float64))
 
 
 def naive_depth(density, t0, t1, near, far, spacing):
@@ -44,7 +36,7 @@ def naive_depth(density, t0, t1, near, far, spacing):
 @pytest.mark.parametrize("spacing", ["linear", "disparity"])
 def test_expected_depth_matches_a_loop_over_samples(spacing):
     g = torch.Generator().manual_seed(0)
-    rays = bundle([0.5, 1.0, 2.0], [4.0, 100.0, 3.0])
+    rays = rays_along_z([0.5, 1.0, 2.0], [4.0, 100.0, 3.0])
     samples = sample_along_rays(rays, 24, spacing=spacing, stratified=True, generator=g)
     density = torch.rand(3, 24, generator=g, dtype=torch.float64) * 3
     got = expected_normalised_depth(density, samples, spacing)
@@ -57,7 +49,7 @@ def test_expected_depth_matches_a_loop_over_samples(spacing):
 def test_empty_ray_ends_at_the_far_bound_and_an_opaque_slab_at_its_sample():
     """Zero density: d = 1 (no division by a zero opacity). An opaque slab (1e6) on the 3rd of 4 linear
     samples on [0, 4]: all the weight there, d = its midpoint's coordinate 2.5 / 4; a huge density stays finite."""
-    rays = bundle([0.0 + 1e-9, 0.0 + 1e-9], [4.0, 4.0])
+    rays = rays_along_z([0.0 + 1e-9, 0.0 + 1e-9], [4.0, 4.0])
     samples = sample_along_rays(rays, 4, spacing="linear")
     density = torch.zeros(2, 4, dtype=torch.float64)
     density[1, 2] = 1e6
@@ -72,7 +64,7 @@ def test_uniform_density_has_the_closed_form_depth():
     """Constant density s on [0, L], linear spacing, many samples: E[t] / L with the far remainder,
     d = (1 - exp(-sL)) / (sL) in the limit of fine samples (integral of exp(-st) s t / L plus exp(-sL))."""
     s, L = 0.7, 3.0
-    rays = bundle([1e-12], [L])
+    rays = rays_along_z([1e-12], [L])
     samples = sample_along_rays(rays, 20000, spacing="linear")
     d = expected_normalised_depth(torch.full((1, 20000), s, dtype=torch.float64), samples, "linear")
     assert d.item() == pytest.approx((1.0 - math.exp(-s * L)) / (s * L), rel=1e-4)
@@ -90,7 +82,7 @@ def test_patch_smoothness_by_hand():
 
 def test_gradcheck_through_depth_and_patch():
     g = torch.Generator().manual_seed(1)
-    rays = bundle([1.0] * 4, [5.0] * 4)
+    rays = rays_along_z([1.0] * 4, [5.0] * 4)
     samples = sample_along_rays(rays, 6, spacing="disparity", stratified=True, generator=g)
     density = (torch.rand(4, 6, generator=g, dtype=torch.float64) * 2).requires_grad_(True)
 

@@ -8,24 +8,16 @@ import copy
 import math
 
 import pytest
+from conftest import rays_along_z
 import scipy.stats
 import torch
 
 from stochastic_fields.losses import LossConfig
 from stochastic_fields.occlusion import expected_density, near_optical_depth
-from stochastic_fields.rays import RayBundle
 from stochastic_fields.renderer import pack_samples
 from stochastic_fields.samplers import sample_along_rays
 
 
-def bundle(near, far) -> RayBundle:
-    near = torch.as_tensor(near, dtype=torch.float64)
-    far = torch.as_tensor(far, dtype=torch.float64)
-    R = len(near)
-    dirs = torch.zeros(R, 3, dtype=torch.float64)
-    dirs[:, 2] = 1.0
-    return RayBundle(origins=torch.zeros(R, 3, dtype=torch.float64), directions=dirs, near=near, far=far,
-                     z_scale=torch.ones(R, dtype=torch.float64))
 
 
 def naive(density, t0, t1, near, far, spacing, fraction):
@@ -43,7 +35,7 @@ def naive(density, t0, t1, near, far, spacing, fraction):
 @pytest.mark.parametrize("fraction", [0.25, 0.5, 1.0])
 def test_matches_a_loop_over_samples(spacing, fraction):
     g = torch.Generator().manual_seed(0)
-    rays = bundle([0.5, 1.0, 2.0], [4.0, 100.0, 3.0])
+    rays = rays_along_z([0.5, 1.0, 2.0], [4.0, 100.0, 3.0])
     samples = sample_along_rays(rays, 24, spacing=spacing, stratified=True, generator=g)
     density = torch.rand(3, 24, generator=g, dtype=torch.float64) * 5
     got = near_optical_depth(density, None, samples, spacing, fraction)
@@ -56,20 +48,20 @@ def test_matches_a_loop_over_samples(spacing, fraction):
 def test_hand_values():
     """Unit density on [1, 5], 4 linear samples: the first quarter is the sample [1, 2] (optical depth 1);
     all of the ray is 4; on 64 disparity samples from 1 to 100 the first 16 end at 1 / (1 - 0.25 * 0.99)."""
-    rays = bundle([1.0], [5.0])
+    rays = rays_along_z([1.0], [5.0])
     samples = sample_along_rays(rays, 4, spacing="linear")
     ones = torch.ones(1, 4, dtype=torch.float64)
     assert near_optical_depth(ones, None, samples, "linear", 0.25).item() == pytest.approx(1.0)
     assert near_optical_depth(ones, None, samples, "linear", 1.0).item() == pytest.approx(4.0)
     assert near_optical_depth(torch.zeros(1, 4, dtype=torch.float64), None, samples, "linear", 1.0).item() == 0.0
-    rays = bundle([1.0], [100.0])
+    rays = rays_along_z([1.0], [100.0])
     samples = sample_along_rays(rays, 64, spacing="disparity")
     got = near_optical_depth(torch.ones(1, 64, dtype=torch.float64), None, samples, "disparity", 0.25).item()
     assert got == pytest.approx(1.0 / (1.0 - 0.25 * 0.99) - 1.0, rel=1e-12)
 
 
 def test_huge_densities_stay_finite_and_exact():
-    rays = bundle([1.0], [5.0])
+    rays = rays_along_z([1.0], [5.0])
     samples = sample_along_rays(rays, 4, spacing="linear")
     density = torch.tensor([[1e30, 0.0, 1e30, 1e30]], dtype=torch.float32)
     got = near_optical_depth(density, None, samples, "linear", 0.5).item()
@@ -78,7 +70,7 @@ def test_huge_densities_stay_finite_and_exact():
 
 def test_packed_equals_dense_when_skipped_samples_are_empty():
     g = torch.Generator().manual_seed(1)
-    rays = bundle([0.5, 1.0, 2.0, 1.5], [4.0, 100.0, 3.0, 9.0])
+    rays = rays_along_z([0.5, 1.0, 2.0, 1.5], [4.0, 100.0, 3.0, 9.0])
     samples = sample_along_rays(rays, 16, spacing="disparity", stratified=True, generator=g)
     keep = torch.rand(4, 16, generator=g) > 0.5
     keep[1] = False  # a ray with nothing kept
@@ -90,7 +82,7 @@ def test_packed_equals_dense_when_skipped_samples_are_empty():
 
 
 def test_gradient_reaches_only_the_near_samples():
-    rays = bundle([1.0, 2.0], [5.0, 6.0])
+    rays = rays_along_z([1.0, 2.0], [5.0, 6.0])
     samples = sample_along_rays(rays, 8, spacing="linear")
     density = torch.rand(2, 8, generator=torch.Generator().manual_seed(2), dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda d: near_optical_depth(d, None, samples, "linear", 0.25), (density,))
@@ -103,7 +95,7 @@ def test_rectified_normal_density_matches_its_mean_on_every_sample():
     """With a scale the term is the loop over samples of the rectified normal's mean (computed on all
     samples, then restricted); gradients reach loc and scale of the near samples only."""
     g = torch.Generator().manual_seed(3)
-    rays = bundle([0.5, 2.0], [40.0, 3.0])
+    rays = rays_along_z([0.5, 2.0], [40.0, 3.0])
     samples = sample_along_rays(rays, 16, spacing="disparity", stratified=True, generator=g)
     loc = (torch.randn(2, 16, generator=g, dtype=torch.float64) * 3).requires_grad_()
     scale = (torch.rand(2, 16, generator=g, dtype=torch.float64) + 0.05).requires_grad_()
@@ -126,7 +118,7 @@ def test_rectified_normal_density_matches_its_mean_on_every_sample():
 
 @pytest.mark.parametrize("fraction", [0.0, -0.1, 1.5])
 def test_rejects_a_fraction_outside_0_1(fraction):
-    samples = sample_along_rays(bundle([1.0], [2.0]), 4)
+    samples = sample_along_rays(rays_along_z([1.0], [2.0]), 4)
     with pytest.raises(ValueError, match="near_fraction"):
         near_optical_depth(torch.ones(1, 4), None, samples, "linear", fraction)
     if fraction <= 0 or fraction > 1:
