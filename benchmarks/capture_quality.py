@@ -48,6 +48,7 @@ from stochastic_fields.evaluation import evaluate
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.scenes import describe_split, load_run_dataset
 from stochastic_fields.trainer import Trainer
+from stochastic_fields_bench.runner import semantic_options
 
 #: Where the shared LLFF scenes live, relative to the repository.
 LLFF_ROOT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "nerf_llff_data"
@@ -116,14 +117,30 @@ def recorded_options(cfg, args) -> dict:
                                   "minutes": args.minutes, "config": config}))
 
 
+def comparable(record: dict) -> dict:
+    """The options of a record (or of ``recorded_options``) as they are compared: the seed, settings and
+    minutes, and the config as ``runner.semantic_options`` reads it (an option added after the record at a
+    default that keeps the old behaviour counts as that default; None: a record without its config)."""
+    out = {key: record.get(key) for key in RECORD_KEYS}
+    out["config"] = semantic_options(record["config"]) if "config" in record else None
+    return out
+
+
+#: The command's options a record keeps beside its config.
+RECORD_KEYS = ("seed", "settings", "minutes")
+
+
 def differing_options(done: dict, asked: dict, limit: int = 4) -> str:
-    """The first ``limit`` options in which a record differs from this command, as text."""
+    """The first ``limit`` options in which a record differs from this command (``comparable``), as text."""
     if "config" not in done:
         return "no config (a record from before records kept it)"
-    ours = {**asked["config"], **{key: value for key, value in asked.items() if key != "config"}}
-    theirs = {**done["config"], **{key: done.get(key) for key in asked if key != "config"}}
-    diffs = [f"{key} {theirs.get(key)!r} (asked {ours.get(key)!r})" for key in sorted(set(ours) | set(theirs))
-             if theirs.get(key) != ours.get(key)]
+    def flat(record: dict, config: dict) -> dict:
+        return {**config, **{key: record.get(key) for key in RECORD_KEYS}}
+
+    ours, theirs = flat(asked, comparable(asked)["config"]), flat(done, comparable(done)["config"])
+    raw_ours, raw_theirs = flat(asked, asked["config"]), flat(done, done["config"])  # the values as recorded
+    diffs = [f"{key} {raw_theirs.get(key, 'absent')!r} (asked {raw_ours.get(key, 'absent')!r})"
+             for key in sorted(set(ours) | set(theirs)) if theirs.get(key) != ours.get(key)]
     more = f" and {len(diffs) - limit} more" if len(diffs) > limit else ""
     return "; ".join(diffs[:limit]) + more
 
@@ -134,7 +151,7 @@ def run_one(scene: str, method: str, args) -> dict:
     asked = recorded_options(cfg, args)
     if record.exists():
         done = json.loads(record.read_text())
-        if any(done.get(key) != value for key, value in asked.items()):
+        if comparable(done) != comparable(asked):
             raise SystemExit(f"{record}: a finished run of other options ({differing_options(done, asked)}); "
                              "give another --work")
         return done

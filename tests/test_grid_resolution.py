@@ -143,7 +143,7 @@ def test_runs_saved_before_the_parallax_default_keep_their_footprint_grid():
     key loads with the footprint rule (the grid its checkpoint holds), a stored benchmark run keeps
     its fingerprint and a run at the new default gets a new one, for every method (the backbone)."""
     from stochastic_fields.config import ExperimentConfig, flatten, saved_config, to_dict
-    from stochastic_fields_bench.runner import _semantic, config_fingerprint
+    from stochastic_fields_bench.runner import semantic_options, config_fingerprint
 
     assert ExperimentConfig().field.grid_resolution_rule == "parallax"
     old = to_dict(ExperimentConfig())
@@ -152,5 +152,5 @@ def test_runs_saved_before_the_parallax_default_keep_their_footprint_grid():
     for method in ("snerf", "deterministic", "ensemble"):
         stored, new = ExperimentConfig(method=method), ExperimentConfig(method=method)
         stored.field.grid_resolution_rule = "footprint"
-        assert "field.grid_resolution_rule" not in _semantic(flatten(to_dict(stored)))
+        assert "field.grid_resolution_rule" not in semantic_options(flatten(to_dict(stored)))
         assert config_fingerprint(stored) != config_fingerprint(new)

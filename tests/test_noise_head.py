@@ -294,15 +294,15 @@ def test_observation_noise_per_draw_dense_packed_and_rendered_agree(dataset):
 
 def test_runs_saved_before_the_head_load_without_it_and_keep_their_fingerprints():
     from stochastic_fields.config import ExperimentConfig, flatten, from_dict, saved_config, to_dict
-    from stochastic_fields_bench.runner import _semantic
+    from stochastic_fields_bench.runner import semantic_options
 
     old = to_dict(ExperimentConfig())
     del old["loss"]["per_point_noise"], old["loss"]["noise_head_decoupled"]
     assert from_dict(ExperimentConfig, old).loss.per_point_noise  # a partial user config takes the default
     loaded = saved_config(old)  # a saved run lacking the keys was trained without the head
     assert not loaded.loss.per_point_noise and not loaded.loss.noise_head_decoupled
-    assert "loss.per_point_noise" not in _semantic(flatten(to_dict(loaded)))  # unchanged fingerprint
-    assert _semantic(flatten(to_dict(ExperimentConfig())))["loss.per_point_noise"] is True  # new default counts
+    assert "loss.per_point_noise" not in semantic_options(flatten(to_dict(loaded)))  # unchanged fingerprint
+    assert semantic_options(flatten(to_dict(ExperimentConfig())))["loss.per_point_noise"] is True  # new default counts
     baseline = to_dict(ExperimentConfig(method="ensemble"))
     assert not any(k.startswith("loss.per_point") or k.startswith("loss.noise_head")
-                   for k in _semantic(flatten(baseline)))  # the baselines build no head
+                   for k in semantic_options(flatten(baseline)))  # the baselines build no head

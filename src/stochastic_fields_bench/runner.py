@@ -79,7 +79,7 @@ _FINGERPRINT_REFERENCE: dict[str, Any] = {"loss.lambda_depth": 0.1, "render.num_
 RENDER_ONLY_OPTIONS: tuple[str, ...] = tuple(k for k in RESUMABLE_OPTIONS if k.startswith("render."))
 
 
-def _semantic(flat: dict[str, Any]) -> dict[str, Any]:
+def semantic_options(flat: dict[str, Any]) -> dict[str, Any]:
     """Entries that change what a run computes, without those equal to the dataclass defaults:
     an option added later with a default that keeps the old behaviour changes no fingerprint.
     For an option whose default changed the model (``config.LEGACY_VALUES``) the legacy value is
@@ -101,8 +101,8 @@ def _semantic(flat: dict[str, Any]) -> dict[str, Any]:
 
 
 def config_fingerprint(cfg: ExperimentConfig, *extra: Any, leave_out: Sequence[str] = ()) -> str:
-    """Hash of what ``cfg`` computes (``_semantic``) with ``extra``, without the ``leave_out`` entries."""
-    flat = {k: v for k, v in _semantic(flatten(to_dict(cfg))).items() if k not in leave_out}
+    """Hash of what ``cfg`` computes (``semantic_options``) with ``extra``, without the ``leave_out`` entries."""
+    flat = {k: v for k, v in semantic_options(flatten(to_dict(cfg))).items() if k not in leave_out}
     text = json.dumps([flat, list(extra)], sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
@@ -114,8 +114,8 @@ def check_compatible(run_dir: Path, cfg: ExperimentConfig) -> list[str]:
     saved = Path(run_dir) / "config.json"
     if not saved.exists():
         return []
-    old = _semantic(flatten(json.loads(saved.read_text())))
-    new = _semantic(flatten(to_dict(cfg)))
+    old = semantic_options(flatten(json.loads(saved.read_text())))
+    new = semantic_options(flatten(to_dict(cfg)))
     differ = sorted(k for k in set(old) | set(new) if k != "train.iterations" and old.get(k) != new.get(k))
     trained = [k for k in differ if k not in RENDER_ONLY_OPTIONS]
     if trained:
