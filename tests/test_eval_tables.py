@@ -513,17 +513,17 @@ def test_the_depth_weight_default_changes_retrain_only_snerf_default_runs():
     gets a new one, the baselines (no depth term) none, and a saved config from before the option
     existed loads with the depth term off."""
     from stochastic_fields.config import ExperimentConfig, flatten, saved_config, to_dict
-    from stochastic_fields_bench.runner import _semantic
+    from stochastic_fields_bench.runner import semantic_options
 
     assert ExperimentConfig().loss.lambda_depth == 1.0
     stored = ExperimentConfig()
     stored.loss.lambda_depth = 0.1
-    assert "loss.lambda_depth" not in _semantic(flatten(to_dict(stored)))
-    assert _semantic(flatten(to_dict(ExperimentConfig())))["loss.lambda_depth"] == 1.0
+    assert "loss.lambda_depth" not in semantic_options(flatten(to_dict(stored)))
+    assert semantic_options(flatten(to_dict(ExperimentConfig())))["loss.lambda_depth"] == 1.0
     assert T.config_fingerprint(ExperimentConfig()) != T.config_fingerprint(stored)
     study4 = ExperimentConfig()
     study4.loss.lambda_depth = 0.3
-    assert _semantic(flatten(to_dict(study4)))["loss.lambda_depth"] == 0.3
+    assert semantic_options(flatten(to_dict(study4)))["loss.lambda_depth"] == 0.3
     assert len({T.config_fingerprint(c) for c in (ExperimentConfig(), stored, study4)}) == 3
     for method in ("ensemble", "deterministic"):
         a, b = ExperimentConfig(method=method), ExperimentConfig(method=method)
@@ -540,13 +540,13 @@ def test_the_observed_kl_weight_default_change_keeps_every_stored_run():
     rows pin 5e-2 so their stored runs are not retrained, and the baselines (no KL) ignore it."""
     from stochastic_fields.config import ExperimentConfig, flatten, to_dict
     from stochastic_fields_bench.methods import METHOD_SPECS, method_config
-    from stochastic_fields_bench.runner import _semantic
+    from stochastic_fields_bench.runner import semantic_options
 
     assert ExperimentConfig().loss.lambda_observed == 1.25e-2
     stored = ExperimentConfig()
     stored.loss.lambda_observed = 5e-2
-    assert "loss.lambda_observed" not in _semantic(flatten(to_dict(stored)))
-    assert _semantic(flatten(to_dict(ExperimentConfig())))["loss.lambda_observed"] == 1.25e-2
+    assert "loss.lambda_observed" not in semantic_options(flatten(to_dict(stored)))
+    assert semantic_options(flatten(to_dict(ExperimentConfig())))["loss.lambda_observed"] == 1.25e-2
     assert T.config_fingerprint(ExperimentConfig()) != T.config_fingerprint(stored)
     for name in ("snerf", "snerf_predictive", "snerf_kl_none", "snerf_kl_fixed_prior"):
         assert method_config(METHOD_SPECS[name], ExperimentConfig(), Path("s")).loss.lambda_observed == 5e-2

@@ -61,9 +61,9 @@ class LossConfig:
     lambda_smoothness: float = 0.0
     """Weight of the unseen-view depth smoothness regulariser (stochastic_fields.depth_smoothness, after RegNeRF): each step renders loss.smoothness_patches patches of loss.smoothness_patch_size^2 pixels from virtual cameras between neighbouring training views (stochastic_fields.virtual_views) with the expected density, and penalises the squared differences of neighbouring pixels' expected depths in the sampling coordinate (normalised to [0, 1]). Every model applies it (S-NeRF to the expected density, the mean-field baselines to their density). 0 = off (the paper's objective). Range: a finite number >= 0."""
     smoothness_patches: int = 8
-    """Patches the depth smoothness regulariser renders per training step (loss.lambda_smoothness > 0). Range: an integer from 1 to 4096."""
+    """Patches the depth smoothness regulariser renders per training step (loss.lambda_smoothness > 0). Range: an integer >= 1 and <= 4096."""
     smoothness_patch_size: int = 8
-    """Side of each depth smoothness patch, in pixels of the training images (8: 64 rays a patch). Range: an integer from 2 to 64."""
+    """Side of each depth smoothness patch, in pixels of the training images (8: 64 rays a patch). Range: an integer >= 2 and <= 64."""
 
 
     def __post_init__(self) -> None:
