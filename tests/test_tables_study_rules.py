@@ -86,6 +86,10 @@ def test_occlusion_study_also_asks_for_sharper_intervals(load_script):
     study = load_script("benchmarks/studies/tables_steps_study.py")
     occ = study.STUDIES[29]
     assert occ.scenes == ("fern", "flower") and occ.seeds == (7, 8, 9) and occ.sharper
+    # study 31 asks the same of the depth smoothness term, against study 29's candidate rows (today's preset)
+    smooth = study.STUDIES[31]
+    assert smooth.scenes == occ.scenes and smooth.seeds == occ.seeds and smooth.sharper
+    assert list(smooth.rows.values()) == ["occ", "smooth"]
     assert not study.STUDIES[27].sharper and not study.STUDIES[28].sharper
     today, cand = occ.rows
 
@@ -109,7 +113,8 @@ def test_occlusion_study_also_asks_for_sharper_intervals(load_script):
 
 def test_committed_decisions_recomputed(load_script):
     for script, folder in (("tables_cap_study", "tables_cap_study"), ("tables_steps_study", "tables_steps_study"),
-                           ("tables_steps_study", "tables_passes_study"), ("tables_steps_study", "occlusion_study")):
+                           ("tables_steps_study", "tables_passes_study"), ("tables_steps_study", "occlusion_study"),
+                           ("tables_steps_study", "smoothness_study")):
         study = load_script(f"benchmarks/studies/{script}.py")
         data = json.loads((REPO_ROOT / "benchmarks" / "results" / folder / "results.json").read_text())
         rows = data["means"] if "means" in data else data["rows"]
