@@ -117,6 +117,10 @@ def recorded_options(cfg, args) -> dict:
                                   "minutes": args.minutes, "config": config}))
 
 
+#: The command's options a record keeps beside its config.
+RECORD_KEYS = ("seed", "settings", "minutes")
+
+
 def comparable(record: dict) -> dict:
     """The options of a record (or of ``recorded_options``) as they are compared: the seed, settings and
     minutes, and the config as ``runner.semantic_options`` reads it (an option added after the record at a
@@ -124,10 +128,6 @@ def comparable(record: dict) -> dict:
     out = {key: record.get(key) for key in RECORD_KEYS}
     out["config"] = semantic_options(record["config"]) if "config" in record else None
     return out
-
-
-#: The command's options a record keeps beside its config.
-RECORD_KEYS = ("seed", "settings", "minutes")
 
 
 def differing_options(done: dict, asked: dict, limit: int = 4) -> str:

@@ -656,10 +656,8 @@ def calibration_views(dataset, *, neighbours: int = CALIBRATION_NEIGHBOURS,
     ``virtual_views.views_between``. Novel viewpoints among the training ones, like the test views a
     user renders, made without any test view. Returns (cameras [P], near [P], far [P], the (i, j)
     view pair of each camera), the pairs (i < j) sorted and each pair's fractions in the given order."""
-    if len(dataset.train_indices) < 2:
-        raise ValueError(f"{dataset.root}: calibration views need at least 2 training views, "
-                         f"got {len(dataset.train_indices)}")
-    return views_between(dataset, neighbours=neighbours, fractions=fractions, bounds=bounds)
+    return views_between(dataset, neighbours=neighbours, fractions=fractions, bounds=bounds,
+                         what="calibration views")
 
 
 def pair_visible_points(capture, pairs: list[tuple[int, int]], keep: np.ndarray) -> list[np.ndarray]:

@@ -36,21 +36,21 @@ PATCH_FRACTIONS: tuple[float, ...] = (0.125, 0.25, 0.375, 0.5, 0.625, 0.75, 0.87
 PATCH_NEIGHBOURS: int = 2
 
 
-def views_between(dataset, *, neighbours: int, fractions: tuple[float, ...], bounds: str
-                  ) -> tuple[object, Tensor, Tensor, list[tuple[int, int]]]:
+def views_between(dataset, *, neighbours: int, fractions: tuple[float, ...], bounds: str,
+                  what: str = "virtual views") -> tuple[object, Tensor, Tensor, list[tuple[int, int]]]:
     """Virtual cameras between each training view and its ``neighbours`` nearest other training
     views (camera centres), at each of ``fractions`` of the way (module doc). Returns (cameras
     [P], near [P], far [P], the (i, j) view pair of each camera), the pairs (i < j) sorted and each
-    pair's fractions in the given order."""
+    pair's fractions in the given order. ``what``: the cameras' name in the errors."""
     train = list(dataset.train_indices)
     if len(train) < 2:
-        raise ValueError(f"{dataset.root}: virtual views need at least 2 training views, got {len(train)}")
+        raise ValueError(f"{dataset.root}: {what} need at least 2 training views, got {len(train)}")
     if neighbours < 1:
-        raise ValueError(f"virtual views need neighbours >= 1, got {neighbours}")
+        raise ValueError(f"{what} need neighbours >= 1, got {neighbours}")
     if bounds not in BOUNDS_CHOICES:
-        raise ValueError(f"virtual view bounds must be one of {BOUNDS_CHOICES}, got {bounds!r}")
+        raise ValueError(f"{what}' bounds must be one of {BOUNDS_CHOICES}, got {bounds!r}")
     if not fractions or not all(0.0 < float(f) < 1.0 for f in fractions):
-        raise ValueError(f"virtual view fractions must lie strictly between 0 and 1, got {tuple(fractions)}")
+        raise ValueError(f"{what}' fractions must lie strictly between 0 and 1, got {tuple(fractions)}")
     centres = camera_centres(dataset.cameras).double()[train]
     dist = torch.cdist(centres, centres)
     dist.fill_diagonal_(float("inf"))

@@ -28,6 +28,9 @@ class RadianceModel(nn.Module, abc.ABC):
     #: Buffers that ``training_loss`` keeps as running maxima over the batches it saw; a
     #: data-parallel step takes their maximum over the ranks (``distributed.GradientReducer``).
     running_max_buffers: tuple[str, ...] = ()
+    #: Whether the density this model renders is a mean field ``relu(mu)`` (False: S-NeRF's
+    #: rectified normal, whose regularisers read its mean).
+    mean_field_density: bool = True
 
     @abc.abstractmethod
     def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
@@ -51,27 +54,22 @@ class RadianceModel(nn.Module, abc.ABC):
         checked, values validated, None ignored)."""
         return self.default_render_options().with_changes(**changes)
 
-    def add_occlusion(self, loss: Tensor, logs: dict[str, float], renders: list[RayRender], *,
-                      mean_field: bool) -> Tensor:
+    def add_occlusion(self, loss: Tensor, logs: dict[str, float], renders: list[RayRender]) -> Tensor:
         """``loss + lambda_occlusion * sum over renders of the mean near optical depth of their rays``
         (``stochastic_fields.occlusion``; ``loss`` unchanged at weight 0). ``renders``: the training
-        renders (one per ensemble member); ``mean_field``: their density is ``relu(mu)`` (else
-        S-NeRF's rectified normal, by its mean). Logs ``occlusion``, the mean over renders."""
+        renders (one per ensemble member), whose density is ``relu(mu)`` with ``mean_field_density``
+        (else S-NeRF's rectified normal, by its mean). Logs ``occlusion``, the mean over renders."""
         cfg = self.loss_config
         if cfg.lambda_occlusion <= 0:
             return loss
         terms = []
         for out in renders:
-            scale = None if mean_field else out.params.density_scale
+            scale = None if self.mean_field_density else out.params.density_scale
             terms.append(near_optical_depth(out.params.density_loc, scale, out.samples,
                                             self.render_settings.spacing, cfg.occlusion_near_fraction).mean())
         total = torch.stack(terms).sum()
         logs["occlusion"] = float(total.detach()) / len(terms)
         return loss + cfg.lambda_occlusion * total
-
-    #: Whether the density this model renders is a mean field ``relu(mu)`` (False: S-NeRF's
-    #: rectified normal, whose regularisers read its mean).
-    mean_field_density: bool = True
 
     def density_fields(self) -> list[nn.Module]:
         """Every field whose density this model renders (one; an ensemble's members)."""

@@ -236,7 +236,7 @@ class _MeanFieldModel(RadianceModel):
     def _regularise(self, loss: Tensor, logs: dict[str, float], generator: torch.Generator | None,
                     renders: list[RayRender]) -> Tensor:
         """``loss`` plus the occlusion term of the training ``renders`` and the grid TV term."""
-        loss = self.add_occlusion(loss, logs, renders, mean_field=True)
+        loss = self.add_occlusion(loss, logs, renders)
         if self.tv_weight > 0:
             tv = grid_total_variation(self, generator)
             if tv is not None:

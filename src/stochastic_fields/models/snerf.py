@@ -226,7 +226,7 @@ class SNeRF(RadianceModel):
             dist = self._distortion(out, samples)
             loss = loss + cfg.lambda_distortion * dist
             logs["distortion"] = dist.item()
-        loss = self.add_occlusion(loss, logs, [out], mean_field=False)
+        loss = self.add_occlusion(loss, logs, [out])
         if depth is not None and cfg.lambda_depth > 0:
             depth_nll = self._depth_nll(*depth, generator=generator)
             loss = loss + cfg.lambda_depth * depth_nll
