@@ -78,8 +78,8 @@ class RadianceModel(nn.Module, abc.ABC):
     def add_smoothness(self, loss: Tensor, logs: dict[str, float], patches: RayBundle | None, *,
                        generator: torch.Generator | None = None) -> Tensor:
         """``loss + lambda_smoothness * sum over density_fields() of L_smooth`` of ``patches``
-        [P, h, w] (``stochastic_fields.depth_smoothness``: stratified samples drawn with
-        ``generator``, the expected density, the expected normalised depth per ray); ``loss``
+        [P, h, w] (``stochastic_fields.depth_smoothness``: dense stratified samples drawn with
+        ``generator``, without empty-space skipping as the sparse-depth term, the expected density, the expected normalised depth per ray); ``loss``
         unchanged at weight 0 or without patches. Logs ``smoothness``, the mean over fields."""
         cfg = self.loss_config
         if patches is None or cfg.lambda_smoothness <= 0:
