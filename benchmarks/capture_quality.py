@@ -286,6 +286,8 @@ def plot(records: list[dict], path: Path, reference: list[dict] = ()) -> None:
         row[0].set(title=f"{scene}: validation PSNR", xlabel="training minutes", ylabel="dB")
         row[1].set(title=f"{scene}: depth abs-rel at SfM points", xlabel="training minutes", ylabel="abs-rel")
         for ax in row:
+            ax.set_xlim(0.0, 1.05 * max(ax.get_xlim()[1], 1e-3))  # from the start: a one-mark run is a point at its budget
+            ax.ticklabel_format(axis="x", useOffset=False)
             ax.grid(alpha=0.3)
             ax.legend()
     fig.tight_layout()
