@@ -18,6 +18,7 @@ from stochastic_fields.data import (
     SceneDataset,
     detect_format,
     fit_scene_aabb,
+    pad_box,
     load_blender,
     load_dataset,
     load_llff,
@@ -223,6 +224,31 @@ def test_fit_scene_aabb_modes(tiny_scene):
     assert bool(torch.all(covis[0] <= objects[0]) and torch.all(covis[1] >= objects[1]))
     with pytest.raises(ValueError, match="far > near"):
         fit_scene_aabb(ds.cameras, 2.0, 1.0)
+
+
+def test_pad_box_hand_values():
+    lo, hi = torch.tensor([-2.0, -1.0, 0.0]), torch.tensor([2.0, 1.0, 0.5])
+    torch.testing.assert_close(pad_box(lo, hi, 0.05), torch.tensor([[-2.2, -1.2, -0.2], [2.2, 1.2, 0.7]]))
+    torch.testing.assert_close(pad_box(lo, hi, 0.05, isotropic=False),
+                               torch.tensor([[-2.2, -1.1, -0.025], [2.2, 1.1, 0.525]]))
+
+
+def test_object_box_keeps_a_floor_inside(tiny_scene):
+    """A floor of points at z = 0 (2 x 2) under a small object (0.4 high): the object-centric box
+    pads z by 5% of the largest extent (0.1), the forward-facing box by 5% of z's own (0.02)."""
+    ds = load_dataset(tiny_scene)
+    g = torch.Generator().manual_seed(0)
+    floor = torch.rand(800, 3, generator=g) * torch.tensor([2.0, 2.0, 0.0]) - torch.tensor([1.0, 1.0, 0.0])
+    floor[:2, :2] = torch.tensor([[-1.0, -1.0], [1.0, 1.0]])  # the floor's corners: x and y span exactly 2
+    thing = torch.rand(200, 3, generator=g) * torch.tensor([0.5, 0.5, 0.4])
+    thing[0, 2] = 0.4
+    pts = torch.cat([floor, thing])
+    frusta = fit_scene_aabb(ds.cameras, ds.near, ds.far, forward_facing=True)
+    assert float(frusta[0, 2]) < -0.1 and float(frusta[1, 2]) > 0.5  # the clip leaves these boxes whole
+    box = fit_scene_aabb(ds.cameras, ds.near, ds.far, pts, percentiles=(0.0, 100.0))
+    torch.testing.assert_close(box, torch.tensor([[-1.1, -1.1, -0.1], [1.1, 1.1, 0.5]]), atol=1e-6, rtol=0)
+    forward = fit_scene_aabb(ds.cameras, ds.near, ds.far, pts, percentiles=(0.0, 100.0), forward_facing=True)
+    torch.testing.assert_close(forward[:, 2], torch.tensor([-0.02, 0.42]), atol=1e-6, rtol=0)
 
 
 # ------------------------------------------------------------------ broken inputs

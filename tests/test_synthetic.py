@@ -53,8 +53,12 @@ def test_backprojected_depth_lies_on_the_mesh(scene):
     dist = rc.compute_distance(o3d.core.Tensor(pts.numpy().astype(np.float32))).numpy()
     assert pts.shape[0] == int(ds.depth_mask.sum())
     assert float(np.max(dist)) < 1e-4, np.max(dist)
-    # and the points sit inside the aabb hint
+    # and the points sit inside the aabb hint, the ground (z = 0) 5% of the box's largest extent
+    # (the ground's 4 units) above the box's floor: inside the field, not on its face
     assert bool(torch.all((pts >= ds.aabb[0]) & (pts <= ds.aabb[1])))
+    lo, hi = mesh.bounds
+    assert float(ds.aabb[0, 2]) == pytest.approx(lo[2] - 0.05 * max(hi - lo), abs=1e-6)
+    torch.testing.assert_close(ds.aabb[1] - ds.aabb[0], torch.tensor(hi - lo + 0.1 * max(hi - lo), dtype=torch.float32))
 
 
 def _reference_rays_from_json(meta, views, rows, cols):

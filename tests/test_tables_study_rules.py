@@ -157,3 +157,29 @@ def test_edge_term_study_rule_by_hand(load_script):
     for label in study.ROWS:  # the means are the seeds' means of the committed per-seed scores
         for scene in ("fern", "flower"):
             assert study.seed_mean(data["rows"][label][scene])["crps"] == pytest.approx(data["means"][label][scene]["crps"])
+
+
+def test_box_padding_study_rule_by_hand(load_script):
+    """Study 32: abs-rel 0.005 lower, PSNR at most 0.1 dB lower, no wider, levels held (or no farther
+    from nominal than today's); the committed decision recomputed from the committed means, which are
+    the seeds' means."""
+    study = load_script("benchmarks/studies/box_padding_study.py")
+    today = {"psnr": 20.3, "abs_rel": 0.041, "halfwidth_median_95": 0.068, "coverage_50": 0.61,
+             "coverage_68": 0.795, "coverage_90": 0.934, "coverage_95": 0.97}
+    good = {**today, "psnr": 21.5, "abs_rel": 0.023, "halfwidth_median_95": 0.042, "coverage_50": 0.484,
+            "coverage_68": 0.645, "coverage_90": 0.857, "coverage_95": 0.936}
+    assert study.verdict(today, good) == (True, [])
+    assert study.verdict(today, {**good, "abs_rel": 0.037})[1] == [
+        "depth abs-rel 0.0410 -> 0.0370: not 0.005 lower"]
+    assert study.verdict(today, {**good, "psnr": 20.1, "halfwidth_median_95": 0.07})[1] == [
+        "PSNR 20.30 -> 20.10 dB: more than 0.1 dB lower", "median 95% half-width 6.8% -> 7.0%: wider"]
+    # 50% at 0.39 is 11 points off, farther than today's 11 points over (0.61): fails; 0.60 would not
+    assert study.verdict(today, {**good, "coverage_50": 0.385})[1] == [
+        "50% coverage 38.5: more than 5 points from nominal and further than today's"]
+    assert study.verdict(today, {**good, "coverage_50": 0.60})[0]
+    data = json.loads((REPO_ROOT / "benchmarks" / "results" / "box_padding_study" / "results.json").read_text())
+    rows, means = data["rows"], data["means"]
+    for label in study.ROWS:
+        assert study.mean_row(rows[label])["abs_rel"] == pytest.approx(means[label]["abs_rel"])
+    assert study.verdict(means[study.ROWS[0]], means[study.ROWS[1]]) == (data["taken"], data["failed"])
+    assert data["taken"] and data["seeds"] == [1, 2, 3]

@@ -16,7 +16,7 @@ from .colmap import (
     read_points3d_binary,
 )
 from .colmap_scene import load_colmap
-from .dataset import SceneDataset, fit_scene_aabb
+from .dataset import SceneDataset, fit_scene_aabb, pad_box
 from .loading import detect_format, load_dataset
 from .errors import DatasetError
 from .llff import load_llff
@@ -32,6 +32,7 @@ __all__ = [
     "detect_format",
     "find_colmap_model",
     "fit_scene_aabb",
+    "pad_box",
     "load_blender",
     "load_colmap",
     "load_dataset",

@@ -261,13 +261,26 @@ def frustum_corners(cameras: PinholeCamera, near: Tensor, far: Tensor) -> Tensor
     return cam @ c2w[:, :3, :3].transpose(1, 2) + c2w[:, None, :3, 3]
 
 
-def _robust_box(points: Tensor, percentiles: tuple[float, float], padding: float) -> Tensor:
-    """[2, 3] per-axis percentile box of points [P, 3], padded by ``padding`` x its extent."""
+def pad_box(lo: Tensor, hi: Tensor, padding: float, *, isotropic: bool = True) -> Tensor:
+    """[2, 3] box ``lo``/``hi`` [3] grown on every side by ``padding`` x the box's largest extent
+    (``isotropic``), or x each axis's own extent.
+
+    An object-centric box is the field's region, so it pads isotropically: a flat axis (a floor,
+    the embedded scene's z from the ground at 0 to 0.8) padded by its own extent leaves the floor on
+    the box's face, with no density below it, and the grid fills the space above the floor to make
+    it opaque (the ground rendered 3% of the depth in front of the truth: docs/studies.md, study
+    32)."""
+    extent = hi - lo
+    pad = extent.max() * padding if isotropic else extent * padding
+    return torch.stack([lo - pad, hi + pad])
+
+
+def _robust_box(points: Tensor, percentiles: tuple[float, float], padding: float, *, isotropic: bool) -> Tensor:
+    """[2, 3] per-axis percentile box of points [P, 3], padded (``pad_box``)."""
     p = points.double()
     q = torch.tensor([percentiles[0] / 100.0, percentiles[1] / 100.0], dtype=p.dtype)
     lo_hi = torch.quantile(p, q, dim=0)  # [2, 3]
-    pad = (lo_hi[1] - lo_hi[0]) * padding
-    return torch.stack([lo_hi[0] - pad, lo_hi[1] + pad]).float()
+    return pad_box(lo_hi[0], lo_hi[1], padding, isotropic=isotropic).float()
 
 
 def _intersect(a: Tensor, b: Tensor) -> Tensor:
@@ -295,12 +308,14 @@ def fit_scene_aabb(
       * Nothing outside the union of the frusta (between each view's near and far depth planes)
         can be seen, so the box never exceeds the AABB of the frustum corners.
       * With ``points`` (COLMAP sparse points, or surface points back-projected from depth maps):
-        the per-axis ``percentiles`` box of the points, padded by ``padding`` x its extent (so a
-        few outliers do not inflate it), intersected with the frusta box. This is the choice for
+        the per-axis ``percentiles`` box of the points (so a few outliers do not inflate it),
+        padded by ``padding`` x its largest extent on every axis (``pad_box``; forward-facing
+        scenes, whose field lives in NDC, by each axis's own extent), intersected with the frusta
+        box. This is the choice for
         forward-facing LLFF scenes, whose frusta reach far behind the content.
       * Bounded scenes without points: the AABB of the *covisible* volume, grid points of the
         frusta box that at least ``min_view_fraction`` of the views see (inside the image and
-        between near and far), padded by one grid cell plus ``padding`` x its extent. For cameras
+        between near and far), padded by one grid cell plus ``padding`` x its largest extent. For cameras
         ringed around an object this is the region around the object, not the cameras' ring.
       * Forward-facing without points: the frusta box.
 
@@ -316,7 +331,7 @@ def fit_scene_aabb(
     corners = frustum_corners(cameras, near_v, far_v).reshape(-1, 3)
     frusta_box = torch.stack([corners.min(0).values, corners.max(0).values]).float().cpu()
     if points is not None and len(points) > 0:
-        box = _robust_box(torch.as_tensor(points).float().cpu(), percentiles, padding)
+        box = _robust_box(torch.as_tensor(points).float().cpu(), percentiles, padding, isotropic=not forward_facing)
         return _intersect(frusta_box, box)
     if forward_facing:
         return frusta_box
@@ -343,8 +358,7 @@ def fit_scene_aabb(
         return frusta_box
     cell = (frusta_box[1] - frusta_box[0]) / (grid - 1)
     lo, hi = keep.min(0).values.float() - cell, keep.max(0).values.float() + cell
-    pad = (hi - lo) * padding
-    return _intersect(frusta_box, torch.stack([lo - pad, hi + pad]))
+    return _intersect(frusta_box, pad_box(lo, hi, padding))
 
 
 # ---------------------------------------------------------------------- image files

@@ -22,7 +22,7 @@ so its presence means the scene is complete):
 * ``scene.ply``: the meshes with face colours (ground-truth surface).
 * ``transforms.json``: nerfstudio layout, OpenGL camera-to-world ``transform_matrix``,
   ``fl_x/fl_y/cx/cy/w/h``, per-frame ``depth_file_path``, plus hints ``near``/``far``
-  (camera-z), ``aabb`` ([2, 3], the mesh bounds padded), ``background``, ``split_every``.
+  (camera-z), ``aabb`` ([2, 3], the mesh bounds padded by 5% of their largest extent), ``background``, ``split_every``.
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ import torch
 import trimesh
 
 from ..cameras import generate_rays, make_cameras, opencv_w2c_to_opengl_c2w
+from .dataset import pad_box
 
 #: Share of light that reaches every surface regardless of orientation.
 AMBIENT: float = 0.35
@@ -52,7 +53,7 @@ LOOK_AT: tuple[float, float, float] = (0.0, 0.0, 0.3)
 SPLIT_EVERY: int = 5
 #: Relative margin of the near/far hints around the observed depth range.
 _DEPTH_MARGIN: float = 0.1
-#: Relative padding of the aabb hint around the mesh bounds.
+#: Padding of the aabb hint around the mesh bounds, a share of their largest extent (``pad_box``).
 _AABB_PADDING: float = 0.05
 
 
@@ -236,8 +237,7 @@ def make_synthetic_scene(
     _atomic_write(out / "scene.ply", lambda p: mesh.export(p, file_type="ply"))
 
     valid = depth[depth > 0]
-    lo, hi = mesh.bounds
-    pad = (hi - lo) * _AABB_PADDING
+    box = pad_box(torch.tensor(mesh.bounds[0]), torch.tensor(mesh.bounds[1]), _AABB_PADDING)
     meta = {
         "camera_model": "OPENCV",
         "fl_x": float(K[0, 0, 0]),
@@ -248,7 +248,7 @@ def make_synthetic_scene(
         "h": height,
         "near": float(valid.min() * (1.0 - _DEPTH_MARGIN)),
         "far": float(valid.max() * (1.0 + _DEPTH_MARGIN)),
-        "aabb": [(lo - pad).tolist(), (hi + pad).tolist()],
+        "aabb": box.tolist(),
         "background": list(BACKGROUND),
         "split_every": SPLIT_EVERY,
         "seed": seed,
