@@ -5,6 +5,7 @@ that trains and renders with it."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -271,10 +272,14 @@ def test_observation_noise_per_draw_dense_packed_and_rendered_agree(dataset):
     with torch.no_grad():
         for level in model.field.levels:
             level[:, -1].uniform_(-1.0, 1.0, generator=torch.Generator().manual_seed(7))
-    rays = dataset.rays(dataset.train_indices[0])[5:9, 5:9].flatten()
+    rays = dataset.rays(dataset.train_indices[0])[22:26, 30:34].flatten()  # the image centre: the solids
+    # colours by draws: the pixel's variance given its trajectory is then the observation noise alone
+    # (the Rao-Blackwellised estimator adds sum_i w_ik^2 Var[r_i] to it)
+    by_draws = dataclasses.replace(model.render_settings, colour_estimator="draws")
     with torch.no_grad():
-        dense = render_rays(model.field, rays, model.render_settings, num_draws=4,
-                            generator=torch.Generator().manual_seed(8))
+        dense = render_rays(model.field, rays, by_draws, num_draws=4, generator=torch.Generator().manual_seed(8))
+        acc = dense.extras["weights"].sum(-1)  # [R, K]: most trajectories hold mass, so v is not trivially 0
+        assert float((acc > 0.05).float().mean()) > 0.5
         v = observation_noise_per_draw(dense)
         torch.testing.assert_close(v, dense.stats.colour_noise_var_draws)  # predictive render composites it
         from stochastic_fields.renderer import pack_samples, render_samples_packed
