@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -38,6 +37,7 @@ import trimesh
 from stochastic_fields.data.synthetic import make_synthetic_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared report helpers
+from study_helpers import train_and_eval  # noqa: E402
 from tables_cap_study import verdict_lines, write_study  # noqa: E402
 
 SEEDS = (1, 2, 3)
@@ -48,7 +48,6 @@ MIN_ABS_REL_GAIN = 0.005
 MAX_PSNR_LOSS_DB = 0.1
 COVERAGE_TOLERANCE = 0.05
 RULE_LEVELS = (0.50, 0.68, 0.90, 0.95)
-CLI = [sys.executable, "-m", "stochastic_fields.cli"]
 
 
 def padded_box(lo: np.ndarray, hi: np.ndarray, isotropic: bool) -> list[list[float]]:
@@ -82,14 +81,7 @@ def write_scenes(work: Path, seed: int) -> dict[str, Path]:
 
 def run_row(scene: Path, run: Path, seed: int) -> dict:
     """Train (demo preset) and score one row; the pooled metrics it needs."""
-    metrics = run / "eval" / "metrics.json"
-    if not metrics.is_file():
-        env = {**os.environ, "OMP_NUM_THREADS": "1"}
-        subprocess.run([*CLI, "train", "--preset", "demo", "--data.path", str(scene), "--train.seed", str(seed),
-                        "--out", str(run), "--quiet"], check=True, env=env, stdout=subprocess.DEVNULL)
-        subprocess.run([*CLI, "eval", "--run", str(run), "--no-products", "--quiet", "--out", str(run / "eval")],
-                       check=True, env=env, stdout=subprocess.DEVNULL)
-    m = json.loads(metrics.read_text())
+    m = train_and_eval(scene, run, seed)
     intervals, depth = m["pooled"]["depth_intervals"], m["pooled"]["depth"]
     return {"psnr": m["summary"]["psnr"]["mean"], "abs_rel": depth["abs_rel"], "spearman": depth["spearman"],
             **{f"coverage_{round(100 * p)}": intervals[f"coverage_{round(100 * p)}"] for p in (*RULE_LEVELS, 0.99)},

@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -33,9 +32,9 @@ from stochastic_fields.data.synthetic import make_synthetic_scene
 from stochastic_fields.trainer import load_trained_model
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared report helpers
+from study_helpers import train_and_eval  # noqa: E402
 from tables_cap_study import write_study  # noqa: E402
 
-CLI = [sys.executable, "-m", "stochastic_fields.cli"]
 #: Ground pixels: true surface within this height of z = 0 (the ground plane), in the scene's units / scale.
 GROUND_HEIGHT = 1e-3
 #: Rays per view through the solids whose density profile is read (seeded).
@@ -67,14 +66,7 @@ def scaled_scene(base: Path, out: Path, scale: float) -> Path:
 
 
 def train_and_score(scene: Path, run: Path, seed: int) -> dict:
-    metrics = run / "eval" / "metrics.json"
-    if not metrics.is_file():
-        env = {**os.environ, "OMP_NUM_THREADS": "1"}
-        subprocess.run([*CLI, "train", "--preset", "demo", "--data.path", str(scene), "--train.seed", str(seed),
-                        "--out", str(run), "--quiet"], check=True, env=env, stdout=subprocess.DEVNULL)
-        subprocess.run([*CLI, "eval", "--run", str(run), "--quiet", "--out", str(run / "eval")],
-                       check=True, env=env, stdout=subprocess.DEVNULL)
-    m = json.loads(metrics.read_text())
+    m = train_and_eval(scene, run, seed, products=True)  # the views' npz files: the signed errors read them
     intervals = m["pooled"]["depth_intervals"]
     return {"psnr": m["summary"]["psnr"]["mean"], "abs_rel": m["pooled"]["depth"]["abs_rel"],
             "coverage": [intervals[f"coverage_{c}"] for c in (50, 68, 90, 95, 99)],
