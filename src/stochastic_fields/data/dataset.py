@@ -311,12 +311,12 @@ def fit_scene_aabb(
         the per-axis ``percentiles`` box of the points (so a few outliers do not inflate it),
         padded by ``padding`` x its largest extent on every axis (``pad_box``; forward-facing
         scenes, whose field lives in NDC, by each axis's own extent), intersected with the frusta
-        box. This is the choice for
-        forward-facing LLFF scenes, whose frusta reach far behind the content.
+        box. This is the choice for forward-facing LLFF scenes, whose frusta reach far behind the
+        content.
       * Bounded scenes without points: the AABB of the *covisible* volume, grid points of the
         frusta box that at least ``min_view_fraction`` of the views see (inside the image and
-        between near and far), padded by one grid cell plus ``padding`` x its largest extent. For cameras
-        ringed around an object this is the region around the object, not the cameras' ring.
+        between near and far), padded by one grid cell plus ``padding`` x its largest extent. For
+        cameras ringed around an object this is the region around the object, not the cameras' ring.
       * Forward-facing without points: the frusta box.
 
     Shapes: near/far floats or [V]; points [P, 3].
