@@ -138,3 +138,20 @@ def test_free_path_benchmark_rule_by_hand(load_script):
     assert "mean ECE falls only" in bench.decide(results)
     del results["runs"]["paper/flower"]["pooled"]["free-path (recalibrated)"]
     assert bench.decide(results).startswith("undecided")
+
+
+def test_calibrate_on_a_baseline_run_skips_free_paths(tmp_path, tiny_scene, capsys):
+    """A deep ensemble's run: `calibrate` fits its depth map and says why free paths are not
+    recalibrated (they integrate S-NeRF's random density), instead of failing on the model."""
+    from stochastic_fields.cli import main
+    from test_inspect import _train_tiny
+
+    run = _train_tiny(tmp_path / "ens", tiny_scene, method="ensemble", iterations=3)
+    main(["calibrate", "--run", str(run)])
+    out = capsys.readouterr().out
+    assert (run / "calibration.json").is_file() and not (run / FREE_PATH_CALIBRATION_FILE).exists()
+    assert "free-path not recalibrated" in out and "DeepEnsemble" in out and str(run) in out
+    queries = tmp_path / "q.json"
+    queries.write_text(json.dumps({"segments": [[[0, 0, 0], [0, 0, 1]]]}))
+    assert main(["free-path", "--run", str(run), "--queries", str(queries)]) == 2
+    assert "need an S-NeRF run" in capsys.readouterr().err

@@ -138,7 +138,7 @@ def _calibrate_after_training(run_dir: Path, model, dataset, *, progress: bool =
         print(f"uncertainty not recalibrated: {exc}")
         return None
     print(f"uncertainty recalibrated ({run_dir / 'calibration.json'}): {describe(calibration)}")
-    if FREE_PATH_RECALIBRATION and calibration.depth is not None and hasattr(model, "field"):
+    if FREE_PATH_RECALIBRATION and calibration.depth is not None:
         from .products.free_path_calibration import describe_free_path_calibration, fit_free_path_calibration
 
         try:

@@ -82,6 +82,10 @@ def run(args) -> None:
         from ..trainer import load_trained_model
 
         _, model, dataset = load_trained_model(Path(args.run), device=args.device)
-        cal = fit_free_path_calibration(args.run, model, dataset, seed=args.seed)
-        print(f"free-path recalibrated ({Path(args.run) / 'free_path_calibration.json'}): "
-              f"{describe_free_path_calibration(cal)}")
+        try:
+            cal = fit_free_path_calibration(args.run, model, dataset, seed=args.seed)
+        except ValueError as exc:  # a baseline's run: its depth map is calibrated, free paths are not its product
+            print(f"free-path not recalibrated: {exc}")
+        else:
+            print(f"free-path recalibrated ({Path(args.run) / 'free_path_calibration.json'}): "
+                  f"{describe_free_path_calibration(cal)}")

@@ -43,7 +43,7 @@ from ..calibration import calibration_view_points
 from ..capture_points import load_capture_points, rays_through_points, restrict_sparse_depth
 from ..io_utils import atomic_write_text, read_json
 from .free_path import (FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, FloatField, default_step,
-                        segment_free_probability)
+                        require_stochastic_field, segment_free_probability)
 
 #: File the map is stored in, in the run folder.
 FREE_PATH_CALIBRATION_FILE: str = "free_path_calibration.json"
@@ -183,7 +183,9 @@ def subsample_points(sparse: dict, limit: int, seed: int) -> dict:
 
 
 def fit_free_path_calibration(run_dir: str | Path, model, dataset, *, seed: int = 0) -> FreePathCalibration:
-    """Fit the map of a trained S-NeRF run (module doc) and write ``RUN/free_path_calibration.json``."""
+    """Fit the map of a trained S-NeRF run (module doc) and write ``RUN/free_path_calibration.json``.
+    ValueError for a run of another method (``free_path.require_stochastic_field``)."""
+    require_stochastic_field(model, run_dir)
     step = default_step(model, dataset)  # the step free-path answers with
     prob, outcome, source = calibration_events(model, dataset, step=step, seed=seed)
     cal = FreePathCalibration.fit(prob, outcome, level=FREE_TRANSMITTANCE_LEVEL, margins=FREE_PATH_CALIBRATION_MARGINS,

@@ -20,7 +20,7 @@ import torch
 
 from ..io_utils import atomic_write_text, read_json
 from .free_path import (FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, FloatField, default_step,
-                        path_free_probability, segment_free_probability)
+                        require_stochastic_field, path_free_probability, segment_free_probability)
 from .free_path_calibration import applies, describe_free_path_calibration, load_free_path_calibration
 from ..trainer import load_trained_model
 
@@ -55,8 +55,7 @@ def run(args: argparse.Namespace) -> None:
     if args.num_draws < 1:
         raise ValueError(f"--num-draws must be >= 1, got {args.num_draws}")
     _, model, dataset = load_trained_model(Path(args.run), device=args.device)
-    if not hasattr(model, "field") or not hasattr(model, "region"):
-        raise ValueError(f"{args.run}: free-path needs an S-NeRF run (a stochastic field)")
+    require_stochastic_field(model, args.run)
     device = model.region.box.device
     step = default_step(model, dataset) if args.step is None else args.step
     shared = model.render_settings.shared_noise if args.shared_noise == "run" else args.shared_noise == "true"
