@@ -73,9 +73,9 @@ def train_and_score(scene: Path, run: Path, seed: int) -> dict:
             "halfwidth_median_95": intervals["halfwidth_median_95"], "spearman": m["pooled"]["depth"]["spearman"]}
 
 
-def signed_errors(run: Path, scale: float) -> dict:
-    """Median relative signed error (rendered - true) on the ground and on the solids, test views."""
-    cfg, model, ds = load_trained_model(run)
+def signed_errors(run: Path, ds, scale: float) -> dict:
+    """Median relative signed error (rendered - true) on the ground and on the solids, test views
+    of the run's dataset ``ds``."""
     out = {"ground": [], "solids": []}
     for v in ds.test_indices:
         npz = np.load(run / "eval" / "views" / f"view_{v:03d}.npz")
@@ -90,10 +90,9 @@ def signed_errors(run: Path, scale: float) -> dict:
     return {k: float(np.median(np.concatenate(v))) for k, v in out.items()}
 
 
-def peak_density(run: Path, scale: float, seed: int) -> dict:
+def peak_density(model, ds, scale: float, seed: int) -> dict:
     """Median over rays through the solids of the peak of relu(mu) within PROFILE_HALF_LENGTH x scale
     of the true depth: per unit of length and per finest cell (times the cell's mean side)."""
-    cfg, model, ds = load_trained_model(run)
     rng = np.random.default_rng(seed)
     peaks = []
     for v in ds.test_indices[:5]:
@@ -131,8 +130,9 @@ def main() -> None:
         scores = list(pool.map(lambda j: train_and_score(j[2], j[3], j[0]), jobs))
     rows = []
     for (seed, scale, _, run), s in zip(jobs, scores):
-        rows.append({"seed": seed, "scale": scale, **s, "median_signed": signed_errors(run, scale),
-                     "peak_density": peak_density(run, scale, seed)})
+        _, model, ds = load_trained_model(run)  # once per row: both readings use it
+        rows.append({"seed": seed, "scale": scale, **s, "median_signed": signed_errors(run, ds, scale),
+                     "peak_density": peak_density(model, ds, scale, seed)})
     lines = ["# Analysis: the scene's unit of length", "",
              "The embedded scene (seeds " + ", ".join(map(str, args.seeds)) + ") with every length multiplied by a "
              "factor, S-NeRF with the demo preset, scored on the 30 test views. Command: the module docstring of "

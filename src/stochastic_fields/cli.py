@@ -139,15 +139,9 @@ def _calibrate_after_training(run_dir: Path, model, dataset, *, progress: bool =
         return None
     print(f"uncertainty recalibrated ({run_dir / 'calibration.json'}): {describe(calibration)}")
     if FREE_PATH_RECALIBRATION and calibration.depth is not None:
-        from .products.free_path_calibration import describe_free_path_calibration, fit_free_path_calibration
+        from .products.free_path_calibration import recalibrate_free_path  # deferred: loads only when used
 
-        try:
-            cal = fit_free_path_calibration(run_dir, model, dataset)
-        except ValueError as exc:
-            print(f"free-path not recalibrated: {exc}")
-        else:
-            print(f"free-path recalibrated ({run_dir / 'free_path_calibration.json'}): "
-                  f"{describe_free_path_calibration(cal)}")
+        recalibrate_free_path(run_dir, model, dataset)
     return calibration
 
 

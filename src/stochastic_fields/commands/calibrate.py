@@ -78,14 +78,8 @@ def run(args) -> None:
     if args.free_path:
         from pathlib import Path
 
-        from ..products.free_path_calibration import describe_free_path_calibration, fit_free_path_calibration
+        from ..products.free_path_calibration import recalibrate_free_path
         from ..trainer import load_trained_model
 
         _, model, dataset = load_trained_model(Path(args.run), device=args.device)
-        try:
-            cal = fit_free_path_calibration(args.run, model, dataset, seed=args.seed)
-        except ValueError as exc:  # a baseline's run: its depth map is calibrated, free paths are not its product
-            print(f"free-path not recalibrated: {exc}")
-        else:
-            print(f"free-path recalibrated ({Path(args.run) / 'free_path_calibration.json'}): "
-                  f"{describe_free_path_calibration(cal)}")
+        recalibrate_free_path(args.run, model, dataset, seed=args.seed)

@@ -79,7 +79,8 @@ class RadianceModel(nn.Module, abc.ABC):
                        generator: torch.Generator | None = None) -> Tensor:
         """``loss + lambda_smoothness * sum over density_fields() of L_smooth`` of ``patches``
         [P, h, w] (``stochastic_fields.depth_smoothness``: dense stratified samples drawn with
-        ``generator``, without empty-space skipping as the sparse-depth term, the expected density, the expected normalised depth per ray); ``loss``
+        ``generator``, without empty-space skipping as the sparse-depth term, the expected density,
+        the expected normalised depth per ray); ``loss``
         unchanged at weight 0 or without patches. Logs ``smoothness``, the mean over fields."""
         cfg = self.loss_config
         if patches is None or cfg.lambda_smoothness <= 0:

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -120,14 +119,6 @@ class FloatField:
 
     def density_params(self, points: Tensor):
         return self.field.density_params(points.float())
-
-
-def require_stochastic_field(model, run: str | Path) -> None:
-    """ValueError naming ``run`` unless its model is an S-NeRF run (a stochastic field and its
-    region): free paths integrate the field's random density; the baselines have none to ask."""
-    if not hasattr(model, "field") or not hasattr(model, "region"):
-        raise ValueError(f"{run}: free-path answers need an S-NeRF run (a stochastic field); "
-                         f"this one is {type(model).__name__}")
 
 
 def default_step(model, dataset) -> float:

@@ -43,7 +43,8 @@ from ..calibration import calibration_view_points
 from ..capture_points import load_capture_points, rays_through_points, restrict_sparse_depth
 from ..io_utils import atomic_write_text, read_json
 from .free_path import (FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, FloatField, default_step,
-                        require_stochastic_field, segment_free_probability)
+                        segment_free_probability)
+from .occupancy_map import require_stochastic_field
 
 #: File the map is stored in, in the run folder.
 FREE_PATH_CALIBRATION_FILE: str = "free_path_calibration.json"
@@ -184,13 +185,26 @@ def subsample_points(sparse: dict, limit: int, seed: int) -> dict:
 
 def fit_free_path_calibration(run_dir: str | Path, model, dataset, *, seed: int = 0) -> FreePathCalibration:
     """Fit the map of a trained S-NeRF run (module doc) and write ``RUN/free_path_calibration.json``.
-    ValueError for a run of another method (``free_path.require_stochastic_field``)."""
-    require_stochastic_field(model, run_dir)
+    ValueError for a run of another method (``occupancy_map.require_stochastic_field``)."""
+    require_stochastic_field(model, run_dir, "free-path answers")
     step = default_step(model, dataset)  # the step free-path answers with
     prob, outcome, source = calibration_events(model, dataset, step=step, seed=seed)
     cal = FreePathCalibration.fit(prob, outcome, level=FREE_TRANSMITTANCE_LEVEL, margins=FREE_PATH_CALIBRATION_MARGINS,
                                   num_draws=FREE_PATH_NUM_DRAWS, step=step, source=source)
     atomic_write_text(Path(run_dir) / FREE_PATH_CALIBRATION_FILE, json.dumps(cal.to_dict(), indent=2))
+    return cal
+
+
+def recalibrate_free_path(run_dir: str | Path, model, dataset, *, seed: int = 0) -> FreePathCalibration | None:
+    """``fit_free_path_calibration`` with one printed line either way: the map fitted, or why not
+    (a baseline's run, too few held-out points). The map, or None."""
+    try:
+        cal = fit_free_path_calibration(run_dir, model, dataset, seed=seed)
+    except ValueError as exc:
+        print(f"free-path not recalibrated: {exc}")
+        return None
+    print(f"free-path recalibrated ({Path(run_dir) / FREE_PATH_CALIBRATION_FILE}): "
+          f"{describe_free_path_calibration(cal)}")
     return cal
 
 

@@ -20,8 +20,9 @@ import torch
 
 from ..io_utils import atomic_write_text, read_json
 from .free_path import (FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL, FloatField, default_step,
-                        require_stochastic_field, path_free_probability, segment_free_probability)
+                        path_free_probability, segment_free_probability)
 from .free_path_calibration import applies, describe_free_path_calibration, load_free_path_calibration
+from .occupancy_map import require_stochastic_field
 from ..trainer import load_trained_model
 
 
@@ -55,7 +56,7 @@ def run(args: argparse.Namespace) -> None:
     if args.num_draws < 1:
         raise ValueError(f"--num-draws must be >= 1, got {args.num_draws}")
     _, model, dataset = load_trained_model(Path(args.run), device=args.device)
-    require_stochastic_field(model, args.run)
+    require_stochastic_field(model, args.run, "free-path answers")
     device = model.region.box.device
     step = default_step(model, dataset) if args.step is None else args.step
     shared = model.render_settings.shared_noise if args.shared_noise == "run" else args.shared_noise == "true"

@@ -272,6 +272,15 @@ def occupancy_metadata(occ: OccupancyMap) -> dict:
             "min_probability": occ.min_probability, "units": occ.units, "metres_per_unit": occ.metres_per_unit}
 
 
+def require_stochastic_field(model, run: str | Path, product: str) -> None:
+    """ValueError naming ``run`` and its model unless it is an S-NeRF run (a stochastic field and its
+    region): ``product`` (occupancy maps, free-path answers) integrate the field's random density,
+    which the baselines do not have."""
+    if not hasattr(model, "region") or not hasattr(model, "field"):
+        raise ValueError(f"{run}: {product} need an S-NeRF run (a stochastic field and its region); "
+                         f"this one is {type(model).__name__}")
+
+
 def run_voxel_size(model, dataset, *, pixels_per_voxel: float = OCCUPANCY_PIXELS_PER_VOXEL,
                    max_cells: int = OCCUPANCY_MAX_CELLS) -> float:
     """The voxel size of a run's occupancy map when none is given: ``footprint_voxel_size`` of the
@@ -291,8 +300,7 @@ def occupancy_from_run(run_dir: str | Path, out: str | Path, *, voxel_size: floa
     """``stochastic-fields occupancy``: the occupancy map of a trained run into folder ``out``
     (``occupancy.npz``, ``occupancy.ot``, ``occupancy.json``). Returns the metadata."""
     _, model, dataset = load_trained_model(Path(run_dir), device=device)
-    if not hasattr(model, "region") or not hasattr(model, "field"):
-        raise ValueError(f"{run_dir}: occupancy needs an S-NeRF run (a stochastic field and its region)")
+    require_stochastic_field(model, run_dir, "occupancy maps")
     if voxel_size is None:
         voxel_size = run_voxel_size(model, dataset, pixels_per_voxel=pixels_per_voxel, max_cells=max_cells)
     occ = occupancy_map(model.field, model.region, voxel_size, blocked_opacity=blocked_opacity,
