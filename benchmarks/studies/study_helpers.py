@@ -185,15 +185,17 @@ def by_scene(runs: dict[str, dict]) -> dict[str, list[dict]]:
     return out
 
 
-def train_and_eval(scene: Path, run: Path, seed: int, *, preset: str = "demo", products: bool = False) -> dict:
-    """A run of ``preset`` on the scene folder ``scene`` (training seed ``seed``, one thread), scored
+def train_and_eval(scene: Path, run: Path, seed: int, *, preset: str = "demo", products: bool = False,
+                   options: tuple[str, ...] = ()) -> dict:
+    """A run of ``preset`` on the scene folder ``scene`` (training seed ``seed``, one thread, the
+    command-line ``options`` after the preset, e.g. ``("--field.density_per", "cell")``), scored
     on its test views by ``stochastic-fields eval`` into ``run``/eval (with the views' npz files when
     ``products``); its ``metrics.json``. Resumable: a run whose metrics exist is read, not re-run."""
     metrics = run / "eval" / "metrics.json"
     if not metrics.is_file():
         cli, env = [sys.executable, "-m", "stochastic_fields.cli"], {**os.environ, "OMP_NUM_THREADS": "1"}
         subprocess.run([*cli, "train", "--preset", preset, "--data.path", str(scene), "--train.seed", str(seed),
-                        "--out", str(run), "--quiet"], check=True, env=env, stdout=subprocess.DEVNULL)
+                        *options, "--out", str(run), "--quiet"], check=True, env=env, stdout=subprocess.DEVNULL)
         subprocess.run([*cli, "eval", "--run", str(run), *([] if products else ["--no-products"]), "--quiet",
                         "--out", str(run / "eval")], check=True, env=env, stdout=subprocess.DEVNULL)
     return json.loads(metrics.read_text())

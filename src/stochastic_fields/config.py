@@ -78,6 +78,8 @@ class FieldConfig:
     """Hidden width of the colour decoder (0: colours stored directly, view-independent). Range: an integer >= 0 and <= 8192."""
     grid_init_density_loc: float = -1.0
     """Initial mean of the pre-ReLU density everywhere. Range: a finite number."""
+    density_per: Literal["unit", "cell"] = "unit"
+    """What the grid's density is counted per: 'unit' (per unit of the capture's length: the same photos in other units train differently, docs/design.md) or 'cell' (optical depth per finest cell: the field outputs relu(g) / L with L the finest cell's side, SceneRegion.cell_length, and the KL priors scale with it, so training does not depend on the unit; grid backend only)."""
     grid_coarse_to_fine: float = 0.0
     """Share of training over which the finer grid levels fade in, coarsest first (0: all from the start; a few-view regulariser). Range: a finite number >= 0 and <= 1."""
 
@@ -176,6 +178,7 @@ FIELD_CHECKS: dict[str, V.Checker] = {
     "grid_feature_dim": V.integer(1, 1024),
     "grid_decoder_width": V.integer(0, 8192),
     "grid_init_density_loc": V.real(),
+    "density_per": V.choice("unit", "cell"),
     "grid_coarse_to_fine": V.real(0.0, 1.0),
 }
 TRAIN_CHECKS: dict[str, V.Checker] = {
@@ -219,6 +222,9 @@ def validate_experiment(cfg: "ExperimentConfig") -> None:
     if cfg.method == "snerf" and cfg.render.quadrature == "trapezoid" and cfg.render.skip_empty_space:
         raise V.ConfigError("render.skip_empty_space", "false with render.quadrature='trapezoid' (empty-space "
                             "skipping needs alpha compositing)", cfg.render.skip_empty_space)
+    if cfg.field.density_per == "cell" and cfg.field.backend != "grid":
+        raise V.ConfigError("field.density_per", "'unit' with field.backend='mlp' (an MLP has no cells)",
+                            cfg.field.density_per)
     if cfg.field.grid_coarse_to_fine > 0 and cfg.field.backend != "grid":
         raise V.ConfigError("field.grid_coarse_to_fine", "0 with field.backend='mlp' (it fades in grid levels)",
                             cfg.field.grid_coarse_to_fine)

@@ -96,6 +96,26 @@ class SceneRegion(nn.Module):
         unit = (idx + jitter) / n * 2.0 - 1.0
         return self.from_unit(unit)
 
+    def cell_length(self, resolution: tuple[int, int, int]) -> float:
+        """World length of one cell of an (X, Y, Z) = ``resolution`` grid over the unit cube, at
+        the region's centre: the geometric mean of its three edges,
+
+            L = (prod_i |d from_unit / d u_i|(0) * 2 / res_i)^(1/3)
+
+        (a box: L = (prod_i (hi_i - lo_i) / res_i)^(1/3); NDC: the cell at the centre of the
+        fitted NDC box, whose edges grow with depth). Scales with the scene's unit of length, so
+        a density counted per L (``field.density_per='cell'``) does not depend on it. The
+        derivatives are central differences in float64 (exact for a box)."""
+        if len(resolution) != 3 or any(int(r) < 1 for r in resolution):
+            raise ValueError(f"resolution must be three positive integers, got {resolution!r}")
+        h = 1e-3
+        probe = torch.zeros(6, 3, dtype=torch.float64, device=self.box.device)
+        for axis in range(3):
+            probe[2 * axis, axis], probe[2 * axis + 1, axis] = h, -h
+        world = self.from_unit(probe)  # the buffers follow the probe's dtype
+        edges = [(world[2 * a] - world[2 * a + 1]).norm() / (2 * h) * 2.0 / int(resolution[a]) for a in range(3)]
+        return float(torch.stack(edges).log().mean().exp())
+
     def extra_repr(self) -> str:
         return f"kind={self.kind}, box={self.box.tolist()}"
 

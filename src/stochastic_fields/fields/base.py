@@ -102,6 +102,11 @@ class StochasticField(nn.Module, abc.ABC):
     def forward(self, positions: Tensor, directions: Tensor) -> FieldParams:  # pragma: no cover
         ...
 
+    def density_unit_factor(self) -> float:
+        """k: the world density per unit of the field's own density parameter (1 unless a grid
+        counts density per cell, ``GridField``); priors on the density scale with it."""
+        return 1.0
+
     def density_params(self, positions: Tensor) -> tuple[Tensor, Tensor]:
         """(density_loc, density_scale) at ``positions`` [*B, 3]; used by occupancy updates.
 

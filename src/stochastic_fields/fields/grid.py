@@ -7,6 +7,7 @@ trilinear interpolation of every level is summed:
 
     g(x) = sum_l sum_{8 corners j} w_j(u) G_l[idx_j(u)]      u = SceneRegion.to_unit(x)
     mu_a, raw_s_a = g_0(x), g_1(x)                           (density read straight from the grid)
+    or, with a density unit k: mu_a = k g_0(x), s_a = k positive_scale(g_1(x))
     mu_c, raw_s_c = decoder([g_2..(x), PE(d)])               (view-dependent colour, 2-layer MLP)
     or, with ``decoder_width=0``: mu_c, raw_s_c = g_2..7(x)  (view-independent, no MLP)
     with ``noise_head``: beta(x) = softplus(g_last(x))      (observation-noise std, one more channel)
@@ -16,6 +17,13 @@ may carry a weight a_l in [0, 1], g(x) = sum_l a_l g_l(x), set by the trainer fr
 progress (``coarse_to_fine_weights``): the coarse level alone first, the finer ones fading in, so
 the early geometry is the smooth one that explains all views. A level of weight 0 is not read.
 A loaded model reads every level at weight 1.
+
+Density unit (``field.density_per``): the grid's values count density per unit of world length
+(k = 1) or per finest cell (k = 1 / L, L = ``SceneRegion.cell_length`` of the finest level): the
+rectified normal relu(N(mu, s^2)) scales with k (relu(k y) = k relu(y)), so with k = 1 / L the grid
+value relu(g_0) is the optical depth per finest cell whatever the scene's unit, and the same photos
+in metres or millimetres train the same cells. ``density_unit`` is a buffer: a saved model renders
+with the unit it was trained with (checkpoints from before it: 1).
 
 The corners are gathered with ``row_gather.gather_rows``, so a training step touches only the
 cells its samples fall in: their gradients are summed per row (``RowGradient``) and the grid is
@@ -77,8 +85,13 @@ def level_resolutions(finest: tuple[int, int, int], num_levels: int) -> list[tup
 class GridField(StochasticField):
     def __init__(self, region: SceneRegion, resolution: tuple[int, int, int], *, num_levels: int = 3,
                  feature_dim: int = 8, decoder_width: int = 32, direction_frequencies: int = 2,
-                 init_density_loc: float = -1.0, init_std: float = 1.0, noise_head: bool = False):
+                 init_density_loc: float = -1.0, init_std: float = 1.0, noise_head: bool = False,
+                 density_unit: float = 1.0):
         super().__init__()
+        if not (math.isfinite(density_unit) and density_unit > 0):
+            raise ValueError(f"density_unit must be a finite number > 0, got {density_unit}")
+        #: k: world density = k * grid density (1: per unit of length; 1 / cell length: per cell)
+        self.register_buffer("density_unit", torch.tensor(float(density_unit)))
         self.region = region
         self.resolution = tuple(int(r) for r in resolution)
         self.decoder_width = decoder_width
@@ -113,6 +126,9 @@ class GridField(StochasticField):
             with torch.no_grad():
                 self.decoder[-1].bias[3:] = raw_std
 
+    def density_unit_factor(self) -> float:
+        return float(self.density_unit)
+
     def set_level_weights(self, weights: list[float] | None) -> None:
         """Weights a_l of the levels in g(x) = sum_l a_l g_l(x) (None: all 1)."""
         if weights is not None:
@@ -145,6 +161,8 @@ class GridField(StochasticField):
         return total + off.to(total)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # checkpoints from before the density unit counted density per unit of length
+        state_dict.setdefault(f"{prefix}density_unit", torch.tensor(1.0))
         # checkpoints from before the channels-last layout stored levels as [1, C, Z, Y, X]
         for i in range(len(self.levels)):
             key = f"{prefix}levels.{i}"
@@ -169,7 +187,8 @@ class GridField(StochasticField):
 
         ``hidden_transform`` (e.g. dropout) is applied to the decoder's hidden layer."""
         outside = ~(unit.abs() <= 1.0).all(-1)
-        density_loc = torch.where(outside, torch.full_like(values[:, 0], OUTSIDE_DENSITY_LOC), values[:, 0])
+        k = self.density_unit.to(values)
+        density_loc = torch.where(outside, torch.full_like(values[:, 0], OUTSIDE_DENSITY_LOC), k * values[:, 0])
         if self.decoder_width > 0:
             d = self.dir_enc(directions.reshape(-1, 3))
             hidden = torch.relu(self.decoder[0](torch.cat([values[:, self.colour_channels], d], dim=-1)))
@@ -180,7 +199,7 @@ class GridField(StochasticField):
             col = values[:, 2:8]
         return FieldParams(
             density_loc=density_loc.reshape(batch),
-            density_scale=positive_scale(values[:, 1]).reshape(batch),
+            density_scale=(k * positive_scale(values[:, 1])).reshape(batch),
             rgb_loc=col[:, :3].reshape(*batch, 3),
             rgb_scale=positive_scale(col[:, 3:]).reshape(*batch, 3),
             noise_scale=F.softplus(values[:, -1]).reshape(batch) if self.noise_head else None,
@@ -190,8 +209,9 @@ class GridField(StochasticField):
         unit = self.region.to_unit(positions.reshape(-1, 3))
         values = self._interpolate(unit, slice(0, 2))
         outside = ~(unit.abs() <= 1.0).all(-1)
-        loc = torch.where(outside, torch.full_like(values[:, 0], OUTSIDE_DENSITY_LOC), values[:, 0])
-        return loc.reshape(positions.shape[:-1]), positive_scale(values[:, 1]).reshape(positions.shape[:-1])
+        k = self.density_unit.to(values)
+        loc = torch.where(outside, torch.full_like(values[:, 0], OUTSIDE_DENSITY_LOC), k * values[:, 0])
+        return loc.reshape(positions.shape[:-1]), (k * positive_scale(values[:, 1])).reshape(positions.shape[:-1])
 
     def total_variation(self, num_cells: int = 4096, generator: torch.Generator | None = None) -> Tensor:
         """Mean squared difference between neighbouring cells, on a random subset of cells of

@@ -206,15 +206,16 @@ class SNeRF(RadianceModel):
         if noise_var is not None:
             logs["noise_head_rms"] = noise_var.detach().mean().sqrt().item()
         kl_parts = []  # (log name, weight, params, prior): every KL term of the loss, evaluated in one batch
+        unit = self.field.density_unit_factor()  # the priors are on the field's own density parameters
         if use_random_kl:
-            kl_parts.append(("kl_random", cfg.lambda_random, params_all.map(lambda t: t[n_ray:]), self.priors.random()))
+            kl_parts.append(("kl_random", cfg.lambda_random, params_all.map(lambda t: t[n_ray:]), self.priors.random(unit)))
         if cfg.kl == "full":
             obs = out.params.map(lambda t: t.reshape(-1, *t.shape[out.params.density_loc.dim():]))
             n_obs = cfg.observed_kl_samples
             if 0 < n_obs < obs.density_loc.shape[0]:
                 pick = torch.randperm(obs.density_loc.shape[0], generator=generator, device=obs.density_loc.device)[:n_obs]
                 obs = obs.map(lambda t: t[pick])
-            kl_parts.append(("kl_observed", cfg.lambda_observed, obs, self.priors.observed()))
+            kl_parts.append(("kl_observed", cfg.lambda_observed, obs, self.priors.observed(unit)))
         elif cfg.kl not in ("none", "fixed_prior"):
             raise ValueError(f"loss.kl must be 'none', 'fixed_prior' or 'full', got {cfg.kl!r}")
         kls = field_kl_means([(p, prior) for _, _, p, prior in kl_parts], estimator=cfg.kl_estimator,
