@@ -183,3 +183,24 @@ def test_box_padding_study_rule_by_hand(load_script):
         assert study.mean_row(rows[label])["abs_rel"] == pytest.approx(means[label]["abs_rel"])
     assert study.verdict(means[study.ROWS[0]], means[study.ROWS[1]]) == (data["taken"], data["failed"])
     assert data["taken"] and data["seeds"] == [1, 2, 3]
+
+
+def test_density_unit_study_rule_by_hand(load_script):
+    """Study 33: embedded stage no more than 0.1 dB lower, abs-rel not higher, no wider, levels held;
+    capture stage per scene 0.15 dB, +0.003 abs-rel, +1 point of band, levels held."""
+    study = load_script("benchmarks/studies/density_unit_study.py")
+    today = {"psnr": 21.5, "abs_rel": 0.023, "halfwidth_median_95": 0.042, "coverage_50": 0.48,
+             "coverage_68": 0.65, "coverage_90": 0.86, "coverage_95": 0.94}
+    good = {**today, "psnr": 22.8, "abs_rel": 0.015, "halfwidth_median_95": 0.036}
+    assert study.embedded_verdict(today, good) == (True, [])
+    assert study.embedded_verdict(today, {**good, "psnr": 21.35, "abs_rel": 0.0231})[1] == [
+        "PSNR 21.50 -> 21.35 dB: more than 0.1 dB lower", "depth abs-rel 0.0230 -> 0.0231: higher"]
+    assert study.embedded_verdict(today, {**good, "halfwidth_median_95": 0.043, "coverage_95": 0.89})[1] == [
+        "median 95% half-width 4.2% -> 4.3%: wider",
+        "95% coverage 89.0: more than 5 points from nominal and further than today's"]
+    assert study.capture_verdict(today, {**today, "psnr": 21.36, "abs_rel": 0.0259, "halfwidth_median_95": 0.051},
+                                 "fern") == []
+    assert study.capture_verdict(today, {**today, "psnr": 21.34, "abs_rel": 0.0261, "halfwidth_median_95": 0.053},
+                                 "fern") == [
+        "fern: PSNR 21.50 -> 21.34 dB: more than 0.15 dB lower", "fern: depth abs-rel 0.0230 -> 0.0261: more than 0.003 higher",
+        "fern: median 95% half-width 4.2% -> 5.3%: more than 1 point wider"]

@@ -175,7 +175,7 @@ def capture(args) -> None:
     cand = {(r["scene"], r["seed"]): r for r in json.loads(args.rows.read_text())["rows"] if r["protocol"] == "capture"}
     failed, lines = [], ["# Study 33, capture stage: the density per finest cell on LLFF captures", "",
                          "Capture split, llff preset, the capture bench's 10-minute budget (two threads), seed 0; "
-                         f"today's rows from `{TODAY_CAPTURE_ROWS.relative_to(TODAY_CAPTURE_ROWS.parents[2])}`. "
+                         f"today's rows from `{TODAY_CAPTURE_ROWS.relative_to(TODAY_CAPTURE_ROWS.parents[3])}`. "
                          "Command: the module docstring of `benchmarks/studies/density_unit_study.py`.", "", *HEAD]
     rows = {}
     for scene in ("fern", "flower"):

@@ -173,9 +173,11 @@ class GridField(StochasticField):
 
     def describe(self) -> str:
         """One line for a user: the finest level's cells per axis (X x Y x Z of the unit cube), its
-        total and the number of levels."""
+        total, the number of levels, and (``density_per='cell'``) the cell's side L."""
         x, y, z = self.resolution
-        return f"{x} x {y} x {z} cells at the finest of {len(self.level_shapes)} levels ({x * y * z / 1e6:.2f}M)"
+        unit = float(self.density_unit)
+        per = "" if unit == 1.0 else f", density per cell of side {1.0 / unit:.3g}"
+        return f"{x} x {y} x {z} cells at the finest of {len(self.level_shapes)} levels ({x * y * z / 1e6:.2f}M){per}"
 
     def forward(self, positions: Tensor, directions: Tensor) -> FieldParams:
         unit = self.region.to_unit(positions.reshape(-1, 3))
