@@ -37,7 +37,7 @@ import trimesh
 from stochastic_fields.data.synthetic import make_synthetic_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared report helpers
-from study_helpers import train_and_eval  # noqa: E402
+from study_helpers import train_and_eval, validation_scenes_report  # noqa: E402
 from tables_cap_study import verdict_lines, write_study  # noqa: E402
 
 SEEDS = (1, 2, 3)
@@ -120,16 +120,8 @@ def table_row(label: str, r: dict) -> str:
 def report(rows: dict, means: dict, taken: bool, failed: list[str]) -> str:
     head = ["| row | PSNR dB | depth abs-rel | cov 50/68/90/95/99 | median 95% half-width / depth | IS95 / depth | "
             "CRPS / depth | depth Spearman |", "|---|---|---|---|---|---|---|---|"]
-    lines = ["# Study 32: the scene box padded by a share of its largest extent", "",
-             f"Embedded scene generated with seeds {', '.join(map(str, SEEDS))} (validation scenes; the demo is seed 0), "
-             "S-NeRF with the demo preset (10 of 40 views, 2000 steps), scored on each scene's 30 test views by "
-             "`stochastic-fields eval`. Command: the module docstring of `benchmarks/studies/box_padding_study.py`.",
-             "", "Means over the seeds:", "", *head]
-    lines += [table_row(label, means[label]) for label in ROWS]
-    lines += ["", "Per seed:", "", *head]
-    for label in ROWS:
-        for seed, r in zip(SEEDS, rows[label]):
-            lines.append(table_row(f"{label}, seed {seed}", r))
+    lines = validation_scenes_report("Study 32: the scene box padded by a share of its largest extent",
+                                     "box_padding_study.py", ROWS, rows, means, SEEDS, head, table_row)
     lines += ["", "Boxes (seed 1): " + "; ".join(f"{label}: {rows[label][0]['aabb']}" for label in ROWS)]
     lines += verdict_lines(taken, failed)
     lines += ["", "Rule (fixed before the rows): the candidate is taken if, on the means over the seeds, its depth "

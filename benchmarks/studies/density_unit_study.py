@@ -48,7 +48,7 @@ import numpy as np
 from stochastic_fields.data.synthetic import make_synthetic_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared report helpers
-from study_helpers import train_and_eval  # noqa: E402
+from study_helpers import train_and_eval, validation_scenes_report  # noqa: E402
 from tables_cap_study import verdict_lines, write_study  # noqa: E402
 
 SEEDS = (1, 2, 3)
@@ -154,15 +154,8 @@ def embedded(args) -> None:
     rows = {label: [r for (lab, *_), r in zip(jobs, results) if lab == label] for label in ROWS}
     means = {label: mean_row(rows[label]) for label in ROWS}
     taken, failed = embedded_verdict(means[ROWS[0]], means[ROWS[1]])
-    lines = ["# Study 33, embedded stage: the density per finest cell", "",
-             f"Embedded scene generated with seeds {', '.join(map(str, SEEDS))} (validation scenes; the demo is seed 0), "
-             "S-NeRF with the demo preset (10 of 40 views, 2000 steps), scored on each scene's 30 test views by "
-             "`stochastic-fields eval`. Command: the module docstring of `benchmarks/studies/density_unit_study.py`.",
-             "", "Means over the seeds:", "", *HEAD]
-    lines += [table_row(label, means[label]) for label in ROWS]
-    lines += ["", "Per seed:", "", *HEAD]
-    for label in ROWS:
-        lines += [table_row(f"{label}, seed {seed}", r) for seed, r in zip(SEEDS, rows[label])]
+    lines = validation_scenes_report("Study 33, embedded stage: the density per finest cell", "density_unit_study.py",
+                                     ROWS, rows, means, SEEDS, HEAD, table_row)
     lines += verdict_lines(taken, failed) + ["", RULE_TEXT]
     write_study(args.out / "embedded", {"study": 33, "stage": "embedded", "rows": rows, "means": means,
                                         "seeds": list(SEEDS), "taken": taken, "failed": failed},

@@ -199,3 +199,21 @@ def train_and_eval(scene: Path, run: Path, seed: int, *, preset: str = "demo", p
         subprocess.run([*cli, "eval", "--run", str(run), *([] if products else ["--no-products"]), "--quiet",
                         "--out", str(run / "eval")], check=True, env=env, stdout=subprocess.DEVNULL)
     return json.loads(metrics.read_text())
+
+
+def validation_scenes_report(title: str, script: str, labels: tuple[str, ...], rows: dict, means: dict,
+                             seeds: tuple[int, ...], head: list[str], table_row) -> list[str]:
+    """The report lines of a study on the embedded scene's validation seeds (the demo preset, the 30
+    test views): its title, setup, the means over the seeds and the per-seed rows of every label in
+    ``labels`` (``rows[label]`` one dict per seed, ``means[label]`` their mean), each formatted by
+    ``table_row(label, row)`` under the table ``head``."""
+    lines = [f"# {title}", "",
+             f"Embedded scene generated with seeds {', '.join(map(str, seeds))} (validation scenes; the demo is seed 0), "
+             "S-NeRF with the demo preset (10 of 40 views, 2000 steps), scored on each scene's 30 test views by "
+             f"`stochastic-fields eval`. Command: the module docstring of `benchmarks/studies/{script}`.",
+             "", "Means over the seeds:", "", *head]
+    lines += [table_row(label, means[label]) for label in labels]
+    lines += ["", "Per seed:", "", *head]
+    for label in labels:
+        lines += [table_row(f"{label}, seed {seed}", r) for seed, r in zip(seeds, rows[label])]
+    return lines
