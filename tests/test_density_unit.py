@@ -72,7 +72,7 @@ def test_a_grid_field_scales_its_density_by_its_unit_and_keeps_outside_empty():
     loc, scale = k.density_params(points)
     torch.testing.assert_close(loc, b.density_loc)
     torch.testing.assert_close(scale, b.density_scale)
-    assert k.density_unit_factor() == 25.0 and one.density_unit_factor() == 1.0
+    assert float(k.density_unit_factor()) == 25.0 and float(one.density_unit_factor()) == 1.0
     with pytest.raises(ValueError, match="density_unit"):
         _grid(0.0)
 
@@ -98,7 +98,7 @@ def test_a_checkpoint_from_before_the_unit_loads_with_density_per_unit_of_length
     field = _grid(25.0)
     state = {k: v for k, v in _grid(1.0).state_dict().items() if k != "density_unit"}
     field.load_state_dict(state)
-    assert field.density_unit_factor() == 1.0
+    assert float(field.density_unit_factor()) == 1.0
 
 
 def test_density_per_cell_needs_the_grid_backend():
@@ -148,7 +148,7 @@ def test_the_same_photos_in_another_unit_train_the_same_grid_only_with_density_p
     gap = torch.cat([(a[n] - b[n]).abs().flatten() for n in tables])
     q50, q99 = float(gap.quantile(0.5)), float(gap.quantile(0.99))
     if density_per == "cell":
-        assert metres.field.density_unit_factor() == pytest.approx(10.0 * decimetres.field.density_unit_factor(), rel=1e-5)
+        assert float(metres.field.density_unit_factor()) == pytest.approx(10.0 * float(decimetres.field.density_unit_factor()), rel=1e-5)
         assert q50 < 1e-4 and q99 < 1e-2, (q50, q99)  # measured 6e-6 and 2e-3
         others = [n for n in a if n not in tables]
         assert max(float((a[n] - b[n]).abs().max()) for n in others) < 1e-2

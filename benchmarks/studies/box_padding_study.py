@@ -37,7 +37,8 @@ import trimesh
 from stochastic_fields.data.synthetic import make_synthetic_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared report helpers
-from study_helpers import train_and_eval, validation_scenes_report  # noqa: E402
+from study_helpers import (coverage_failures, pooled_scores, seed_means, train_and_eval,  # noqa: E402
+                           validation_scenes_report)
 from tables_cap_study import verdict_lines, write_study  # noqa: E402
 
 SEEDS = (1, 2, 3)
@@ -80,17 +81,9 @@ def write_scenes(work: Path, seed: int) -> dict[str, Path]:
 
 
 def run_row(scene: Path, run: Path, seed: int) -> dict:
-    """Train (demo preset) and score one row; the pooled metrics it needs."""
-    m = train_and_eval(scene, run, seed)
-    intervals, depth = m["pooled"]["depth_intervals"], m["pooled"]["depth"]
-    return {"psnr": m["summary"]["psnr"]["mean"], "abs_rel": depth["abs_rel"], "spearman": depth["spearman"],
-            **{f"coverage_{round(100 * p)}": intervals[f"coverage_{round(100 * p)}"] for p in (*RULE_LEVELS, 0.99)},
-            "halfwidth_median_95": intervals["halfwidth_median_95"], "interval_score_95": intervals["interval_score_95"],
-            "crps": intervals["crps"], "aabb": json.loads((scene / "transforms.json").read_text())["aabb"]}
-
-
-def mean_row(rows: list[dict]) -> dict:
-    return {k: float(np.mean([r[k] for r in rows])) for k in rows[0] if k != "aabb"}
+    """Train (demo preset) and score one row; the pooled metrics it needs, and the row's box."""
+    return {**pooled_scores(train_and_eval(scene, run, seed), RULE_LEVELS),
+            "aabb": json.loads((scene / "transforms.json").read_text())["aabb"]}
 
 
 def verdict(today: dict, candidate: dict) -> tuple[bool, list[str]]:
@@ -102,12 +95,7 @@ def verdict(today: dict, candidate: dict) -> tuple[bool, list[str]]:
     if candidate["halfwidth_median_95"] > today["halfwidth_median_95"]:
         failed.append(f"median 95% half-width {100 * today['halfwidth_median_95']:.1f}% -> "
                       f"{100 * candidate['halfwidth_median_95']:.1f}%: wider")
-    for p in RULE_LEVELS:
-        key = f"coverage_{round(100 * p)}"
-        off_c, off_t = abs(candidate[key] - p), abs(today[key] - p)
-        if off_c > COVERAGE_TOLERANCE and off_c > off_t:
-            failed.append(f"{round(100 * p)}% coverage {100 * candidate[key]:.1f}: more than "
-                          f"{round(100 * COVERAGE_TOLERANCE)} points from nominal and further than today's")
+    failed += coverage_failures(today, candidate, RULE_LEVELS, COVERAGE_TOLERANCE)
     return not failed, failed
 
 
@@ -146,7 +134,7 @@ def main() -> None:
     with ThreadPoolExecutor(args.jobs) as pool:
         results = list(pool.map(lambda j: run_row(j[2], j[3], j[1]), jobs))
     rows = {label: [r for (lab, *_), r in zip(jobs, results) if lab == label] for label in ROWS}
-    means = {label: mean_row(rows[label]) for label in ROWS}
+    means = {label: seed_means(rows[label]) for label in ROWS}
     taken, failed = verdict(means[ROWS[0]], means[ROWS[1]])
     write_study(args.out, {"study": 32, "rows": rows, "means": means, "seeds": list(SEEDS), "taken": taken,
                            "failed": failed}, report(rows, means, taken, failed))

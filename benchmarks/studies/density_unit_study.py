@@ -43,12 +43,12 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import numpy as np
 
 from stochastic_fields.data.synthetic import make_synthetic_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared report helpers
-from study_helpers import train_and_eval, validation_scenes_report  # noqa: E402
+from study_helpers import (coverage_failures, pooled_scores, seed_means, train_and_eval,  # noqa: E402
+                           validation_scenes_report)
 from tables_cap_study import verdict_lines, write_study  # noqa: E402
 
 SEEDS = (1, 2, 3)
@@ -72,27 +72,7 @@ TODAY_CAPTURE_ROWS = Path(__file__).resolve().parents[1] / "results" / "capture_
 
 def run_row(scene: Path, run: Path, seed: int, candidate: bool) -> dict:
     """Train (demo preset) and score one row; the pooled metrics it needs."""
-    m = train_and_eval(scene, run, seed, options=CANDIDATE_OPTIONS if candidate else ())
-    intervals, depth = m["pooled"]["depth_intervals"], m["pooled"]["depth"]
-    return {"psnr": m["summary"]["psnr"]["mean"], "abs_rel": depth["abs_rel"], "spearman": depth["spearman"],
-            **{f"coverage_{round(100 * p)}": intervals[f"coverage_{round(100 * p)}"] for p in (*RULE_LEVELS, 0.99)},
-            "halfwidth_median_95": intervals["halfwidth_median_95"], "interval_score_95": intervals["interval_score_95"],
-            "crps": intervals["crps"]}
-
-
-def mean_row(rows: list[dict]) -> dict:
-    return {k: float(np.mean([r[k] for r in rows])) for k in rows[0]}
-
-
-def coverage_failures(today: dict, candidate: dict, where: str = "") -> list[str]:
-    failed = []
-    for p in RULE_LEVELS:
-        key = f"coverage_{round(100 * p)}"
-        off_c, off_t = abs(candidate[key] - p), abs(today[key] - p)
-        if off_c > COVERAGE_TOLERANCE and off_c > off_t:
-            failed.append(f"{where}{round(100 * p)}% coverage {100 * candidate[key]:.1f}: more than "
-                          f"{round(100 * COVERAGE_TOLERANCE)} points from nominal and further than today's")
-    return failed
+    return pooled_scores(train_and_eval(scene, run, seed, options=CANDIDATE_OPTIONS if candidate else ()), RULE_LEVELS)
 
 
 def embedded_verdict(today: dict, candidate: dict) -> tuple[bool, list[str]]:
@@ -104,7 +84,7 @@ def embedded_verdict(today: dict, candidate: dict) -> tuple[bool, list[str]]:
     if candidate["halfwidth_median_95"] > today["halfwidth_median_95"]:
         failed.append(f"median 95% half-width {100 * today['halfwidth_median_95']:.1f}% -> "
                       f"{100 * candidate['halfwidth_median_95']:.1f}%: wider")
-    failed += coverage_failures(today, candidate)
+    failed += coverage_failures(today, candidate, RULE_LEVELS, COVERAGE_TOLERANCE)
     return not failed, failed
 
 
@@ -120,7 +100,7 @@ def capture_verdict(today: dict, candidate: dict, scene: str) -> list[str]:
         failed.append(f"{scene}: median 95% half-width {100 * today['halfwidth_median_95']:.1f}% -> "
                       f"{100 * candidate['halfwidth_median_95']:.1f}%: more than {100 * CAPTURE_MAX_BAND_RISE:.0f} "
                       "point wider")
-    return failed + coverage_failures(today, candidate, f"{scene}: ")
+    return failed + coverage_failures(today, candidate, RULE_LEVELS, COVERAGE_TOLERANCE, f"{scene}: ")
 
 
 def table_row(label: str, r: dict) -> str:
@@ -152,7 +132,7 @@ def embedded(args) -> None:
     with ThreadPoolExecutor(args.jobs) as pool:
         results = list(pool.map(lambda j: run_row(j[2], j[3], j[1], j[4]), jobs))
     rows = {label: [r for (lab, *_), r in zip(jobs, results) if lab == label] for label in ROWS}
-    means = {label: mean_row(rows[label]) for label in ROWS}
+    means = {label: seed_means(rows[label]) for label in ROWS}
     taken, failed = embedded_verdict(means[ROWS[0]], means[ROWS[1]])
     lines = validation_scenes_report("Study 33, embedded stage: the density per finest cell", "density_unit_study.py",
                                      ROWS, rows, means, SEEDS, HEAD, table_row)

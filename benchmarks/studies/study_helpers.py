@@ -217,3 +217,33 @@ def validation_scenes_report(title: str, script: str, labels: tuple[str, ...], r
     for label in labels:
         lines += [table_row(f"{label}, seed {seed}", r) for seed, r in zip(seeds, rows[label])]
     return lines
+
+
+def pooled_scores(metrics: dict, levels: tuple[float, ...]) -> dict:
+    """The pooled scores a validation-scene study rules on, from an ``eval`` ``metrics.json``: PSNR,
+    depth abs-rel and Spearman, coverage at ``levels`` and 99%, the median 95% half-width, the 95%
+    interval score and the CRPS (widths and scores relative to the depth)."""
+    intervals, depth = metrics["pooled"]["depth_intervals"], metrics["pooled"]["depth"]
+    return {"psnr": metrics["summary"]["psnr"]["mean"], "abs_rel": depth["abs_rel"], "spearman": depth["spearman"],
+            **{f"coverage_{round(100 * p)}": intervals[f"coverage_{round(100 * p)}"] for p in (*levels, 0.99)},
+            "halfwidth_median_95": intervals["halfwidth_median_95"], "interval_score_95": intervals["interval_score_95"],
+            "crps": intervals["crps"]}
+
+
+def seed_means(rows: list[dict]) -> dict:
+    """The mean over seeds of every numeric entry of ``rows`` (one dict per seed)."""
+    return {k: float(np.mean([r[k] for r in rows])) for k, v in rows[0].items() if isinstance(v, (int, float))}
+
+
+def coverage_failures(today: dict, candidate: dict, levels: tuple[float, ...], tolerance: float,
+                      where: str = "") -> list[str]:
+    """A rule's coverage clause: each level p of ``levels`` whose candidate coverage lies more than
+    ``tolerance`` from p and further from it than today's, as a failed check prefixed by ``where``."""
+    failed = []
+    for p in levels:
+        key = f"coverage_{round(100 * p)}"
+        off_c, off_t = abs(candidate[key] - p), abs(today[key] - p)
+        if off_c > tolerance and off_c > off_t:
+            failed.append(f"{where}{round(100 * p)}% coverage {100 * candidate[key]:.1f}: more than "
+                          f"{round(100 * tolerance)} points from nominal and further than today's")
+    return failed

@@ -42,7 +42,7 @@ class Priors(nn.Module):
         self.observed_density_raw_scale = nn.Parameter(torch.tensor(inverse_positive_scale(1.0)))
         self.observed_rgb_raw_scale = nn.Parameter(torch.full((3,), inverse_positive_scale(1.0)))
 
-    def random(self, density_unit: float = 1.0) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def random(self, density_unit: float | Tensor = 1.0) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """(density loc, density std, colour-logit locs, stds) of p_rand. ``density_unit``: the
         field's k (``StochasticField.density_unit_factor``): the density prior is k times the
         learned one, so KL(q || p) is that of the field's own density parameters (the KL of two
@@ -50,7 +50,7 @@ class Priors(nn.Module):
         std = torch.tensor(RANDOM_POINT_PRIOR_STD, device=self.random_rgb_loc.device)
         return self.random_density_loc * density_unit, std * density_unit, self.random_rgb_loc, std.expand(3)
 
-    def observed(self, density_unit: float = 1.0) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def observed(self, density_unit: float | Tensor = 1.0) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """p_obs, as ``random``."""
         return (self.observed_density_loc * density_unit, positive_scale(self.observed_density_raw_scale) * density_unit,
                 self.observed_rgb_loc, positive_scale(self.observed_rgb_raw_scale))

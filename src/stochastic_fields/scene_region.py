@@ -109,12 +109,11 @@ class SceneRegion(nn.Module):
         if len(resolution) != 3 or any(int(r) < 1 for r in resolution):
             raise ValueError(f"resolution must be three positive integers, got {resolution!r}")
         h = 1e-3
-        probe = torch.zeros(6, 3, dtype=torch.float64, device=self.box.device)
-        for axis in range(3):
-            probe[2 * axis, axis], probe[2 * axis + 1, axis] = h, -h
-        world = self.from_unit(probe)  # the buffers follow the probe's dtype
-        edges = [(world[2 * a] - world[2 * a + 1]).norm() / (2 * h) * 2.0 / int(resolution[a]) for a in range(3)]
-        return float(torch.stack(edges).log().mean().exp())
+        step = h * torch.eye(3, dtype=torch.float64, device=self.box.device)
+        world = self.from_unit(torch.cat([step, -step]))  # the buffers follow the probe's dtype
+        res = torch.tensor([float(r) for r in resolution], dtype=torch.float64, device=self.box.device)
+        edges = (world[:3] - world[3:]).norm(dim=-1) / (2 * h) * 2.0 / res  # [3]
+        return float(edges.log().mean().exp())
 
     def extra_repr(self) -> str:
         return f"kind={self.kind}, box={self.box.tolist()}"

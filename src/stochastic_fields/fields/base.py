@@ -102,9 +102,10 @@ class StochasticField(nn.Module, abc.ABC):
     def forward(self, positions: Tensor, directions: Tensor) -> FieldParams:  # pragma: no cover
         ...
 
-    def density_unit_factor(self) -> float:
+    def density_unit_factor(self) -> float | Tensor:
         """k: the world density per unit of the field's own density parameter (1 unless a grid
-        counts density per cell, ``GridField``); priors on the density scale with it."""
+        counts density per cell, ``GridField``: its 0-d buffer, so a training step reads it
+        without a device sync); priors on the density scale with it."""
         return 1.0
 
     def density_params(self, positions: Tensor) -> tuple[Tensor, Tensor]:

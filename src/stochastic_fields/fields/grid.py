@@ -126,8 +126,8 @@ class GridField(StochasticField):
             with torch.no_grad():
                 self.decoder[-1].bias[3:] = raw_std
 
-    def density_unit_factor(self) -> float:
-        return float(self.density_unit)
+    def density_unit_factor(self) -> Tensor:
+        return self.density_unit
 
     def set_level_weights(self, weights: list[float] | None) -> None:
         """Weights a_l of the levels in g(x) = sum_l a_l g_l(x) (None: all 1)."""
