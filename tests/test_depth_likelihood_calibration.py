@@ -82,6 +82,93 @@ def test_termination_depth_nll_hard_cases_finite():
     assert per_ray[3] < per_ray[0]  # the wall at the surface explains it better than no mass at all
 
 
+def _predictive_nll_loop(weights, t_mids, deltas, target, rho) -> float:
+    """float64 loop of -1/R sum_r log (1/K sum_k sum_i max(w, floor) N(t* | t_i, s_i^2))."""
+    R, K, S = weights.shape
+    total = 0.0
+    for r in range(R):
+        mean = 0.0
+        for k in range(K):
+            for i in range(S):
+                var = deltas[r, i] ** 2 / 12 + (rho * target[r]) ** 2
+                dens = math.exp(-0.5 * (target[r] - t_mids[r, i]) ** 2 / var) / math.sqrt(2 * math.pi * var)
+                mean += max(weights[r, k, i], DEPTH_MIXTURE_WEIGHT_FLOOR) * dens / K
+        total -= math.log(mean)
+    return total / R
+
+
+def test_predictive_depth_nll_matches_float64_loop_and_jensen():
+    g = torch.Generator().manual_seed(3)
+    R, K, S = 5, 4, 7
+    edges = torch.sort(torch.rand(R, S + 1, generator=g, dtype=torch.float64) * 10 + 1, dim=-1).values
+    t_mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
+    w = torch.rand(R, K, S, generator=g, dtype=torch.float64)
+    w = w / w.sum(-1, keepdim=True) * 0.9
+    w[0, 0] = 0.0  # an empty trajectory: the others still explain the point
+    target = t_mids[:, 3] + 0.3
+    got = termination_depth_nll(w, t_mids, deltas, target, 0.01, "predictive").item()
+    ref = _predictive_nll_loop(w.numpy(), t_mids.numpy(), deltas.numpy(), target.numpy(), 0.01)
+    assert got == pytest.approx(ref, rel=1e-10)
+    expected = termination_depth_nll(w, t_mids, deltas, target, 0.01, "expected").item()
+    assert got < expected  # Jensen: log of the mean >= mean of the logs, strictly for unequal trajectories
+    # equal for K = 1 and for trajectories that agree
+    one = w[:, :1]
+    assert termination_depth_nll(one, t_mids, deltas, target, 0.01, "predictive").item() == pytest.approx(
+        termination_depth_nll(one, t_mids, deltas, target, 0.01, "expected").item(), rel=1e-12)
+    same = w[:, :1].expand(R, K, S)
+    assert termination_depth_nll(same, t_mids, deltas, target, 0.01, "predictive").item() == pytest.approx(
+        expected_one := termination_depth_nll(one, t_mids, deltas, target, 0.01).item(), rel=1e-12)
+    assert np.isfinite(expected_one)
+
+
+def test_predictive_depth_nll_hand_value_two_trajectories():
+    """One ray, two samples, K = 2: trajectory 0 puts all its mass on the sample at the point, 1 on
+    the far one. With bins of width sqrt(12) (s^2 = 1 + (rho t*)^2, rho tiny) and N(0) = 1/sqrt(2 pi),
+    N(5) = e^-12.5 / sqrt(2 pi): predictive = -log((N(0) + N(5)) / 2), expected = -(log N(0) + log N(5)) / 2."""
+    t_mids = torch.tensor([[10.0, 15.0]], dtype=torch.float64)
+    deltas = torch.full((1, 2), math.sqrt(12.0), dtype=torch.float64)
+    w = torch.tensor([[[1.0, 0.0], [0.0, 1.0]]], dtype=torch.float64)
+    target = torch.tensor([10.0], dtype=torch.float64)
+    rho = 1e-9
+    n0 = 1.0 / math.sqrt(2 * math.pi)
+    n5 = math.exp(-12.5) / math.sqrt(2 * math.pi)
+    floor = DEPTH_MIXTURE_WEIGHT_FLOOR
+    p0, p1 = n0 + floor * n5, n5 + floor * n0
+    assert termination_depth_nll(w, t_mids, deltas, target, rho, "predictive").item() == pytest.approx(
+        -math.log((p0 + p1) / 2), rel=1e-9)
+    assert termination_depth_nll(w, t_mids, deltas, target, rho, "expected").item() == pytest.approx(
+        -(math.log(p0) + math.log(p1)) / 2, rel=1e-9)
+
+
+def test_predictive_depth_nll_gradcheck_and_credit():
+    """Gradients flow (gradcheck), and the predictive form credits the trajectory that explains the
+    point: the far trajectory's pull towards the surface is weaker than under the expected form."""
+    g = torch.Generator().manual_seed(4)
+    R, K, S = 3, 3, 6
+    t_mids = torch.linspace(1, 6, S, dtype=torch.float64).expand(R, S).clone()
+    deltas = torch.ones(R, S, dtype=torch.float64)
+    w = (torch.rand(R, K, S, generator=g, dtype=torch.float64) * 0.15 + 0.01).requires_grad_()
+    target = torch.tensor([2.1, 3.4, 5.0], dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda w: termination_depth_nll(w, t_mids, deltas, target, 0.02, "predictive"), (w,))
+    good = torch.zeros(1, 2, S, dtype=torch.float64)
+    good[0, 0, 1], good[0, 1, 5], good[0, 1, 1] = 0.9, 0.85, 0.05  # trajectory 0 at the point (t = 2), 1 mostly far
+    grads = {}
+    for form in ("expected", "predictive"):
+        x = good.clone().requires_grad_()
+        termination_depth_nll(x, t_mids[:1], deltas[:1], torch.tensor([2.0], dtype=torch.float64), 0.02, form).backward()
+        grads[form] = x.grad[0, 1, 1].item()  # the far trajectory's gradient at the surface sample
+    # by hand (the far sample's density at t* = 2 is e^-8 of the near one's, below the tolerance):
+    # expected -1/(R K) / w_1 = -1 / (2 x 0.05); predictive -(1/K) / ((0.9 + 0.05) / K) = -1 / 0.95
+    assert grads["expected"] == pytest.approx(-10.0, rel=1e-6)
+    assert grads["predictive"] == pytest.approx(-1.0 / 0.95, rel=1e-6)
+
+
+def test_depth_nll_unknown_form_refused():
+    w = torch.full((1, 1, 2), 0.5)
+    with pytest.raises(ValueError, match="'mode'"):
+        termination_depth_nll(w, torch.tensor([[1.0, 2.0]]), torch.ones(1, 2), torch.tensor([1.5]), 0.01, "mode")
+
+
 # ----------------------------------------------------------------------------- spatial split
 def test_split_points_by_blocks_roles_blocks_and_shares():
     rng = np.random.default_rng(0)
@@ -472,8 +559,8 @@ def test_trajectory_weights_are_the_renders_weights_without_colours(shared_noise
     assert drawn.shape == (R, K, S) and torch.equal(drawn, again)
 
 
-@pytest.mark.parametrize("depth_draws", [0, 3])
-def test_depth_term_reads_density_only_and_matches_the_full_field_pass(tiny_scene, depth_draws):
+@pytest.mark.parametrize("depth_draws,form", [(0, "expected"), (3, "expected"), (3, "predictive")])
+def test_depth_term_reads_density_only_and_matches_the_full_field_pass(tiny_scene, depth_draws, form):
     """The model's depth term evaluates only the density (``field.density_params``: no colour
     decoder, a 2-channel backward on the grid) and gives the loss and grid gradients of the full
     field evaluation with the same draws, float64; it draws ``loss.depth_draws`` trajectories
@@ -491,6 +578,7 @@ def test_depth_term_reads_density_only_and_matches_the_full_field_pass(tiny_scen
     dataset = load_dataset(tiny_scene, split_every=5)
     cfg = preset("tiny")
     cfg.loss.depth_draws = depth_draws
+    cfg.loss.depth_likelihood = form
     model = build_model(cfg, dataset).double()
     assert model.train_draws != 3
     with torch.no_grad():  # a field with structure, not the uniform initial fog
@@ -519,7 +607,7 @@ def test_depth_term_reads_density_only_and_matches_the_full_field_pass(tiny_scen
     w = trajectory_weights(params.density_loc, params.density_scale, samples, st,
                            num_draws=depth_draws or model.train_draws, generator=g)
     assert w.shape[1] == (depth_draws or cfg.train.train_draws)
-    ref = termination_depth_nll(w, samples.t_mids, samples.deltas, target, model.loss_config.depth_relative_std)
+    ref = termination_depth_nll(w, samples.t_mids, samples.deltas, target, model.loss_config.depth_relative_std, form)
     ref.backward()
     ref_grads = grads()
     assert torch.isfinite(got) and got.item() == pytest.approx(ref.item(), rel=1e-12)

@@ -111,19 +111,29 @@ def decoupled_likelihood_nll(colours: Tensor, target: Tensor, std: Tensor, extra
     return ((var / std ** 2).detach() * per_channel).sum(-1).mean()
 
 
+#: ``loss.depth_likelihood`` values: how ``termination_depth_nll`` combines a ray's trajectories.
+DEPTH_LIKELIHOOD_FORMS: tuple[str, ...] = ("expected", "predictive")
+
+
 def termination_depth_nll(weights: Tensor, t_mids: Tensor, deltas: Tensor, target_t: Tensor,
-                          relative_std: float) -> Tensor:
-    """Mean over point rays and trajectories of the negative log-likelihood of an observed surface
-    at ray distance t* under the trajectory's termination distribution:
+                          relative_std: float, form: str = "expected") -> Tensor:
+    """Negative log-likelihood of an observed surface at ray distance t* under the termination
+    distributions of the K trajectories, with p_rk = sum_i w_rki N(t*_r | t_ri, s_ri^2),
+    s_ri^2 = delta_ri^2 / 12 + (rho t*_r)^2 (each sample's weight spread over its bin, widened by the
+    point's own depth noise rho t*):
 
-        -1/(R K) sum_{r,k} log sum_i w_rki N(t*_r | t_ri, s_ri^2),   s_ri^2 = delta_ri^2 / 12 + (rho t*_r)^2
+        form 'expected':    -1/(R K) sum_{r,k} log p_rk          (the ELBO's expected log-likelihood)
+        form 'predictive':  -1/R sum_r log (1/K sum_k p_rk)      (the predictive mixture's)
 
-    (each sample's weight spread over its bin, widened by the point's own depth noise rho t*).
-    The mixture's mass is the ray's opacity, so a ray that misses the surface is penalised too.
-    Weights below ``DEPTH_MIXTURE_WEIGHT_FLOOR`` count as that floor inside the log.
+    By Jensen's inequality 'predictive' <= 'expected', equal for K = 1 or when every trajectory
+    gives the point the same density. The mixture's mass is the ray's opacity, so a ray that misses
+    the surface is penalised too. Weights below ``DEPTH_MIXTURE_WEIGHT_FLOOR`` count as that floor
+    inside the log.
 
     Shapes: weights [R, K, S], t_mids [R, S], deltas [R, S], target_t [R] -> scalar.
     """
+    if form not in DEPTH_LIKELIHOOD_FORMS:
+        raise ValueError(f"depth likelihood form must be one of {DEPTH_LIKELIHOOD_FORMS}, got {form!r}")
     var = deltas ** 2 / 12.0 + (relative_std * target_t[:, None]) ** 2  # [R, S]
     log_normal = -0.5 * (target_t[:, None] - t_mids) ** 2 / var - 0.5 * torch.log(2 * math.pi * var)
     # log sum_i w_i N_i = m + log sum_i w_i exp(log N_i - m), m = max_i log N_i per ray: the
@@ -132,6 +142,8 @@ def termination_depth_nll(weights: Tensor, t_mids: Tensor, deltas: Tensor, targe
     peak = log_normal.amax(dim=-1, keepdim=True)  # [R, 1]
     ratio = torch.exp(log_normal - peak)  # [R, S]
     mixture = torch.matmul(weights.clamp_min(DEPTH_MIXTURE_WEIGHT_FLOOR), ratio[:, :, None])[..., 0]  # [R, K]
+    if form == "predictive":  # log mean_k p_rk = peak + log mean_k mixture_rk (mixture_rk >= the floor)
+        return -(torch.log(mixture.mean(dim=-1)) + peak[:, 0]).mean()
     return -(torch.log(mixture) + peak).mean()
 
 

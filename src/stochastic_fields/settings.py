@@ -50,6 +50,8 @@ class LossConfig:
     """Capture-point rays per training step for the depth likelihood (drawn from the training views' FIT points). Range: an integer >= 1 and <= 1048576."""
     depth_relative_std: float = 0.01
     """Depth noise of a capture point relative to its depth (added to each sample's bin width in the depth likelihood). Range: a finite number > 0."""
+    depth_likelihood: Literal["expected", "predictive"] = "expected"
+    """How the depth likelihood combines the K trajectories of a capture-point ray: 'expected' (the ELBO's expected log-likelihood, -1/K sum_k log p(t* | w_k): every trajectory must put mass at the point) or 'predictive' (the log of the predictive mixture, -log 1/K sum_k p(t* | w_k): the trajectories together must, so they may disagree where the data do not decide; a proper scoring rule on the predictive termination distribution, as predictive / PAC^2 variational objectives, Masegosa 2020). The two are equal for K = 1 (termination_depth_nll; docs/uncertainty.md)."""
     depth_draws: int = 0
     """Trajectories per capture-point ray in the depth likelihood (0: ``train.train_draws``, as the colour rays). Range: an integer >= 0 and <= 4096."""
     lambda_distortion: float = 0.0
@@ -88,6 +90,7 @@ def _loss_checks() -> dict:
         "lambda_depth": real(0.0),
         "depth_rays_per_batch": integer(1, 2**20),
         "depth_relative_std": real(0.0, lo_open=True),
+        "depth_likelihood": choice("expected", "predictive"),
         "depth_draws": integer(0, 4096),
         "lambda_distortion": real(0.0),
         "lambda_occlusion": real(0.0),

@@ -57,7 +57,8 @@ _NON_SEMANTIC = ("train.device", "train.eval_every", "train.checkpoint_every", "
 _NOISE_HEAD_OPTIONS = ("loss.per_point_noise", "loss.noise_head_decoupled")
 
 #: Options of S-NeRF's sparse-depth likelihood (the baselines take no depth term).
-_DEPTH_OPTIONS = ("loss.lambda_depth", "loss.depth_rays_per_batch", "loss.depth_relative_std", "loss.depth_draws")
+_DEPTH_OPTIONS = ("loss.lambda_depth", "loss.depth_rays_per_batch", "loss.depth_relative_std",
+                  "loss.depth_likelihood", "loss.depth_draws")
 
 #: S-NeRF's training-likelihood estimator: the baselines' likelihoods draw no colours.
 _LIKELIHOOD_OPTIONS = ("loss.likelihood_estimator",)

@@ -250,7 +250,7 @@ class SNeRF(RadianceModel):
         num_draws = self.loss_config.depth_draws or self.train_draws
         weights = trajectory_weights(loc, scale, samples, settings, num_draws=num_draws, generator=generator)
         return termination_depth_nll(weights, samples.t_mids, samples.deltas, target_t,
-                                     self.loss_config.depth_relative_std)
+                                     self.loss_config.depth_relative_std, self.loss_config.depth_likelihood)
 
     def _distortion(self, out: RayRender, samples: RaySamples | PackedRaySamples) -> Tensor:
         """Mean distortion over training rays and trajectories (stochastic_fields.distortion)."""
