@@ -38,6 +38,9 @@ Two stages, each with its own part of the rule:
           --out benchmarks/results/predictive_depth_study
 
 Resumable: a row whose ``eval/metrics.json`` exists is read, not re-run.
+
+Study 34 ran the embedded stage only: it failed the rule, and ``trajectory_spread.py`` showed the two
+losses equal to 0.3% on a fern capture run (docs/studies.md), so the capture rows were not trained.
 """
 
 from __future__ import annotations
