@@ -204,3 +204,22 @@ def test_density_unit_study_rule_by_hand(load_script):
                                  "fern") == [
         "fern: PSNR 21.50 -> 21.34 dB: more than 0.15 dB lower", "fern: depth abs-rel 0.0230 -> 0.0261: more than 0.003 higher",
         "fern: median 95% half-width 4.2% -> 5.3%: more than 1 point wider"]
+
+
+def test_predictive_depth_study_rule_by_hand(load_script):
+    """Study 34: study 33's checks, the depth Spearman at most 0.02 lower, and a lower 95% interval
+    score; its committed embedded verdict follows from its committed means."""
+    study = load_script("benchmarks/studies/predictive_depth_study.py")
+    today = {"psnr": 21.3, "abs_rel": 0.023, "halfwidth_median_95": 0.042, "spearman": 0.45,
+             "interval_score_95": 0.121, "coverage_50": 0.48, "coverage_68": 0.65, "coverage_90": 0.86,
+             "coverage_95": 0.94}
+    good = {**today, "halfwidth_median_95": 0.040, "interval_score_95": 0.110, "spearman": 0.44}
+    assert study.embedded_verdict(today, good) == (True, [])
+    assert study.embedded_verdict(today, {**good, "spearman": 0.429, "interval_score_95": 0.121})[1] == [
+        "depth Spearman 0.450 -> 0.429: more than 0.02 lower", "95% interval score / depth 0.121 -> 0.121: no gain"]
+    assert study.embedded_verdict(today, {**good, "halfwidth_median_95": 0.0425})[1] == [
+        "median 95% half-width 4.2% -> 4.2%: wider"]
+    committed = json.loads((REPO_ROOT / "benchmarks/results/predictive_depth_study/embedded/results.json").read_text())
+    means = [committed["means"][label] for label in study.ROWS]
+    assert study.embedded_verdict(*means) == (committed["taken"], committed["failed"])
+    assert committed["taken"] is False

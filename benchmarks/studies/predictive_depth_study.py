@@ -54,9 +54,9 @@ from pathlib import Path
 from stochastic_fields.data.synthetic import make_synthetic_scene
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared report helpers
+import density_unit_study as study33  # noqa: E402  (study 33's rule and table, shared)
 from density_unit_study import HEAD, table_row  # noqa: E402
-from study_helpers import (coverage_failures, pooled_scores, seed_means, train_and_eval,  # noqa: E402
-                           validation_scenes_report)
+from study_helpers import pooled_scores, seed_means, train_and_eval, validation_scenes_report  # noqa: E402
 from tables_cap_study import verdict_lines, write_study  # noqa: E402
 
 SEEDS = (1, 2, 3)
@@ -70,12 +70,10 @@ RULE_LEVELS = (0.50, 0.68, 0.90, 0.95)
 #: CAPTURE_MAX_ABS_REL_RISE higher, band at most CAPTURE_MAX_BAND_RISE wider, the levels), and
 #: the depth ranking (Spearman |err|-std, where reported) at most MAX_SPEARMAN_LOSS lower (study
 #: 8's tolerance); and it must gain: the embedded mean 95% interval score / depth lower than today's.
-MAX_PSNR_LOSS_DB = 0.1
 MAX_SPEARMAN_LOSS = 0.02
-COVERAGE_TOLERANCE = 0.05
-CAPTURE_MAX_PSNR_LOSS_DB = 0.15
-CAPTURE_MAX_ABS_REL_RISE = 0.003
-CAPTURE_MAX_BAND_RISE = 0.01
+MAX_PSNR_LOSS_DB, COVERAGE_TOLERANCE = study33.MAX_PSNR_LOSS_DB, study33.COVERAGE_TOLERANCE
+CAPTURE_MAX_PSNR_LOSS_DB, CAPTURE_MAX_ABS_REL_RISE, CAPTURE_MAX_BAND_RISE = (
+    study33.CAPTURE_MAX_PSNR_LOSS_DB, study33.CAPTURE_MAX_ABS_REL_RISE, study33.CAPTURE_MAX_BAND_RISE)
 
 
 def run_row(scene: Path, run: Path, seed: int, candidate: bool) -> dict:
@@ -84,37 +82,15 @@ def run_row(scene: Path, run: Path, seed: int, candidate: bool) -> dict:
 
 
 def embedded_verdict(today: dict, candidate: dict) -> tuple[bool, list[str]]:
-    failed = []
-    if candidate["psnr"] < today["psnr"] - MAX_PSNR_LOSS_DB:
-        failed.append(f"PSNR {today['psnr']:.2f} -> {candidate['psnr']:.2f} dB: more than {MAX_PSNR_LOSS_DB} dB lower")
-    if candidate["abs_rel"] > today["abs_rel"]:
-        failed.append(f"depth abs-rel {today['abs_rel']:.4f} -> {candidate['abs_rel']:.4f}: higher")
-    if candidate["halfwidth_median_95"] > today["halfwidth_median_95"]:
-        failed.append(f"median 95% half-width {100 * today['halfwidth_median_95']:.1f}% -> "
-                      f"{100 * candidate['halfwidth_median_95']:.1f}%: wider")
+    """Study 33's embedded checks (the same thresholds), the depth ranking and the interval-score gain."""
+    failed = study33.embedded_verdict(today, candidate)[1]
     if candidate["spearman"] < today["spearman"] - MAX_SPEARMAN_LOSS:
         failed.append(f"depth Spearman {today['spearman']:.3f} -> {candidate['spearman']:.3f}: more than "
                       f"{MAX_SPEARMAN_LOSS} lower")
     if candidate["interval_score_95"] >= today["interval_score_95"]:
         failed.append(f"95% interval score / depth {today['interval_score_95']:.3f} -> "
                       f"{candidate['interval_score_95']:.3f}: no gain")
-    failed += coverage_failures(today, candidate, RULE_LEVELS, COVERAGE_TOLERANCE)
     return not failed, failed
-
-
-def capture_verdict(today: dict, candidate: dict, scene: str) -> list[str]:
-    failed = []
-    if candidate["psnr"] < today["psnr"] - CAPTURE_MAX_PSNR_LOSS_DB:
-        failed.append(f"{scene}: PSNR {today['psnr']:.2f} -> {candidate['psnr']:.2f} dB: more than "
-                      f"{CAPTURE_MAX_PSNR_LOSS_DB} dB lower")
-    if candidate["abs_rel"] > today["abs_rel"] + CAPTURE_MAX_ABS_REL_RISE:
-        failed.append(f"{scene}: depth abs-rel {today['abs_rel']:.4f} -> {candidate['abs_rel']:.4f}: more than "
-                      f"{CAPTURE_MAX_ABS_REL_RISE} higher")
-    if candidate["halfwidth_median_95"] > today["halfwidth_median_95"] + CAPTURE_MAX_BAND_RISE:
-        failed.append(f"{scene}: median 95% half-width {100 * today['halfwidth_median_95']:.1f}% -> "
-                      f"{100 * candidate['halfwidth_median_95']:.1f}%: more than {100 * CAPTURE_MAX_BAND_RISE:.0f} "
-                      "point wider")
-    return failed + coverage_failures(today, candidate, RULE_LEVELS, COVERAGE_TOLERANCE, f"{scene}: ")
 
 
 RULE_TEXT = ("Rule (fixed before the rows ran): the candidate becomes the default if the embedded stage passes "
@@ -165,7 +141,7 @@ def capture(args) -> None:
         rows[scene] = {"today": t, "candidate": c}
         lines += [table_row(f"{scene}, {ROWS[0]} ({t['steps']} steps)", t),
                   table_row(f"{scene}, {ROWS[1]} ({c['steps']} steps)", c)]
-        failed += capture_verdict(t, c, scene)
+        failed += study33.capture_verdict(t, c, scene)
     lines += verdict_lines(not failed, failed) + ["", RULE_TEXT]
     write_study(args.out / "capture", {"study": 34, "stage": "capture", "rows": rows, "taken": not failed,
                                        "failed": failed}, "\n".join(lines) + "\n")
