@@ -9,7 +9,9 @@ settings), it reports per run:
   (Jensen's: 0 when the trajectories give each point the same likelihood);
 * the median over rays of the std over k of the trajectories' expected depths d_k = sum_i w_ki t_i /
   sum_i w_ki (the depth std's epistemic part), and of the termination spread
-  sqrt(1/K sum_k sum_i w_ki (t_i - mean_k d_k)^2 / sum_i w_ki), both relative to the point's depth.
+  sqrt(1/K sum_k sum_i w_ki (t_i - mean_k d_k)^2 / sum_i w_ki), both relative to the point's depth;
+* at the sample holding most of the mean weight (the surface), the median of the density's scale over
+  its location s_a / mu_a (how much a draw may move the density there) and of mu_a delta.
 
 Renders only; decides nothing (study 34's evidence, docs/studies.md)::
 
@@ -54,9 +56,14 @@ def spread_of(run_dir: Path, seed: int) -> dict:
         d_k = (w * s.t_mids[:, None]).sum(-1) / mass
         mean = d_k.mean(-1, keepdim=True)
         spread = ((w * (s.t_mids[:, None] - mean[..., None]) ** 2).sum(-1) / mass).mean(-1).sqrt()
+        peak = w.mean(dim=1).argmax(dim=-1)  # [R] the sample holding most of the mean weight
+        rows = torch.arange(len(peak))
+        peak_loc, peak_scale = loc[rows, peak], scale[rows, peak]
     return {"run": str(run_dir), "rays": RAYS, "draws": DRAWS, "nll": nll, "gap": nll["expected"] - nll["predictive"],
             "epistemic_rel_median": float((d_k.std(-1) / target).median()),
-            "termination_rel_median": float((spread / target).median())}
+            "termination_rel_median": float((spread / target).median()),
+            "peak_scale_over_loc_median": float((peak_scale / peak_loc.clamp_min(1e-12)).median()),
+            "peak_optical_depth_median": float((peak_loc * s.deltas[rows, peak]).median())}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -77,11 +84,13 @@ def main(argv: list[str] | None = None) -> int:
              "", f"{RAYS} FIT capture-point rays of the training views per run, K = {DRAWS} trajectories drawn as in "
              "training. Depth likelihood per form on the same draws (nats per ray) and the median over rays of the "
              "trajectories' expected-depth std and of the termination spread, relative to the point's depth.", "",
-             "| run | expected | predictive | gap | std over K of d_k / depth | termination spread / depth |",
-             "|---|---|---|---|---|---|"]
+             "| run | expected | predictive | gap | std over K of d_k / depth | termination spread / depth | "
+             "scale / loc at the peak sample | mu delta at the peak sample |",
+             "|---|---|---|---|---|---|---|---|"]
     for label, r in results["runs"].items():
         lines.append(f"| {label} | {r['nll']['expected']:.4f} | {r['nll']['predictive']:.4f} | {r['gap']:.5f} | "
-                     f"{100 * r['epistemic_rel_median']:.3f}% | {100 * r['termination_rel_median']:.2f}% |")
+                     f"{100 * r['epistemic_rel_median']:.3f}% | {100 * r['termination_rel_median']:.2f}% | "
+                     f"{r['peak_scale_over_loc_median']:.3f} | {r['peak_optical_depth_median']:.2f} |")
     text = "\n".join(lines) + "\n"
     write_study(args.out, results, text)
     print(text)
