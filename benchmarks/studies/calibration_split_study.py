@@ -36,7 +36,8 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
-from study_helpers import LEVELS, _standardised, begin_study, scored_points, study_parser, write_study  # noqa: E402
+from study_helpers import (LEVELS, begin_study, scored_points, standardised_at_points, study_parser,  # noqa: E402
+                           write_study)
 
 #: Placements of the calibration views: name -> (neighbours per training view, fractions along each pair).
 PLACEMENTS: dict[str, tuple[int, tuple[float, ...]]] = {
@@ -79,7 +80,7 @@ def study_scene(run_dir: Path, *, splits: int, seed: int = 0, quiet: bool = Fals
         cams, near, far, pairs = calibration_views(dataset, neighbours=neighbours, fractions=fractions)
         sparse = project_sparse_depth(cams, points.xyz, range(len(pairs)), visible=pair_visible_points(points, pairs, held),
                                       visibility_name="pair")
-        cal = _standardised(model, cams, near, far, sparse, seed)
+        cal = standardised_at_points(model, cams, near, far, sparse, seed)
         cal_role = points.roles[cal["index"]]
         today_fit = QuantileCalibration.fit(cal["abs_z"][cal_role == CALIBRATE], quantity="depth_std", levels=levels)
         bound = today_fit.scales * ndtri((1.0 + levels) / 2.0)

@@ -30,7 +30,8 @@ import torch
 from scipy.special import ndtri
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers (study_helpers.py)
-from study_helpers import _standardised, photo_points, scored_points, study_parser, write_study  # noqa: E402
+from study_helpers import (photo_points, scored_points, standardised_at_points, study_parser,  # noqa: E402
+                           write_study)
 
 LEVELS = (0.6827, 0.95)
 BINS = 6
@@ -111,7 +112,7 @@ def study_run(run_dir: Path, seed: int) -> dict:
     test_set["std"] = full_std(cal, s["std"][scored], violation(Xt), test_set["depth"])
     # the test views' SCORE capture points (the map's kind of points; on LLFF the same as "test")
     sp = photo_points(dataset, capture, test_views, SCORE)
-    q = _standardised(model, dataset.cameras, dataset.near, dataset.far, sp, seed)
+    q = standardised_at_points(model, dataset.cameras, dataset.near, dataset.far, sp, seed)
     qc = centres_all[q["view"]]
     Xq = rendered_points(qc, capture.xyz[q["index"]], q["gt"], q["depth_mean"])
     point_set = {"angle": view_angles(Xq, qc, train_centres), "err": q["gt"] - q["depth_mean"], "depth": q["depth_mean"]}

@@ -35,7 +35,7 @@ SYNTHETIC_PIXEL_SHARE: float = 0.1
 STD_GROUPS: tuple[str, ...] = ("low sigma", "mid sigma", "high sigma")
 
 
-def _standardised(model, cameras, near, far, sparse, seed: int) -> dict[str, np.ndarray]:
+def standardised_at_points(model, cameras, near, far, sparse, seed: int) -> dict[str, np.ndarray]:
     """|d - d*| / sigma [N], |d - d*| [N], sigma [N] and the point index [N] of each rendered point
     with opacity > mask."""
 
@@ -66,7 +66,7 @@ def scored_points(run_dir: Path, model, dataset, points, views: list[int], held:
             start += len(rows)
         xyz = np.concatenate(xyz)
         sparse = project_sparse_depth(dataset.cameras, xyz, views, visible=visible, visibility_name="test pixels")
-        out = _standardised(model, dataset.cameras, dataset.near, dataset.far, sparse, seed)
+        out = standardised_at_points(model, dataset.cameras, dataset.near, dataset.far, sparse, seed)
         out["xyz"] = xyz[out["index"]]
         out["block"] = block_keys(out["xyz"], points.xyz)
         out["role"] = np.full(len(out["abs_z"]), SCORE)
@@ -77,7 +77,7 @@ def scored_points(run_dir: Path, model, dataset, points, views: list[int], held:
         full = project_sparse_depth(dataset.cameras, points.xyz, views, visible=points.visible,
                                     visibility_name=points.source)
     sparse = {v: restrict_sparse_depth(sd, held[sd.point_index]) for v, sd in full.items()}
-    out = _standardised(model, dataset.cameras, dataset.near, dataset.far, sparse, seed)
+    out = standardised_at_points(model, dataset.cameras, dataset.near, dataset.far, sparse, seed)
     out["xyz"] = points.xyz[out["index"]]
     out["block"] = block_keys(out["xyz"], points.xyz)
     out["role"] = points.roles[out["index"]]
