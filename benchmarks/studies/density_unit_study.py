@@ -70,11 +70,6 @@ CAPTURE_MAX_BAND_RISE = 0.01
 TODAY_CAPTURE_ROWS = Path(__file__).resolve().parents[1] / "results" / "capture_interval_seeds_occ" / "results.json"
 
 
-def run_row(scene: Path, run: Path, seed: int, candidate: bool) -> dict:
-    """Train (demo preset) and score one row; the pooled metrics it needs."""
-    return pooled_scores(train_and_eval(scene, run, seed, options=CANDIDATE_OPTIONS if candidate else ()), RULE_LEVELS)
-
-
 def embedded_verdict(today: dict, candidate: dict) -> tuple[bool, list[str]]:
     failed = []
     if candidate["psnr"] < today["psnr"] - MAX_PSNR_LOSS_DB:
@@ -122,46 +117,68 @@ RULE_TEXT = ("Rule (fixed before the rows ran): the candidate becomes the defaul
              "object-centric scenes and the llff preset keeps the density per unit of length.")
 
 
-def embedded(args) -> None:
+def embedded_stage(args, *, study: int, title: str, script: str, labels: tuple[str, str],
+                   options: tuple[str, ...], verdict, rule_text: str) -> None:
+    """A validation-scene stage (studies 33 and 34): today's row (label 0) and the candidate's
+    (label 1, trained with the command-line ``options``) on each of ``SEEDS``, ``args.jobs`` at a
+    time, scored, their means judged by ``verdict(today, candidate) -> (taken, failed)``, and the
+    report with ``rule_text`` written to ``args.out``/embedded."""
     jobs = []
     for seed in SEEDS:
         scene = make_synthetic_scene(args.work / f"scene_s{seed}", seed=seed)
-        for label in ROWS:
-            candidate = label == ROWS[1]
+        for label in labels:
+            candidate = label == labels[1]
             jobs.append((label, seed, scene, args.work / f"s{seed}" / ("candidate" if candidate else "today"), candidate))
     with ThreadPoolExecutor(args.jobs) as pool:
-        results = list(pool.map(lambda j: run_row(j[2], j[3], j[1], j[4]), jobs))
-    rows = {label: [r for (lab, *_), r in zip(jobs, results) if lab == label] for label in ROWS}
-    means = {label: seed_means(rows[label]) for label in ROWS}
-    taken, failed = embedded_verdict(means[ROWS[0]], means[ROWS[1]])
-    lines = validation_scenes_report("Study 33, embedded stage: the density per finest cell", "density_unit_study.py",
-                                     ROWS, rows, means, SEEDS, HEAD, table_row)
-    lines += verdict_lines(taken, failed) + ["", RULE_TEXT]
-    write_study(args.out / "embedded", {"study": 33, "stage": "embedded", "rows": rows, "means": means,
+        results = list(pool.map(lambda j: pooled_scores(train_and_eval(j[2], j[3], j[1], options=options if j[4] else ()),
+                                                        RULE_LEVELS), jobs))
+    rows = {label: [r for (lab, *_), r in zip(jobs, results) if lab == label] for label in labels}
+    means = {label: seed_means(rows[label]) for label in labels}
+    taken, failed = verdict(means[labels[0]], means[labels[1]])
+    lines = validation_scenes_report(title, script, labels, rows, means, SEEDS, HEAD, table_row)
+    lines += verdict_lines(taken, failed) + ["", rule_text]
+    write_study(args.out / "embedded", {"study": study, "stage": "embedded", "rows": rows, "means": means,
                                         "seeds": list(SEEDS), "taken": taken, "failed": failed},
                 "\n".join(lines) + "\n")
 
 
-def capture(args) -> None:
-    today = {(r["scene"], r["seed"]): r for r in json.loads(TODAY_CAPTURE_ROWS.read_text())["rows"]
-             if r["protocol"] == "capture"}
-    cand = {(r["scene"], r["seed"]): r for r in json.loads(args.rows.read_text())["rows"] if r["protocol"] == "capture"}
-    failed, lines = [], ["# Study 33, capture stage: the density per finest cell on LLFF captures", "",
-                         "Capture split, llff preset, the capture bench's 10-minute budget (two threads), seed 0; "
-                         f"today's rows from `{TODAY_CAPTURE_ROWS.relative_to(TODAY_CAPTURE_ROWS.parents[3])}`. "
-                         "Command: the module docstring of `benchmarks/studies/density_unit_study.py`.", "", *HEAD]
-    rows = {}
+def capture_rows(path: Path) -> dict:
+    """{(scene, seed): row} of the capture-protocol rows of ``depth_interval_seeds.py``'s results.json."""
+    return {(r["scene"], r["seed"]): r for r in json.loads(path.read_text())["rows"] if r["protocol"] == "capture"}
+
+
+def capture_stage(*, study: int, title: str, intro: str, labels: tuple[str, str], today: Path, candidate: Path,
+                  rule_text: str, out: Path) -> None:
+    """A capture stage (studies 33 and 34): fern's and flower's seed-0 rows of ``today`` and
+    ``candidate`` (``capture_rows`` files) in one table, each scene judged by ``capture_verdict``,
+    the report (``intro`` under ``title``, then ``rule_text``) written to ``out``/capture."""
+    rows_today, rows_candidate = capture_rows(today), capture_rows(candidate)
+    failed, lines, rows = [], [title, "", intro, "", *HEAD], {}
     for scene in ("fern", "flower"):
-        t, c = today[(scene, 0)], cand.get((scene, 0))
-        if c is None:
-            raise SystemExit(f"{args.rows}: no capture row of {scene} seed 0")
+        t, c = rows_today.get((scene, 0)), rows_candidate.get((scene, 0))
+        if t is None or c is None:
+            raise SystemExit(f"{today if t is None else candidate}: no capture row of {scene} seed 0")
         rows[scene] = {"today": t, "candidate": c}
-        lines += [table_row(f"{scene}, {ROWS[0]} ({t['steps']} steps)", t),
-                  table_row(f"{scene}, {ROWS[1]} ({c['steps']} steps)", c)]
+        lines += [table_row(f"{scene}, {labels[0]} ({t['steps']} steps)", t),
+                  table_row(f"{scene}, {labels[1]} ({c['steps']} steps)", c)]
         failed += capture_verdict(t, c, scene)
-    lines += verdict_lines(not failed, failed) + ["", RULE_TEXT]
-    write_study(args.out / "capture", {"study": 33, "stage": "capture", "rows": rows, "taken": not failed,
-                                       "failed": failed}, "\n".join(lines) + "\n")
+    lines += verdict_lines(not failed, failed) + ["", rule_text]
+    write_study(out / "capture", {"study": study, "stage": "capture", "rows": rows, "taken": not failed,
+                                  "failed": failed}, "\n".join(lines) + "\n")
+
+
+def embedded(args) -> None:
+    embedded_stage(args, study=33, title="Study 33, embedded stage: the density per finest cell",
+                   script="density_unit_study.py", labels=ROWS, options=CANDIDATE_OPTIONS, verdict=embedded_verdict,
+                   rule_text=RULE_TEXT)
+
+
+def capture(args) -> None:
+    capture_stage(study=33, title="# Study 33, capture stage: the density per finest cell on LLFF captures",
+                  intro="Capture split, llff preset, the capture bench's 10-minute budget (two threads), seed 0; "
+                        f"today's rows from `{TODAY_CAPTURE_ROWS.relative_to(TODAY_CAPTURE_ROWS.parents[3])}`. "
+                        "Command: the module docstring of `benchmarks/studies/density_unit_study.py`.",
+                  labels=ROWS, today=TODAY_CAPTURE_ROWS, candidate=args.rows, rule_text=RULE_TEXT, out=args.out)
 
 
 def main() -> None:

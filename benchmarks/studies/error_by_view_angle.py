@@ -21,7 +21,6 @@ Renders only; decides nothing. Torch on 1 thread.
 
 from __future__ import annotations
 
-import shlex
 import sys
 from pathlib import Path
 
@@ -30,8 +29,8 @@ import torch
 from scipy.special import ndtri
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers (study_helpers.py)
-from study_helpers import (photo_points, scored_points, standardised_at_points, study_parser,  # noqa: E402
-                           write_study)
+from study_helpers import (parse_runs, photo_points, scored_points, standardised_at_points,  # noqa: E402
+                           study_command, study_parser, write_study)
 
 LEVELS = (0.6827, 0.95)
 BINS = 6
@@ -71,13 +70,12 @@ def binned(angle, err, depth, std, bounds, edges) -> list[dict]:
 
 
 def study_run(run_dir: Path, seed: int) -> dict:
-    from stochastic_fields.calibration import calibration_view_points, load_run_calibration, render_at_points
+    from stochastic_fields.calibration import calibration_views, depth_calibration_renders, load_run_calibration
     from stochastic_fields.cameras import camera_to_world
     from stochastic_fields.capture_points import FIT, SCORE, block_roles, load_capture_points
     from stochastic_fields.free_space import free_space_violation, rendered_points
     from stochastic_fields.io_utils import read_json
     from stochastic_fields.trainer import load_trained_model
-    from stochastic_fields.view_maps import OPACITY_MASK
 
     _, model, dataset = load_trained_model(run_dir)
     calibration = load_run_calibration(run_dir)
@@ -87,36 +85,31 @@ def study_run(run_dir: Path, seed: int) -> dict:
     train_centres = centres_all[np.asarray(dataset.train_indices)]
     bounds = cal.scale_at(np.asarray(LEVELS)) * ndtri((1.0 + np.asarray(LEVELS)) / 2.0)
 
-    def violation(points):
-        return free_space_violation(points, ref) if ref is not None else np.zeros(len(points))
+    def measured(centres, xyz, gt, depth, sigma, violation=None) -> dict:
+        """Angles, errors, depths and the map's full std of points ``xyz`` rendered from ``centres``
+        at camera z ``depth`` (truth ``gt``), raw std ``sigma`` (the free-space violation computed
+        when not given)."""
+        X = rendered_points(centres, xyz, gt, depth)
+        if violation is None:
+            violation = free_space_violation(X, ref) if ref is not None else np.zeros(len(X))
+        return {"angle": view_angles(X, centres, train_centres), "err": gt - depth, "depth": depth,
+                "std": full_std(cal, sigma, violation, depth)}
 
-    # the calibration renders: held-out capture points seen from the halfway views (as the map's fit)
-    cams, near, far, _, sparse = calibration_view_points(dataset, capture, points="held-out")
-    r = render_at_points(model, cams, near, far, sparse, generator=torch.Generator().manual_seed(seed))
-    views = [v for v, sd in sparse.items() if len(sd)]
-    centres = camera_to_world(cams).double()[:, :3, 3].numpy()[np.concatenate([np.full(len(sparse[v]), v) for v in views])]
-    index = np.concatenate([sparse[v].point_index for v in views])
-    keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(r["depth_std"]) & (r["depth_std"] > 0)
-    X = rendered_points(centres, capture.xyz[index], r["gt"], np.where(keep, r["depth_mean"], r["gt"]))[keep]
-    cal_set = {"angle": view_angles(X, centres[keep], train_centres), "err": (r["gt"] - r["depth_mean"])[keep],
-               "depth": r["depth_mean"][keep]}
-    cal_set["std"] = full_std(cal, r["depth_std"][keep], violation(X), cal_set["depth"])
+    # the calibration renders: held-out capture points seen from the halfway views, as the map is fitted
+    fit = depth_calibration_renders(model, dataset, seed=seed, points="held-out", free_space=ref)
+    fit_centres = camera_to_world(calibration_views(dataset)[0]).double()[:, :3, 3].numpy()[fit["view"]]
+    cal_set = measured(fit_centres, capture.xyz[fit["index"]], fit["depth"] + fit["err"], fit["depth"],
+                       fit.get("std_raw", fit["std"]), fit.get("violation", np.zeros(len(fit["err"]))))
     # the test views' scored points (as the tables score them)
     test_views = [int(name.split("_")[-1]) for name in read_json(run_dir / "eval" / "metrics.json", "metrics")["views"]]
     s = scored_points(run_dir, model, dataset, capture, test_views, capture.roles != FIT, seed)
     scored = (block_roles(s["xyz"], capture) == SCORE) if capture.source == "synthetic" else capture.roles[s["index"]] == SCORE
-    tc = centres_all[s["view"]][scored]
-    Xt = rendered_points(tc, s["xyz"][scored], s["gt"][scored], s["depth_mean"][scored])
-    test_set = {"angle": view_angles(Xt, tc, train_centres), "err": (s["gt"] - s["depth_mean"])[scored],
-                "depth": s["depth_mean"][scored]}
-    test_set["std"] = full_std(cal, s["std"][scored], violation(Xt), test_set["depth"])
+    test_set = measured(centres_all[s["view"]][scored], s["xyz"][scored], s["gt"][scored], s["depth_mean"][scored],
+                        s["std"][scored])
     # the test views' SCORE capture points (the map's kind of points; on LLFF the same as "test")
-    sp = photo_points(dataset, capture, test_views, SCORE)
-    q = standardised_at_points(model, dataset.cameras, dataset.near, dataset.far, sp, seed)
-    qc = centres_all[q["view"]]
-    Xq = rendered_points(qc, capture.xyz[q["index"]], q["gt"], q["depth_mean"])
-    point_set = {"angle": view_angles(Xq, qc, train_centres), "err": q["gt"] - q["depth_mean"], "depth": q["depth_mean"]}
-    point_set["std"] = full_std(cal, q["std"], violation(Xq), point_set["depth"])
+    q = standardised_at_points(model, dataset.cameras, dataset.near, dataset.far,
+                               photo_points(dataset, capture, test_views, SCORE), seed)
+    point_set = measured(centres_all[q["view"]], capture.xyz[q["index"]], q["gt"], q["depth_mean"], q["std"])
     edges = np.quantile(np.concatenate([cal_set["angle"], test_set["angle"]]), np.linspace(0.0, 1.0, BINS + 1))
     return {"run": str(run_dir), "relative_floor": cal.relative_floor,
             "free_space_weight": cal.free_space_weight if cal.free_space else 0.0,
@@ -128,13 +121,8 @@ def main(argv: list[str] | None = None) -> int:
     p = study_parser(__doc__, "error_by_view_angle", "Trained, evaluated and calibrated runs.", metavar="LABEL=RUN_DIR")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    runs = {}
-    for item in args.run:
-        label, sep, path = item.partition("=")
-        if not sep or not (Path(path) / "eval" / "metrics.json").is_file():
-            p.error(f"--run expects LABEL=RUN_DIR of an evaluated run (RUN_DIR/eval/metrics.json), got {item!r}")
-        runs[label] = Path(path)
-    command = "python benchmarks/studies/error_by_view_angle.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
+    runs = parse_runs(p, args.run, required="eval/metrics.json")
+    command = study_command("error_by_view_angle.py", argv)
     results = {"command": command, "levels": list(LEVELS), "torch_threads": 1, "runs": {}}
     lines = ["# Depth errors by the view angle to the nearest training ray", "", f"Command: `{command}`", "",
              "Per run: the map's rho and beta; per angle bin (degrees, sextiles of both point sets), the points, "

@@ -40,29 +40,20 @@ Two stages, each with its own part of the rule:
 Resumable: a row whose ``eval/metrics.json`` exists is read, not re-run.
 
 Study 34 ran the embedded stage only: it failed the rule, and ``trajectory_spread.py`` showed the two
-losses equal to 0.3% on a fern capture run (docs/studies.md), so the capture rows were not trained.
+losses equal to within 0.1-0.3% on a fern capture run (docs/studies.md), so the capture rows were not trained.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from stochastic_fields.data.synthetic import make_synthetic_scene
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared report helpers
-import density_unit_study as study33  # noqa: E402  (study 33's rule and table, shared)
-from density_unit_study import HEAD, table_row  # noqa: E402
-from study_helpers import pooled_scores, seed_means, train_and_eval, validation_scenes_report  # noqa: E402
-from tables_cap_study import verdict_lines, write_study  # noqa: E402
+import density_unit_study as study33  # noqa: E402  (study 33's stages, rule checks and table, shared)
 
-SEEDS = (1, 2, 3)
 ROWS = ("today (expected log-likelihood)", "candidate (predictive mixture)")
 CANDIDATE_OPTIONS = ("--loss.depth_likelihood", "predictive")
-RULE_LEVELS = (0.50, 0.68, 0.90, 0.95)
 #: The rule, fixed before the rows ran. Every check of study 33's rule (embedded means over seeds
 #: 1-3: PSNR at most MAX_PSNR_LOSS_DB lower, depth abs-rel not higher, median 95% half-width not
 #: wider, every level within COVERAGE_TOLERANCE of nominal or no further than today's; each capture
@@ -74,11 +65,6 @@ MAX_SPEARMAN_LOSS = 0.02
 MAX_PSNR_LOSS_DB, COVERAGE_TOLERANCE = study33.MAX_PSNR_LOSS_DB, study33.COVERAGE_TOLERANCE
 CAPTURE_MAX_PSNR_LOSS_DB, CAPTURE_MAX_ABS_REL_RISE, CAPTURE_MAX_BAND_RISE = (
     study33.CAPTURE_MAX_PSNR_LOSS_DB, study33.CAPTURE_MAX_ABS_REL_RISE, study33.CAPTURE_MAX_BAND_RISE)
-
-
-def run_row(scene: Path, run: Path, seed: int, candidate: bool) -> dict:
-    """Train (demo preset) and score one row; the pooled metrics it needs."""
-    return pooled_scores(train_and_eval(scene, run, seed, options=CANDIDATE_OPTIONS if candidate else ()), RULE_LEVELS)
 
 
 def embedded_verdict(today: dict, candidate: dict) -> tuple[bool, list[str]]:
@@ -104,47 +90,18 @@ RULE_TEXT = ("Rule (fixed before the rows ran): the candidate becomes the defaul
 
 
 def embedded(args) -> None:
-    jobs = []
-    for seed in SEEDS:
-        scene = make_synthetic_scene(args.work / f"scene_s{seed}", seed=seed)
-        for label in ROWS:
-            candidate = label == ROWS[1]
-            jobs.append((label, seed, scene, args.work / f"s{seed}" / ("candidate" if candidate else "today"), candidate))
-    with ThreadPoolExecutor(args.jobs) as pool:
-        results = list(pool.map(lambda j: run_row(j[2], j[3], j[1], j[4]), jobs))
-    rows = {label: [r for (lab, *_), r in zip(jobs, results) if lab == label] for label in ROWS}
-    means = {label: seed_means(rows[label]) for label in ROWS}
-    taken, failed = embedded_verdict(means[ROWS[0]], means[ROWS[1]])
-    lines = validation_scenes_report("Study 34, embedded stage: the depth likelihood of the predictive mixture",
-                                     "predictive_depth_study.py", ROWS, rows, means, SEEDS, HEAD, table_row)
-    lines += verdict_lines(taken, failed) + ["", RULE_TEXT]
-    write_study(args.out / "embedded", {"study": 34, "stage": "embedded", "rows": rows, "means": means,
-                                        "seeds": list(SEEDS), "taken": taken, "failed": failed},
-                "\n".join(lines) + "\n")
+    study33.embedded_stage(args, study=34, title="Study 34, embedded stage: the depth likelihood of the predictive mixture",
+                           script="predictive_depth_study.py", labels=ROWS, options=CANDIDATE_OPTIONS,
+                           verdict=embedded_verdict, rule_text=RULE_TEXT)
 
 
 def capture(args) -> None:
-    def seed0(path: Path) -> dict:
-        rows = {(r["scene"], r["seed"]): r for r in json.loads(path.read_text())["rows"] if r["protocol"] == "capture"}
-        return rows
-
-    today, cand = seed0(args.today), seed0(args.rows)
-    failed, lines = [], ["# Study 34, capture stage: the depth likelihood of the predictive mixture on LLFF captures",
-                         "", "Capture split, llff preset, the capture bench's 10-minute budget, seed 0; today's row and "
-                         "the candidate's trained side by side, one thread each. Command: the module docstring of "
-                         "`benchmarks/studies/predictive_depth_study.py`.", "", *HEAD]
-    rows = {}
-    for scene in ("fern", "flower"):
-        t, c = today.get((scene, 0)), cand.get((scene, 0))
-        if t is None or c is None:
-            raise SystemExit(f"{args.today if t is None else args.rows}: no capture row of {scene} seed 0")
-        rows[scene] = {"today": t, "candidate": c}
-        lines += [table_row(f"{scene}, {ROWS[0]} ({t['steps']} steps)", t),
-                  table_row(f"{scene}, {ROWS[1]} ({c['steps']} steps)", c)]
-        failed += study33.capture_verdict(t, c, scene)
-    lines += verdict_lines(not failed, failed) + ["", RULE_TEXT]
-    write_study(args.out / "capture", {"study": 34, "stage": "capture", "rows": rows, "taken": not failed,
-                                       "failed": failed}, "\n".join(lines) + "\n")
+    study33.capture_stage(study=34, title="# Study 34, capture stage: the depth likelihood of the predictive mixture "
+                                          "on LLFF captures",
+                          intro="Capture split, llff preset, the capture bench's 10-minute budget, seed 0; today's row and "
+                                "the candidate's trained side by side, one thread each. Command: the module docstring of "
+                                "`benchmarks/studies/predictive_depth_study.py`.",
+                          labels=ROWS, today=args.today, candidate=args.rows, rule_text=RULE_TEXT, out=args.out)
 
 
 def main() -> None:

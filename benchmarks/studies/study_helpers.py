@@ -97,18 +97,23 @@ def photo_points(dataset, points, views: list[int], role: int) -> dict:
     return project_sparse_depth(dataset.cameras, points.xyz, views, visible=visible, visibility_name="depth map")
 
 
-def parse_runs(parser: argparse.ArgumentParser, items: list[str]) -> dict[str, Path]:
+def parse_runs(parser: argparse.ArgumentParser, items: list[str], required: str = "metrics.json") -> dict[str, Path]:
     """{scene: run folder} from ``--run SCENE=RUN_DIR`` items; a parser error names the item that
-    is malformed or whose run has no metrics.json."""
+    is malformed or whose run lacks the file ``required`` (a path inside the run)."""
     runs = {}
     for item in items:
         scene, sep, path = item.partition("=")
         if not sep or not scene or not path:
             parser.error(f"--run expects SCENE=RUN_DIR, got {item!r}")
-        if not (Path(path) / "metrics.json").is_file():
-            parser.error(f"--run {item}: {path} has no metrics.json (train and evaluate the run first)")
+        if not (Path(path) / required).is_file():
+            parser.error(f"--run {item}: {path} has no {required} (train and evaluate the run first)")
         runs[scene] = Path(path)
     return runs
+
+
+def study_command(script: str, argv: list[str] | None) -> str:
+    """The command that reproduces a study script's run with ``argv`` (None: this process's)."""
+    return f"python benchmarks/studies/{script} " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
 
 
 def study_parser(doc: str, out_name: str, run_help: str, *, metavar: str = "SCENE/SEED=RUN_DIR",
@@ -137,8 +142,7 @@ def begin_study(parser: argparse.ArgumentParser, argv: list[str] | None, script:
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     runs = parse_runs(parser, args.run)
-    command = f"python benchmarks/studies/{script} " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
-    return args, runs, {"command": command, "levels": list(LEVELS), "torch_threads": 1}
+    return args, runs, {"command": study_command(script, argv), "levels": list(LEVELS), "torch_threads": 1}
 
 
 def coverage(abs_err: np.ndarray, std: np.ndarray, calibration, levels=LEVELS) -> np.ndarray:

@@ -713,8 +713,8 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
                               free_space=None, edges: bool = False) -> dict[str, Any]:
     """What a depth map is fitted on: the absolute camera-z errors "abs_err" [N] (signed, true minus
     rendered: "err") and raw total stds
-    "std" [N] (> 0), with the capture point of each ("index" [N] int64), the rendered depth ("depth"
-    [N]) and the data in words ("source"), at the CALIBRATE capture points (``points="held-out"``: CALIBRATE and SCORE, see
+    "std" [N] (> 0), with the capture point of each ("index" [N] int64), its calibration view ("view"
+    [N], an index of ``calibration_views``), the rendered depth ("depth" [N]) and the data in words ("source"), at the CALIBRATE capture points (``points="held-out"``: CALIBRATE and SCORE, see
     ``CALIBRATION_POINTS``) seen from the calibration views (``calibration_views``: halfway between
     neighbouring training views; a point counts when both views of the pair observed it), at pixels
     with rendered opacity above ``opacity_mask`` (as the depth scores), rendered with ``options``
@@ -749,7 +749,8 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
         std = checked_std(sigma, violation)
         source += CHECKED_SOURCE
     err = r["gt"][keep] - r["depth_mean"][keep]
-    out = {"abs_err": np.abs(err), "err": err, "std": std[keep], "index": index[keep],
+    view = np.concatenate([np.full(len(sparse[v]), v) for v in views] or [np.zeros(0, np.int64)])
+    out = {"abs_err": np.abs(err), "err": err, "std": std[keep], "index": index[keep], "view": view[keep],
            "depth": r["depth_mean"][keep], "source": source}
     if violation is not None:
         out.update({"std_raw": sigma[keep], "violation": violation[keep]})

@@ -238,17 +238,25 @@ class SNeRF(RadianceModel):
             logs["tv"] = tv.item()
         return loss, logs
 
-    def _depth_nll(self, rays: RayBundle, target_t: Tensor, *, generator: torch.Generator | None) -> Tensor:
-        """``termination_depth_nll`` of capture-point rays [M] at their surface distances [M]:
-        dense stratified samples (as the colour rays, without skipping), ``loss.depth_draws``
-        trajectories (0: ``train_draws``) of the density alone: the field's density parameters (``field.density_params``, no colour
-        decoder, and on the grid a backward over 2 of its channels) into ``trajectory_weights``."""
+    def depth_trajectories(self, rays: RayBundle, *, generator: torch.Generator | None
+                           ) -> tuple[RaySamples, Tensor, Tensor, Tensor]:
+        """What the depth likelihood reads on capture-point rays [M]: dense stratified samples (as
+        the colour rays, without skipping), the field's density parameters there (``field.density_params``:
+        no colour decoder, and on the grid a backward over 2 of its channels) and ``loss.depth_draws``
+        trajectories (0: ``train_draws``) of the density alone (``trajectory_weights``). Returns
+        (samples, density loc [M, S], density scale [M, S], weights [M, K, S])."""
         settings = self.render_settings
         samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing, stratified=True,
                                     generator=generator)
         loc, scale = self.field.density_params(samples.positions)  # [M, S] each
         num_draws = self.loss_config.depth_draws or self.train_draws
         weights = trajectory_weights(loc, scale, samples, settings, num_draws=num_draws, generator=generator)
+        return samples, loc, scale, weights
+
+    def _depth_nll(self, rays: RayBundle, target_t: Tensor, *, generator: torch.Generator | None) -> Tensor:
+        """``termination_depth_nll`` of capture-point rays [M] at their surface distances [M], on the
+        trajectories of ``depth_trajectories``."""
+        samples, _, _, weights = self.depth_trajectories(rays, generator=generator)
         return termination_depth_nll(weights, samples.t_mids, samples.deltas, target_t,
                                      self.loss_config.depth_relative_std, self.loss_config.depth_likelihood)
 
