@@ -559,12 +559,14 @@ def test_trajectory_weights_are_the_renders_weights_without_colours(shared_noise
     assert drawn.shape == (R, K, S) and torch.equal(drawn, again)
 
 
-@pytest.mark.parametrize("depth_draws,form", [(0, "expected"), (3, "expected"), (3, "predictive")])
-def test_depth_term_reads_density_only_and_matches_the_full_field_pass(tiny_scene, depth_draws, form):
+@pytest.mark.parametrize("depth_draws,form,trains_scale", [(0, "expected", True), (3, "expected", True),
+                                                         (3, "predictive", True), (3, "expected", False)])
+def test_depth_term_reads_density_only_and_matches_the_full_field_pass(tiny_scene, depth_draws, form, trains_scale):
     """The model's depth term evaluates only the density (``field.density_params``: no colour
     decoder, a 2-channel backward on the grid) and gives the loss and grid gradients of the full
     field evaluation with the same draws, float64; it draws ``loss.depth_draws`` trajectories
-    (0: ``train.train_draws``)."""
+    (0: ``train.train_draws``). Without ``loss.depth_trains_scale`` the gradients are those of
+    draws made with stopgrad(scale): the same loss, other gradients."""
     from stochastic_fields.config import preset
     from stochastic_fields.data import load_dataset
     from stochastic_fields.fields.row_gather import row_gradient
@@ -579,6 +581,7 @@ def test_depth_term_reads_density_only_and_matches_the_full_field_pass(tiny_scen
     cfg = preset("tiny")
     cfg.loss.depth_draws = depth_draws
     cfg.loss.depth_likelihood = form
+    cfg.loss.depth_trains_scale = trains_scale
     model = build_model(cfg, dataset).double()
     assert model.train_draws != 3
     with torch.no_grad():  # a field with structure, not the uniform initial fog
@@ -604,14 +607,81 @@ def test_depth_term_reads_density_only_and_matches_the_full_field_pass(tiny_scen
     samples = sample_along_rays(rays, st.num_samples, spacing=st.spacing, stratified=True, generator=g)
     params = model.field(samples.positions.reshape(-1, 3), samples.directions.reshape(-1, 3))
     params = params.reshape(*samples.t_starts.shape)
-    w = trajectory_weights(params.density_loc, params.density_scale, samples, st,
-                           num_draws=depth_draws or model.train_draws, generator=g)
-    assert w.shape[1] == (depth_draws or cfg.train.train_draws)
-    ref = termination_depth_nll(w, samples.t_mids, samples.deltas, target, model.loss_config.depth_relative_std, form)
-    ref.backward()
+    noise = torch.randn(len(rays), depth_draws or model.train_draws, st.num_samples, generator=g, dtype=torch.float64)
+
+    def reference(scale):
+        w = trajectory_weights(params.density_loc, scale, samples, st, num_draws=noise.shape[1], noise=noise)
+        return termination_depth_nll(w, samples.t_mids, samples.deltas, target, model.loss_config.depth_relative_std, form)
+
+    assert noise.shape[1] == (depth_draws or cfg.train.train_draws)
+    ref = reference(params.density_scale if trains_scale else params.density_scale.detach())
+    ref.backward(retain_graph=True)
     ref_grads = grads()
     assert torch.isfinite(got) and got.item() == pytest.approx(ref.item(), rel=1e-12)
     for a, b in zip(got_grads, ref_grads):
         assert b.abs().max() > 0
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-14)
+    reference(params.density_scale if not trains_scale else params.density_scale.detach()).backward()
+    assert any((a - b).abs().max() > 1e-8 for a, b in zip(got_grads, grads()))  # the scale's share differs
     assert model.field.decoder[0].weight.grad is None  # the colour decoder never ran
+
+
+def test_depth_weight_falls_linearly_to_its_final_factor():
+    """loss.depth_final_factor: lambda (1 - (1 - f) p), p clamped to [0, 1]; by hand."""
+    from stochastic_fields.losses import depth_weight
+    assert depth_weight(2.0, 0.25, 0.0) == 2.0
+    assert depth_weight(2.0, 0.25, 0.5) == pytest.approx(2.0 * (1 - 0.75 * 0.5))
+    assert depth_weight(2.0, 0.25, 1.0) == pytest.approx(0.5)
+    assert depth_weight(2.0, 0.25, 3.0) == pytest.approx(0.5) and depth_weight(2.0, 0.25, -1.0) == 2.0
+    assert depth_weight(1.0, 1.0, 0.7) == 1.0
+
+
+def test_depth_term_weight_follows_the_training_progress(tiny_scene):
+    """The model's loss adds depth_weight(lambda, f, model.training_progress) times the depth NLL:
+    two losses on the same draws at progress 0 and 0.5 differ by exactly (w(0.5) - w(0)) * nll."""
+    from stochastic_fields.config import preset
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.losses import depth_weight
+    from stochastic_fields.models.registry import build_model
+    from stochastic_fields.rays import RayBundle
+    from stochastic_fields.trainer import TrainingDepth
+
+    dataset = load_dataset(tiny_scene, split_every=5)
+    cfg = preset("tiny")
+    cfg.loss.lambda_depth, cfg.loss.depth_final_factor = 2.0, 0.2
+    model = build_model(cfg, dataset).double()
+    depth = TrainingDepth.from_dataset(dataset, torch.device("cpu"))
+    d_rays, d_t = depth.batch(16, torch.Generator().manual_seed(0))
+    d_rays = RayBundle(*(t.double() for t in dataclasses.astuple(d_rays)))
+    rays, colours = d_rays, torch.full((len(d_rays), 3), 0.5, dtype=torch.float64)
+
+    def loss_at(progress):
+        model.training_progress = progress
+        loss, logs = model.training_loss(rays, colours, step=0, generator=torch.Generator().manual_seed(3),
+                                         depth=(d_rays, d_t.double()))
+        return loss.item(), logs
+
+    l0, logs0 = loss_at(0.0)
+    l5, logs5 = loss_at(0.5)
+    assert logs0["depth_weight"] == 2.0 and logs5["depth_weight"] == pytest.approx(depth_weight(2.0, 0.2, 0.5))
+    assert logs0["depth_nll"] == logs5["depth_nll"]
+    assert l5 - l0 == pytest.approx((logs5["depth_weight"] - 2.0) * logs0["depth_nll"], rel=1e-9)
+
+
+def test_trainer_sets_the_progress_the_depth_weight_follows(tiny_scene, tmp_path):
+    """The trainer sets the model's progress (step / iterations) before each step: with
+    loss.depth_final_factor 0 the logged weight at steps 10 and 20 of 20 is 1 - 9/20 and 1 - 19/20
+    (the record after step s holds step s - 1's loss), and a trained model reads progress 0."""
+    import json
+
+    from stochastic_fields.config import preset
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.trainer import LOG_NAME, Trainer
+
+    cfg = preset("tiny")
+    cfg.train.iterations, cfg.loss.lambda_depth, cfg.loss.depth_final_factor = 20, 1.0, 0.0
+    model = Trainer(cfg, tmp_path, load_dataset(tiny_scene, split_every=5)).train(progress=False)
+    records = {r["step"]: r for r in map(json.loads, (tmp_path / LOG_NAME).read_text().splitlines())}
+    assert records[10]["depth_weight"] == pytest.approx(1 - 9 / 20)
+    assert records[20]["depth_weight"] == pytest.approx(1 - 19 / 20)
+    assert model.training_progress == 0.0

@@ -113,7 +113,7 @@ def parse_runs(parser: argparse.ArgumentParser, items: list[str], required: str 
 
 def study_command(script: str, argv: list[str] | None) -> str:
     """The command that reproduces a study script's run with ``argv`` (None: this process's)."""
-    return f"python benchmarks/studies/{script} " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
+    return " ".join([f"python benchmarks/studies/{script}", *(shlex.quote(a) for a in (argv or sys.argv[1:]))])
 
 
 def study_parser(doc: str, out_name: str, run_help: str, *, metavar: str = "SCENE/SEED=RUN_DIR",

@@ -115,6 +115,14 @@ def decoupled_likelihood_nll(colours: Tensor, target: Tensor, std: Tensor, extra
 DEPTH_LIKELIHOOD_FORMS: tuple[str, ...] = ("expected", "predictive")
 
 
+def depth_weight(lambda_depth: float, final_factor: float, progress: float) -> float:
+    """The sparse-depth likelihood's weight at a point of the schedule: lambda_depth * (1 - (1 - f) p)
+    with f = ``loss.depth_final_factor`` and p = ``progress`` in [0, 1] (clamped): lambda_depth at the
+    start, lambda_depth * f at the end, linear between."""
+    p = min(max(float(progress), 0.0), 1.0)
+    return lambda_depth * (1.0 - (1.0 - final_factor) * p)
+
+
 def termination_depth_nll(weights: Tensor, t_mids: Tensor, deltas: Tensor, target_t: Tensor,
                           relative_std: float, form: str = "expected") -> Tensor:
     """Negative log-likelihood of an observed surface at ray distance t* under the termination

@@ -52,6 +52,10 @@ class LossConfig:
     """Depth noise of a capture point relative to its depth (added to each sample's bin width in the depth likelihood). Range: a finite number > 0."""
     depth_likelihood: Literal["expected", "predictive"] = "expected"
     """How the depth likelihood combines the K trajectories of a capture-point ray: 'expected' (the ELBO's expected log-likelihood, -1/K sum_k log p(t* | w_k): every trajectory must put mass at the point) or 'predictive' (the log of the predictive mixture, -log 1/K sum_k p(t* | w_k): the trajectories together must, so they may disagree where the data do not decide; a proper scoring rule on the predictive termination distribution, as predictive / PAC^2 variational objectives, Masegosa 2020). The two are equal for K = 1 (termination_depth_nll). Default 'expected': 'predictive' changed nothing on the validation scenes, whose trajectories agree at the capture points to 0.03-0.08% of the depth (docs/studies.md, study 34)."""
+    depth_trains_scale: bool = True
+    """Whether the sparse-depth likelihood's gradient reaches the density's scale s_a. On (the ELBO): the likelihood asks every trajectory to stop at each capture point, which shrinks the density's scale at the surfaces until the K trajectories agree. Off: its trajectories are drawn with stopgrad(s_a), so the capture points place the surfaces through the density's location mu_a only and the scale is set by the pixels and the priors."""
+    depth_final_factor: float = 1.0
+    """The sparse-depth likelihood's weight at the end of training relative to loss.lambda_depth: the weight falls linearly with the schedule's progress (steps, or the minutes budget) from lambda_depth to lambda_depth * depth_final_factor. 1 = constant (the default); 0 = the points place the surfaces early and leave the density's scale to the pixels late. Range: a finite number >= 0 and <= 1."""
     depth_draws: int = 0
     """Trajectories per capture-point ray in the depth likelihood (0: ``train.train_draws``, as the colour rays). Range: an integer >= 0 and <= 4096."""
     lambda_distortion: float = 0.0
@@ -92,6 +96,8 @@ def _loss_checks() -> dict:
         "depth_relative_std": real(0.0, lo_open=True),
         "depth_likelihood": choice("expected", "predictive"),
         "depth_draws": integer(0, 4096),
+        "depth_trains_scale": boolean(),
+        "depth_final_factor": real(0.0, 1.0),
         "lambda_distortion": real(0.0),
         "lambda_occlusion": real(0.0),
         "occlusion_near_fraction": real(0.0, 1.0, lo_open=True),

@@ -415,6 +415,7 @@ class Trainer:
                 while self.step < stop_at and self.elapsed < clock_stop:
                     done = self.schedule_progress()
                     self._set_level_weights(done)
+                    self.model.training_progress = done
                     loss, logs = self.compute_gradients(data, depth_data, patch_sampler)
                     self.optimizer.set_progress(done)
                     self.optimizer.step()
@@ -438,6 +439,7 @@ class Trainer:
                     bar.update(1)
         finally:
             self._set_level_weights(None)  # the trained model reads every level
+            self.model.training_progress = 0.0
         bar.close()
         self.save()
         self.model.eval()

@@ -31,6 +31,9 @@ class RadianceModel(nn.Module, abc.ABC):
     #: Whether the density this model renders is a mean field ``relu(mu)`` (False: S-NeRF's
     #: rectified normal, whose regularisers read its mean).
     mean_field_density: bool = True
+    #: Fraction of the training schedule done (steps or the minutes budget, set by the trainer
+    #: before each step); terms whose weight follows the schedule read it. 0 outside training.
+    training_progress: float = 0.0
 
     @abc.abstractmethod
     def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,

@@ -29,7 +29,7 @@ from ..distortion import distortion_loss, distortion_loss_packed, normalised_coo
 from ..fields.base import StochasticField
 from ..fields.grid import GridField
 from ..losses import (LossConfig, Priors, decoupled_likelihood_nll, field_kl_means, gaussian_likelihood_nll,
-                      termination_depth_nll)
+                      depth_weight, termination_depth_nll)
 from ..occupancy import OccupancyGrid, density_threshold, density_upper_estimate
 from ..rays import PackedRaySamples, RayBundle, RaySamples
 from ..renderer import (ChunkGenerators, ChunkRender, RayRender, RenderOptions, RenderSettings,
@@ -230,8 +230,11 @@ class SNeRF(RadianceModel):
         loss = self.add_occlusion(loss, logs, [out])
         if depth is not None and cfg.lambda_depth > 0:
             depth_nll = self._depth_nll(*depth, generator=generator)
-            loss = loss + cfg.lambda_depth * depth_nll
+            weight = depth_weight(cfg.lambda_depth, cfg.depth_final_factor, self.training_progress)
+            loss = loss + weight * depth_nll
             logs["depth_nll"] = depth_nll.item()
+            if cfg.depth_final_factor != 1.0:
+                logs["depth_weight"] = weight
         if self.tv_weight > 0 and isinstance(self.field, GridField):
             tv = self.field.total_variation(generator=generator)
             loss = loss + self.tv_weight * tv
@@ -243,14 +246,16 @@ class SNeRF(RadianceModel):
         """What the depth likelihood reads on capture-point rays [M]: dense stratified samples (as
         the colour rays, without skipping), the field's density parameters there (``field.density_params``:
         no colour decoder, and on the grid a backward over 2 of its channels) and ``loss.depth_draws``
-        trajectories (0: ``train_draws``) of the density alone (``trajectory_weights``). Returns
+        trajectories (0: ``train_draws``) of the density alone (``trajectory_weights``; drawn with
+        stopgrad(scale) unless ``loss.depth_trains_scale``). Returns
         (samples, density loc [M, S], density scale [M, S], weights [M, K, S])."""
         settings = self.render_settings
         samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing, stratified=True,
                                     generator=generator)
         loc, scale = self.field.density_params(samples.positions)  # [M, S] each
         num_draws = self.loss_config.depth_draws or self.train_draws
-        weights = trajectory_weights(loc, scale, samples, settings, num_draws=num_draws, generator=generator)
+        drawn_scale = scale if self.loss_config.depth_trains_scale else scale.detach()
+        weights = trajectory_weights(loc, drawn_scale, samples, settings, num_draws=num_draws, generator=generator)
         return samples, loc, scale, weights
 
     def _depth_nll(self, rays: RayBundle, target_t: Tensor, *, generator: torch.Generator | None) -> Tensor:
