@@ -223,3 +223,21 @@ def test_predictive_depth_study_rule_by_hand(load_script):
     means = [committed["means"][label] for label in study.ROWS]
     assert study.embedded_verdict(*means) == (committed["taken"], committed["failed"])
     assert committed["taken"] is False
+
+
+def test_point_noise_study_rule_by_hand(load_script):
+    """Study 35: study 34's checks without its interval-score gain, and the gain it is for: lower
+    depth abs-rel and CRPS / depth on the embedded means."""
+    study = load_script("benchmarks/studies/point_noise_study.py")
+    today = {"psnr": 21.3, "abs_rel": 0.023, "halfwidth_median_95": 0.042, "spearman": 0.45, "crps": 0.0162,
+             "interval_score_95": 0.121, "coverage_50": 0.48, "coverage_68": 0.65, "coverage_90": 0.86,
+             "coverage_95": 0.94}
+    good = {**today, "abs_rel": 0.0225, "crps": 0.0160, "psnr": 21.21, "spearman": 0.431, "interval_score_95": 0.13}
+    assert study.embedded_verdict(today, good) == (True, [])
+    assert study.embedded_verdict(today, {**good, "crps": 0.0162, "spearman": 0.429})[1] == [
+        "depth Spearman 0.450 -> 0.429: more than 0.02 lower", "CRPS / depth 0.0162 -> 0.0162: no gain"]
+    assert study.embedded_verdict(today, {**good, "abs_rel": 0.023})[1] == [
+        "depth abs-rel 0.0230 -> 0.0230: no gain"]
+    assert study.embedded_verdict(today, {**good, "abs_rel": 0.0231})[1] == [
+        "depth abs-rel 0.0230 -> 0.0231: higher", "depth abs-rel 0.0230 -> 0.0231: no gain"]
+    assert study.CANDIDATE_OPTIONS == ("--loss.depth_relative_std", "0.03")
