@@ -241,3 +241,22 @@ def test_point_noise_study_rule_by_hand(load_script):
     assert study.embedded_verdict(today, {**good, "abs_rel": 0.0231})[1] == [
         "depth abs-rel 0.0230 -> 0.0231: higher", "depth abs-rel 0.0230 -> 0.0231: no gain"]
     assert study.CANDIDATE_OPTIONS == ("--loss.depth_relative_std", "0.03")
+
+
+def test_point_noise_study_committed_verdicts_follow_from_their_rows(load_script):
+    """Study 35's committed embedded and capture verdicts follow from the committed means and rows
+    (the rule as the script states it), and the default is the candidate's value."""
+    from stochastic_fields.settings import LossConfig
+
+    study = load_script("benchmarks/studies/point_noise_study.py")
+    study33 = load_script("benchmarks/studies/density_unit_study.py")
+    embedded = json.loads((REPO_ROOT / "benchmarks/results/point_noise_study/embedded/results.json").read_text())
+    assert study.embedded_verdict(*[embedded["means"][label] for label in study.ROWS]) == (embedded["taken"],
+                                                                                           embedded["failed"])
+    capture = json.loads((REPO_ROOT / "benchmarks/results/point_noise_study/capture/results.json").read_text())
+    failed = []
+    for scene in ("fern", "flower"):
+        today, candidate = (capture["rows"][scene][label] for label in ("today", "candidate"))
+        failed += study33.capture_verdict(today, candidate, scene)
+    assert failed == capture["failed"] == [] and embedded["taken"] is True
+    assert LossConfig().depth_relative_std == float(study.CANDIDATE_OPTIONS[1])

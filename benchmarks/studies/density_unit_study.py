@@ -32,6 +32,10 @@ Two stages, each with its own part of the rule:
       python benchmarks/studies/density_unit_study.py capture \\
           --rows runs/density_unit_capture/intervals/results.json --out benchmarks/results/density_unit_study
 
+Since study 35 changed ``loss.depth_relative_std`` to 0.03, the embedded rows train with
+``PINNED_BEFORE_35`` (0.01, the value they ran with) and the capture rows need
+``--set loss.depth_relative_std=0.01`` to be reproduced.
+
 Resumable: a row whose ``eval/metrics.json`` exists is read, not re-run.
 """
 
@@ -67,6 +71,9 @@ COVERAGE_TOLERANCE = 0.05
 CAPTURE_MAX_PSNR_LOSS_DB = 0.15
 CAPTURE_MAX_ABS_REL_RISE = 0.003
 CAPTURE_MAX_BAND_RISE = 0.01
+#: The defaults studies 33-35 ran with that study 35 changed: each capture point's depth noise 1% of
+#: its depth. Their rows train with it, so that their commands reproduce them.
+PINNED_BEFORE_35: tuple[str, ...] = ("--loss.depth_relative_std", "0.01")
 TODAY_CAPTURE_ROWS = Path(__file__).resolve().parents[1] / "results" / "capture_interval_seeds_occ" / "results.json"
 
 
@@ -118,11 +125,13 @@ RULE_TEXT = ("Rule (fixed before the rows ran): the candidate becomes the defaul
 
 
 def embedded_stage(args, *, study: int, title: str, script: str, labels: tuple[str, str],
-                   options: tuple[str, ...], verdict, rule_text: str) -> None:
-    """A validation-scene stage (studies 33 and 34): today's row (label 0) and the candidate's
-    (label 1, trained with the command-line ``options``) on each of ``SEEDS``, ``args.jobs`` at a
-    time, scored, their means judged by ``verdict(today, candidate) -> (taken, failed)``, and the
-    report with ``rule_text`` written to ``args.out``/embedded."""
+                   options: tuple[str, ...], verdict, rule_text: str, pinned: tuple[str, ...] = PINNED_BEFORE_35
+                   ) -> None:
+    """A validation-scene stage (studies 33-35): today's row (label 0) and the candidate's (label 1,
+    trained with the command-line ``options`` after ``pinned``) on each of ``SEEDS``, ``args.jobs``
+    at a time, scored, their means judged by ``verdict(today, candidate) -> (taken, failed)``, and
+    the report with ``rule_text`` written to ``args.out``/embedded. ``pinned``: the options both rows
+    train with, the defaults of the day the study ran that a later study changed."""
     jobs = []
     for seed in SEEDS:
         scene = make_synthetic_scene(args.work / f"scene_s{seed}", seed=seed)
@@ -130,8 +139,8 @@ def embedded_stage(args, *, study: int, title: str, script: str, labels: tuple[s
             candidate = label == labels[1]
             jobs.append((label, seed, scene, args.work / f"s{seed}" / ("candidate" if candidate else "today"), candidate))
     with ThreadPoolExecutor(args.jobs) as pool:
-        results = list(pool.map(lambda j: pooled_scores(train_and_eval(j[2], j[3], j[1], options=options if j[4] else ()),
-                                                        RULE_LEVELS), jobs))
+        results = list(pool.map(lambda j: pooled_scores(
+            train_and_eval(j[2], j[3], j[1], options=pinned + (options if j[4] else ())), RULE_LEVELS), jobs))
     rows = {label: [r for (lab, *_), r in zip(jobs, results) if lab == label] for label in labels}
     means = {label: seed_means(rows[label]) for label in labels}
     taken, failed = verdict(means[labels[0]], means[labels[1]])
@@ -149,7 +158,7 @@ def capture_rows(path: Path) -> dict:
 
 def capture_stage(*, study: int, title: str, intro: str, labels: tuple[str, str], today: Path, candidate: Path,
                   rule_text: str, out: Path) -> None:
-    """A capture stage (studies 33 and 34): fern's and flower's seed-0 rows of ``today`` and
+    """A capture stage (studies 33-35): fern's and flower's seed-0 rows of ``today`` and
     ``candidate`` (``capture_rows`` files) in one table, each scene judged by ``capture_verdict``,
     the report (``intro`` under ``title``, then ``rule_text``) written to ``out``/capture."""
     rows_today, rows_candidate = capture_rows(today), capture_rows(candidate)

@@ -14,7 +14,8 @@ Two stages, each with its own part of the rule:
 * ``embedded``: the validation scenes (the embedded scene generated with seeds 1, 2 and 3), demo preset,
   training seed = scene seed, scored on each scene's 30 test views by ``stochastic-fields eval``;
   today's rows are study 34's today rows (same configuration and seeds; the defaults compute the same
-  loss), linked into ``--work``::
+  loss), linked into ``--work``; both rows train with ``density_unit_study.PINNED_BEFORE_35`` before
+  their own options, so today's keeps the 1% after the default changed::
 
       python benchmarks/studies/point_noise_study.py embedded --work runs/point_noise_study \\
           --out benchmarks/results/point_noise_study
@@ -23,7 +24,8 @@ Two stages, each with its own part of the rule:
   10-minute budget, seed 0; today's row and the candidate's train side by side, one thread each::
 
       python benchmarks/capture_quality.py --methods snerf --marks 1 --threads 1 --seed 0 \\
-          --work runs/point_noise_capture/today --out runs/point_noise_capture/today/bench &
+          --set loss.depth_relative_std=0.01 --work runs/point_noise_capture/today \\
+          --out runs/point_noise_capture/today/bench &
       python benchmarks/capture_quality.py --methods snerf --marks 1 --threads 1 --seed 0 \\
           --set loss.depth_relative_std=0.03 --work runs/point_noise_capture/candidate \\
           --out runs/point_noise_capture/candidate/bench

@@ -37,6 +37,10 @@ Two stages, each with its own part of the rule:
           --rows runs/predictive_depth_capture/candidate/intervals/results.json \\
           --out benchmarks/results/predictive_depth_study
 
+Since study 35 changed ``loss.depth_relative_std`` to 0.03, the embedded rows train with
+``PINNED_BEFORE_35`` (0.01, the value they ran with) and the capture rows need
+``--set loss.depth_relative_std=0.01`` to be reproduced.
+
 Resumable: a row whose ``eval/metrics.json`` exists is read, not re-run.
 
 Study 34 ran the embedded stage only: it failed the rule, and ``trajectory_spread.py`` showed the two
