@@ -90,6 +90,19 @@ def embedded_verdict(today: dict, candidate: dict) -> tuple[bool, list[str]]:
     return not failed, failed
 
 
+#: Studies 34 and 35: the depth ranking (Spearman |err|-std) may fall at most this much (study 8's tolerance).
+MAX_SPEARMAN_LOSS = 0.02
+
+
+def spearman_failures(today: dict, candidate: dict) -> list[str]:
+    """The depth-ranking check of studies 34 and 35: the candidate's mean Spearman at most
+    ``MAX_SPEARMAN_LOSS`` below today's."""
+    if candidate["spearman"] < today["spearman"] - MAX_SPEARMAN_LOSS:
+        return [f"depth Spearman {today['spearman']:.3f} -> {candidate['spearman']:.3f}: more than "
+                f"{MAX_SPEARMAN_LOSS} lower"]
+    return []
+
+
 def capture_verdict(today: dict, candidate: dict, scene: str) -> list[str]:
     failed = []
     if candidate["psnr"] < today["psnr"] - CAPTURE_MAX_PSNR_LOSS_DB:
