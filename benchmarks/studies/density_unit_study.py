@@ -189,6 +189,37 @@ def capture_stage(*, study: int, title: str, intro: str, labels: tuple[str, str]
                                   "failed": failed}, "\n".join(lines) + "\n")
 
 
+#: The capture part of studies 34 and 35's rules (today's row trained beside the candidate's).
+SIDE_BY_SIDE_CAPTURE_RULE = (
+    "the capture stage passes (each of fern and flower, seed 0, against today's row trained beside it: PSNR at most "
+    f"{CAPTURE_MAX_PSNR_LOSS_DB} dB lower, abs-rel at most {CAPTURE_MAX_ABS_REL_RISE} higher, median 95% half-width at "
+    f"most {100 * CAPTURE_MAX_BAND_RISE:.0f} point wider, the levels as above).")
+
+
+def side_by_side_intro(script: str) -> str:
+    """The capture report's setup line of studies 34 and 35 (their rows trained side by side)."""
+    return ("Capture split, llff preset, the capture bench's 10-minute budget, seed 0; today's row and the candidate's "
+            f"trained side by side, one thread each. Command: the module docstring of `benchmarks/studies/{script}`.")
+
+
+def stages_parser(doc: str, name: str, *, capture_today: bool) -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:
+    """The command line of a two-stage study (studies 33-35): ``embedded`` (--work runs/``name``, --out
+    benchmarks/results/``name``, --jobs) and ``capture`` (--rows, with ``capture_today`` --today too,
+    --out). Returns (the parser, the embedded stage's sub-parser, for a study's own options)."""
+    ap = argparse.ArgumentParser(description=doc.split("\n")[0])
+    sub = ap.add_subparsers(dest="stage", required=True)
+    e = sub.add_parser("embedded", help="Train and score the validation scenes, today and the candidate.")
+    e.add_argument("--work", type=Path, default=Path("runs") / name)
+    e.add_argument("--out", type=Path, default=Path("benchmarks/results") / name)
+    e.add_argument("--jobs", type=int, default=2, help="Rows trained at once (one thread each).")
+    c = sub.add_parser("capture", help="Judge the candidate's capture-bench rows against today's.")
+    if capture_today:
+        c.add_argument("--today", type=Path, required=True, help="results.json of depth_interval_seeds.py on today's rows.")
+    c.add_argument("--rows", type=Path, required=True, help="results.json of depth_interval_seeds.py on the candidate.")
+    c.add_argument("--out", type=Path, default=Path("benchmarks/results") / name)
+    return ap, e
+
+
 def embedded(args) -> None:
     embedded_stage(args, study=33, title="Study 33, embedded stage: the density per finest cell",
                    script="density_unit_study.py", labels=ROWS, options=CANDIDATE_OPTIONS, verdict=embedded_verdict,
@@ -204,16 +235,7 @@ def capture(args) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    sub = ap.add_subparsers(dest="stage", required=True)
-    e = sub.add_parser("embedded", help="Train and score the validation scenes, today and the candidate.")
-    e.add_argument("--work", type=Path, default=Path("runs/density_unit_study"))
-    e.add_argument("--out", type=Path, default=Path("benchmarks/results/density_unit_study"))
-    e.add_argument("--jobs", type=int, default=2, help="Rows trained at once (one thread each).")
-    c = sub.add_parser("capture", help="Judge the candidate's capture-bench rows against today's.")
-    c.add_argument("--rows", type=Path, required=True, help="results.json of depth_interval_seeds.py on the candidate.")
-    c.add_argument("--out", type=Path, default=Path("benchmarks/results/density_unit_study"))
-    args = ap.parse_args()
+    args = stages_parser(__doc__, "density_unit_study", capture_today=False)[0].parse_args()
     embedded(args) if args.stage == "embedded" else capture(args)
 
 

@@ -41,7 +41,6 @@ Resumable: a row whose ``eval/metrics.json`` exists is read, not re-run.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -50,17 +49,14 @@ import density_unit_study as study33  # noqa: E402  (study 33's stages, rule che
 
 ROWS = ("today (point noise 1% of the depth)", "candidate (3%)")
 CANDIDATE_OPTIONS = ("--loss.depth_relative_std", "0.03")
-#: The rule, fixed before the rows ran: every check of study 34's rule (embedded means over seeds
+#: The rule, fixed before the rows ran (every threshold named here is density_unit_study's):
+#: every check of study 34's rule (embedded means over seeds
 #: 1-3: PSNR at most MAX_PSNR_LOSS_DB lower, depth abs-rel not higher, median 95% half-width not
 #: wider, every level within COVERAGE_TOLERANCE of nominal or no further than today's, depth
 #: Spearman at most MAX_SPEARMAN_LOSS lower; each capture against today's side-by-side row: PSNR at
 #: most CAPTURE_MAX_PSNR_LOSS_DB lower, abs-rel at most CAPTURE_MAX_ABS_REL_RISE higher, band at most
 #: CAPTURE_MAX_BAND_RISE wider, the levels), and it must gain what it is for: the embedded mean
 #: depth abs-rel and CRPS / depth both lower than today's.
-MAX_SPEARMAN_LOSS, MAX_PSNR_LOSS_DB, COVERAGE_TOLERANCE = (study33.MAX_SPEARMAN_LOSS, study33.MAX_PSNR_LOSS_DB,
-                                                            study33.COVERAGE_TOLERANCE)
-CAPTURE_MAX_PSNR_LOSS_DB, CAPTURE_MAX_ABS_REL_RISE, CAPTURE_MAX_BAND_RISE = (
-    study33.CAPTURE_MAX_PSNR_LOSS_DB, study33.CAPTURE_MAX_ABS_REL_RISE, study33.CAPTURE_MAX_BAND_RISE)
 
 
 def embedded_verdict(today: dict, candidate: dict) -> tuple[bool, list[str]]:
@@ -74,13 +70,10 @@ def embedded_verdict(today: dict, candidate: dict) -> tuple[bool, list[str]]:
 
 
 RULE_TEXT = ("Rule (fixed before the rows ran): the candidate becomes the default if the embedded stage passes "
-             f"(means over seeds 1-3: PSNR at most {MAX_PSNR_LOSS_DB} dB lower, median 95% half-width not wider, depth "
-             f"Spearman at most {MAX_SPEARMAN_LOSS} lower, depth abs-rel and CRPS / depth both lower, each of the "
-             f"50/68.3/90/95% levels within {round(100 * COVERAGE_TOLERANCE)} points of nominal or no further than "
-             "today's) and the capture stage passes (each of fern and flower, seed 0, against today's row trained "
-             f"beside it: PSNR at most {CAPTURE_MAX_PSNR_LOSS_DB} dB lower, abs-rel at most {CAPTURE_MAX_ABS_REL_RISE} "
-             f"higher, median 95% half-width at most {100 * CAPTURE_MAX_BAND_RISE:.0f} point wider, the levels as "
-             "above).")
+             f"(means over seeds 1-3: PSNR at most {study33.MAX_PSNR_LOSS_DB} dB lower, median 95% half-width not wider, depth "
+             f"Spearman at most {study33.MAX_SPEARMAN_LOSS} lower, depth abs-rel and CRPS / depth both lower, each of the "
+             f"50/68.3/90/95% levels within {round(100 * study33.COVERAGE_TOLERANCE)} points of nominal or no further than "
+             "today's) and " + study33.SIDE_BY_SIDE_CAPTURE_RULE)
 
 
 def link_today_rows(work: Path, source: Path) -> None:
@@ -102,25 +95,14 @@ def embedded(args) -> None:
 def capture(args) -> None:
     study33.capture_stage(study=35, title="# Study 35, capture stage: each capture point's depth noise 3% of its "
                                           "depth, on LLFF captures",
-                          intro="Capture split, llff preset, the capture bench's 10-minute budget, seed 0; today's row and "
-                                "the candidate's trained side by side, one thread each. Command: the module docstring of "
-                                "`benchmarks/studies/point_noise_study.py`.",
+                          intro=study33.side_by_side_intro("point_noise_study.py"),
                           labels=ROWS, today=args.today, candidate=args.rows, rule_text=RULE_TEXT, out=args.out)
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    sub = ap.add_subparsers(dest="stage", required=True)
-    e = sub.add_parser("embedded", help="Train and score the validation scenes, today and the candidate.")
-    e.add_argument("--work", type=Path, default=Path("runs/point_noise_study"))
+    ap, e = study33.stages_parser(__doc__, "point_noise_study", capture_today=True)
     e.add_argument("--today-runs", type=Path, default=Path("runs/predictive_depth_study"),
                    help="Study 34's work folder, whose today rows this study reads.")
-    e.add_argument("--out", type=Path, default=Path("benchmarks/results/point_noise_study"))
-    e.add_argument("--jobs", type=int, default=2, help="Rows trained at once (one thread each).")
-    c = sub.add_parser("capture", help="Judge the candidate's capture-bench row against today's beside it.")
-    c.add_argument("--today", type=Path, required=True, help="results.json of depth_interval_seeds.py on today's rows.")
-    c.add_argument("--rows", type=Path, required=True, help="results.json of depth_interval_seeds.py on the candidate.")
-    c.add_argument("--out", type=Path, default=Path("benchmarks/results/point_noise_study"))
     args = ap.parse_args()
     embedded(args) if args.stage == "embedded" else capture(args)
 
