@@ -557,6 +557,34 @@ def test_the_observed_kl_weight_default_change_keeps_every_stored_run():
         assert T.config_fingerprint(a) == T.config_fingerprint(b)
 
 
+def test_the_point_noise_default_change_retrains_only_runs_that_take_the_depth_likelihood():
+    """loss.depth_relative_std went 0.01 -> 0.03 (study 35): a run stored at 0.01 keeps its
+    fingerprint, a run at the new default gets a new one (a stored 1% run is not taken for it), and
+    runs without the depth likelihood (the paper S-NeRF rows, lambda_depth 0; the baselines) ignore it."""
+    from stochastic_fields.config import ExperimentConfig, flatten, to_dict
+    from stochastic_fields_bench.methods import METHOD_SPECS, method_config
+    from stochastic_fields_bench.runner import semantic_options
+
+    assert ExperimentConfig().loss.depth_relative_std == 0.03
+    stored = ExperimentConfig()
+    stored.loss.depth_relative_std = 0.01
+    assert "loss.depth_relative_std" not in semantic_options(flatten(to_dict(stored)))
+    assert semantic_options(flatten(to_dict(ExperimentConfig())))["loss.depth_relative_std"] == 0.03
+    assert T.config_fingerprint(ExperimentConfig()) != T.config_fingerprint(stored)
+    for name in ("snerf", "snerf_predictive", "snerf_kl_none", "snerf_kl_fixed_prior"):
+        a = method_config(METHOD_SPECS[name], ExperimentConfig(), Path("s"))
+        b = method_config(METHOD_SPECS[name], ExperimentConfig(), Path("s"))
+        b.loss.depth_relative_std, b.loss.depth_rays_per_batch = 0.01, 7
+        assert a.loss.lambda_depth == 0.0 and T.config_fingerprint(a) == T.config_fingerprint(b)
+    off = ExperimentConfig()
+    off.loss.lambda_depth = 0.0
+    assert "loss.lambda_depth" in semantic_options(flatten(to_dict(off)))  # switching it off still retrains
+    for method in ("ensemble", "deterministic", "mc_dropout", "nerfw"):
+        a, b = ExperimentConfig(method=method), ExperimentConfig(method=method)
+        b.loss.depth_relative_std = 0.01
+        assert T.config_fingerprint(a) == T.config_fingerprint(b)
+
+
 def test_render_only_options_rescore_a_stored_run_without_retraining(tmp_path):
     """Study 7 changed the render defaults (K 16 -> 8, Rao-Blackwellised colours): a run stored with
     the old values keeps its training fingerprint and is accepted for resuming (the differing

@@ -69,10 +69,11 @@ _KL_OPTIONS = ("loss.kl", "loss.kl_estimator", "loss.kl_mc_samples", "loss.lambd
 
 #: Options whose default changed after fingerprints were stored: the value the stored fingerprints
 #: left out as "the default" (lambda_depth was 0.1 until study 4 made it 0.3, then study 6 1.0; lambda_observed
-#: 5e-2 until study 16b), so that a run at the new default gets a new fingerprint and one stored at the old value
-#: keeps its own.
+#: 5e-2 until study 16b; depth_relative_std 0.01 until study 35), so that a run at the new default gets a new
+#: fingerprint and one stored at the old value keeps its own.
 _FINGERPRINT_REFERENCE: dict[str, Any] = {"loss.lambda_depth": 0.1, "render.num_draws": 16,
-                                          "render.colour_estimator": "draws", "loss.lambda_observed": 5e-2}
+                                          "render.colour_estimator": "draws", "loss.lambda_observed": 5e-2,
+                                          "loss.depth_relative_std": 0.01}
 
 #: Render-time options a trained run may change (``trainer.RESUMABLE_OPTIONS``): they are left out
 #: of the training fingerprint (a new K or colour estimator re-calibrates and re-scores a stored run,
@@ -96,8 +97,11 @@ def semantic_options(flat: dict[str, Any]) -> dict[str, Any]:
         # nor draw S-NeRF's trajectories: they render their own K (1, the ensemble's members,
         # MC-Dropout's passes) from deterministic passes, whatever K or colour estimator is set
         ignored.update(RENDER_ONLY_OPTIONS)
-    elif not flat.get("loss.per_point_noise", LEGACY_VALUES["loss.per_point_noise"]):
-        ignored.add("loss.noise_head_decoupled")  # changes nothing without the noise head
+    else:
+        if not flat.get("loss.per_point_noise", LEGACY_VALUES["loss.per_point_noise"]):
+            ignored.add("loss.noise_head_decoupled")  # changes nothing without the noise head
+        if flat.get("loss.lambda_depth") == 0.0:  # the depth likelihood is off: its settings compute nothing
+            ignored.update(o for o in _DEPTH_OPTIONS if o != "loss.lambda_depth")
     return {k: v for k, v in flat.items() if k not in ignored and not (k in reference and reference[k] == v)}
 
 
