@@ -176,6 +176,25 @@ def test_depth_interval_seeds_reads_each_runs_last_evaluation(load_script, tmp_p
         script.parse_run("runs/x")
 
 
+def test_depth_interval_seeds_reads_an_eval_of_the_validation_views(load_script, tmp_path):
+    """--evals reads `stochastic-fields eval`'s metrics.json per scene (the paper split's validation
+    views): PSNR from the summary, depth and intervals pooled; a missing scene is skipped and a file
+    without pooled intervals is refused with its path."""
+    script = load_script("benchmarks/studies/depth_interval_seeds.py")
+    intervals = {key: 0.25 for key, *_ in script.COLUMNS}
+    (tmp_path / "fern").mkdir()
+    (tmp_path / "fern" / "metrics.json").write_text(json.dumps(
+        {"summary": {"psnr": {"mean": 19.5}}, "pooled": {"depth_intervals": intervals,
+                                                         "depth": {"abs_rel": 0.11, "num_used": 7000}}}))
+    row = script.read_eval_row(tmp_path, "fern", 2)
+    assert (row["protocol"], row["seed"], row["psnr"], row["abs_rel"], row["points"]) == ("paper-val", 2, 19.5, 0.11, 7000)
+    assert row["coverage_50"] == 0.25 and row["crps"] == 0.25
+    assert script.read_eval_row(tmp_path, "flower", 2) is None
+    (tmp_path / "fern" / "metrics.json").write_text(json.dumps({"summary": {"psnr": {"mean": 19.5}}, "pooled": {}}))
+    with pytest.raises(SystemExit, match=r"fern.metrics.json: not a stochastic-fields eval metrics.json"):
+        script.read_eval_row(tmp_path, "fern", 2)
+
+
 def test_a_rows_scores_keep_every_interval_level(bench):
     intervals = {"coverage_50": 0.5, "coverage_68": 0.7, "coverage_95": 0.94, "halfwidth_median_95": 0.1, "crps": 0.05}
     result = {"summary": {"psnr": {"mean": 23.0}, "ssim": {"mean": 0.7}},

@@ -10,6 +10,10 @@ recalibration ``train`` fits) is read; nothing is trained or rendered here.
         --run 1=runs/capture_interval_seeds/seed_1 --run 2=runs/capture_interval_seeds/seed_2 \\
         --tables 0=benchmarks/results/eval_tables/tables.json --tables 1=T1 ... --out benchmarks/results/depth_interval_seeds
 
+``--evals SEED=FOLDER`` adds the same tables runs scored on the paper split's validation views (the
+held-out photos the tables do not score), ``FOLDER/<scene>/metrics.json`` as
+``paper_validation_views.py`` writes them.
+
 ``--tables SEED=TABLES_JSON`` adds the paper split: the S-NeRF (default) rows of a
 ``benchmarks/eval_tables.py`` run (``--seed SEED``; its test views' SCORE points, the map
 cross-fitted), one ``tables.json`` per seed and scene or several scenes in one.
@@ -91,6 +95,25 @@ def read_table_rows(path: Path, seed: int) -> list[dict]:
     return rows
 
 
+def read_eval_row(folder: Path, scene: str, seed: int) -> dict | None:
+    """One seed's scores on ``scene`` from ``folder``/``scene``/metrics.json, a ``stochastic-fields eval``
+    output (the paper split's validation views: ``paper_validation_views.py``), or None when absent."""
+    path = Path(folder) / scene / "metrics.json"
+    if not path.is_file():
+        return None
+    try:
+        result = json.loads(path.read_text())
+        pooled = result["pooled"]
+        intervals, depth = pooled["depth_intervals"], pooled["depth"]
+        psnr = result["summary"]["psnr"]["mean"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SystemExit(f"{path}: not a stochastic-fields eval metrics.json with pooled depth intervals "
+                         f"({type(exc).__name__}: {exc})") from exc
+    return {"protocol": "paper-val", "scene": scene, "seed": seed, "steps": "", "psnr": psnr,
+            "abs_rel": depth.get("abs_rel"), "points": depth.get("num_used"),
+            **{key: intervals.get(key) for key, *_ in COLUMNS}}
+
+
 def mean_row(rows: list[dict]) -> dict:
     keys = ["psnr", "abs_rel", *(key for key, *_ in COLUMNS)]
     return {key: float(np.mean([r[key] for r in rows])) for key in keys}
@@ -121,14 +144,18 @@ def main() -> None:
                     help="A capture benchmark's --work folder of that seed (repeatable).")
     ap.add_argument("--tables", type=parse_run, action="append", default=[], metavar="SEED=TABLES_JSON",
                     help="An eval_tables.py run's tables.json of that seed (repeatable): the paper split's rows.")
+    ap.add_argument("--evals", type=parse_run, action="append", default=[], metavar="SEED=FOLDER",
+                    help="A folder of `stochastic-fields eval` outputs (FOLDER/<scene>/metrics.json) of that seed's "
+                         "tables run on the paper split's validation views (paper_validation_views.py; repeatable).")
     ap.add_argument("--scenes", nargs="+", default=["fern", "flower"])
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args()
-    if not args.run and not args.tables:
-        ap.error("give at least one --run or --tables")
+    if not args.run and not args.tables and not args.evals:
+        ap.error("give at least one --run, --tables or --evals")
     rows = []
     for scene in args.scenes:
         rows += [row for seed, work in args.run if (row := read_row(work, scene, seed)) is not None]
+        rows += [row for seed, folder in args.evals if (row := read_eval_row(folder, scene, seed)) is not None]
     for seed, path in args.tables:
         rows += [row for row in read_table_rows(path, seed) if row["scene"] in args.scenes]
     rows.sort(key=lambda r: (r["protocol"], r["scene"], r["seed"]))
@@ -143,14 +170,17 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out / "results.json", json.dumps({"rows": rows, "means": means}, indent=2))
     runs = " ".join([f"--run {seed}={work}" for seed, work in args.run]
-                    + [f"--tables {seed}={path}" for seed, path in args.tables])
+                    + [f"--tables {seed}={path}" for seed, path in args.tables]
+                    + [f"--evals {seed}={folder}" for seed, folder in args.evals])
     lines = ["# S-NeRF (default)'s depth intervals on several seeds", "",
              f"Command: `python benchmarks/studies/depth_interval_seeds.py {runs} --out {args.out}` "
              "(reads the runs of `benchmarks/capture_quality.py --methods snerf --seed SEED` and the tables of "
              "`benchmarks/eval_tables.py --methods snerf_default --seed SEED`; trains nothing).", "",
              "Capture: scored at the validation photos' SfM points of the SCORE role (every 8th photo validates), "
              "with the recalibration `train` fits. Paper: the tables' test views' SCORE points, the map "
-             "cross-fitted. Widths, interval scores and CRPS relative to the depth.", "",
+             "cross-fitted. Paper-val: the same runs at the SCORE points of the paper split's other held-out "
+             "photos (the validation views the tables do not score; `stochastic-fields eval --views`). "
+             "Widths, interval scores and CRPS relative to the depth.", "",
              *table(rows + mean_rows), ""]
     for name, m in means.items():
         c = m["checks"]
