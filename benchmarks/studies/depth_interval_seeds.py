@@ -57,6 +57,20 @@ def parse_run(text: str) -> tuple[int, Path]:
     return int(seed), Path(path)
 
 
+def read_eval_scores(metrics_file: Path) -> tuple[dict, dict]:
+    """(the whole file, its pooled depth scores: abs_rel, points and the ``COLUMNS`` keys) of a
+    ``stochastic-fields eval`` metrics.json (``evaluation.evaluate``'s, as the capture benchmark's
+    marks and ``paper_validation_views.py`` write it); a file without pooled depth intervals is refused."""
+    try:
+        result = json.loads(Path(metrics_file).read_text())
+        intervals, depth = result["pooled"]["depth_intervals"], result["pooled"]["depth"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SystemExit(f"{metrics_file}: not a stochastic-fields eval metrics.json with pooled depth intervals "
+                         f"({type(exc).__name__}: {exc})") from exc
+    return result, {"abs_rel": depth.get("abs_rel"), "points": depth.get("num_used"),
+                    **{key: intervals.get(key) for key, *_ in COLUMNS}}
+
+
 def read_row(work: Path, scene: str, seed: int) -> dict | None:
     """One seed's scores on ``scene`` from a capture benchmark's work folder, or None when the run
     is not finished there."""
@@ -64,16 +78,10 @@ def read_row(work: Path, scene: str, seed: int) -> dict | None:
     if not record.is_file():
         return None
     rec = json.loads(record.read_text())
-    metrics_file = work / scene / "snerf" / "run" / f"eval_{rec['steps']:06d}" / "metrics.json"
-    try:
-        pooled = json.loads(metrics_file.read_text())["pooled"]
-        intervals, depth = pooled["depth_intervals"], pooled["depth"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise SystemExit(f"{metrics_file}: no pooled depth intervals ({type(exc).__name__}: {exc})") from exc
+    _, scores = read_eval_scores(work / scene / "snerf" / "run" / f"eval_{rec['steps']:06d}" / "metrics.json")
     last = rec["curve"][-1]
-    return {"protocol": "capture", "scene": scene, "seed": seed, "steps": rec["steps"], "minutes": last["minutes"], "psnr": last["psnr"],
-            "abs_rel": depth.get("abs_rel"), "points": depth.get("num_used"),
-            **{key: intervals.get(key) for key, *_ in COLUMNS}}
+    return {"protocol": "capture", "scene": scene, "seed": seed, "steps": rec["steps"], "minutes": last["minutes"],
+            "psnr": last["psnr"], **scores}
 
 
 def read_table_rows(path: Path, seed: int) -> list[dict]:
@@ -101,17 +109,12 @@ def read_eval_row(folder: Path, scene: str, seed: int) -> dict | None:
     path = Path(folder) / scene / "metrics.json"
     if not path.is_file():
         return None
+    result, scores = read_eval_scores(path)
     try:
-        result = json.loads(path.read_text())
-        pooled = result["pooled"]
-        intervals, depth = pooled["depth_intervals"], pooled["depth"]
         psnr = result["summary"]["psnr"]["mean"]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise SystemExit(f"{path}: not a stochastic-fields eval metrics.json with pooled depth intervals "
-                         f"({type(exc).__name__}: {exc})") from exc
-    return {"protocol": "paper-val", "scene": scene, "seed": seed, "steps": "", "psnr": psnr,
-            "abs_rel": depth.get("abs_rel"), "points": depth.get("num_used"),
-            **{key: intervals.get(key) for key, *_ in COLUMNS}}
+    except (KeyError, TypeError) as exc:
+        raise SystemExit(f"{path}: not a stochastic-fields eval metrics.json (no summary PSNR: {exc})") from exc
+    return {"protocol": "paper-val", "scene": scene, "seed": seed, "steps": "", "psnr": psnr, **scores}
 
 
 def mean_row(rows: list[dict]) -> dict:
