@@ -585,6 +585,23 @@ def test_the_point_noise_default_change_retrains_only_runs_that_take_the_depth_l
         assert T.config_fingerprint(a) == T.config_fingerprint(b)
 
 
+def test_a_changed_default_names_the_value_stored_fingerprints_left_out():
+    """Fingerprints leave out values equal to the defaults, so a default that changes silently gives a
+    run at the new value the fingerprint of runs stored at the old one (as loss.depth_relative_std's did
+    before study 35's entry). Every default of tests/fingerprinted_defaults.json (the defaults when this
+    guard was added) must still hold, or the old value must be in runner._FINGERPRINT_REFERENCE (or
+    config.LEGACY_VALUES), and then the snapshot is updated. New options are free (their defaults keep
+    the old behaviour)."""
+    from stochastic_fields.config import LEGACY_VALUES, ExperimentConfig, flatten, to_dict
+    from stochastic_fields_bench.runner import _FINGERPRINT_REFERENCE
+
+    snapshot = json.loads((Path(__file__).parent / "fingerprinted_defaults.json").read_text())
+    now = json.loads(json.dumps(flatten(to_dict(ExperimentConfig()))))
+    referenced = {**LEGACY_VALUES, **_FINGERPRINT_REFERENCE}
+    changed = {k: (v, now[k]) for k, v in snapshot.items() if k in now and now[k] != v and k not in referenced}
+    assert not changed, f"defaults changed without a fingerprint reference (old, new): {changed}"
+
+
 def test_render_only_options_rescore_a_stored_run_without_retraining(tmp_path):
     """Study 7 changed the render defaults (K 16 -> 8, Rao-Blackwellised colours): a run stored with
     the old values keeps its training fingerprint and is accepted for resuming (the differing
