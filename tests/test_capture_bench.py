@@ -218,3 +218,46 @@ def test_depth_interval_seeds_reads_the_tables_snerf_default_rows(load_script, t
     path.write_text(json.dumps({"per_scene": {"fern": {"snerf_default": {"psnr": 20.0}}}}))
     with pytest.raises(SystemExit, match=r"tables.json: not an eval_tables.py tables.json"):
         script.read_table_rows(path, 3)
+
+
+def test_method_seeds_compares_the_means_of_the_seeds_both_methods_have(load_script, tmp_path):
+    """The seeds' comparison of S-NeRF (default) with the ensemble reads each method's rows from the
+    file named for it, pairs the seeds both have, and judges issue 36's targets 3 and 4 on the means
+    and seed by seed, each column in its own direction."""
+    script = load_script("benchmarks/studies/method_seeds.py")
+
+    def method_row(psnr, depth_spearman, is95):
+        intervals = {"coverage_68": 0.68, "coverage_95": 0.95, "halfwidth_median_95": 0.2,
+                     "interval_score_95": is95, "crps": 0.1}
+        return {"psnr": psnr, "spearman_mse_var": 0.5, "ause_rmse_normalised": 0.3,
+                "depth": {"abs_rel": 0.1, "spearman": depth_spearman}, "pooled": {"depth_intervals": intervals}}
+
+    old = tmp_path / "old.json"  # seed 0's ensemble beside an S-NeRF row of an earlier default
+    old.write_text(json.dumps({"per_scene": {"flower": {"ensemble": method_row(20.0, 0.66, 3.0),
+                                                        "snerf_default": method_row(0.0, 0.0, 9.0)}}}))
+    new = tmp_path / "new.json"
+    new.write_text(json.dumps({"per_scene": {"flower": {"snerf_default": method_row(21.0, 0.65, 1.5)}}}))
+    seed1 = tmp_path / "seed1.json"
+    seed1.write_text(json.dumps({"per_scene": {"flower": {"snerf_default": method_row(21.5, 0.70, 1.6),
+                                                          "ensemble": method_row(20.5, 0.64, 3.5)}}}))
+    seed2 = tmp_path / "seed2.json"  # an S-NeRF seed without an ensemble: in the means, not in the comparison
+    seed2.write_text(json.dumps({"per_scene": {"flower": {"snerf_default": method_row(22.0, 0.10, 1.0)}}}))
+    assert script.parse_rows("1:ensemble=a/t.json") == (1, "ensemble", Path("a/t.json"))
+    with pytest.raises(argparse.ArgumentTypeError, match="SEED:METHOD=TABLES_JSON"):
+        script.parse_rows("1=a/t.json")
+    rows = (script.read_rows(new, 0, "snerf_default", ["fern", "flower"]) + script.read_rows(old, 0, "ensemble", ["flower"])
+            + script.read_rows(seed1, 1, "snerf_default", ["flower"]) + script.read_rows(seed1, 1, "ensemble", ["flower"])
+            + script.read_rows(seed2, 2, "snerf_default", ["flower"]))
+    assert len(rows) == 5 and rows[0]["psnr"] == 21.0 and rows[0]["coverage_95"] == pytest.approx(95.0)
+    verdict = script.comparisons(rows, "flower")
+    assert verdict["seeds"] == [0, 1]
+    spearman = verdict["depth_spearman"]  # (0.65 + 0.70) / 2 against (0.66 + 0.64) / 2; seed 0 below
+    assert spearman["candidate"] == pytest.approx(0.675) and spearman["reference"] == pytest.approx(0.65)
+    assert spearman["met_on_means"] and spearman["seeds_met"] == 1
+    score = verdict["interval_score_95"]  # lower is better: 1.55 against 3.25, both seeds
+    assert score["met_on_means"] and score["seeds_met"] == 2
+    assert script.comparisons(rows, "fern") == {}
+    assert script.mean_row(rows[:1] + rows[2:3])["psnr"] == pytest.approx(21.25)
+    (tmp_path / "bad.json").write_text(json.dumps({"per_scene": {"flower": {"ensemble": {"psnr": 20.0}}}}))
+    with pytest.raises(SystemExit, match=r"bad.json: not an eval_tables.py tables.json with ensemble"):
+        script.read_rows(tmp_path / "bad.json", 0, "ensemble", ["flower"])

@@ -1,0 +1,153 @@
+"""S-NeRF (default) against the deep ensemble on several seeds of the paper tables: issue 36's
+targets 3 (interval score and CRPS at most the ensemble's) and 4 (colour and depth rankings at least
+the ensemble's) judged on the seeds' means and seed by seed (a measurement; it decides no default).
+
+Each ``--rows SEED:METHOD=TABLES_JSON`` names the ``tables.json`` of a ``benchmarks/eval_tables.py``
+run (``--seed SEED``) that holds ``METHOD``'s rows; one file may serve several methods and a seed's
+methods may come from different files (a row re-run after a default changed), so each row says
+where it is read. Nothing is trained or rendered here::
+
+    python benchmarks/studies/method_seeds.py \\
+        --rows 0:snerf_default=benchmarks/results/eval_tables_35/tables.json \\
+        --rows 0:ensemble=benchmarks/results/eval_tables/tables.json \\
+        --rows 1:snerf_default=benchmarks/results/eval_tables_35/seed_1/tables.json \\
+        --rows 1:ensemble=benchmarks/results/eval_tables_35/seed_1/tables.json ... \\
+        --out benchmarks/results/method_seeds_35
+
+The scores are the tables' own: per-view means over the scored test views for PSNR, the Spearman
+columns and abs-rel; the interval columns pooled over the test views' SCORE points (S-NeRF's map
+cross-fitted), relative to the depth.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+
+from stochastic_fields.io_utils import atomic_write_text
+
+#: The methods compared: the candidate first, the reference second.
+CANDIDATE, REFERENCE = "snerf_default", "ensemble"
+#: Columns: (name, header, reader of a tables.json method row, format, which way is better).
+COLUMNS = (
+    ("psnr", "PSNR dB", lambda m: m["psnr"], "{:.2f}", "higher"),
+    ("colour_spearman", "colour Spearman", lambda m: m["spearman_mse_var"], "{:.3f}", "higher"),
+    ("ause_rmse_normalised", "AUSE-RMSE norm.", lambda m: m["ause_rmse_normalised"], "{:.3f}", "lower"),
+    ("depth_abs_rel", "depth abs-rel", lambda m: m["depth"]["abs_rel"], "{:.4f}", "lower"),
+    ("depth_spearman", "depth Spearman", lambda m: m["depth"]["spearman"], "{:.3f}", "higher"),
+    ("coverage_68", "cov 68", lambda m: 100.0 * m["pooled"]["depth_intervals"]["coverage_68"], "{:.1f}", None),
+    ("coverage_95", "cov 95", lambda m: 100.0 * m["pooled"]["depth_intervals"]["coverage_95"], "{:.1f}", None),
+    ("halfwidth_median_95", "median 95% hw",
+     lambda m: 100.0 * m["pooled"]["depth_intervals"]["halfwidth_median_95"], "{:.1f}%", "lower"),
+    ("interval_score_95", "IS95 / depth", lambda m: m["pooled"]["depth_intervals"]["interval_score_95"], "{:.3f}", "lower"),
+    ("crps", "CRPS / depth", lambda m: m["pooled"]["depth_intervals"]["crps"], "{:.4f}", "lower"),
+)
+#: Issue 36's comparisons with the ensemble: target -> the columns it names.
+TARGETS = {"3 (interval score, CRPS)": ("interval_score_95", "crps"),
+           "4 (rankings)": ("colour_spearman", "ause_rmse_normalised", "depth_spearman")}
+
+
+def parse_rows(text: str) -> tuple[int, str, Path]:
+    """``SEED:METHOD=TABLES_JSON`` -> (seed, method, path)."""
+    key, sep, path = text.partition("=")
+    seed, colon, method = key.partition(":")
+    if not sep or not colon or not seed.strip().isdigit() or not method or not path:
+        raise argparse.ArgumentTypeError(f"--rows expects SEED:METHOD=TABLES_JSON, got {text!r}")
+    return int(seed), method, Path(path)
+
+
+def read_rows(path: Path, seed: int, method: str, scenes: list[str]) -> list[dict]:
+    """``method``'s row of each of ``scenes`` that ``path`` (an eval_tables.py tables.json) holds."""
+    try:
+        per_scene = json.loads(Path(path).read_text())["per_scene"]
+        return [{"scene": scene, "seed": seed, "method": method,
+                 **{name: float(read(per_scene[scene][method])) for name, _, read, *_ in COLUMNS}}
+                for scene in scenes if method in per_scene.get(scene, {})]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SystemExit(f"{path}: not an eval_tables.py tables.json with {method}'s depth intervals "
+                         f"({type(exc).__name__}: {exc})") from exc
+
+
+def mean_row(rows: list[dict]) -> dict:
+    return {name: float(np.mean([r[name] for r in rows])) for name, *_ in COLUMNS}
+
+
+def better_or_equal(column: str, candidate: float, reference: float) -> bool:
+    """Whether ``candidate`` is at least as good as ``reference`` in ``column``'s direction."""
+    direction = next(d for name, *_, d in COLUMNS if name == column)
+    return candidate >= reference if direction == "higher" else candidate <= reference
+
+
+def comparisons(rows: list[dict], scene: str) -> dict:
+    """Per column of ``TARGETS``: the candidate's and the reference's means on ``scene``, whether the
+    means meet the target, and on how many of the seeds both methods have the candidate is as good."""
+    by = {(r["method"], r["seed"]): r for r in rows if r["scene"] == scene}
+    seeds = sorted({s for (m, s) in by if m == CANDIDATE} & {s for (m, s) in by if m == REFERENCE})
+    if not seeds:
+        return {}
+    cand = mean_row([by[(CANDIDATE, s)] for s in seeds])
+    ref = mean_row([by[(REFERENCE, s)] for s in seeds])
+    out = {"seeds": seeds}
+    for columns in TARGETS.values():
+        for column in columns:
+            out[column] = {"candidate": cand[column], "reference": ref[column],
+                           "met_on_means": better_or_equal(column, cand[column], ref[column]),
+                           "seeds_met": sum(better_or_equal(column, by[(CANDIDATE, s)][column], by[(REFERENCE, s)][column])
+                                            for s in seeds)}
+    return out
+
+
+def table(rows: list[dict]) -> list[str]:
+    head = ["scene", "method", "seed", *(h for _, h, *_ in COLUMNS)]
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for r in rows:
+        lines.append("| " + " | ".join([r["scene"], r["method"], str(r["seed"]),
+                                        *(fmt.format(r[name]) for name, _, _, fmt, _ in COLUMNS)]) + " |")
+    return lines
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--rows", type=parse_rows, action="append", required=True, metavar="SEED:METHOD=TABLES_JSON",
+                    help="Where a seed's rows of a method are read (repeatable).")
+    ap.add_argument("--scenes", nargs="+", default=["fern", "flower"])
+    ap.add_argument("--out", type=Path, required=True)
+    args = ap.parse_args()
+    rows = [row for seed, method, path in args.rows for row in read_rows(path, seed, method, args.scenes)]
+    keys = [(r["scene"], r["method"], r["seed"]) for r in rows]
+    if len(set(keys)) != len(keys):
+        raise SystemExit("two --rows give the same scene, method and seed: " + ", ".join(
+            f"{k[0]} {k[1]} seed {k[2]}" for k in dict.fromkeys(k for k in keys if keys.count(k) > 1)))
+    rows.sort(key=lambda r: (r["scene"], r["method"] != CANDIDATE, r["method"], r["seed"]))
+    means = []
+    for scene, method in dict.fromkeys((r["scene"], r["method"]) for r in rows):
+        found = [r for r in rows if (r["scene"], r["method"]) == (scene, method)]
+        means.append({"scene": scene, "method": method, "seed": "mean of " + ", ".join(str(r["seed"]) for r in found),
+                      **mean_row(found)})
+    verdicts = {scene: comparisons(rows, scene) for scene in args.scenes}
+    args.out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(args.out / "results.json", json.dumps({"rows": rows, "means": means, "comparisons": verdicts},
+                                                            indent=2))
+    command = " ".join(f"--rows {seed}:{method}={path}" for seed, method, path in args.rows)
+    lines = [f"# {CANDIDATE} against the {REFERENCE} on several seeds of the paper tables", "",
+             f"Command: `python benchmarks/studies/method_seeds.py {command} --out {args.out}` (reads the tables of "
+             "`benchmarks/eval_tables.py --seed SEED`; trains nothing). Per-view means over the test views for "
+             "PSNR, the Spearman columns, AUSE and abs-rel; intervals pooled over their SCORE points, relative "
+             "to the depth.", "", *table(rows + means), ""]
+    for scene, verdict in verdicts.items():
+        if not verdict:
+            continue
+        for target, columns in TARGETS.items():
+            parts = [f"{name} {v['candidate']:.4g} against {v['reference']:.4g}: "
+                     f"{'met' if v['met_on_means'] else 'not met'} on the means, on {v['seeds_met']} of "
+                     f"{len(verdict['seeds'])} seeds" for name in columns for v in [verdict[name]]]
+            lines.append(f"- {scene}, issue 36 target {target}: " + "; ".join(parts))
+    atomic_write_text(args.out / "README.md", "\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
