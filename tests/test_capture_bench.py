@@ -257,7 +257,7 @@ def test_method_seeds_compares_the_means_of_the_seeds_both_methods_have(load_scr
     score = verdict["interval_score_95"]  # lower is better: 1.55 against 3.25, both seeds
     assert score["met_on_means"] and score["seeds_met"] == 2
     assert script.comparisons(rows, "fern") == {}
-    assert script.mean_row(rows[:1] + rows[2:3])["psnr"] == pytest.approx(21.25)
+    assert script.seed_means(rows[:1] + rows[2:3])["psnr"] == pytest.approx(21.25)
     (tmp_path / "bad.json").write_text(json.dumps({"per_scene": {"flower": {"ensemble": {"psnr": 20.0}}}}))
     with pytest.raises(SystemExit, match=r"bad.json: not an eval_tables.py tables.json with ensemble"):
         script.read_rows(tmp_path / "bad.json", 0, "ensemble", ["flower"])

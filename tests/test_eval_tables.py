@@ -597,7 +597,7 @@ def test_a_changed_default_names_the_value_stored_fingerprints_left_out():
 
     snapshot = json.loads((Path(__file__).parent / "fingerprinted_defaults.json").read_text())
     now = json.loads(json.dumps(flatten(to_dict(ExperimentConfig()))))
-    referenced = {**LEGACY_VALUES, **_FINGERPRINT_REFERENCE}
+    referenced = set(LEGACY_VALUES) | set(_FINGERPRINT_REFERENCE)
     changed = {k: (v, now[k]) for k, v in snapshot.items() if k in now and now[k] != v and k not in referenced}
     assert not changed, f"defaults changed without a fingerprint reference (old, new): {changed}"
 

@@ -23,11 +23,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
-import numpy as np
-
 from stochastic_fields.io_utils import atomic_write_text
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
+from study_helpers import seed_means  # noqa: E402
 
 #: The methods compared: the candidate first, the reference second.
 CANDIDATE, REFERENCE = "snerf_default", "ensemble"
@@ -45,6 +47,8 @@ COLUMNS = (
     ("interval_score_95", "IS95 / depth", lambda m: m["pooled"]["depth_intervals"]["interval_score_95"], "{:.3f}", "lower"),
     ("crps", "CRPS / depth", lambda m: m["pooled"]["depth_intervals"]["crps"], "{:.4f}", "lower"),
 )
+#: Which way each column is better ("higher", "lower"; None: not compared).
+DIRECTION = {name: direction for name, *_, direction in COLUMNS}
 #: Issue 36's comparisons with the ensemble: target -> the columns it names.
 TARGETS = {"3 (interval score, CRPS)": ("interval_score_95", "crps"),
            "4 (rankings)": ("colour_spearman", "ause_rmse_normalised", "depth_spearman")}
@@ -71,14 +75,9 @@ def read_rows(path: Path, seed: int, method: str, scenes: list[str]) -> list[dic
                          f"({type(exc).__name__}: {exc})") from exc
 
 
-def mean_row(rows: list[dict]) -> dict:
-    return {name: float(np.mean([r[name] for r in rows])) for name, *_ in COLUMNS}
-
-
 def better_or_equal(column: str, candidate: float, reference: float) -> bool:
     """Whether ``candidate`` is at least as good as ``reference`` in ``column``'s direction."""
-    direction = next(d for name, *_, d in COLUMNS if name == column)
-    return candidate >= reference if direction == "higher" else candidate <= reference
+    return candidate >= reference if DIRECTION[column] == "higher" else candidate <= reference
 
 
 def comparisons(rows: list[dict], scene: str) -> dict:
@@ -88,8 +87,8 @@ def comparisons(rows: list[dict], scene: str) -> dict:
     seeds = sorted({s for (m, s) in by if m == CANDIDATE} & {s for (m, s) in by if m == REFERENCE})
     if not seeds:
         return {}
-    cand = mean_row([by[(CANDIDATE, s)] for s in seeds])
-    ref = mean_row([by[(REFERENCE, s)] for s in seeds])
+    cand = seed_means([by[(CANDIDATE, s)] for s in seeds])
+    ref = seed_means([by[(REFERENCE, s)] for s in seeds])
     out = {"seeds": seeds}
     for columns in TARGETS.values():
         for column in columns:
@@ -125,8 +124,9 @@ def main() -> None:
     means = []
     for scene, method in dict.fromkeys((r["scene"], r["method"]) for r in rows):
         found = [r for r in rows if (r["scene"], r["method"]) == (scene, method)]
-        means.append({"scene": scene, "method": method, "seed": "mean of " + ", ".join(str(r["seed"]) for r in found),
-                      **mean_row(found)})
+        mean = seed_means(found)  # the seed column itself averaged too: replaced by the seeds' list
+        means.append({"scene": scene, "method": method, **mean,
+                      "seed": "mean of " + ", ".join(str(r["seed"]) for r in found)})
     verdicts = {scene: comparisons(rows, scene) for scene in args.scenes}
     args.out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out / "results.json", json.dumps({"rows": rows, "means": means, "comparisons": verdicts},
