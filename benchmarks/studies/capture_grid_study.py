@@ -1,4 +1,5 @@
-"""Studies 23 to 25: the grid's finest level and the samples along a ray on a capture, each judged by its rule.
+"""Studies 23 to 25 and 36: the grid's finest level, the samples along a ray and the colour's capacity on a
+capture, each judged by its rule.
 
 Each study's rows are runs of the capture benchmark (``benchmarks/capture_quality.py``, S-NeRF,
 seed 1, the ten-minute schedule), today's setting and the candidate's (the commands are in
@@ -9,6 +10,10 @@ the table and the rule's verdict (docs/studies.md; each rule fixed before its ro
     python benchmarks/studies/capture_grid_study.py --study cells
     python benchmarks/studies/capture_grid_study.py --study resolution_rule
     python benchmarks/studies/capture_grid_study.py --study samples
+    python benchmarks/studies/capture_grid_study.py --study colour_capacity
+
+A study with ``paper_tables`` also checks the paper split: the candidate's S-NeRF (default) row of
+``benchmarks/eval_tables.py`` (seed 0, the same ``--set``) against today's committed row.
 """
 
 from __future__ import annotations
@@ -24,7 +29,9 @@ class Study(NamedTuple):
     it gains ``min_psnr_gain_db`` of PSNR (or, where ``min_abs_rel_gain`` is set, lowers the depth
     abs-rel by that much instead), loses at most ``max_psnr_loss_db`` of PSNR (where set) and
     ``max_abs_rel_loss`` of abs-rel, keeps its recalibrated 68% and 95% coverage within
-    ``coverage_points`` of nominal and trains at most ``max_minutes``."""
+    ``coverage_points`` of nominal and trains at most ``max_minutes``; where ``paper_tables`` names
+    (today's, the candidate's) ``tables.json``, its S-NeRF (default) row at the paper split also loses at
+    most ``max_paper_psnr_loss_db`` of PSNR and ``max_paper_abs_rel_loss`` of abs-rel on each scene."""
 
     number: str
     title: str
@@ -38,6 +45,9 @@ class Study(NamedTuple):
     max_abs_rel_loss: float = 0.002
     coverage_points: float = 5.0
     max_minutes: float = 11.0
+    paper_tables: tuple[str, str] | None = None
+    max_paper_psnr_loss_db: float = 0.2
+    max_paper_abs_rel_loss: float = 0.005
 
 
 STUDIES = {
@@ -71,6 +81,22 @@ STUDIES = {
         "one row at a time, the two rows of a scene one after the other; the candidate's samples per ray are "
         "the finest grid level's depth cells on each capture (fern 246 x 177 x 47, flower 266 x 182 x 42)",
         min_abs_rel_gain=0.005, max_psnr_loss_db=0.1),
+    "colour_capacity": Study(
+        "36", "the colour branch's capacity on a capture", "benchmarks/results/colour_capacity_study",
+        {"today (decoder 32, 8 features)": "today", "candidate (decoder 64, 16 features)": "wide_colour"},
+        tuple(f"OMP_NUM_THREADS=2 python benchmarks/capture_quality.py --methods snerf --scenes {scene} --seed 11 "
+              f"--threads 2 --minutes 10 --marks 1 --quiet --out benchmarks/results/colour_capacity_study/{row}/capture_{scene} "
+              f"--work runs/colour_capacity/{row}" + sets
+              for scene in ("fern", "flower") for row, sets in
+              (("today", ""), ("wide_colour", " --set field.grid_decoder_width=64 --set field.grid_feature_dim=16")))
+        + ("OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes SCENE --methods snerf_default --seed 0 "
+           "--no-timing --quiet --out runs/colour_capacity/tables --set field.grid_decoder_width=64 "
+           "--set field.grid_feature_dim=16 (fern and flower side by side), then both scenes in one invocation "
+           "with --out benchmarks/results/colour_capacity_study/tables",),
+        "S-NeRF default, capture split, training seed 11 (no study's), ten minutes of training (train.minutes) on "
+        "two threads, one row at a time on the otherwise idle machine, the two rows of a scene one after the other",
+        paper_tables=("benchmarks/results/eval_tables_35/tables.json",
+                      "benchmarks/results/colour_capacity_study/tables/tables.json")),
 }
 
 
@@ -101,8 +127,22 @@ def row_scores(folder: Path) -> dict[str, dict]:
     return scores
 
 
-def verdict(study: Study, today: dict, candidate: dict) -> dict:
-    """Each scene's checks and whether the candidate passes on every scene."""
+def paper_scores(path: Path) -> dict[str, dict]:
+    """Per scene: S-NeRF (default)'s PSNR and depth abs-rel in an ``eval_tables.py`` ``tables.json``."""
+    try:
+        per_scene = json.loads(Path(path).read_text())["per_scene"]
+        return {scene: {"psnr": float(rows["snerf_default"]["psnr"]),
+                        "abs_rel": float(rows["snerf_default"]["depth"]["abs_rel"])}
+                for scene, rows in per_scene.items() if "snerf_default" in rows}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SystemExit(f"{path}: no S-NeRF (default) rows of eval_tables.py ({type(exc).__name__}: {exc}); "
+                         "run the study's tables command first") from exc
+
+
+def verdict(study: Study, today: dict, candidate: dict,
+            paper: tuple[dict, dict] | None = None) -> dict:
+    """Each scene's checks and whether the candidate passes on every scene; ``paper`` is (today's,
+    the candidate's) ``paper_scores`` where the study checks the paper split."""
     scenes = {}
     for scene in sorted(set(today) & set(candidate)):
         a, b = today[scene], candidate[scene]
@@ -118,6 +158,11 @@ def verdict(study: Study, today: dict, candidate: dict) -> dict:
                          and abs(100 * b["coverage_95"] - 95.0) <= study.coverage_points),
             "minutes": b["minutes"] <= study.max_minutes,
         }
+        if paper is not None:
+            p_today, p_cand = paper[0].get(scene), paper[1].get(scene)
+            checks["paper_split"] = (p_today is not None and p_cand is not None
+                                     and p_cand["psnr"] - p_today["psnr"] >= -study.max_paper_psnr_loss_db
+                                     and p_cand["abs_rel"] - p_today["abs_rel"] <= study.max_paper_abs_rel_loss)
         scenes[scene] = {"psnr_gain_db": psnr_gain, "abs_rel_change": abs_rel_change,
                          "checks": checks, "passes": all(checks.values())}
     return {"scenes": scenes, "taken": {"fern", "flower"} <= set(scenes) and all(s["passes"] for s in scenes.values())}
@@ -129,10 +174,13 @@ def rule_text(study: Study) -> str:
         gain += f" or its depth abs-rel at least {study.min_abs_rel_gain} below"
     if study.max_psnr_loss_db is not None:
         gain += f", its PSNR at most {study.max_psnr_loss_db} dB below"
+    paper = (f" At the paper split (the tables' S-NeRF default row, seed 0) its PSNR is at most "
+             f"{study.max_paper_psnr_loss_db} dB and its depth abs-rel at most {study.max_paper_abs_rel_loss} "
+             f"worse than today's on each scene." if study.paper_tables else "")
     return (f"Rule (fixed before the rows): the candidate is taken if on both scenes {gain}, "
             f"its depth abs-rel at most {study.max_abs_rel_loss} above, its "
             f"recalibrated 68% and 95% coverage within {study.coverage_points:g} points of nominal and its "
-            f"training at most {study.max_minutes:g} minutes.")
+            f"training at most {study.max_minutes:g} minutes.{paper}")
 
 
 def main() -> None:
@@ -144,8 +192,9 @@ def main() -> None:
     out = args.out or Path(study.out)
     rows = {label: row_scores(out / folder) for label, folder in study.rows.items()}
     (today_label, today), (cand_label, candidate) = rows.items()
-    v = verdict(study, today, candidate)
-    (out / "verdict.json").write_text(json.dumps({"rows": rows, "verdict": v}, indent=2) + "\n")
+    paper = tuple(paper_scores(Path(path)) for path in study.paper_tables) if study.paper_tables else None
+    v = verdict(study, today, candidate, paper)
+    (out / "verdict.json").write_text(json.dumps({"rows": rows, "paper_split": paper, "verdict": v}, indent=2) + "\n")
     lines = [f"# Study {study.number}: {study.title}", "",
              f"Rows: `benchmarks/capture_quality.py` ({study.protocol}); each row's own README in its folder:", ""]
     lines += [f"    {command}" for command in study.commands]
@@ -163,6 +212,13 @@ def main() -> None:
             width = f"{100 * s['halfwidth_95']:.1f}%" if s["halfwidth_95"] is not None else "-"
             lines.append(f"| {scene} | {label} | {s['steps']} ({s['steps_per_s']:.2f}) | {s['minutes']:.1f} | "
                          f"{s['psnr']:.2f}{half_text} | {s['ssim']:.3f} | {s['abs_rel']:.4f} | {cov} | {width} |")
+    if paper is not None:
+        lines += ["", "Paper split (the tables' S-NeRF default row, seed 0, its four test views):", "",
+                  "| scene | row | PSNR dB | depth abs-rel |", "|---|---|---|---|"]
+        for scene in sorted(paper[0]):
+            for label, scores in zip(rows, paper):
+                if scene in scores:
+                    lines.append(f"| {scene} | {label} | {scores[scene]['psnr']:.2f} | {scores[scene]['abs_rel']:.4f} |")
     lines += ["", rule_text(study), ""]
     for scene, s in v["scenes"].items():
         failed = [k for k, ok in s["checks"].items() if not ok]
