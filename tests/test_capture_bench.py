@@ -104,6 +104,40 @@ def test_capture_grid_study_verdicts_follow_their_rules(load_script):
     assert "or its depth abs-rel at least 0.005 below" in script.rule_text(rule)
 
 
+def test_capture_grid_study_checks_the_paper_split_where_its_rule_asks(load_script, tmp_path):
+    """Study 36's rule adds the paper split: the candidate's tables row may lose at most 0.2 dB and
+    0.005 of abs-rel on each scene; a missing scene fails the check; studies without it ignore it."""
+    script = load_script("benchmarks/studies/capture_grid_study.py")
+    study, cells = script.STUDIES["colour_capacity"], script.STUDIES["cells"]
+
+    def row(psnr, abs_rel):
+        return {"psnr": psnr, "abs_rel": abs_rel, "coverage_68": 0.70, "coverage_95": 0.94, "minutes": 10.0}
+
+    def tables(path, **scenes):
+        path.write_text(json.dumps({"per_scene": {
+            scene: {"snerf_default": {"psnr": psnr, "depth": {"abs_rel": abs_rel}}, "ensemble": {}}
+            for scene, (psnr, abs_rel) in scenes.items()}}))
+        return script.paper_scores(path)
+
+    today = {"fern": row(23.0, 0.060), "flower": row(25.0, 0.050)}
+    better = {"fern": row(23.3, 0.060), "flower": row(25.3, 0.049)}
+    paper_today = tables(tmp_path / "a.json", fern=(20.0, 0.107), flower=(21.6, 0.115))
+    assert paper_today["flower"] == {"psnr": 21.6, "abs_rel": 0.115}
+    for paper_candidate, taken in [({"fern": (19.85, 0.111), "flower": (21.45, 0.119)}, True),   # within both margins
+                                   ({"fern": (19.75, 0.100), "flower": (21.8, 0.110)}, False),   # fern -0.25 dB
+                                   ({"fern": (20.2, 0.100), "flower": (21.8, 0.1205)}, False),   # flower +0.0055
+                                   ({"fern": (20.2, 0.100)}, False)]:                            # flower not run
+        candidate = tables(tmp_path / "b.json", **paper_candidate)
+        v = script.verdict(study, today, better, (paper_today, candidate))
+        assert v["taken"] is taken
+        assert all("paper_split" in s["checks"] for s in v["scenes"].values())
+    assert "paper_split" not in script.verdict(cells, today, better)["scenes"]["fern"]["checks"]
+    assert "At the paper split" in script.rule_text(study) and "At the paper split" not in script.rule_text(cells)
+    (tmp_path / "c.json").write_text("{}")
+    with pytest.raises(SystemExit, match="c.json"):
+        script.paper_scores(tmp_path / "c.json")
+
+
 def test_time_to_reference_reads_the_first_mark_past_the_reference(bench, tmp_path):
     """The report's minutes to another run's final quality: the first mark at or past its PSNR (higher
     is better) and its depth abs-rel (lower is better); none when the curve never gets there."""

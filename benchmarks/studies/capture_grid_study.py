@@ -92,7 +92,8 @@ STUDIES = {
         + ("OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes SCENE --methods snerf_default --seed 0 "
            "--no-timing --quiet --out runs/colour_capacity/tables --set field.grid_decoder_width=64 "
            "--set field.grid_feature_dim=16 (fern and flower side by side), then both scenes in one invocation "
-           "with --out benchmarks/results/colour_capacity_study/tables",),
+           "(the same --out: it reuses the runs and writes the tables), its tables.json and tables.md copied to "
+           "benchmarks/results/colour_capacity_study/tables",),
         "S-NeRF default, capture split, training seed 11 (no study's), ten minutes of training (train.minutes) on "
         "two threads, one row at a time on the otherwise idle machine, the two rows of a scene one after the other",
         paper_tables=("benchmarks/results/eval_tables_35/tables.json",
