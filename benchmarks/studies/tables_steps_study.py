@@ -1,5 +1,6 @@
-"""Studies 27, 28, 29 and 31: one training factor of the tables at the paper split (27 and 28: the steps;
-29: the occlusion regulariser; 31: the unseen-view depth smoothness), judged by their rules.
+"""Studies 27, 28, 29, 31 and 37: one training factor of the tables at the paper split (27 and 28: the steps;
+29: the occlusion regulariser; 31: the unseen-view depth smoothness; 37: the colour branch's capacity),
+judged by their rules.
 
 **Study 27** (twice the steps, 1000 against 2000). The rows are ``benchmarks/eval_tables.py`` runs
 (S-NeRF (default) and the deterministic NeRF, paper split, one thread), seeds 1, 2 and 3, today's steps
@@ -44,6 +45,17 @@ configuration), linked as ``runs/smoothness_study/sSEED/occ`` and ``validation/s
         --seed SEED --no-timing --quiet --set loss.lambda_smoothness=60 --out runs/smoothness_study/sSEED/smooth
     python benchmarks/studies/tables_steps_study.py --study 31 --runs runs/smoothness_study \
         --out benchmarks/results/smoothness_study
+
+**Study 37** (``--study 37``: ``field.grid_decoder_width`` 32 and ``field.grid_feature_dim`` 8 against
+64 and 16, every method). Both scenes at the tables' CPU budget, fresh seeds 12, 13 and 14; ARM ``today``
+runs the command as is and ``wide`` adds ``--set field.grid_decoder_width=64 --set field.grid_feature_dim=16``;
+each run is scored on its validation views right after its training (``score_run``, the same cache
+this script reads)::
+
+    OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes fern flower --methods deterministic snerf_default \
+        --seed SEED --no-timing --quiet --out runs/colour_capacity_paper/sSEED/ARM
+    python benchmarks/studies/tables_steps_study.py --study 37 --runs runs/colour_capacity_paper \
+        --out benchmarks/results/colour_capacity_paper_study
 
 The tables' own test-view scores (each run's metrics.json) are not read.
 """
@@ -116,6 +128,17 @@ STUDIES = {
               "docs/studies.md, study 31.",
               "the tables' CPU budget (fern 1000 steps, flower 1750), the llff preset, `loss.lambda_smoothness` 0 and 60",
               row_name="loss.lambda_smoothness", sharper=True),
+    37: Study(37, "the colour branch's capacity at the paper split",
+              {"32 / 8 (today)": "today", "64 / 16 (candidate)": "wide"}, (12, 13, 14), SCENES,
+              "How this was run: the row commands of the script's docstring in two shell chains side by side "
+              "(`OMP_NUM_THREADS=1`; one chain the `today` rows of seeds 12, 13 and 14, the other the `wide` rows), "
+              "each run scored on its validation views right after its training. Then `python "
+              "benchmarks/studies/tables_steps_study.py --study 37 --runs runs/colour_capacity_paper --out "
+              "benchmarks/results/colour_capacity_paper_study`. The decision and what it shows: docs/studies.md, "
+              "study 37.",
+              "the tables' CPU budget (fern 1000 steps, flower 1750), `field.grid_decoder_width` / "
+              "`field.grid_feature_dim` 32 / 8 and 64 / 16",
+              row_name="decoder width / features", sharper=True),
 }
 #: What each score's seed mean is taken of (None where a run has none: the deterministic NeRF's intervals).
 MEAN_KEYS = ("psnr", "ssim", "abs_rel", "spearman", "halfwidth_median_95", "interval_score_95", "crps", "train_s")
