@@ -90,6 +90,10 @@ def test_occlusion_study_also_asks_for_sharper_intervals(load_script):
     smooth = study.STUDIES[31]
     assert smooth.scenes == occ.scenes and smooth.seeds == occ.seeds and smooth.sharper
     assert list(smooth.rows.values()) == ["occ", "smooth"]
+    # study 37 (the colour branch's capacity) asks it too, on its own fresh seeds and both arms trained
+    colour = study.STUDIES[37]
+    assert colour.scenes == occ.scenes and colour.seeds == (12, 13, 14) and colour.sharper
+    assert list(colour.rows.values()) == ["today", "wide"] and colour.seed1_runs is None
     assert not study.STUDIES[27].sharper and not study.STUDIES[28].sharper
     today, cand = occ.rows
 
