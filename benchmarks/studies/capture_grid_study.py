@@ -20,8 +20,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 from typing import NamedTuple
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
+from study_helpers import read_tables_method  # noqa: E402
 
 
 class Study(NamedTuple):
@@ -130,14 +134,9 @@ def row_scores(folder: Path) -> dict[str, dict]:
 
 def paper_scores(path: Path) -> dict[str, dict]:
     """Per scene: S-NeRF (default)'s PSNR and depth abs-rel in an ``eval_tables.py`` ``tables.json``."""
-    try:
-        per_scene = json.loads(Path(path).read_text())["per_scene"]
-        return {scene: {"psnr": float(rows["snerf_default"]["psnr"]),
-                        "abs_rel": float(rows["snerf_default"]["depth"]["abs_rel"])}
-                for scene, rows in per_scene.items() if "snerf_default" in rows}
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise SystemExit(f"{path}: no S-NeRF (default) rows of eval_tables.py ({type(exc).__name__}: {exc}); "
-                         "run the study's tables command first") from exc
+    return read_tables_method(path, "snerf_default",
+                              lambda m: {"psnr": float(m["psnr"]), "abs_rel": float(m["depth"]["abs_rel"])},
+                              "S-NeRF (default) rows (run the study's tables command first)")
 
 
 def verdict(study: Study, today: dict, candidate: dict,

@@ -37,6 +37,7 @@ from stochastic_fields.io_utils import atomic_write_text
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared rules
 from relative_floor_study import COVERAGE_TOLERANCE, HALFWIDTH_TARGET_REAL, RULE_LEVELS  # noqa: E402  (issue 36's checks)
+from study_helpers import read_tables_method  # noqa: E402
 
 #: Names of the central levels scored ("50", "68", ...), as metrics.json keys them.
 LEVELS = tuple(M.level_name(p) for p in M.INTERVAL_LEVELS)
@@ -86,21 +87,13 @@ def read_row(work: Path, scene: str, seed: int) -> dict | None:
 
 def read_table_rows(path: Path, seed: int) -> list[dict]:
     """The S-NeRF (default) rows, one per scene, of an ``eval_tables.py`` run's ``tables.json``."""
-    try:
-        per_scene = json.loads(Path(path).read_text())["per_scene"]
-        rows = []
-        for scene, methods in per_scene.items():
-            m = methods.get("snerf_default")
-            if m is None:
-                continue
-            intervals = m["pooled"]["depth_intervals"]
-            rows.append({"protocol": "paper", "scene": scene, "seed": seed, "steps": "", "psnr": m["psnr"],
-                         "abs_rel": m["depth"]["abs_rel"], "points": None,
-                         **{key: intervals.get(key) for key, *_ in COLUMNS}})
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise SystemExit(f"{path}: not an eval_tables.py tables.json with S-NeRF (default) depth intervals "
-                         f"({type(exc).__name__}: {exc})") from exc
-    return rows
+    def row(m: dict) -> dict:
+        intervals = m["pooled"]["depth_intervals"]
+        return {"psnr": m["psnr"], "abs_rel": m["depth"]["abs_rel"], "points": None,
+                **{key: intervals.get(key) for key, *_ in COLUMNS}}
+
+    found = read_tables_method(path, "snerf_default", row, "S-NeRF (default) depth intervals")
+    return [{"protocol": "paper", "scene": scene, "seed": seed, "steps": "", **r} for scene, r in found.items()]
 
 
 def read_eval_row(folder: Path, scene: str, seed: int) -> dict | None:

@@ -29,7 +29,7 @@ from pathlib import Path
 from stochastic_fields.io_utils import atomic_write_text
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
-from study_helpers import seed_means  # noqa: E402
+from study_helpers import read_tables_method, seed_means  # noqa: E402
 
 #: The methods compared: the candidate first, the reference second.
 CANDIDATE, REFERENCE = "snerf_default", "ensemble"
@@ -65,14 +65,9 @@ def parse_rows(text: str) -> tuple[int, str, Path]:
 
 def read_rows(path: Path, seed: int, method: str, scenes: list[str]) -> list[dict]:
     """``method``'s row of each of ``scenes`` that ``path`` (an eval_tables.py tables.json) holds."""
-    try:
-        per_scene = json.loads(Path(path).read_text())["per_scene"]
-        return [{"scene": scene, "seed": seed, "method": method,
-                 **{name: float(read(per_scene[scene][method])) for name, _, read, *_ in COLUMNS}}
-                for scene in scenes if method in per_scene.get(scene, {})]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise SystemExit(f"{path}: not an eval_tables.py tables.json with {method}'s depth intervals "
-                         f"({type(exc).__name__}: {exc})") from exc
+    found = read_tables_method(path, method, lambda m: {name: float(read(m)) for name, _, read, *_ in COLUMNS},
+                               f"{method}'s depth intervals")
+    return [{"scene": scene, "seed": seed, "method": method, **found[scene]} for scene in scenes if scene in found]
 
 
 def better_or_equal(column: str, candidate: float, reference: float) -> bool:

@@ -234,6 +234,18 @@ def pooled_scores(metrics: dict, levels: tuple[float, ...]) -> dict:
             "crps": intervals["crps"]}
 
 
+def read_tables_method(path: Path, method: str, read, what: str) -> dict[str, dict]:
+    """Per scene of an ``eval_tables.py`` ``tables.json``: ``read(row)`` of ``method``'s row, for the
+    scenes that have one; a file that is not one, or a row without what ``read`` asks, stops with
+    ``PATH: not an eval_tables.py tables.json with WHAT``."""
+    try:
+        per_scene = json.loads(Path(path).read_text())["per_scene"]
+        return {scene: read(rows[method]) for scene, rows in per_scene.items() if method in rows}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise SystemExit(f"{path}: not an eval_tables.py tables.json with {what} "
+                         f"({type(exc).__name__}: {exc})") from exc
+
+
 def seed_means(rows: list[dict]) -> dict:
     """The mean over seeds of every numeric entry of ``rows`` (one dict per seed)."""
     return {k: float(np.mean([r[k] for r in rows])) for k, v in rows[0].items() if isinstance(v, (int, float))}
