@@ -152,3 +152,21 @@ def test_plot_resplit_coverage_writes_a_png_and_refuses_nothing_to_plot(tmp_path
     assert not [p for p in path.parent.iterdir() if p.name.endswith(".tmp")]
     with pytest.raises(ValueError, match="at least one scene"):
         plot_resplit_coverage({}, {}, (0.5,), tmp_path / "x.png")
+
+
+def test_pair_visible_points_both_or_either():
+    """A calibration view renders the kept points both views of its pair observed, or either's (study 38)."""
+    from types import SimpleNamespace
+
+    from stochastic_fields.calibration import pair_visible_points
+
+    capture = SimpleNamespace(xyz=np.zeros((6, 3)), visible=[np.array([0, 1, 2]), np.array([2, 3, 4]), np.array([5])])
+    keep = np.array([True, True, True, False, True, True])
+    assert [list(v) for v in pair_visible_points(capture, [(0, 1)], keep)] == [[2]]
+    assert [list(v) for v in pair_visible_points(capture, [(0, 1), (1, 2)], keep, pair_points="either")] == \
+        [[0, 1, 2, 4], [2, 4, 5]]
+    no_tracks = SimpleNamespace(xyz=np.zeros((3, 3)), visible=None)
+    assert [list(v) for v in pair_visible_points(no_tracks, [(0, 1)], np.array([True, False, True]),
+                                                 pair_points="either")] == [[0, 2]]
+    with pytest.raises(ValueError, match="pair points"):
+        pair_visible_points(capture, [(0, 1)], keep, pair_points="any")

@@ -83,8 +83,9 @@ from .sparse_depth import COVERAGE_LEVELS, project_sparse_depth
 from .trainer import load_trained_model
 from .virtual_views import BOUNDS_CHOICES, views_between  # noqa: F401 (BOUNDS_CHOICES: studies read it here)
 from .view_maps import OPACITY_MASK
-from .defaults import (CALIBRATION_FILE, CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS,
-                       DEPTH_EDGE_TERM, DEPTH_FREE_SPACE, DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR)  # noqa: F401  (defaults the command line shows)
+from .defaults import (CALIBRATION_FILE, CALIBRATION_PAIR_POINTS, CALIBRATION_POINTS, CROSS_FIT_FOLDS,  # noqa: F401
+                       DEFAULT_CALIBRATION_PAIR_POINTS, DEFAULT_CALIBRATION_POINTS, DEPTH_EDGE_TERM, DEPTH_FREE_SPACE,
+                       DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR)  # (defaults the command line shows)
 from .depth_edges import edge_range_at_points, edge_range_map
 from .free_space import (TRAINING_DEPTH_FILE, checked_std, free_space_violation, load_training_depth,
                          render_training_depth, rendered_points, save_training_depth, violation_map)
@@ -636,6 +637,9 @@ def edge_at_points(model, cameras, near, far, sparse: dict, depth: np.ndarray, *
     return edge_range_at_points(render_depth, uv, depth, width, height)
 
 
+#: Which capture points each calibration view renders (``pair_visible_points``): "both" views of its
+#: pair observed them, or "either" (``defaults.CALIBRATION_PAIR_POINTS``; docs/studies.md, study 38).
+PAIR_POINTS: str = DEFAULT_CALIBRATION_PAIR_POINTS
 #: Nearest training neighbours each training view is paired with for calibration views.
 CALIBRATION_NEIGHBOURS: int = 1
 #: Where calibration views sit along each pair's arc (0: the first view, 1: the second).
@@ -660,14 +664,20 @@ def calibration_views(dataset, *, neighbours: int = CALIBRATION_NEIGHBOURS,
                          what="calibration views")
 
 
-def pair_visible_points(capture, pairs: list[tuple[int, int]], keep: np.ndarray) -> list[np.ndarray]:
+def pair_visible_points(capture, pairs: list[tuple[int, int]], keep: np.ndarray, *,
+                        pair_points: str | None = None) -> list[np.ndarray]:
     """Per calibration view of ``pairs`` (i, j), the indices of the capture points with ``keep``
-    [P] that both views i and j observed (COLMAP tracks; every kept point when the capture has no
-    visibility)."""
+    [P] that both views i and j observed (``pair_points`` "both") or one of them ("either"; COLMAP
+    tracks; every kept point when the capture has no visibility). None: the module's
+    ``PAIR_POINTS`` (``DEFAULT_CALIBRATION_PAIR_POINTS``). ValueError for an unknown ``pair_points``."""
+    pair_points = PAIR_POINTS if pair_points is None else pair_points
+    if pair_points not in CALIBRATION_PAIR_POINTS:
+        raise ValueError(f"calibration pair points must be one of {CALIBRATION_PAIR_POINTS}, got {pair_points!r}")
+    join = np.intersect1d if pair_points == "both" else np.union1d
     out = []
     for i, j in pairs:
         seen = (np.arange(len(capture.xyz)) if capture.visible is None
-                else np.intersect1d(capture.visible[i], capture.visible[j]))
+                else join(capture.visible[i], capture.visible[j]))
         out.append(seen[keep[seen]])
     return out
 
@@ -738,7 +748,8 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     keep = (r["opacity"] > mask) & np.isfinite(r["depth_mean"]) & np.isfinite(r["depth_std"]) & (r["depth_std"] > 0)
     roles = "calibrate role" if points == "calibrate" else "calibrate and score roles"
     source = (f"{int(keep.sum())} {capture.source} points of the {roles} seen from {len(pairs)} views halfway "
-              f"between neighbouring training views (opacity > {mask})")
+              f"between neighbouring training views{'' if PAIR_POINTS == 'both' else ' (points either view of the pair observed)'}"
+              f" (opacity > {mask})")
     std = sigma = r["depth_std"]
     violation = None
     views = [v for v, sd in sparse.items() if len(sd)]  # the order of render_at_points' rays

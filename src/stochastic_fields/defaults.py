@@ -17,6 +17,11 @@ CALIBRATION_FILE = "calibration.json"
 #: points then score the map itself; the protocol of studies 1 to 18).
 CALIBRATION_POINTS: tuple[str, ...] = ("held-out", "calibrate")
 DEFAULT_CALIBRATION_POINTS: str = "held-out"
+#: Which capture points a calibration view (halfway between two training views) renders: "both", the
+#: points both views of its pair observed (COLMAP tracks), or "either", those one of them observed
+#: (docs/studies.md, study 38).
+CALIBRATION_PAIR_POINTS: tuple[str, ...] = ("both", "either")
+DEFAULT_CALIBRATION_PAIR_POINTS: str = "both"
 #: Folds the SCORE blocks are dealt into when a map is fitted on them too (``DepthFolds``; study
 #: 18's diagnostic: 5 folds).
 CROSS_FIT_FOLDS: int = 5
