@@ -265,3 +265,12 @@ def test_point_noise_study_committed_verdicts_follow_from_their_rows(load_script
         failed += study33.capture_verdict(today, candidate, scene)
     assert failed == capture["failed"] == [] and embedded["taken"] is True
     assert LossConfig().depth_relative_std == float(study.CANDIDATE_OPTIONS[1])
+
+
+def test_study_38_decision_recomputed(load_script):
+    """Study 38's committed verdict follows from its committed seed means."""
+    study = load_script("benchmarks/studies/pair_points_study.py")
+    data = json.loads((REPO_ROOT / "benchmarks" / "results" / "pair_points_study" / "study.json").read_text())
+    assert study.verdict(data["rows"]["both (today)"]["today"], data["rows"]["either (candidate)"]["today"]) == \
+        (data["taken"], data["failed"])
+    assert not data["taken"] and data["study_37_taken"] is None
