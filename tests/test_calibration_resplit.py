@@ -170,3 +170,22 @@ def test_pair_visible_points_both_or_either():
                                                  pair_points="either")] == [[0, 2]]
     with pytest.raises(ValueError, match="pair points"):
         pair_visible_points(capture, [(0, 1)], keep, pair_points="any")
+
+
+def test_calibration_renders_either_views_points_a_superset(tmp_path):
+    """``pair_points="either"`` renders more points than "both" where a pair's views saw different points
+    (a pixel keeps its nearest point, so a both-point may give way to a nearer either-point); the map's source says which points it was fitted on, and ``calibrate_run`` fits on them."""
+    from stochastic_fields.calibration import calibrate_run, depth_calibration_renders
+
+    from conftest import train_tiny_synthetic_run
+
+    model, ds = train_tiny_synthetic_run(tmp_path)
+    both = depth_calibration_renders(model, ds, points="held-out")
+    either = depth_calibration_renders(model, ds, points="held-out", pair_points="either")
+    pairs_both = set(zip(both["view"].tolist(), both["index"].tolist()))
+    pairs_either = set(zip(either["view"].tolist(), either["index"].tolist()))
+    shared = pairs_both & pairs_either
+    assert len(pairs_either) > len(pairs_both) and len(shared) >= 0.9 * len(pairs_both)
+    assert "either view of the pair" in either["source"] and "either view" not in both["source"]
+    cal = calibrate_run(tmp_path, model=model, dataset=ds, free_space=False, progress=False, pair_points="either")
+    assert "either view of the pair" in cal.depth.source

@@ -60,11 +60,7 @@ def recalibrated(source: Path, target: Path) -> Path:
     for name in COPIED:
         if (source / name).is_file():
             shutil.copy2(source / name, target / name)
-    calibration.PAIR_POINTS = "either"
-    try:
-        calibration.calibrate_run(target, progress=False)
-    finally:
-        calibration.PAIR_POINTS = calibration.DEFAULT_CALIBRATION_PAIR_POINTS
+    calibration.calibrate_run(target, progress=False, pair_points="either")
     return target
 
 

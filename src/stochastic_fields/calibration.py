@@ -637,9 +637,6 @@ def edge_at_points(model, cameras, near, far, sparse: dict, depth: np.ndarray, *
     return edge_range_at_points(render_depth, uv, depth, width, height)
 
 
-#: Which capture points each calibration view renders (``pair_visible_points``): "both" views of its
-#: pair observed them, or "either" (``defaults.CALIBRATION_PAIR_POINTS``; docs/studies.md, study 38).
-PAIR_POINTS: str = DEFAULT_CALIBRATION_PAIR_POINTS
 #: Nearest training neighbours each training view is paired with for calibration views.
 CALIBRATION_NEIGHBOURS: int = 1
 #: Where calibration views sit along each pair's arc (0: the first view, 1: the second).
@@ -665,12 +662,11 @@ def calibration_views(dataset, *, neighbours: int = CALIBRATION_NEIGHBOURS,
 
 
 def pair_visible_points(capture, pairs: list[tuple[int, int]], keep: np.ndarray, *,
-                        pair_points: str | None = None) -> list[np.ndarray]:
+                        pair_points: str = DEFAULT_CALIBRATION_PAIR_POINTS) -> list[np.ndarray]:
     """Per calibration view of ``pairs`` (i, j), the indices of the capture points with ``keep``
     [P] that both views i and j observed (``pair_points`` "both") or one of them ("either"; COLMAP
-    tracks; every kept point when the capture has no visibility). None: the module's
-    ``PAIR_POINTS`` (``DEFAULT_CALIBRATION_PAIR_POINTS``). ValueError for an unknown ``pair_points``."""
-    pair_points = PAIR_POINTS if pair_points is None else pair_points
+    tracks; every kept point when the capture has no visibility; ``defaults.CALIBRATION_PAIR_POINTS``,
+    docs/studies.md, study 38). ValueError for an unknown ``pair_points``."""
     if pair_points not in CALIBRATION_PAIR_POINTS:
         raise ValueError(f"calibration pair points must be one of {CALIBRATION_PAIR_POINTS}, got {pair_points!r}")
     join = np.intersect1d if pair_points == "both" else np.union1d
@@ -691,13 +687,15 @@ def depth_calibration_errors(model, dataset, *, seed: int = 0, opacity_mask: flo
     return r["abs_err"], r["std"], r["source"]
 
 
-def calibration_view_points(dataset, capture, *, points: str = "calibrate", bounds: str = CALIBRATION_BOUNDS):
+def calibration_view_points(dataset, capture, *, points: str = "calibrate", bounds: str = CALIBRATION_BOUNDS,
+                            pair_points: str = DEFAULT_CALIBRATION_PAIR_POINTS):
     """The calibration views (``calibration_views``) and the capture points a depth map is fitted on
     in each ({view: SparseDepth}): the CALIBRATE role (``points="held-out"``: CALIBRATE and SCORE)
-    that both views of the view's pair observed. Returns (cameras, near, far, pairs, sparse)."""
+    that both views of the view's pair observed (``pair_points`` "either": one of them,
+    ``pair_visible_points``). Returns (cameras, near, far, pairs, sparse)."""
     cams, near, far, pairs = calibration_views(dataset, bounds=bounds)
     role = np.isin(capture.roles, [CALIBRATE] if points == "calibrate" else [CALIBRATE, SCORE])
-    sparse = project_sparse_depth(cams, capture.xyz, range(len(pairs)), visible=pair_visible_points(capture, pairs, role),
+    sparse = project_sparse_depth(cams, capture.xyz, range(len(pairs)), visible=pair_visible_points(capture, pairs, role, pair_points=pair_points),
                                   visibility_name="pair")
     return cams, near, far, pairs, sparse
 
@@ -720,13 +718,15 @@ def violation_at_points(cameras, sparse: dict, xyz: np.ndarray, gt: np.ndarray, 
 
 def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
                               points: str = "calibrate", options=None, bounds: str = CALIBRATION_BOUNDS,
-                              free_space=None, edges: bool = False) -> dict[str, Any]:
+                              free_space=None, edges: bool = False,
+                              pair_points: str = DEFAULT_CALIBRATION_PAIR_POINTS) -> dict[str, Any]:
     """What a depth map is fitted on: the absolute camera-z errors "abs_err" [N] (signed, true minus
     rendered: "err") and raw total stds
     "std" [N] (> 0), with the capture point of each ("index" [N] int64), its calibration view ("view"
     [N], an index of ``calibration_views``), the rendered depth ("depth" [N]) and the data in words ("source"), at the CALIBRATE capture points (``points="held-out"``: CALIBRATE and SCORE, see
     ``CALIBRATION_POINTS``) seen from the calibration views (``calibration_views``: halfway between
-    neighbouring training views; a point counts when both views of the pair observed it), at pixels
+    neighbouring training views; a point counts when both views of the pair observed it, or one of
+    them with ``pair_points`` "either": ``pair_visible_points``), at pixels
     with rendered opacity above ``opacity_mask`` (as the depth scores), rendered with ``options``
     (default: the model's; a map fits the std of the K and estimator it is fitted with, so fit it
     with the options the run will render with; ``bounds``: the views' render bounds,
@@ -741,14 +741,15 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     capture = load_capture_points(dataset)
     if capture is None:
         raise ValueError(f"{dataset.root}: no capture points (sparse/0/points3D.bin or dense depth) to calibrate on")
-    cams, near, far, pairs, sparse = calibration_view_points(dataset, capture, points=points, bounds=bounds)
+    cams, near, far, pairs, sparse = calibration_view_points(dataset, capture, points=points, bounds=bounds,
+                                                             pair_points=pair_points)
     device = next(model.parameters()).device
     r = render_at_points(model, cams, near, far, sparse, generator=torch.Generator(device=device).manual_seed(seed),
                          options=options)
     keep = (r["opacity"] > mask) & np.isfinite(r["depth_mean"]) & np.isfinite(r["depth_std"]) & (r["depth_std"] > 0)
     roles = "calibrate role" if points == "calibrate" else "calibrate and score roles"
     source = (f"{int(keep.sum())} {capture.source} points of the {roles} seen from {len(pairs)} views halfway "
-              f"between neighbouring training views{'' if PAIR_POINTS == 'both' else ' (points either view of the pair observed)'}"
+              f"between neighbouring training views{'' if pair_points == 'both' else ' (points either view of the pair observed)'}"
               f" (opacity > {mask})")
     std = sigma = r["depth_std"]
     violation = None
@@ -826,14 +827,16 @@ def fit_depth_calibration_and_folds(model, dataset, *, seed: int = 0, points: st
                                     options=None, floor: bool = DEPTH_STD_FLOOR, free_space=None,
                                     relative_floor: bool = DEPTH_RELATIVE_FLOOR, check_weight: float | None = None,
                                     folds: int = CROSS_FIT_FOLDS, edges: bool = DEPTH_EDGE_TERM,
-                                    edge_weight: float | None = None
+                                    edge_weight: float | None = None,
+                                    pair_points: str = DEFAULT_CALIBRATION_PAIR_POINTS
                                     ) -> tuple[QuantileCalibration, DepthFolds | None]:
     """The depth map (as ``fit_depth_calibration``) and, when it is fitted on the SCORE points too
-    (``points="held-out"``), its cross-fitted ``DepthFolds`` from the same renders; None otherwise,
+    (``points="held-out"``), its cross-fitted ``DepthFolds`` from the same renders (``pair_points``:
+    ``depth_calibration_renders``); None otherwise,
     or with a warning when the scene has too few SCORE blocks or points to fit them. ValueError as
     ``fit_depth_calibration``."""
     r = depth_calibration_renders(model, dataset, seed=seed, points=points, options=options, free_space=free_space,
-                                  edges=edges)
+                                  edges=edges, pair_points=pair_points)
     out, std = _fit_depth_map(r, floor=floor, relative_floor=relative_floor, check_weight=check_weight,
                               edge_weight=edge_weight)
     if points == "calibrate":
@@ -952,7 +955,8 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
                   dataset=None, points: str = DEFAULT_CALIBRATION_POINTS, floor: bool = DEPTH_STD_FLOOR,
                   free_space: bool = DEPTH_FREE_SPACE, relative_floor: bool = DEPTH_RELATIVE_FLOOR,
                   check_weight: float | None = None, progress: bool = True, edges: bool = DEPTH_EDGE_TERM,
-                  edge_weight: float | None = None) -> RunCalibration:
+                  edge_weight: float | None = None,
+                  pair_points: str = DEFAULT_CALIBRATION_PAIR_POINTS) -> RunCalibration:
     """Fit the run's calibration and write ``RUN/calibration.json``: the depth map from its capture
     points (``points``: ``CALIBRATION_POINTS``; "held-out" adds the cross-fitted ``DepthFolds``
     that score it) and, when the run held pixels out of training
@@ -964,7 +968,8 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
     ``fit_check_weight``; a fitted 0 leaves the map unchecked); ``relative_floor``: whether
     it fits a depth-proportional term (``fit_relative_floor``); ``edges``: whether it adds an
     occlusion-edge term (``depth_edges``) weighted ``edge_weight`` (None: fitted, ``fit_edge_weight``;
-    a fitted 0 leaves it out). ValueError (the depth fit's reason) when neither can be fitted; a depth
+    a fitted 0 leaves it out); ``pair_points``: which capture points a calibration view renders
+    (``pair_visible_points``). ValueError (the depth fit's reason) when neither can be fitted; a depth
     fit that fails beside a colour one leaves depth raw."""
     if model is None:
         cfg, model, dataset = load_trained_model(Path(run_dir), dataset=dataset, device=device)
@@ -979,7 +984,7 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
         depth, folds = fit_depth_calibration_and_folds(model, dataset, seed=seed, points=points, floor=floor,
                                                        free_space=reference, relative_floor=relative_floor,
                                                        check_weight=check_weight, edges=edges,
-                                                       edge_weight=edge_weight)
+                                                       edge_weight=edge_weight, pair_points=pair_points)
     except ValueError:
         if colour is None:
             raise
@@ -1058,7 +1063,8 @@ def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibrati
 def run(args) -> None:
     cal = calibrate_run(Path(args.run), device=args.device, seed=args.seed, points=args.points,
                         floor=args.std_floor, free_space=args.free_space, relative_floor=args.relative_floor,
-                        check_weight=args.free_space_weight, edges=args.edge_term, edge_weight=args.edge_weight)
+                        check_weight=args.free_space_weight, edges=args.edge_term, edge_weight=args.edge_weight,
+                        pair_points=args.pair_points)
     print(f"calibrated {args.run}: {describe(cal)}")
     print(f"written: {Path(args.run) / CALIBRATION_FILE} (render, eval and export apply it; raw stds as depth_std_raw "
           "and colour_std_raw)")

@@ -9,8 +9,9 @@ from __future__ import annotations
 import argparse
 import math
 
-from ..defaults import (CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS, DEPTH_EDGE_TERM,
-                        DEPTH_FREE_SPACE, DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR, FREE_PATH_RECALIBRATION)
+from ..defaults import (CALIBRATION_PAIR_POINTS, CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_PAIR_POINTS,
+                        DEFAULT_CALIBRATION_POINTS, DEPTH_EDGE_TERM, DEPTH_FREE_SPACE, DEPTH_RELATIVE_FLOOR,
+                        DEPTH_STD_FLOOR, FREE_PATH_RECALIBRATION)
 
 
 def add_arguments(p) -> None:
@@ -22,6 +23,11 @@ def add_arguments(p) -> None:
                         "fit, so the map sees most of the scene's surfaces, and stores its cross-fitted fold "
                         f"maps ({CROSS_FIT_FOLDS} folds of the SCORE blocks) that eval scores its intervals with; "
                         "'calibrate' fits the CALIBRATE points only (docs/uncertainty.md, studies 18 and 18b).")
+    p.add_argument("--pair-points", choices=CALIBRATION_PAIR_POINTS, default=DEFAULT_CALIBRATION_PAIR_POINTS,
+                   help="Which capture points a calibration view (halfway between two training views) renders: "
+                        "'both' (default), those both views of its pair observed, or 'either', those one of them "
+                        "observed (docs/studies.md, study 38: either holds paper-split fern's photos at every level "
+                        "but widens every band by about 40%%).")
     p.add_argument("--std-floor", action=argparse.BooleanOptionalAction, default=DEPTH_STD_FLOOR,
                    help="Fit a depth std floor tau first, so that depth_std = s * sqrt(raw^2 + tau^2) "
                         f"(docs/uncertainty.md, study 11; default: {'on' if DEPTH_STD_FLOOR else 'off'}).")
