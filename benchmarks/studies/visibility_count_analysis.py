@@ -31,7 +31,7 @@ from stochastic_fields import metrics as M  # noqa: E402
 from stochastic_fields.calibration import load_run_calibration  # noqa: E402
 from stochastic_fields.capture_points import (block_keys, load_capture_points, restrict_sparse_depth,  # noqa: E402
                                               score_sparse_depth)
-from stochastic_fields.evaluation import _pool_depth_samples, calibrated_depth_scores, depth_samples  # noqa: E402
+from stochastic_fields.evaluation import calibrated_depth_scores, depth_samples, pool_depth_samples  # noqa: E402
 from stochastic_fields.trainer import load_trained_model  # noqa: E402
 
 SEEDS = (12, 13, 14)
@@ -68,7 +68,7 @@ def run_groups(run: Path, evals: Path, views: list[int]) -> dict[int, list]:
 
 
 def scores(pool: list, calibration) -> dict:
-    samples = _pool_depth_samples(pool)
+    samples = pool_depth_samples(pool)
     s = calibrated_depth_scores(samples, calibration)
     iv = s["intervals"]
     rel = np.abs(samples.pred - samples.gt) / samples.gt

@@ -126,7 +126,7 @@ def depth_samples(products: dict[str, np.ndarray], gt_depth: np.ndarray | None =
                         None if edge is None else edge[mask])
 
 
-def _pool_depth_samples(pool: Sequence[DepthSamples]) -> DepthSamples:
+def pool_depth_samples(pool: Sequence[DepthSamples]) -> DepthSamples:
     """Every view's depth samples as one, float64; the parts every view has."""
     def cat(arrays) -> np.ndarray:
         return np.concatenate(list(arrays)).astype(np.float64) if pool else np.zeros(0)
@@ -480,7 +480,7 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
         if ranking[metric] is not None:
             curves.update(_pack(f"colour_sparsification_{metric}", ranking[metric]))
     if depth_source is not None:
-        pooled = _pool_depth_samples(depth_pool)
+        pooled = pool_depth_samples(depth_pool)
         ds = calibrated_depth_scores(pooled, calibration)
         pooled_out["depth"] = _plain_scores(ds)
         pooled_out["depth_intervals"] = interval_summary(ds.get("intervals"))
