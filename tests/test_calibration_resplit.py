@@ -172,9 +172,10 @@ def test_pair_visible_points_both_or_either():
         pair_visible_points(capture, [(0, 1)], keep, pair_points="any")
 
 
-def test_calibration_renders_either_views_points_a_superset(tmp_path):
+def test_calibration_renders_more_points_with_either_view(tmp_path):
     """``pair_points="either"`` renders more points than "both" where a pair's views saw different points
-    (a pixel keeps its nearest point, so a both-point may give way to a nearer either-point); the map's source says which points it was fitted on, and ``calibrate_run`` fits on them."""
+    (a pixel keeps its nearest point, so a both-point may give way to a nearer either-point); the map's
+    source says which points it was fitted on, and ``calibrate_run`` fits on them."""
     from stochastic_fields.calibration import calibrate_run, depth_calibration_renders
 
     from conftest import train_tiny_synthetic_run

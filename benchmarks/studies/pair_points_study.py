@@ -26,7 +26,6 @@ deterministic NeRF's rows are unchanged: it has no map). Command (one thread, re
 from __future__ import annotations
 
 import argparse
-import json
 import shutil
 import statistics
 import sys
@@ -35,7 +34,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from study_helpers import write_study  # noqa: E402
-from tables_cap_study import COVERAGE_TOLERANCE, score_run, validation_views  # noqa: E402
+from tables_cap_study import RULE_LEVELS, holds, score_run, validation_views  # noqa: E402
 import tables_steps_study as steps  # noqa: E402
 
 from stochastic_fields import calibration  # noqa: E402
@@ -43,8 +42,6 @@ from stochastic_fields import metrics as M  # noqa: E402
 
 SEEDS = (12, 13, 14)
 SCENES = ("fern", "flower")
-RULE_LEVELS = ("50", "68", "90", "95")
-NOMINAL = {M.level_name(p): p for p in M.INTERVAL_LEVELS}
 MAX_DISTANCE_GROWTH = 0.005  # 0.5 points of coverage
 MAX_SCORE_GROWTH = 0.02  # relative
 MAX_SPEARMAN_LOSS = 0.02
@@ -73,7 +70,7 @@ def link(source: Path, target: Path) -> None:
 
 def distance(coverage: dict) -> float:
     """Mean |coverage - nominal| over the rule's levels."""
-    return statistics.fmean(abs(coverage[n] - NOMINAL[n]) for n in RULE_LEVELS)
+    return statistics.fmean(abs(coverage[M.level_name(p)] - p) for p in RULE_LEVELS)
 
 
 def verdict(today: dict, cand: dict) -> tuple[bool, list[str]]:
@@ -81,8 +78,9 @@ def verdict(today: dict, cand: dict) -> tuple[bool, list[str]]:
     failed, fell = [], []
     for scene in SCENES:
         t, c = today[scene], cand[scene]
-        for n in RULE_LEVELS:
-            if abs(t["coverage"][n] - NOMINAL[n]) <= COVERAGE_TOLERANCE and abs(c["coverage"][n] - NOMINAL[n]) > COVERAGE_TOLERANCE:
+        for p in RULE_LEVELS:
+            n = M.level_name(p)
+            if holds(t["coverage"][n], p) and not holds(c["coverage"][n], p):
                 failed.append(f"{scene}: {n}% coverage {100 * c['coverage'][n]:.1f}")
         dt, dc = distance(t["coverage"]), distance(c["coverage"])
         fell.append(dc < dt)
@@ -116,7 +114,7 @@ def main() -> None:
     for arm in args.arms:  # the recalibrated copies and their scores, in study 37's folder layout
         for seed in SEEDS:
             for scene in SCENES:
-                src, scores = steps.run_folders(args.source, None, seed, arm, scene, "snerf_default")
+                src, _ = steps.run_folders(args.source, None, seed, arm, scene, "snerf_default")
                 run, out = steps.run_folders(args.runs, None, seed, arm, scene, "snerf_default")
                 score_run(recalibrated(src, run), views[scene], out)
                 for a, b in zip(steps.run_folders(args.source, None, seed, arm, scene, "deterministic"),
@@ -125,22 +123,13 @@ def main() -> None:
     if set(args.arms) != {"today", "wide"}:
         return
 
-    def means(runs: Path, arm: str, method: str) -> dict:
-        """{scene: seed means} of one arm's method (cached scores)."""
-        out = {}
-        for scene in SCENES:
-            per_seed = []
-            for s in SEEDS:
-                run, scores = steps.run_folders(runs, None, s, arm, scene, method)
-                per_seed.append(score_run(run, views[scene], scores))
-            out[scene] = steps.seed_mean(per_seed)
-        return out
-
-    rows = {"both (today)": {a: means(args.source, a, "snerf_default") for a in args.arms},
-            "either (candidate)": {a: means(args.runs, a, "snerf_default") for a in args.arms}}
+    arms = {arm: arm for arm in args.arms}  # study 37's row folders
+    _, today = steps.scored_rows(args.source, arms, SEEDS, views, methods=("snerf_default",))
+    _, study37 = steps.scored_rows(args.runs, steps.STUDIES[37].rows, SEEDS, views)  # the candidate's maps
+    rows = {"both (today)": {a: {s: today[a][s]["snerf_default"] for s in SCENES} for a in args.arms},
+            "either (candidate)": {a: {s: study37[label][s]["snerf_default"] for s in SCENES}
+                                   for label, a in steps.STUDIES[37].rows.items()}}
     taken, failed = verdict(rows["both (today)"]["today"], rows["either (candidate)"]["today"])
-    study37 = {label: {scene: {m: means(args.runs, arm, m)[scene] for m in steps.METHODS} for scene in SCENES}
-               for label, arm in steps.STUDIES[37].rows.items()}
     taken37, failed37 = steps.verdict(study37, steps.STUDIES[37]) if taken else (None, [])
     lines = ["# Study 38: calibration views that render the points either view of their pair observed", "",
              "Study 37's runs (paper split, seeds 12-14, the tables' budget), each S-NeRF run recalibrated with the "

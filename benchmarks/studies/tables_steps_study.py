@@ -152,6 +152,21 @@ def run_folders(runs: Path, seed1_runs: Path | None, seed: int, row: str, scene:
     return runs / f"s{seed}" / row / scene / method, runs / "validation" / f"s{seed}" / row / scene / method
 
 
+def scored_rows(runs: Path, row_folders: dict[str, str], seeds: tuple[int, ...], views: dict[str, list[int]], *,
+                methods: tuple[str, ...] = METHODS, seed1_runs: Path | None = None) -> tuple[dict, dict]:
+    """Every seed's validation scores ({label: {scene: {method: [per seed]}}}, ``score_run``: cached) of the
+    rows ``row_folders`` ({label: its folder under sSEED}) on the scenes of ``views``, and their seed means."""
+    def score(seed: int, row: str, scene: str, method: str) -> dict:
+        run, scores = run_folders(runs, seed1_runs, seed, row, scene, method)
+        return score_run(run, views[scene], scores)
+
+    rows = {label: {scene: {m: [score(seed, row, scene, m) for seed in seeds] for m in methods} for scene in views}
+            for label, row in row_folders.items()}
+    means = {label: {scene: {m: seed_mean(per_seed) for m, per_seed in scenes[scene].items()} for scene in scenes}
+             for label, scenes in rows.items()}
+    return rows, means
+
+
 def seed_mean(per_seed: list[dict]) -> dict:
     """The mean over seeds of each score (coverage per level); None where any seed lacks it."""
     out = {}
@@ -223,14 +238,7 @@ def main() -> None:
     seed1_runs = args.seed1_runs or study.seed1_runs
     views = {scene: validation_views(scene) for scene in study.scenes}
 
-    def score(seed: int, row: str, scene: str, method: str) -> dict:
-        run, scores = run_folders(args.runs, seed1_runs, seed, row, scene, method)
-        return score_run(run, views[scene], scores)
-
-    rows = {label: {scene: {m: [score(seed, row, scene, m) for seed in study.seeds] for m in METHODS}
-                    for scene in study.scenes} for label, row in study.rows.items()}
-    means = {label: {scene: {m: seed_mean(rows[label][scene][m]) for m in METHODS} for scene in study.scenes}
-             for label in study.rows}
+    rows, means = scored_rows(args.runs, study.rows, study.seeds, views, seed1_runs=seed1_runs)
     taken, failed = verdict(means, study)
     write_study(args.out, {"study": study.number, "rows": rows, "means": means, "seeds": list(study.seeds),
                            "validation_views": views, "taken": taken, "failed": failed},

@@ -32,7 +32,8 @@ from stochastic_fields.calibration import load_run_calibration  # noqa: E402
 from stochastic_fields.capture_points import (block_keys, load_capture_points, restrict_sparse_depth,  # noqa: E402
                                               score_sparse_depth)
 from stochastic_fields.evaluation import calibrated_depth_scores, depth_samples, pool_depth_samples  # noqa: E402
-from stochastic_fields.trainer import load_trained_model  # noqa: E402
+from stochastic_fields.config import load_config  # noqa: E402
+from stochastic_fields.scenes import load_run_dataset  # noqa: E402
 
 SEEDS = (12, 13, 14)
 SCENES = ("fern", "flower")
@@ -46,7 +47,7 @@ def group_name(g: int) -> str:
 
 def run_groups(run: Path, evals: Path, views: list[int]) -> dict[int, list]:
     """{group: [DepthSamples of each view]} of one run's validation photos (opacity above the mask, as eval)."""
-    _, _, dataset = load_trained_model(run, device="cpu")
+    dataset = load_run_dataset(load_config(run / "config.json"), run)
     capture = load_capture_points(dataset)
     sparse = score_sparse_depth(dataset, views)
     train = [int(t) for t in dataset.train_indices]
