@@ -12,7 +12,8 @@ import pytest
 import torch
 from scipy import stats
 
-from stochastic_fields.free_space import (TRAINING_DEPTH_FILE, TrainingDepth, checked_std, free_space_violation,
+from stochastic_fields.free_space import (TRAINING_DEPTH_FILE, TrainingDepth, agreeing_views, checked_std,
+                                          free_space_violation,
                                           load_training_depth, rendered_points, save_training_depth, violation_map)
 
 
@@ -41,6 +42,28 @@ def test_free_space_violation_by_hand():
     np.testing.assert_allclose(free_space_violation(points, ref), [2.0, 0.0, 0.0, 1.5, 0.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(free_space_violation(points, ref, exclude=[3]), [0.5, 0, 0, 1.5, 0, 0], atol=1e-12)
     assert free_space_violation(np.zeros((0, 3)), ref).shape == (0,)
+
+
+def test_agreeing_views_by_hand():
+    ref = _two_views()  # view 3's surface at its z = 5, view 8's at its z = 4.5 (world z = 3.5)
+    points = np.array([
+        [0.0, 0.0, 5.0],    # on view 3's surface; view 8: z 6 against 4.5 (hidden there)
+        [0.0, 0.0, 3.5],    # on view 8's surface; view 3: z 3.5 against 5 (in front)
+        [0.0, 0.0, 5.1],    # view 3: |5.1 - 5| = 0.1 <= 0.05 * 5.1; view 8: no
+        [-1.6, 0.0, 3.5],   # view 3's transparent column (u = 0.43); on view 8's surface (u = 1.44)
+        [10.0, 0.0, 1.0],   # outside both images
+        [0.0, 0.0, -2.0],   # behind both cameras
+    ])
+    agree, seen = agreeing_views(points, ref, tolerance=0.05)
+    np.testing.assert_array_equal(agree, [1, 1, 1, 1, 0, 0])
+    np.testing.assert_array_equal(seen, [2, 2, 2, 1, 0, 0])
+    agree, _ = agreeing_views(points, ref, tolerance=0.01)  # 0.1 > 0.01 * 5.1
+    np.testing.assert_array_equal(agree, [1, 1, 0, 1, 0, 0])
+    agree, _ = agreeing_views(points, ref, tolerance=0.5)  # |6 - 4.5| <= 3 and |3.5 - 5| <= 1.75
+    np.testing.assert_array_equal(agree, [2, 2, 2, 1, 0, 0])
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="tolerance"):
+            agreeing_views(points, ref, tolerance=bad)
 
 
 def test_a_training_view_violates_nothing_on_its_own_depth_and_a_floater_by_its_distance():

@@ -274,3 +274,21 @@ def test_study_38_decision_recomputed(load_script):
     assert study.verdict(data["rows"]["both (today)"]["today"], data["rows"]["either (candidate)"]["today"]) == \
         (data["taken"], data["failed"])
     assert not data["taken"] and data["study_37_taken"] is None
+
+
+def test_agreement_analysis_pools_by_hand_and_its_table_regenerates(load_script):
+    """The agreement analysis pools its count groups weighting by points, and its committed table
+    follows from its committed results."""
+    script = load_script("benchmarks/studies/agreement_term_analysis.py")
+    seeds = [[{"count": 0, "share": 0.5, "abs_rel": 0.2, "median_abs_z": 1.0, "points": 2},
+              {"count": 1, "share": 0.5, "abs_rel": 0.1, "median_abs_z": 0.5, "points": 2}],
+             [{"count": 0, "share": 1.0, "abs_rel": 0.4, "median_abs_z": 2.0, "points": 6}]]
+    pooled = script.pooled_by_count(seeds)
+    assert pooled[0] == pytest.approx({"share": 0.8, "abs_rel": (0.4 + 2.4) / 8, "median_abs_z": (2 + 12) / 8})
+    assert pooled[1] == pytest.approx({"share": 0.2, "abs_rel": 0.1, "median_abs_z": 0.5})
+    out = REPO_ROOT / "benchmarks" / "results" / "agreement_term_analysis"
+    data = json.loads((out / "study.json").read_text())
+    diag = {s: tuple({int(k): v for k, v in d[part].items()} for part in ("calibration", "validation"))
+            for s, d in data["by_count"].items()}
+    md = script.markdown(data["results"], data["seeds"]) + "\n" + script.count_markdown(diag)
+    assert (out / "study.md").read_text().startswith(md)

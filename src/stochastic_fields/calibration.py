@@ -837,17 +837,30 @@ def fit_depth_calibration_and_folds(model, dataset, *, seed: int = 0, points: st
     ``fit_depth_calibration``."""
     r = depth_calibration_renders(model, dataset, seed=seed, points=points, options=options, free_space=free_space,
                                   edges=edges, pair_points=pair_points)
-    out, std = _fit_depth_map(r, floor=floor, relative_floor=relative_floor, check_weight=check_weight,
+    return depth_map_and_folds(r, load_capture_points(dataset) if points != "calibrate" else None, floor=floor,
+                               relative_floor=relative_floor, check_weight=check_weight, edge_weight=edge_weight,
+                               folds=folds, where=str(dataset.root))
+
+
+def depth_map_and_folds(renders: dict[str, Any], capture=None, *, floor: bool = DEPTH_STD_FLOOR,
+                        relative_floor: bool = DEPTH_RELATIVE_FLOOR, check_weight: float | None = None,
+                        edge_weight: float | None = None, folds: int = CROSS_FIT_FOLDS, where: str = "capture"
+                        ) -> tuple[QuantileCalibration, DepthFolds | None]:
+    """The depth map of ``depth_calibration_renders``' output ``renders`` (its free-space check and
+    edge term weighted as ``_fit_depth_map`` fits them) and, with the scene's ``capture`` points
+    (held-out renders: CALIBRATE and SCORE), its cross-fitted ``DepthFolds``: None without
+    ``capture``, or with a warning naming ``where`` when the scene has too few SCORE blocks."""
+    out, std = _fit_depth_map(renders, floor=floor, relative_floor=relative_floor, check_weight=check_weight,
                               edge_weight=edge_weight)
-    if points == "calibrate":
+    if capture is None:
         return out, None
-    capture = load_capture_points(dataset)
     keys = block_keys(capture.xyz, capture.xyz)
     try:
-        folded = fit_depth_folds(r["abs_err"], std, keys[r["index"]], keys[capture.roles == SCORE], folds=folds,
-                                 floor=floor, depth=r["depth"] if relative_floor else None, source=out.source)
+        folded = fit_depth_folds(renders["abs_err"], std, keys[renders["index"]], keys[capture.roles == SCORE],
+                                 folds=folds, floor=floor, depth=renders["depth"] if relative_floor else None,
+                                 source=out.source)
     except ValueError as exc:  # a scene too small to cross-fit: the map stands, its scores are not independent
-        warnings.warn(f"{dataset.root}: the depth map's cross-fitted folds were not fitted ({exc}); depth interval "
+        warnings.warn(f"{where}: the depth map's cross-fitted folds were not fitted ({exc}); depth interval "
                       "scores on the SCORE points will not be independent", stacklevel=2)
         return out, None
     for m in folded.maps:  # the weights the run's map chose; each fold's own s(p) and rho

@@ -176,6 +176,26 @@ def free_space_violation(points: np.ndarray, ref: TrainingDepth, *, exclude: Seq
     return out
 
 
+def agreeing_views(points: np.ndarray, ref: TrainingDepth, *, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """How many training views render the surface a point lies on: for world points ``points`` [N, 3],
+    the count [N] of training views that have the point inside their image in front of the camera
+    on an opaque pixel (``view_maps.OPACITY_MASK``) with |z_j(X) - D_j(u_j(X))| <= ``tolerance``
+    z_j(X), and the count [N] of views with it inside an opaque pixel at all (the first's
+    denominator). A point in front of a view's surface (the free-space violation) or hidden behind it
+    (occluded there) does not agree with that view. Used by the agreement analysis
+    (docs/studies.md); ValueError for a ``tolerance`` that is not finite and > 0."""
+    if not (np.isfinite(tolerance) and tolerance > 0):
+        raise ValueError(f"agreeing views: the tolerance must be finite and > 0, got {tolerance}")
+    X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    agree, seen = np.zeros(len(X), np.int64), np.zeros(len(X), np.int64)
+    for t in range(len(ref.views)):
+        z, inside, rows, cols = _look_up(X, ref, t)
+        opaque = inside & (ref.opacity[t][rows, cols] > OPACITY_MASK)
+        seen += opaque
+        agree += opaque & (np.abs(z - ref.depth[t][rows, cols].astype(np.float64)) <= tolerance * z)
+    return agree, seen
+
+
 def rendered_points(centres: np.ndarray, points: np.ndarray, point_z: np.ndarray, rendered_z: np.ndarray) -> np.ndarray:
     """World points [N, 3] a render puts on the rays from camera ``centres`` [N, 3] through world
     ``points`` [N, 3] (camera-z depth ``point_z`` [N] > 0): at camera-z depth ``rendered_z`` [N] along
