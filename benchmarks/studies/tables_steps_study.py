@@ -1,6 +1,6 @@
-"""Studies 27, 28, 29, 31 and 37: one training factor of the tables at the paper split (27 and 28: the steps;
-29: the occlusion regulariser; 31: the unseen-view depth smoothness; 37: the colour branch's capacity),
-judged by their rules.
+"""Studies 27, 28, 29, 31, 37 and 39: one training factor of the tables at the paper split (27 and 28: the
+steps; 29: the occlusion regulariser; 31: the unseen-view depth smoothness; 37: the colour branch's
+capacity; 39: 31's and 37's candidates together), judged by their rules.
 
 **Study 27** (twice the steps, 1000 against 2000). The rows are ``benchmarks/eval_tables.py`` runs
 (S-NeRF (default) and the deterministic NeRF, paper split, one thread), seeds 1, 2 and 3, today's steps
@@ -56,6 +56,18 @@ this script reads)::
         --seed SEED --no-timing --quiet --out runs/colour_capacity_paper/sSEED/ARM
     python benchmarks/studies/tables_steps_study.py --study 37 --runs runs/colour_capacity_paper \
         --out benchmarks/results/colour_capacity_paper_study
+
+**Study 39** (``--study 39``: study 37's wider colour branch and study 31's ``loss.lambda_smoothness`` 60
+together, every method, against study 37's ``today`` rows). Seeds 12, 13 and 14; the ``today`` rows and
+their validation scores are study 37's, linked as ``runs/wide_smooth_paper/sSEED/today`` and
+``validation/sSEED/today``; ARM ``wide_smooth``, each run scored on its validation views after its training
+(``runs/wide_smooth_paper/chain.sh`` in two chains)::
+
+    OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes SCENE --methods deterministic snerf_default \
+        --seed SEED --no-timing --quiet --set field.grid_decoder_width=64 --set field.grid_feature_dim=16 \
+        --set loss.lambda_smoothness=60 --out runs/wide_smooth_paper/sSEED/wide_smooth
+    python benchmarks/studies/tables_steps_study.py --study 39 --runs runs/wide_smooth_paper \
+        --out benchmarks/results/wide_smooth_paper_study
 
 The tables' own test-view scores (each run's metrics.json) are not read.
 """
@@ -139,6 +151,17 @@ STUDIES = {
               "the tables' CPU budget (fern 1000 steps, flower 1750), `field.grid_decoder_width` / "
               "`field.grid_feature_dim` 32 / 8 and 64 / 16",
               row_name="decoder width / features", sharper=True),
+    39: Study(39, "the wider colour branch and depth smoothness together at the paper split",
+              {"32 / 8, 0 (today)": "today", "64 / 16, 60 (candidate)": "wide_smooth"}, (12, 13, 14), SCENES,
+              "How this was run: the `wide_smooth` row commands of the script's docstring in two shell chains side "
+              "by side (`OMP_NUM_THREADS=1`; one chain seed 12's flower and fern and seed 14's fern, the other seed "
+              "13's and seed 14's flower), each run scored on its validation views right after its training; the "
+              "`today` rows are study 37's (linked, not re-trained). Then `python "
+              "benchmarks/studies/tables_steps_study.py --study 39 --runs runs/wide_smooth_paper --out "
+              "benchmarks/results/wide_smooth_paper_study`. The decision and what it shows: docs/studies.md, study 39.",
+              "the tables' CPU budget (fern 1000 steps, flower 1750), `field.grid_decoder_width` / "
+              "`field.grid_feature_dim` / `loss.lambda_smoothness` 32 / 8 / 0 and 64 / 16 / 60",
+              row_name="decoder / features / smoothness", sharper=True),
 }
 #: What each score's seed mean is taken of (None where a run has none: the deterministic NeRF's intervals).
 MEAN_KEYS = ("psnr", "ssim", "abs_rel", "spearman", "halfwidth_median_95", "interval_score_95", "crps", "train_s")
