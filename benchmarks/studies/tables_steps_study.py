@@ -60,8 +60,8 @@ this script reads)::
 **Study 39** (``--study 39``: study 37's wider colour branch and study 31's ``loss.lambda_smoothness`` 60
 together, every method, against study 37's ``today`` rows). Seeds 12, 13 and 14; the ``today`` rows and
 their validation scores are study 37's, linked as ``runs/wide_smooth_paper/sSEED/today`` and
-``validation/sSEED/today``; ARM ``wide_smooth``, each run scored on its validation views after its training
-(``runs/wide_smooth_paper/chain.sh`` in two chains)::
+``validation/sSEED/today``; ARM ``wide_smooth``, each run scored on its validation views right after its
+training (``score_run``, the same cache this script reads)::
 
     OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes SCENE --methods deterministic snerf_default \
         --seed SEED --no-timing --quiet --set field.grid_decoder_width=64 --set field.grid_feature_dim=16 \
