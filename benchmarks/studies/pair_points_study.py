@@ -103,9 +103,37 @@ def row(scene: str, label: str, m: dict) -> str:
             f"{m['crps']:.4f} |")
 
 
+def write_study_39_either(args: argparse.Namespace, views: dict) -> None:
+    """Study 39's candidate runs recalibrated with either-view points, beside their own maps and today's
+    (study 37's today rows): ``--out`` study.md / study.json. Measured after study 39's verdict; decides
+    nothing."""
+    _, both = steps.scored_rows(args.source, steps.STUDIES[39].rows, SEEDS, views, methods=("snerf_default",))
+    _, either = steps.scored_rows(args.runs, {"either": "wide_smooth"}, SEEDS, views, methods=("snerf_default",))
+    rows = {"both, 32 / 8 / 0 (today)": both["32 / 8, 0 (today)"], "both, 64 / 16 / 60": both["64 / 16, 60 (candidate)"],
+            "either, 64 / 16 / 60": either["either"]}
+    lines = ["# Study 39's candidate with calibration views rendering the points either view of their pair observed", "",
+             "Study 39's candidate runs (decoder 64, 16 features, depth smoothness 60; paper split, seeds 12-14) "
+             "recalibrated with `--pair-points either` and scored on the validation photos, beside their own maps "
+             "and today's rows. Measured after study 39's verdict: decides nothing. Means over the seeds.", "",
+             "| scene | points of a calibration view, field | PSNR | depth abs-rel | depth Spearman | points scored | "
+             "cov 50 / 68 / 90 / 95 / 99 | distance | median 95% half-width | IS95 / depth | CRPS / depth |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for scene in SCENES:
+        for label, scenes in rows.items():
+            lines.append(row(scene, label, scenes[scene]["snerf_default"]))
+    lines += ["", "Command: `OMP_NUM_THREADS=1 python benchmarks/studies/pair_points_study.py --arms wide_smooth "
+              "--source runs/wide_smooth_paper --out OUT` (fern and flower may run as two processes with `--scenes`, "
+              "then once with both to write the table)."]
+    write_study(args.out, {"rows": {k: {sc: v[sc]["snerf_default"] for sc in SCENES} for k, v in rows.items()},
+                           "seeds": list(SEEDS)}, "\n".join(lines) + "\n")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--arms", nargs="+", default=["today", "wide"], choices=["today", "wide"])
+    ap.add_argument("--arms", nargs="+", default=["today", "wide"], choices=["today", "wide", "wide_smooth"],
+                    help="Study 37's arms (the study), or study 39's candidate (wide_smooth, with --source "
+                         "runs/wide_smooth_paper: its recalibrated scores only, for docs/studies.md, study 39).")
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
     ap.add_argument("--source", type=Path, default=Path("runs/colour_capacity_paper"), help="Study 37's runs.")
     ap.add_argument("--runs", type=Path, default=Path("runs/pair_points"))
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/pair_points_study"))
@@ -113,14 +141,16 @@ def main() -> None:
     views = {scene: validation_views(scene) for scene in SCENES}
     for arm in args.arms:  # the recalibrated copies and their scores, in study 37's folder layout
         for seed in SEEDS:
-            for scene in SCENES:
+            for scene in args.scenes:
                 src, _ = steps.run_folders(args.source, None, seed, arm, scene, "snerf_default")
                 run, out = steps.run_folders(args.runs, None, seed, arm, scene, "snerf_default")
                 score_run(recalibrated(src, run), views[scene], out)
                 for a, b in zip(steps.run_folders(args.source, None, seed, arm, scene, "deterministic"),
                                 steps.run_folders(args.runs, None, seed, arm, scene, "deterministic")):
                     link(a, b)
-    if set(args.arms) != {"today", "wide"}:
+    if args.arms == ["wide_smooth"] and args.scenes == list(SCENES):
+        write_study_39_either(args, views)
+    if set(args.arms) != {"today", "wide"} or args.scenes != list(SCENES):
         return
 
     arms = {arm: arm for arm in args.arms}  # study 37's row folders
