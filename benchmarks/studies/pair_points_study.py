@@ -21,6 +21,11 @@ deterministic NeRF's rows are unchanged: it has no map). Command (one thread, re
 
     OMP_NUM_THREADS=1 python benchmarks/studies/pair_points_study.py --arms today wide \
         --source runs/colour_capacity_paper --runs runs/pair_points --out benchmarks/results/pair_points_study
+
+Study 39's candidate recalibrated the same way (after its verdict; decides nothing)::
+
+    OMP_NUM_THREADS=1 python benchmarks/studies/pair_points_study.py --arms wide_smooth \
+        --source runs/wide_smooth_paper --out benchmarks/results/wide_smooth_paper_study/either_calibration
 """
 
 from __future__ import annotations
