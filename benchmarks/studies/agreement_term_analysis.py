@@ -68,10 +68,10 @@ def disagreement(points: np.ndarray, depth: np.ndarray, ref) -> dict[str, np.nda
     return out
 
 
-def validation_points(run: Path, evals: Path, dataset, capture, ref) -> list[tuple]:
-    """Per validation photo: (SparseDepth, products, disagreement at its points, block keys)."""
+def validation_points(scene: str, evals: Path, dataset, capture, ref) -> list[tuple]:
+    """Per validation photo of ``scene``: (SparseDepth, products, disagreement at its points, block keys)."""
     out = []
-    sparse = score_sparse_depth(dataset, validation_views(run.parent.name))
+    sparse = score_sparse_depth(dataset, validation_views(scene))
     for v, sd in sparse.items():
         with np.load(evals / "views" / f"view_{v:03d}.npz") as f:
             products = {k: f[k] for k in f.files}
@@ -90,8 +90,8 @@ def by_count(count: np.ndarray, rel: np.ndarray, z: np.ndarray, views: int) -> l
             for g in range(views + 1) if np.any(count == g)]
 
 
-def analyse(run: Path, evals: Path, arm: str) -> dict:
-    """One run and arm: the scores of each term (none, each tau) and the errors by agreement count."""
+def analyse(scene: str, run: Path, evals: Path, arm: str) -> dict:
+    """One run of ``scene`` and arm: the scores of each term (none, each tau) and the errors by agreement count."""
     _, model, dataset = load_trained_model(run, device="cpu")
     ref = load_training_depth(run)
     if ref is None:
@@ -102,7 +102,7 @@ def analyse(run: Path, evals: Path, arm: str) -> dict:
     centres = camera_to_world(cams).double()[:, :3, 3].numpy()[renders["view"]]
     X = rendered_points(centres, capture.xyz[renders["index"]], renders["depth"] + renders["err"], renders["depth"])
     calib_terms = disagreement(X, renders["depth"], ref)
-    val = validation_points(run, evals, dataset, capture, ref)
+    val = validation_points(scene, evals, dataset, capture, ref)
     out = {"terms": {}}
     for term in ("none",) + tuple(str(t) for t in TOLERANCES):
         r = dict(renders) if term == "none" else {**renders, "edge": calib_terms[term]}
@@ -195,7 +195,7 @@ def main() -> None:
             for seed in args.seeds:
                 cache = args.work / f"s{seed}" / scene / f"{arm}.json"
                 if not cache.is_file():
-                    r = analyse(args.runs / f"s{seed}" / "today" / scene / "snerf_default",
+                    r = analyse(scene, args.runs / f"s{seed}" / "today" / scene / "snerf_default",
                                 args.evals / f"s{seed}" / "today" / scene, arm)
                     cache.parent.mkdir(parents=True, exist_ok=True)
                     atomic_write_text(cache, json.dumps(r, indent=1))

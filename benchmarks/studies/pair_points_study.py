@@ -101,6 +101,12 @@ def verdict(today: dict, cand: dict) -> tuple[bool, list[str]]:
     return not failed, failed
 
 
+#: The head of the tables ``row`` fills.
+TABLE_HEAD = ("| scene | points of a calibration view, field | PSNR | depth abs-rel | depth Spearman | points scored | "
+              "cov 50 / 68 / 90 / 95 / 99 | distance | median 95% half-width | IS95 / depth | CRPS / depth |",
+              "|---|---|---|---|---|---|---|---|---|---|---|")
+
+
 def row(scene: str, label: str, m: dict) -> str:
     cov = " / ".join(f"{100 * m['coverage'][n]:.1f}" for n in ("50", "68", "90", "95", "99"))
     return (f"| {scene} | {label} | {m['psnr']:.2f} | {m['abs_rel']:.4f} | {m['spearman']:.3f} | {m['points']} | {cov} | "
@@ -120,9 +126,7 @@ def write_study_39_either(args: argparse.Namespace, views: dict) -> None:
              "Study 39's candidate runs (decoder 64, 16 features, depth smoothness 60; paper split, seeds 12-14) "
              "recalibrated with `--pair-points either` and scored on the validation photos, beside their own maps "
              "and today's rows. Measured after study 39's verdict: decides nothing. Means over the seeds.", "",
-             "| scene | points of a calibration view, field | PSNR | depth abs-rel | depth Spearman | points scored | "
-             "cov 50 / 68 / 90 / 95 / 99 | distance | median 95% half-width | IS95 / depth | CRPS / depth |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             *TABLE_HEAD]
     for scene in SCENES:
         for label, scenes in rows.items():
             lines.append(row(scene, label, scenes[scene]["snerf_default"]))
@@ -170,9 +174,7 @@ def main() -> None:
              "Study 37's runs (paper split, seeds 12-14, the tables' budget), each S-NeRF run recalibrated with the "
              "candidate and scored on the validation photos (fern 12, flower 23) with `stochastic-fields eval --views`. "
              "Means over the seeds; distance: mean |coverage - nominal| over 50/68/90/95%, in points.", "",
-             "| scene | points of a calibration view, field | PSNR | depth abs-rel | depth Spearman | points scored | "
-             "cov 50 / 68 / 90 / 95 / 99 | distance | median 95% half-width | IS95 / depth | CRPS / depth |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             *TABLE_HEAD]
     for scene in SCENES:
         for label, arms in rows.items():
             for arm in args.arms:
