@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from conftest import REPO_ROOT
@@ -293,3 +294,18 @@ def test_agreement_analysis_pools_by_hand_and_its_table_regenerates(load_script)
             for s, d in data["by_count"].items()}
     md = script.markdown(data["results"], data["seeds"]) + "\n" + script.count_markdown(diag)
     assert (out / "study.md").read_text().startswith(md)
+
+
+def test_agreement_groups_bound_by_share_and_the_table_regenerates(load_script):
+    """Agreement groups by the share of agreeing views (none, at most half, more), the subset keeps the
+    per-point arrays only, and the committed table follows from the committed results."""
+    script = load_script("benchmarks/studies/agreement_groups_analysis.py")
+    assert script.group_of(np.array([0, 1, 2, 3, 4]), 4).tolist() == [0, 1, 1, 2, 2]
+    assert script.group_of(np.array([0, 1, 3, 4, 7]), 7).tolist() == [0, 1, 1, 2, 2]
+    renders = {"abs_err": np.arange(3.0), "view": np.array([4, 5, 6]), "source": "text", "other": np.zeros(2)}
+    sub = script.subset(renders, np.array([True, False, True]))
+    assert sub["abs_err"].tolist() == [0.0, 2.0] and sub["view"].tolist() == [4, 6]
+    assert sub["source"] == "text" and sub["other"].shape == (2,)
+    out = REPO_ROOT / "benchmarks" / "results" / "agreement_groups_analysis"
+    data = json.loads((out / "study.json").read_text())
+    assert (out / "study.md").read_text() == script.markdown(data["results"], data["seeds"])
