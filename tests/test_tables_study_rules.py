@@ -309,3 +309,24 @@ def test_agreement_groups_bound_by_share_and_the_table_regenerates(load_script):
     out = REPO_ROOT / "benchmarks" / "results" / "agreement_groups_analysis"
     data = json.loads((out / "study.json").read_text())
     assert (out / "study.md").read_text() == script.markdown(data["results"], data["seeds"])
+
+
+def test_oracle_map_analysis_renders_the_photos_points_and_the_table_regenerates(load_script):
+    """The photos' points become calibration renders with the checked std at full weight; the blind copy
+    keeps the depths and makes sigma and the violation negligible; the committed table follows from the
+    committed results."""
+    script = load_script("benchmarks/studies/oracle_map_analysis.py")
+    from stochastic_fields.evaluation import DepthSamples
+    samples = DepthSamples(np.array([2.0, 3.0]), np.array([2.5, 2.0]), np.ones(2), np.array([0.3, 0.4]), {},
+                           np.array([0.4, 0.3]), np.array([7, 8]), None)
+    r = script.photo_renders(samples, np.array([5, 6]))
+    assert r["err"].tolist() == [-0.5, 1.0] and r["abs_err"].tolist() == [0.5, 1.0]
+    assert r["std"] == pytest.approx([0.5, 0.5]) and r["index"].tolist() == [5, 6]
+    samples.std_raw[0] = 0.0  # a pixel whose draws all end at one depth: left out of the fit, as the renders'
+    assert script.photo_renders(samples, np.array([5, 6]))["index"].tolist() == [6]
+    blind = script._blind(samples)
+    assert blind.std_raw == pytest.approx(script.NEGLIGIBLE_STD * samples.pred)
+    assert blind.violation.tolist() == [0.0, 0.0] and blind.block.tolist() == [7, 8]
+    out = REPO_ROOT / "benchmarks" / "results" / "oracle_map_analysis"
+    data = json.loads((out / "study.json").read_text())
+    assert (out / "study.md").read_text() == script.markdown(data["results"], data["seeds"])

@@ -16,18 +16,18 @@ today's (free-space weight, rho, s(p); ``calibration.depth_map_and_folds``) fitt
 calibration renders and cross-fitted over the same deal of the SCORE blocks; a validation point is judged by
 its group's fold map. Scored as eval scores the validation photos (paper split, cross-fitted), beside
 today's one map refitted from the same renders; the calibration views render the points both views of
-their pair observed (today) or either (study 38's option). Fixed before any score was seen; one seed
-(the direction is read from it, not a decision).
+their pair observed (today) or either (study 38's option). The groups were fixed before any score was
+seen; seed 12 was read first, seeds 13 and 14 confirm it.
 
-Inputs: today's S-NeRF at the tables' budget, seed 12, trained for this analysis, and its validation photos
-rendered with per-view maps (``views/view_XXX.npz``)::
+Inputs: today's S-NeRF at the tables' budget, seeds 12-14 (study 37's today runs, trained again: the same
+scores), and its validation photos rendered with per-view maps (``views/view_XXX.npz``)::
 
-    OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes SCENE --methods snerf_default --seed 12 \
-        --no-timing --quiet --out runs/mondrian/s12/today
-    stochastic-fields eval --run runs/mondrian/s12/today/SCENE/snerf_default --views VALIDATION --quiet \
-        --out runs/mondrian/validation/s12/today/SCENE/snerf_default
-    OMP_NUM_THREADS=1 python benchmarks/studies/agreement_groups_analysis.py --runs runs/mondrian --seeds 12 \
-        --work runs/mondrian/groups --out benchmarks/results/agreement_groups_analysis
+    OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes SCENE --methods snerf_default --seed SEED \\
+        --no-timing --quiet --out runs/mondrian/sSEED/today
+    stochastic-fields eval --run runs/mondrian/sSEED/today/SCENE/snerf_default --views VALIDATION --quiet \\
+        --out runs/mondrian/validation/sSEED/today/SCENE/snerf_default
+    OMP_NUM_THREADS=1 python benchmarks/studies/agreement_groups_analysis.py --runs runs/mondrian \\
+        --seeds 12 13 14 --work runs/mondrian/groups --out benchmarks/results/agreement_groups_analysis
 
 (VALIDATION: ``tables_cap_study.validation_views``, fern 12 photos, flower 23.)
 """
@@ -79,6 +79,13 @@ def subset(renders: dict, keep: np.ndarray) -> dict:
     return {k: (v[keep] if isinstance(v, np.ndarray) and v.shape[:1] == (n,) else v) for k, v in renders.items()}
 
 
+def subset_samples(samples, keep: np.ndarray):
+    """The ``evaluation.DepthSamples`` ``samples`` at ``keep`` [N] (bool): gt, pred, stds, violation and
+    block (no parts, no edge)."""
+    return type(samples)(samples.gt[keep], samples.pred[keep], samples.std[keep], samples.std_raw[keep], {},
+                         samples.violation[keep], samples.block[keep], None)
+
+
 def scored(samples, groups: np.ndarray, fitted: list) -> dict:
     """Interval scores of ``samples`` judged by their group's cross-fitted maps; ``fitted`` [(map, folds)] per
     group (one entry: every point by the same map). Spearman of |err| against the calibrated std."""
@@ -90,8 +97,9 @@ def scored(samples, groups: np.ndarray, fitted: list) -> dict:
         if i.size == 0:
             continue
         std[i] = m.calibrated_std(samples.std_raw[i], samples.violation[i], samples.pred[i])
-        fns.append((i, cross_fitted_depth_quantiles(samples.pred[i], samples.std_raw[i], folds.fold_of(samples.block[i]),
-                                                    folds, violation=samples.violation[i])))
+        fold = folds.fold_of(samples.block[i])
+        fns.append((i, cross_fitted_depth_quantiles(samples.pred[i], samples.std_raw[i], fold, folds,
+                                                    violation=samples.violation[i])))
 
     def quantiles(t: np.ndarray) -> np.ndarray:
         out = np.zeros((n, np.asarray(t).size))
@@ -132,8 +140,7 @@ def analyse(scene: str, run: Path, evals: Path, arm: str) -> dict:
     out = {"one": scored(samples, groups, one), "grouped": scored(samples, groups, per_group), "groups": []}
     for g, (m, _) in enumerate(per_group):
         i = groups == g
-        sub = type(samples)(samples.gt[i], samples.pred[i], samples.std[i], samples.std_raw[i], {},
-                            samples.violation[i], samples.block[i], None)
+        sub = subset_samples(samples, i)
         out["groups"].append({"calibration_points": int((cal_groups == g).sum()), "validation_points": int(i.sum()),
                               "rho": m.relative_floor, "beta": m.free_space_weight if m.free_space else 0.0,
                               "s68": m.std_scale, "one": scored(sub, np.zeros(i.sum(), int), one),
@@ -158,12 +165,13 @@ def row(scene: str, arm: str, label: str, rows: list[dict]) -> str:
 def markdown(results: dict, seeds: list[int]) -> str:
     lines = ["# Depth maps fitted per agreement group", "",
              f"Today's S-NeRF (paper split, tables' budget, seed{'s' if len(seeds) > 1 else ''} "
-             f"{', '.join(map(str, seeds))}), its validation photos' SCORE points (opacity > 0.5) scored as eval scores "
-             "them (cross-fitted), by one map (today's, refitted from the same renders) or a map per agreement group "
-             f"(a / T of the training views agreeing within {100 * TOLERANCE:g}% of the depth: 0, at most 1/2, more). "
+             f"{', '.join(map(str, seeds))}), its validation photos' SCORE points (opacity > 0.5) scored as eval "
+             "scores them (cross-fitted), by one map (today's, refitted from the same renders) or a map per agreement "
+             f"group (a / T of the training views agreeing within {100 * TOLERANCE:g}% of the depth: 0, at most 1/2, "
+             "more). "
              "Means over the seeds. Decides nothing.", "",
-             "| scene | calibration points | maps | cov 50 / 68 / 90 / 95 / 99 | median 95% half-width | IS95 / depth | "
-             "CRPS / depth | Spearman |err|-std |", "|---|---|---|---|---|---|---|---|"]
+             "| scene | calibration points | maps | cov 50 / 68 / 90 / 95 / 99 | median 95% half-width | "
+             "IS95 / depth | CRPS / depth | Spearman |err|-std |", "|---|---|---|---|---|---|---|---|"]
     for scene, arms in results.items():
         for arm, per_seed in arms.items():
             for variant in ("one", "grouped"):
@@ -192,7 +200,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/agreement_groups_analysis"))
     ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
     ap.add_argument("--arms", nargs="+", default=list(ARMS), choices=ARMS)
-    ap.add_argument("--seeds", nargs="+", type=int, default=[12])
+    ap.add_argument("--seeds", nargs="+", type=int, default=[12, 13, 14])
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
