@@ -193,6 +193,20 @@ def markdown(results: dict, seeds: list[int]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def run_and_evals(runs: Path, seed: int, scene: str) -> tuple[Path, Path]:
+    """(today's S-NeRF run of ``scene`` at ``seed`` under ``runs``, its validation renders' folder)."""
+    return (runs / f"s{seed}" / "today" / scene / "snerf_default",
+            runs / "validation" / f"s{seed}" / "today" / scene / "snerf_default")
+
+
+def cached(path: Path, compute) -> dict:
+    """``compute()``'s result, written to ``path`` (JSON) the first time and read from it after."""
+    if not path.is_file():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(path, json.dumps(compute(), indent=1))
+    return json.loads(path.read_text())
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--runs", type=Path, default=Path("runs/mondrian"))
@@ -207,16 +221,9 @@ def main() -> None:
     results: dict = {}
     for scene in args.scenes:
         for arm in args.arms:
-            per_seed = []
-            for seed in args.seeds:
-                cache = args.work / f"s{seed}" / scene / f"{arm}.json"
-                if not cache.is_file():
-                    r = analyse(scene, args.runs / f"s{seed}" / "today" / scene / "snerf_default",
-                                args.runs / "validation" / f"s{seed}" / "today" / scene / "snerf_default", arm)
-                    cache.parent.mkdir(parents=True, exist_ok=True)
-                    atomic_write_text(cache, json.dumps(r, indent=1))
-                per_seed.append(json.loads(cache.read_text()))
-            results.setdefault(scene, {})[arm] = per_seed
+            results.setdefault(scene, {})[arm] = [
+                cached(args.work / f"s{seed}" / scene / f"{arm}.json",
+                       lambda: analyse(scene, *run_and_evals(args.runs, seed, scene), arm)) for seed in args.seeds]
     write_study(args.out, {"results": results, "seeds": args.seeds, "tolerance": TOLERANCE,
                            "group_bounds": list(GROUP_BOUNDS)}, markdown(results, args.seeds))
 

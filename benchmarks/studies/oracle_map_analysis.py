@@ -21,7 +21,6 @@ Inputs: ``agreement_groups_analysis.py``'s runs and validation renders. Command:
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -30,8 +29,8 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from agreement_groups_analysis import (GROUP_NAMES, LEVELS, TOLERANCE, group_of, scored,  # noqa: E402
-                                       subset, subset_samples)
+from agreement_groups_analysis import (GROUP_NAMES, LEVELS, TOLERANCE, cached, group_of,  # noqa: E402
+                                       run_and_evals, scored, subset, subset_samples)
 from agreement_term_analysis import validation_points  # noqa: E402
 from study_helpers import write_study  # noqa: E402
 
@@ -39,7 +38,6 @@ from stochastic_fields.calibration import depth_map_and_folds, load_run_calibrat
 from stochastic_fields.capture_points import load_capture_points  # noqa: E402
 from stochastic_fields.evaluation import depth_samples, pool_depth_samples  # noqa: E402
 from stochastic_fields.free_space import checked_std, load_training_depth  # noqa: E402
-from stochastic_fields.io_utils import atomic_write_text  # noqa: E402
 from stochastic_fields.trainer import load_trained_model  # noqa: E402
 from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
 
@@ -135,14 +133,9 @@ def main() -> None:
     torch.set_num_threads(args.threads)
     results: dict = {}
     for scene in args.scenes:
-        for seed in args.seeds:
-            cache = args.work / f"s{seed}" / f"{scene}.json"
-            if not cache.is_file():
-                r = analyse(scene, args.runs / f"s{seed}" / "today" / scene / "snerf_default",
-                            args.runs / "validation" / f"s{seed}" / "today" / scene / "snerf_default")
-                cache.parent.mkdir(parents=True, exist_ok=True)
-                atomic_write_text(cache, json.dumps(r, indent=1))
-            results.setdefault(scene, []).append(json.loads(cache.read_text()))
+        results[scene] = [cached(args.work / f"s{seed}" / f"{scene}.json",
+                                 lambda: analyse(scene, *run_and_evals(args.runs, seed, scene)))
+                          for seed in args.seeds]
     write_study(args.out, {"results": results, "seeds": args.seeds}, markdown(results, args.seeds))
 
 
