@@ -35,7 +35,6 @@ scores), and its validation photos rendered with per-view maps (``views/view_XXX
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -46,7 +45,7 @@ from scipy.stats import spearmanr
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from agreement_term_analysis import validation_points  # noqa: E402
-from study_helpers import write_study  # noqa: E402
+from study_helpers import cached, write_study  # noqa: E402
 
 from stochastic_fields import metrics as M  # noqa: E402
 from stochastic_fields.calibration import (calibration_views, cross_fitted_depth_quantiles,  # noqa: E402
@@ -55,8 +54,8 @@ from stochastic_fields.cameras import camera_to_world  # noqa: E402
 from stochastic_fields.capture_points import load_capture_points  # noqa: E402
 from stochastic_fields.evaluation import depth_samples, pool_depth_samples  # noqa: E402
 from stochastic_fields.free_space import agreeing_views, load_training_depth, rendered_points  # noqa: E402
-from stochastic_fields.io_utils import atomic_write_text  # noqa: E402
 from stochastic_fields.trainer import load_trained_model  # noqa: E402
+from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
 
 SCENES = ("fern", "flower")
 ARMS = ("both", "either")
@@ -114,6 +113,18 @@ def scored(samples, groups: np.ndarray, fitted: list) -> dict:
             "spearman": float(spearmanr(np.abs(samples.gt - samples.pred), std).statistic)}
 
 
+def validation_pool(scene: str, evals: Path, dataset, capture, ref) -> tuple:
+    """The validation photos' SCORE points of ``scene`` where the render is opaque (``depth_samples``):
+    (their pooled ``DepthSamples``, their capture point index [N], their agreeing views [N])."""
+    pool, index, counts = [], [], []
+    for sd, products, terms, blocks in validation_points(scene, evals, dataset, capture, ref):
+        keep = sd.sample(products["opacity"]) > OPACITY_MASK
+        pool.append(depth_samples({k: v for k, v in products.items() if k != "depth_edge"}, sparse=sd, blocks=blocks))
+        index.append(sd.point_index[keep])
+        counts.append(terms["count"][keep])
+    return pool_depth_samples(pool), np.concatenate(index), np.concatenate(counts)
+
+
 def analyse(scene: str, run: Path, evals: Path, arm: str) -> dict:
     """One run and arm: the scores of one map and of a map per group, and each group's own scores."""
     _, model, dataset = load_trained_model(run, device="cpu")
@@ -126,14 +137,8 @@ def analyse(scene: str, run: Path, evals: Path, arm: str) -> dict:
     centres = camera_to_world(calibration_views(dataset)[0]).double()[:, :3, 3].numpy()[renders["view"]]
     X = rendered_points(centres, capture.xyz[renders["index"]], renders["depth"] + renders["err"], renders["depth"])
     cal_groups = group_of(agreeing_views(X, ref, tolerance=TOLERANCE)[0], T)
-    pool, val_groups = [], []
-    for sd, products, terms, blocks in validation_points(scene, evals, dataset, capture, ref):
-        p = {k: v for k, v in products.items() if k != "depth_edge"}
-        samples = depth_samples({**p, "depth_edge": _at(sd, products, terms["count"])}, sparse=sd, blocks=blocks)
-        val_groups.append(group_of(samples.edge, T))
-        pool.append(samples)
-    samples = pool_depth_samples(pool)
-    groups = np.concatenate(val_groups)
+    samples, _, counts = validation_pool(scene, evals, dataset, capture, ref)
+    groups = group_of(counts, T)
     one = [depth_map_and_folds(renders, capture, relative_floor=True, where=str(run))]
     per_group = [depth_map_and_folds(subset(renders, cal_groups == g), capture, relative_floor=True,
                                      where=f"{run} group {g}") for g in range(len(GROUP_NAMES))]
@@ -146,13 +151,6 @@ def analyse(scene: str, run: Path, evals: Path, arm: str) -> dict:
                               "s68": m.std_scale, "one": scored(sub, np.zeros(i.sum(), int), one),
                               "own": scored(sub, np.zeros(i.sum(), int), [per_group[g]])})
     return out
-
-
-def _at(sd, products: dict, values: np.ndarray) -> np.ndarray:
-    """An image of ``values`` [M] at the sparse points' pixels (0 elsewhere)."""
-    img = np.zeros_like(products["depth_mean"])
-    img[sd.rows, sd.cols] = values
-    return img
 
 
 def row(scene: str, arm: str, label: str, rows: list[dict]) -> str:
@@ -197,14 +195,6 @@ def run_and_evals(runs: Path, seed: int, scene: str) -> tuple[Path, Path]:
     """(today's S-NeRF run of ``scene`` at ``seed`` under ``runs``, its validation renders' folder)."""
     return (runs / f"s{seed}" / "today" / scene / "snerf_default",
             runs / "validation" / f"s{seed}" / "today" / scene / "snerf_default")
-
-
-def cached(path: Path, compute) -> dict:
-    """``compute()``'s result, written to ``path`` (JSON) the first time and read from it after."""
-    if not path.is_file():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(path, json.dumps(compute(), indent=1))
-    return json.loads(path.read_text())
 
 
 def main() -> None:

@@ -25,7 +25,6 @@ blocks. Explored on these runs before this script was written: nothing here choo
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -34,7 +33,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from study_helpers import write_study  # noqa: E402
+from study_helpers import cached, write_study  # noqa: E402
 from tables_cap_study import validation_views  # noqa: E402
 from visibility_count_analysis import scores  # noqa: E402
 
@@ -45,7 +44,6 @@ from stochastic_fields.capture_points import (backproject_pixels, block_keys, lo
                                               score_sparse_depth)
 from stochastic_fields.evaluation import depth_samples  # noqa: E402
 from stochastic_fields.free_space import agreeing_views, load_training_depth, rendered_points  # noqa: E402
-from stochastic_fields.io_utils import atomic_write_text  # noqa: E402
 from stochastic_fields.trainer import load_trained_model  # noqa: E402
 from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
 
@@ -191,15 +189,10 @@ def main() -> None:
     diag: dict = {}
     for scene in args.scenes:
         for arm in ARMS:
-            per_seed = []
-            for seed in args.seeds:
-                cache = args.work / f"s{seed}" / scene / f"{arm}.json"
-                if not cache.is_file():
-                    r = analyse(scene, args.runs / f"s{seed}" / "today" / scene / "snerf_default",
-                                args.evals / f"s{seed}" / "today" / scene, arm)
-                    cache.parent.mkdir(parents=True, exist_ok=True)
-                    atomic_write_text(cache, json.dumps(r, indent=1))
-                per_seed.append(json.loads(cache.read_text()))
+            per_seed = [cached(args.work / f"s{seed}" / scene / f"{arm}.json",
+                               lambda: analyse(scene, args.runs / f"s{seed}" / "today" / scene / "snerf_default",
+                                               args.evals / f"s{seed}" / "today" / scene, arm))
+                        for seed in args.seeds]
             terms = per_seed[0]["terms"]
             results.setdefault(scene, {})[arm] = {t: [s["terms"][t] for s in per_seed] for t in terms}
             if arm == "both":

@@ -29,17 +29,14 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from agreement_groups_analysis import (GROUP_NAMES, LEVELS, TOLERANCE, cached, group_of,  # noqa: E402
-                                       run_and_evals, scored, subset, subset_samples)
-from agreement_term_analysis import validation_points  # noqa: E402
-from study_helpers import write_study  # noqa: E402
+from agreement_groups_analysis import (GROUP_NAMES, LEVELS, TOLERANCE, group_of, run_and_evals,  # noqa: E402
+                                       scored, subset, subset_samples, validation_pool)
+from study_helpers import cached, write_study  # noqa: E402
 
 from stochastic_fields.calibration import depth_map_and_folds, load_run_calibration  # noqa: E402
 from stochastic_fields.capture_points import load_capture_points  # noqa: E402
-from stochastic_fields.evaluation import depth_samples, pool_depth_samples  # noqa: E402
 from stochastic_fields.free_space import checked_std, load_training_depth  # noqa: E402
 from stochastic_fields.trainer import load_trained_model  # noqa: E402
-from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
 
 SCENES = ("fern", "flower")
 #: A raw std this small relative to the depth leaves the map's depth-proportional term alone.
@@ -72,15 +69,8 @@ def analyse(scene: str, run: Path, evals: Path) -> dict:
     _, _, dataset = load_trained_model(run, device="cpu")
     ref = load_training_depth(run)
     capture = load_capture_points(dataset)
-    pool, index, counts = [], [], []
-    for sd, products, terms, blocks in validation_points(scene, evals, dataset, capture, ref):
-        p = {k: v for k, v in products.items() if k != "depth_edge"}
-        keep = sd.sample(products["opacity"]) > OPACITY_MASK
-        pool.append(depth_samples(p, sparse=sd, blocks=blocks))
-        index.append(sd.point_index[keep])
-        counts.append(terms["count"][keep])
-    samples, index = pool_depth_samples(pool), np.concatenate(index)
-    groups = group_of(np.concatenate(counts), len(ref.views))
+    samples, index, counts = validation_pool(scene, evals, dataset, capture, ref)
+    groups = group_of(counts, len(ref.views))
     cal = load_run_calibration(run)
     fit = lambda r, where: depth_map_and_folds(r, capture, relative_floor=True, where=where)  # noqa: E731
     oracle = fit(photo_renders(samples, index), f"{run} oracle")

@@ -127,6 +127,15 @@ def study_parser(doc: str, out_name: str, run_help: str, *, metavar: str = "SCEN
     return p
 
 
+def cached(path: Path, compute) -> dict:
+    """``compute()``'s result, written to ``path`` (JSON, atomically) the first time and read from it after:
+    a study's per-run results, so that a stopped study resumes."""
+    if not path.is_file():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(path, json.dumps(compute(), indent=1))
+    return json.loads(path.read_text())
+
+
 def write_study(out: Path, results: dict, text: str) -> None:
     """``OUT/study.json`` (``results``) and ``OUT/study.md`` (``text``), written atomically."""
     out.mkdir(parents=True, exist_ok=True)
