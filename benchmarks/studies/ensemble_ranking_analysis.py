@@ -4,8 +4,8 @@ Study 39's candidate (``field.grid_decoder_width`` 64, ``field.grid_feature_dim`
 ``loss.lambda_smoothness`` 60) lowers S-NeRF's flower depth Spearman (|error| against std) on the
 validation photos. Issue 36 compares that ranking with the deep ensemble's, and the candidate would
 train every method, so the comparison that matters is with the ensemble trained with the same
-objective. The ensemble's rows (flower, paper split, the tables' budget, one thread, seeds 12-14, ARM
-``today`` as is and ``wide_smooth`` with study 39's three settings)::
+objective. The ensemble's rows (flower, paper split, the tables' budget, one thread, ARM ``wide_smooth``
+with study 39's three settings on seeds 12-14, ARM ``today`` as is on seed 12)::
 
     OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes flower --methods ensemble --seed SEED \\
         --no-timing --quiet [--set field.grid_decoder_width=64 --set field.grid_feature_dim=16 \\
@@ -18,6 +18,18 @@ each scored on study 39's validation photos (``tables_cap_study.score_run``, cac
         --out benchmarks/results/ensemble_ranking_analysis
 
 S-NeRF's and the deterministic NeRF's rows are study 39's committed results (same seeds, views and code).
+
+**The synthetic scene** (issue 36 compares the same ranking there; the ensemble's last measurement
+predates study 32's box). The two synthetic validation scenes of seeds 1 and 2
+(``make_synthetic_scene(path, seed=S)``), both methods trained with the ``demo`` preset and evaluated
+on the scene's test views::
+
+    stochastic-fields train --preset demo [--method ensemble] --data.path runs/synth/sceneS \
+        --train.seed S --out RUN --quiet
+    stochastic-fields eval --run RUN --quiet --out RUN/eval
+
+with RUN ``runs/synth/runS`` for S-NeRF and ``runs/ens_rank/synth/runS`` for the ensemble
+(``--synthetic-snerf`` and ``--synthetic-ensemble``).
 """
 
 from __future__ import annotations
@@ -38,6 +50,8 @@ STUDY_39 = Path(__file__).resolve().parents[1] / "results" / "wide_smooth_paper_
 #: ARM folder -> study 39's row label of the same configuration.
 ARMS = {"today": "32 / 8, 0 (today)", "wide_smooth": "64 / 16, 60 (candidate)"}
 SEEDS = (12, 13, 14)
+#: Seeds whose ensemble also trained under today's objective (the pair that shows how far it moves).
+TODAY_SEEDS = (12,)
 METHODS = ("snerf_default", "deterministic", "ensemble")
 
 
@@ -54,8 +68,9 @@ def mean_row(rows: list[dict]) -> dict:
     return out
 
 
-def collect(runs: Path, seeds: tuple[int, ...]) -> dict:
-    """{arm: {method: [score per seed]}}: the ensemble's scored here, the others read from study 39."""
+def collect(runs: Path, seeds: tuple[int, ...], today_seeds: tuple[int, ...]) -> dict:
+    """{arm: {method: {seed: score}}}: the ensemble's scored here (today's objective on ``today_seeds``
+    only), S-NeRF's and the deterministic NeRF's read from study 39."""
     study = json.loads(STUDY_39.read_text())
     missing = [s for s in seeds if s not in study["seeds"]]
     if missing:
@@ -64,19 +79,48 @@ def collect(runs: Path, seeds: tuple[int, ...]) -> dict:
     views = validation_views(SCENE)
     rows = {}
     for arm, label in ARMS.items():
-        rows[arm] = {m: [study["rows"][label][SCENE][m][position[s]] for s in seeds] for m in METHODS[:2]}
-        rows[arm]["ensemble"] = [score_run(runs / f"s{s}" / arm / SCENE / "ensemble", views,
-                                           runs / "validation" / f"s{s}" / arm / SCENE / "ensemble") for s in seeds]
+        rows[arm] = {m: {s: study["rows"][label][SCENE][m][position[s]] for s in seeds} for m in METHODS[:2]}
+        rows[arm]["ensemble"] = {s: score_run(runs / f"s{s}" / arm / SCENE / "ensemble", views,
+                                              runs / "validation" / f"s{s}" / arm / SCENE / "ensemble")
+                                 for s in (today_seeds if arm == "today" else seeds)}
     return rows
 
 
+def synthetic_scores(run: Path) -> dict:
+    """Depth ranking and accuracy of one synthetic run's ``eval`` (its metrics.json)."""
+    metrics = json.loads((run / "eval" / "metrics.json").read_text())
+    summary, depth = metrics["summary"], metrics["pooled"]["depth"]
+    return {"psnr": summary["psnr"]["mean"], "abs_rel": depth["abs_rel"], "points": depth["num_used"],
+            "spearman_views": summary["depth/spearman"]["mean"], "spearman_pooled": depth["spearman"],
+            "coverage_68": depth["coverage_68"], "coverage_95": depth["coverage_95"]}
+
+
+def synthetic_report(snerf: Path, ensemble: Path, seeds: tuple[int, ...]) -> tuple[list[str], dict]:
+    """The synthetic validation scenes' rows: S-NeRF's and the ensemble's depth rankings per seed."""
+    rows = {s: {"snerf_default": synthetic_scores(snerf / f"run{s}"), "ensemble": synthetic_scores(ensemble / f"run{s}")}
+            for s in seeds}
+    lines = ["", "## The synthetic validation scenes (demo preset, every test view, exact depth)", "",
+             "| scene seed | method | PSNR | depth abs-rel | depth Spearman (views) | pooled | cov 68 / 95 | pixels |",
+             "|---|---|---|---|---|---|---|---|"]
+    for s in seeds:
+        for m, r in rows[s].items():
+            lines.append(f"| {s} | {m} | {r['psnr']:.2f} | {r['abs_rel']:.4f} | {r['spearman_views']:.3f} | "
+                         f"{r['spearman_pooled']:.3f} | {100 * r['coverage_68']:.1f} / {100 * r['coverage_95']:.1f} | "
+                         f"{r['points']} |")
+    mean = {m: statistics.fmean(rows[s][m]["spearman_views"] for s in seeds) for m in ("snerf_default", "ensemble")}
+    lines += ["", f"Mean depth Spearman per view: S-NeRF {mean['snerf_default']:.3f}, ensemble {mean['ensemble']:.3f}."]
+    return lines, {"rows": rows, "mean_spearman_views": mean}
+
+
 def report(rows: dict, seeds: tuple[int, ...]) -> tuple[str, dict]:
-    means = {arm: {m: mean_row(rows[arm][m]) for m in METHODS} for arm in ARMS}
+    means = {arm: {m: mean_row(list(rows[arm][m].values())) for m in METHODS} for arm in ARMS}
+    today_seeds = sorted(rows["today"]["ensemble"])
     lines = ["# Analysis: the deep ensemble's depth ranking under study 39's objective", "",
              f"Flower, paper split, the tables' budget, seeds {', '.join(map(str, seeds))}, scored on study 39's "
-             "validation photos. Ensemble rows trained and scored here; S-NeRF's and the deterministic NeRF's are "
-             "study 39's (`../wide_smooth_paper_study/`). Commands: the docstring of "
-             "`benchmarks/studies/ensemble_ranking_analysis.py`.", "", "Means over the seeds:", "",
+             "validation photos. Ensemble rows trained and scored here (today's objective on seed "
+             f"{', '.join(map(str, today_seeds))} only); S-NeRF's and the deterministic NeRF's are study 39's "
+             "(`../wide_smooth_paper_study/`). Commands: the docstring of "
+             "`benchmarks/studies/ensemble_ranking_analysis.py`.", "", "Means over the seeds each row has:", "",
              *table_head("objective")]
     for m in METHODS:
         for arm, label in ARMS.items():
@@ -84,8 +128,10 @@ def report(rows: dict, seeds: tuple[int, ...]) -> tuple[str, dict]:
     lines += ["", "Depth Spearman per seed (today -> candidate):", "",
               "| method | " + " | ".join(f"seed {s}" for s in seeds) + " | mean |", "|---|" + "---|" * (len(seeds) + 1)]
     for m in METHODS:
-        cells = [f"{a['spearman']:.3f} -> {b['spearman']:.3f}" for a, b in zip(rows["today"][m], rows["wide_smooth"][m])]
-        lines.append(f"| {m} | " + " | ".join(cells) +
+        def cell(s):
+            before = rows["today"][m].get(s)
+            return f"{'-' if before is None else format(before['spearman'], '.3f')} -> {rows['wide_smooth'][m][s]['spearman']:.3f}"
+        lines.append(f"| {m} | " + " | ".join(cell(s) for s in seeds) +
                      f" | {means['today'][m]['spearman']:.3f} -> {means['wide_smooth'][m]['spearman']:.3f} |")
     s, e = means["wide_smooth"]["snerf_default"]["spearman"], means["wide_smooth"]["ensemble"]["spearman"]
     outcome = ("at most S-NeRF's: the candidate does not lose issue 36's fourth target on flower"
@@ -99,12 +145,23 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--runs", type=Path, default=Path("runs/ens_rank"), help="Folder holding sSEED/ARM/flower/ensemble.")
     ap.add_argument("--seeds", type=int, nargs="+", default=list(SEEDS))
+    ap.add_argument("--today-seeds", type=int, nargs="*", default=list(TODAY_SEEDS),
+                    help="Seeds with an ensemble row under today's objective (context; the candidate's decides).")
+    ap.add_argument("--synthetic-snerf", type=Path, default=Path("runs/synth"), help="Folder of S-NeRF's runS.")
+    ap.add_argument("--synthetic-ensemble", type=Path, default=Path("runs/ens_rank/synth"),
+                    help="Folder of the ensemble's runS.")
+    ap.add_argument("--synthetic-seeds", type=int, nargs="*", default=[1, 2])
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/ensemble_ranking_analysis"))
     args = ap.parse_args()
     seeds = tuple(args.seeds)
-    rows = collect(args.runs, seeds)
+    rows = collect(args.runs, seeds, tuple(args.today_seeds))
     text, means = report(rows, seeds)
-    write_study(args.out, {"seeds": list(seeds), "rows": rows, "means": means}, text)
+    results = {"seeds": list(seeds), "rows": rows, "means": means}
+    if args.synthetic_seeds:
+        lines, results["synthetic"] = synthetic_report(args.synthetic_snerf, args.synthetic_ensemble,
+                                                       tuple(args.synthetic_seeds))
+        text += "\n".join(lines) + "\n"
+    write_study(args.out, results, text)
 
 
 if __name__ == "__main__":
