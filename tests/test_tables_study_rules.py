@@ -330,3 +330,37 @@ def test_oracle_map_analysis_renders_the_photos_points_and_the_table_regenerates
     out = REPO_ROOT / "benchmarks" / "results" / "oracle_map_analysis"
     data = json.loads((out / "study.json").read_text())
     assert (out / "study.md").read_text() == script.markdown(data["results"], data["seeds"])
+
+
+def test_ensemble_ranking_analysis_means_and_outcome_by_hand(load_script):
+    """Seed means per row (coverage per level), the outcome line follows the candidate arm's means, seed keys
+    survive the JSON round trip, and the committed README follows from the committed results."""
+    script = load_script("benchmarks/studies/ensemble_ranking_analysis.py")
+    a, b = _row(20.0, abs_rel=0.10, coverage=0.40), _row(21.0, abs_rel=0.14, coverage=0.50)
+    b["spearman"] = 0.4
+    mean = script.mean_row([a, b])
+    assert mean["psnr"] == pytest.approx(20.5) and mean["abs_rel"] == pytest.approx(0.12)
+    assert mean["spearman"] == pytest.approx(0.5) and mean["coverage"]["50"] == pytest.approx(0.45)
+
+    def arms(ensemble_candidate: float) -> dict:
+        rows = {}
+        for arm in script.ARMS:
+            rows[arm] = {m: {s: _row(20.0) for s in (12, 13)} for m in script.METHODS}
+            for s in (12, 13):
+                rows[arm]["snerf_default"][s] = dict(_row(20.0), spearman=0.55)
+                rows[arm]["ensemble"][s] = dict(_row(20.0), spearman=ensemble_candidate if arm != "today" else 0.66)
+        del rows["today"]["ensemble"][13]  # today's objective on one seed only
+        return rows
+
+    below, _ = script.report(arms(0.50), (12, 13))
+    above, means = script.report(arms(0.60), (12, 13))
+    assert "ensemble's mean depth Spearman is 0.500, S-NeRF's 0.550: at most S-NeRF's" in below
+    assert "0.600, S-NeRF's 0.550: above S-NeRF's" in above
+    assert "| ensemble | 0.660 -> 0.600 | - -> 0.600 | 0.660 -> 0.600 |" in above
+    assert means["today"]["ensemble"]["spearman"] == pytest.approx(0.66)
+    back = script.with_int_seeds(json.loads(json.dumps(arms(0.6))))
+    assert sorted(back["wide_smooth"]["ensemble"]) == [12, 13] and "50" in back["today"]["snerf_default"][12]["coverage"]
+    out = REPO_ROOT / "benchmarks" / "results" / "ensemble_ranking_analysis"
+    if (out / "results.json").is_file():
+        data = script.with_int_seeds(json.loads((out / "results.json").read_text()))
+        assert (out / "README.md").read_text() == script.full_report(data)
