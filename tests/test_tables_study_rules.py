@@ -354,8 +354,8 @@ def test_ensemble_ranking_analysis_means_and_outcome_by_hand(load_script):
 
     below, _ = script.report(arms(0.50), (12, 13))
     above, means = script.report(arms(0.60), (12, 13))
-    assert "ensemble's mean depth Spearman is 0.500, S-NeRF's 0.550: at most S-NeRF's" in below
-    assert "0.600, S-NeRF's 0.550: above S-NeRF's" in above
+    assert "ensemble's mean depth Spearman is 0.500, S-NeRF's 0.550: at most S-NeRF's, so" in below
+    assert "0.600, S-NeRF's 0.550: above S-NeRF's, so the candidate would lose" in above
     assert "| ensemble | 0.660 -> 0.600 | - -> 0.600 | 0.660 -> 0.600 |" in above
     assert means["today"]["ensemble"]["spearman"] == pytest.approx(0.66)
     back = script.with_int_seeds(json.loads(json.dumps(arms(0.6))))

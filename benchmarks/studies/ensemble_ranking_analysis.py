@@ -128,7 +128,8 @@ def report(rows: dict, seeds: tuple[int, ...]) -> tuple[str, dict]:
     means = {arm: {m: mean_row(list(rows[arm][m].values())) for m in METHODS} for arm in ARMS}
     today_seeds = sorted(rows["today"]["ensemble"])
     lines = ["# Analysis: the deep ensemble's depth ranking under study 39's objective", "",
-             f"Flower, paper split, the tables' budget, seeds {', '.join(map(str, seeds))}, scored on study 39's "
+             f"Flower, paper split, the tables' budget, seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}, "
+             "scored on study 39's "
              "validation photos. Ensemble rows trained and scored here (today's objective on seed "
              f"{', '.join(map(str, today_seeds))} only); S-NeRF's and the deterministic NeRF's are study 39's "
              "(`../wide_smooth_paper_study/`). Commands: the docstring of "
@@ -146,8 +147,8 @@ def report(rows: dict, seeds: tuple[int, ...]) -> tuple[str, dict]:
         lines.append(f"| {m} | " + " | ".join(cell(s) for s in seeds) +
                      f" | {means['today'][m]['spearman']:.3f} -> {means['wide_smooth'][m]['spearman']:.3f} |")
     s, e = means["wide_smooth"]["snerf_default"]["spearman"], means["wide_smooth"]["ensemble"]["spearman"]
-    outcome = ("at most S-NeRF's: the candidate does not lose issue 36's fourth target on flower"
-               if e <= s else "above S-NeRF's: the candidate would lose issue 36's fourth target on flower")
+    outcome = ("at most S-NeRF's, so the candidate does not lose issue 36's fourth target on flower"
+               if e <= s else "above S-NeRF's, so the candidate would lose issue 36's fourth target on flower")
     lines += ["", f"Under the candidate's objective the ensemble's mean depth Spearman is {e:.3f}, S-NeRF's {s:.3f}: "
               f"{outcome} (the consequence written before the rows, docs/studies.md)."]
     return "\n".join(lines) + "\n", means
