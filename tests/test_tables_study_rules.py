@@ -338,7 +338,7 @@ def test_ensemble_ranking_analysis_means_and_outcome_by_hand(load_script):
     script = load_script("benchmarks/studies/ensemble_ranking_analysis.py")
     a, b = _row(20.0, abs_rel=0.10, coverage=0.40), _row(21.0, abs_rel=0.14, coverage=0.50)
     b["spearman"] = 0.4
-    mean = script.mean_row([a, b])
+    mean = script.seed_mean([a, b])
     assert mean["psnr"] == pytest.approx(20.5) and mean["abs_rel"] == pytest.approx(0.12)
     assert mean["spearman"] == pytest.approx(0.5) and mean["coverage"]["50"] == pytest.approx(0.45)
 

@@ -43,6 +43,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared rules and scoring
 
 from tables_cap_study import score_run, table_head, table_row, validation_views, write_study  # noqa: E402
+from tables_steps_study import seed_mean  # noqa: E402
 
 SCENE = "flower"
 #: Study 39's committed results: S-NeRF's and the deterministic NeRF's rows per seed.
@@ -53,19 +54,6 @@ SEEDS = (12,)
 #: Seeds whose ensemble also trained under today's objective (the pair that shows how far it moves).
 TODAY_SEEDS = (12,)
 METHODS = ("snerf_default", "deterministic", "ensemble")
-
-
-def mean_row(rows: list[dict]) -> dict:
-    """The seed mean of the scores ``table_row`` prints (coverage per level included)."""
-    def avg(key):
-        values = [r[key] for r in rows if r[key] is not None]
-        return statistics.fmean(values) if values else None
-
-    out = {k: avg(k) for k in ("psnr", "ssim", "abs_rel", "spearman", "halfwidth_median_95", "interval_score_95",
-                               "crps", "train_s")}
-    out["points"] = round(statistics.fmean(r["points"] for r in rows))
-    out["coverage"] = {level: statistics.fmean(r["coverage"][level] for r in rows) for level in rows[0]["coverage"]}
-    return out
 
 
 def collect(runs: Path, seeds: tuple[int, ...], today_seeds: tuple[int, ...]) -> dict:
@@ -125,7 +113,7 @@ def full_report(results: dict) -> str:
 
 
 def report(rows: dict, seeds: tuple[int, ...]) -> tuple[str, dict]:
-    means = {arm: {m: mean_row(list(rows[arm][m].values())) for m in METHODS} for arm in ARMS}
+    means = {arm: {m: seed_mean(list(rows[arm][m].values())) for m in METHODS} for arm in ARMS}
     today_seeds = sorted(rows["today"]["ensemble"])
     lines = ["# Analysis: the deep ensemble's depth ranking under study 39's objective", "",
              f"Flower, paper split, the tables' budget, seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}, "
