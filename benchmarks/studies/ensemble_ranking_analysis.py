@@ -29,7 +29,10 @@ on the scene's test views::
     stochastic-fields eval --run RUN --quiet --out RUN/eval
 
 with RUN ``runs/synth/runS`` for S-NeRF and ``runs/ens_rank/synth/runS`` for the ensemble
-(``--synthetic-snerf`` and ``--synthetic-ensemble``).
+(``--synthetic-snerf`` and ``--synthetic-ensemble``). The cross-ranking (each method's std against the
+other's errors) reads both runs' per-view maps; the ensemble's were evaluated with ``--no-products``
+first, so its maps come from one more evaluation, ``stochastic-fields eval --run runs/ens_rank/synth/runS
+--quiet --out runs/ens_rank/synth/runS/eval_maps``.
 """
 
 from __future__ import annotations
@@ -40,10 +43,15 @@ import statistics
 import sys
 from pathlib import Path
 
+import numpy as np
+from scipy.stats import spearmanr
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared rules and scoring
 
 from tables_cap_study import score_run, table_head, table_row, validation_views, write_study  # noqa: E402
 from tables_steps_study import seed_mean  # noqa: E402
+
+from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
 
 SCENE = "flower"
 #: Study 39's committed results: S-NeRF's and the deterministic NeRF's rows per seed.
@@ -98,6 +106,32 @@ def synthetic_lines(rows: dict, seeds: tuple[int, ...]) -> list[str]:
                         f"ensemble {mean['ensemble']:.3f}."]
 
 
+def cross_ranking(snerf_views: Path, ensemble_views: Path, depths: Path) -> dict:
+    """Mean over the views of Spearman(|error of A|, std of B) for A, B in (S-NeRF, ensemble), on the
+    pixels both render with opacity > ``OPACITY_MASK`` and the exact depth is positive: does each
+    method's std rank the other's errors? Also each method's error against the other's."""
+    pairs = {}
+    for path in sorted(snerf_views.glob("view_*.npz")):
+        view = int(path.stem.split("_")[1])
+        s, e = np.load(path), np.load(ensemble_views / path.name)
+        gt = np.load(depths / f"frame_{view:03d}.npy")
+        keep = (s["opacity"] > OPACITY_MASK) & (e["opacity"] > OPACITY_MASK) & np.isfinite(gt) & (gt > 0)
+        err = {"snerf_default": np.abs(s["depth_mean"] - gt)[keep], "ensemble": np.abs(e["depth_mean"] - gt)[keep]}
+        std = {"snerf_default": s["depth_std"][keep], "ensemble": e["depth_std"][keep]}
+        for a in err:
+            for b in std:
+                pairs.setdefault(f"{a} error ~ {b} std", []).append(spearmanr(err[a], std[b]).statistic)
+        pairs.setdefault("snerf_default error ~ ensemble error", []).append(spearmanr(*err.values()).statistic)
+    return {k: float(np.nanmean(v)) for k, v in pairs.items()} | {"views": len(next(iter(pairs.values())))}
+
+
+def cross_lines(cross: dict, seed: int) -> list[str]:
+    rows = [f"| {k.split(' ~ ')[0]} | {k.split(' ~ ')[1]} | {v:.3f} |" for k, v in cross.items() if k != "views"]
+    return ["", f"Each method's std against the other's errors (scene seed {seed}, mean over {cross['views']} views of "
+            "the Spearman on the pixels both render opaque, |error| against the exact depth):", "",
+            "| errors of | ranked by | Spearman |", "|---|---|---|", *rows]
+
+
 def with_int_seeds(rows: dict) -> dict:
     """``rows`` as read back from results.json (JSON turns the seed keys into strings)."""
     return {k: with_int_seeds(v) if isinstance(v, dict) and k not in ("coverage",) else v
@@ -109,6 +143,8 @@ def full_report(results: dict) -> str:
     text, _ = report(results["rows"], tuple(results["seeds"]))
     if "synthetic" in results:
         text += "\n".join(synthetic_lines(results["synthetic"], tuple(results["synthetic_seeds"]))) + "\n"
+    for seed, cross in results.get("cross_ranking", {}).items():
+        text += "\n".join(cross_lines(cross, seed)) + "\n"
     return text
 
 
@@ -162,6 +198,11 @@ def main() -> None:
         results["synthetic"] = {s: {"snerf_default": synthetic_scores(args.synthetic_snerf / f"run{s}"),
                                     "ensemble": synthetic_scores(args.synthetic_ensemble / f"run{s}")}
                                 for s in args.synthetic_seeds}
+        results["cross_ranking"] = {s: cross_ranking(args.synthetic_snerf / f"run{s}" / "eval" / "views",
+                                                     args.synthetic_ensemble / f"run{s}" / "eval_maps" / "views",
+                                                     args.synthetic_snerf / f"scene{s}" / "depth")
+                                    for s in args.synthetic_seeds
+                                    if (args.synthetic_ensemble / f"run{s}" / "eval_maps" / "views").is_dir()}
     write_study(args.out, results, full_report(results))
 
 
