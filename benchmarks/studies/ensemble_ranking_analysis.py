@@ -20,8 +20,8 @@ each scored on study 39's validation photos (``tables_cap_study.score_run``, cac
 S-NeRF's and the deterministic NeRF's rows are study 39's committed results (same seeds, views and code).
 
 **The synthetic scene** (issue 36 compares the same ranking there; the ensemble's last measurement
-predates study 32's box). The synthetic validation scene of seed 1 (``make_synthetic_scene(path,
-seed=S)``; ``--synthetic-seeds`` takes more), both methods trained with the ``demo`` preset and evaluated
+predates study 32's box). The synthetic validation scenes of seeds 1 and 2 (``make_synthetic_scene(path,
+seed=S)``), both methods trained with the ``demo`` preset and evaluated
 on the scene's test views::
 
     stochastic-fields train --preset demo [--method ensemble] --data.path runs/synth/sceneS \
@@ -187,7 +187,7 @@ def main() -> None:
     ap.add_argument("--synthetic-snerf", type=Path, default=Path("runs/synth"), help="Folder of S-NeRF's runS.")
     ap.add_argument("--synthetic-ensemble", type=Path, default=Path("runs/ens_rank/synth"),
                     help="Folder of the ensemble's runS.")
-    ap.add_argument("--synthetic-seeds", type=int, nargs="*", default=[1])
+    ap.add_argument("--synthetic-seeds", type=int, nargs="*", default=[1, 2])
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/ensemble_ranking_analysis"))
     args = ap.parse_args()
     seeds = tuple(args.seeds)
