@@ -29,10 +29,8 @@ on the scene's test views::
     stochastic-fields eval --run RUN --quiet --out RUN/eval
 
 with RUN ``runs/synth/runS`` for S-NeRF and ``runs/ens_rank/synth/runS`` for the ensemble
-(``--synthetic-snerf`` and ``--synthetic-ensemble``). The cross-ranking (each method's std against the
-other's errors) reads both runs' per-view maps; the ensemble's were evaluated with ``--no-products``
-first, so its maps come from one more evaluation, ``stochastic-fields eval --run runs/ens_rank/synth/runS
---quiet --out runs/ens_rank/synth/runS/eval_maps``.
+(``--synthetic-snerf`` and ``--synthetic-ensemble``). Each eval folder gives both the scores (its
+metrics.json) and the per-view maps the cross-ranking reads (each method's std against the other's errors).
 """
 
 from __future__ import annotations
@@ -140,7 +138,7 @@ def with_int_seeds(rows: dict) -> dict:
 
 def full_report(results: dict) -> str:
     """README.md from results.json's content: the flower table, then the synthetic one if measured."""
-    text, _ = report(results["rows"], tuple(results["seeds"]))
+    text = report(results["rows"], tuple(results["seeds"]))
     if "synthetic" in results:
         text += "\n".join(synthetic_lines(results["synthetic"], tuple(results["synthetic_seeds"]))) + "\n"
     for seed, cross in results.get("cross_ranking", {}).items():
@@ -148,8 +146,13 @@ def full_report(results: dict) -> str:
     return text
 
 
-def report(rows: dict, seeds: tuple[int, ...]) -> tuple[str, dict]:
-    means = {arm: {m: seed_mean(list(rows[arm][m].values())) for m in METHODS} for arm in ARMS}
+def seed_means(rows: dict) -> dict:
+    """{arm: {method: the mean over the seeds that row has}}."""
+    return {arm: {m: seed_mean(list(rows[arm][m].values())) for m in METHODS} for arm in ARMS}
+
+
+def report(rows: dict, seeds: tuple[int, ...]) -> str:
+    means = seed_means(rows)
     today_seeds = sorted(rows["today"]["ensemble"])
     lines = ["# Analysis: the deep ensemble's depth ranking under study 39's objective", "",
              f"Flower, paper split, the tables' budget, seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}, "
@@ -175,7 +178,7 @@ def report(rows: dict, seeds: tuple[int, ...]) -> tuple[str, dict]:
                if e <= s else "above S-NeRF's, so the candidate would lose issue 36's fourth target on flower")
     lines += ["", f"Under the candidate's objective the ensemble's mean depth Spearman is {e:.3f}, S-NeRF's {s:.3f}: "
               f"{outcome} (the consequence written before the rows, docs/studies.md)."]
-    return "\n".join(lines) + "\n", means
+    return "\n".join(lines) + "\n"
 
 
 def main() -> None:
@@ -192,17 +195,16 @@ def main() -> None:
     args = ap.parse_args()
     seeds = tuple(args.seeds)
     rows = collect(args.runs, seeds, tuple(args.today_seeds))
-    results = {"seeds": list(seeds), "rows": rows, "means": report(rows, seeds)[1]}
+    results = {"seeds": list(seeds), "rows": rows, "means": seed_means(rows)}
     if args.synthetic_seeds:
         results["synthetic_seeds"] = list(args.synthetic_seeds)
         results["synthetic"] = {s: {"snerf_default": synthetic_scores(args.synthetic_snerf / f"run{s}"),
                                     "ensemble": synthetic_scores(args.synthetic_ensemble / f"run{s}")}
                                 for s in args.synthetic_seeds}
         results["cross_ranking"] = {s: cross_ranking(args.synthetic_snerf / f"run{s}" / "eval" / "views",
-                                                     args.synthetic_ensemble / f"run{s}" / "eval_maps" / "views",
+                                                     args.synthetic_ensemble / f"run{s}" / "eval" / "views",
                                                      args.synthetic_snerf / f"scene{s}" / "depth")
-                                    for s in args.synthetic_seeds
-                                    if (args.synthetic_ensemble / f"run{s}" / "eval_maps" / "views").is_dir()}
+                                    for s in args.synthetic_seeds}
     write_study(args.out, results, full_report(results))
 
 
