@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -196,6 +197,26 @@ def test_checkpoint_write_is_atomic(tmp_path, monkeypatch):
         save_checkpoint(path, {"step": 2})
     assert torch.load(path, weights_only=True)["step"] == 1
     assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint.pt"]
+
+
+def test_atomic_writes_get_the_permissions_a_plain_write_gets(tmp_path):
+    """A new file gets 0o666 less the umask, as open() would give it (not mkstemp's 0o600, which other
+    users and services of the machine could not read); a file written over keeps its own mode."""
+    from stochastic_fields.io_utils import atomic_write, atomic_write_text
+
+    old = os.umask(0o027)
+    try:
+        atomic_write_text(tmp_path / "new.json", "{}")
+        (tmp_path / "plain.json").write_text("{}")
+        assert (tmp_path / "new.json").stat().st_mode & 0o777 == 0o640 == (tmp_path / "plain.json").stat().st_mode & 0o777
+        os.umask(0o022)
+        atomic_write(tmp_path / "cloud.ply", lambda tmp: Path(tmp).write_bytes(b"ply"))
+        assert (tmp_path / "cloud.ply").stat().st_mode & 0o777 == 0o644
+        os.chmod(tmp_path / "new.json", 0o600)  # the user's choice for an existing file stays
+        atomic_write_text(tmp_path / "new.json", "[]")
+        assert (tmp_path / "new.json").stat().st_mode & 0o777 == 0o600 and (tmp_path / "new.json").read_text() == "[]"
+    finally:
+        os.umask(old)
 
 
 def test_cli_help_explains_every_option():

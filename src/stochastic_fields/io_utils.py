@@ -1,6 +1,9 @@
 """Atomic file writes: write to a temporary file in the same folder, then ``os.replace``.
 
-An interrupted write leaves the previous file (or nothing) in place, never half a file.
+An interrupted write leaves the previous file (or nothing) in place, never half a file. The file
+gets the permissions a plain ``open(path, "w")`` would give it: an existing file's mode is kept, a
+new one gets ``0o666`` less the process's umask (``tempfile.mkstemp`` alone would leave ``0o600``,
+unreadable to the other users and services of the machine that read our outputs).
 """
 
 from __future__ import annotations
@@ -11,13 +14,26 @@ import os
 import re
 import shutil
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
 
+_UMASK_LOCK = threading.Lock()
+
+
+def new_file_mode() -> int:
+    """The permission bits ``open(path, "w")`` gives a new file: ``0o666`` less the umask."""
+    with _UMASK_LOCK:  # os.umask can only be read by setting it
+        umask = os.umask(0o022)
+        os.umask(umask)
+    return 0o666 & ~umask
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary path next to ``path``; on success it replaces ``path`` atomically."""
+    """Yield a temporary path next to ``path``; on success it replaces ``path`` atomically, with
+    ``path``'s permissions if it existed, else those of a new file (``new_file_mode``)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
@@ -25,6 +41,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        try:
+            mode = path.stat().st_mode & 0o7777
+        except FileNotFoundError:
+            mode = new_file_mode()
+        os.chmod(tmp_path, mode)  # the writer may have replaced the temporary file: set the mode last
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():
