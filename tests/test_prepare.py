@@ -8,7 +8,9 @@ register, and after a similarity alignment the recovered cameras must agree with
 from __future__ import annotations
 
 import json
+import re
 import shutil
+from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
@@ -116,11 +118,19 @@ def test_bad_input_is_named(tmp_path):
     for i in range(3):
         iio.imwrite(photos / f"p{i}.png", _pattern(i))
     (photos / "p1.png").write_bytes(b"\x89PNG broken")
+    kept = tmp_path / "kept"  # an --out that holds a user's file: left as it was
+    kept.mkdir()
+    (kept / "notes.txt").write_text("mine")
     with pytest.raises(DatasetError, match=r"p1\.png: unreadable image"):
-        prepare(photos, tmp_path / "s3", progress=False)
+        prepare(photos, kept, progress=False)
     iio.imwrite(photos / "p1.png", _pattern(1)[:80])
     with pytest.raises(DatasetError, match=r"p1\.png: image size 128x80 differs from 128x96 of p0\.png"):
         prepare(photos, tmp_path / "s4", progress=False)
+    assert [p.name for p in kept.iterdir()] == ["notes.txt"] and (kept / "notes.txt").read_text() == "mine"
+    assert not (tmp_path / "s4").exists() and not any(p.name.startswith(".") for p in tmp_path.iterdir())
+    (tmp_path / "a_file").write_text("x")
+    with pytest.raises(DatasetError, match=r"a_file: exists and is not a folder"):
+        prepare(photos, tmp_path / "a_file", progress=False)
     (photos / "p1.png").unlink()
     with pytest.raises(DatasetError, match=r"photos: only 2 images"):
         prepare(photos, tmp_path / "s5", progress=False)
@@ -145,13 +155,19 @@ def test_unmatchable_photos_fail_with_reasons(tmp_path):
     for i in range(5):
         iio.imwrite(photos / f"n{i}.png", rng.integers(0, 256, size=(96, 128, 3), dtype=np.uint8))
     with pytest.raises(DatasetError) as info:
-        prepare(photos, tmp_path / "scene", num_threads=THREADS, progress=False)
+        prepare(photos, tmp_path / "new" / "scene", num_threads=THREADS, progress=False)
     msg = str(info.value)
     assert "noise: only 0 of 5 images registered (need 3; mapping tried: incremental (incremental 0/5, " \
            "incremental-relaxed 0/5, global 0/5))" in msg
     assert sum(f"n{i}.png: " in msg for i in range(5)) == FAILURES_LISTED == 3
     assert "(and 2 more)" in msg and ("5 x too few matches" in msg or "5 x few SIFT features" in msg)
-    listing = json.loads((tmp_path / "scene" / "colmap" / "failures.json").read_text())
+    # --out is left as it was (here: not created, nor its parent), and no staging folder stays behind
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["noise"]
+    assert f"{tmp_path / 'new' / 'scene'} left as it was" in msg
+    listing_path = Path(re.search(r"Every image and its reason: (\S+\.json)", msg).group(1))
+    assert listing_path.name.startswith("prepare-scene-failures-")
+    listing = json.loads(listing_path.read_text())
+    listing_path.unlink()
     assert sorted(listing["failed"]) == [f"n{i}.png" for i in range(5)]
     assert listing["mapping_attempts"] == {"incremental": 0, "incremental-relaxed": 0, "global": 0}
     assert all(why.startswith(("too few matches: ", "few SIFT features: ")) for why in listing["failed"].values())
@@ -213,6 +229,18 @@ def test_small_baseline_capture_registers_through_the_fallback(tmp_path):
     aligned = s * centres @ R.T + t
     assert np.abs(aligned[:, 0] - np.linspace(-0.15, 0.15, 8)).max() < 0.03 * 0.3
     assert np.abs(aligned[:, 1:]).max() < 0.03 * 0.3
+    # prepared again in place (the photos already in SCENE/images): the outputs are replaced, the
+    # photos and the user's own files stay, and nothing is left beside the scene
+    (tmp_path / "scene" / "notes.txt").write_text("mine")
+    (tmp_path / "scene" / "transforms.json").write_text("stale")
+    photos_before = {p.name: p.read_bytes() for p in (tmp_path / "scene" / "images").iterdir()}
+    again = prepare(tmp_path / "scene" / "images", tmp_path / "scene", mapping="incremental-relaxed",
+                    num_threads=THREADS, progress=False)
+    assert again.num_registered == 8 and again.timings_s.get("photos") is not None
+    assert {p.name: p.read_bytes() for p in (tmp_path / "scene" / "images").iterdir()} == photos_before
+    assert (tmp_path / "scene" / "notes.txt").read_text() == "mine"
+    assert camera_centres(load_dataset(tmp_path / "scene").cameras).shape == (8, 3)  # transforms.json rewritten
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene", "walk"]
 
 
 @pytest.mark.slow

@@ -40,7 +40,10 @@ near/far from there (docs/capture.md).
 Bad input raises :class:`~stochastic_fields.data.errors.DatasetError` naming the file: no
 images, unreadable photos or frames, a video that cannot be decoded, photos of different sizes,
 or fewer registered images than ``min_registered`` (a summary of the reasons, the first
-:data:`FAILURES_LISTED` failed images, and the whole list in ``SCENE/colmap/failures.json``).
+:data:`FAILURES_LISTED` failed images, and the whole list in a JSON file of the system's temporary
+folder that the message names). Every stage writes into a hidden staging folder beside ``SCENE``,
+moved into ``SCENE`` only when all succeeded: after any error or an interruption ``SCENE`` is as it
+was before the command (not created if it did not exist).
 """
 
 from __future__ import annotations
@@ -48,7 +51,9 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import shutil
+import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -75,7 +80,7 @@ DOWNSCALE_FACTORS: tuple[int, ...] = (2, 4, 8)
 MIN_REGISTERED_IMAGES: int = 3
 #: Fewer SIFT features than this in an image is reported as the likely reason it failed.
 FEW_FEATURES: int = 100
-#: Failed images named in a registration error (the rest are counted, and listed in failures.json).
+#: Failed images named in a registration error (the rest are counted, and listed in the file it names).
 FAILURES_LISTED: int = 3
 #: pycolmap's glog level while it runs (3 = fatal only: its INFO lines would bury the progress bars, and a
 #: strategy that fails is reported in prepare's own summary and error).
@@ -472,25 +477,75 @@ def write_downscaled(images: list[Path], scene_dir: Path, factors=DOWNSCALE_FACT
             atomic_write(target, lambda tmp, a=small, ext=path.suffix.lower(): iio.imwrite(tmp, a, extension=ext))
 
 
+def _nearest_existing(path: Path) -> Path:
+    """``path`` or its nearest ancestor that exists."""
+    path = path.absolute()
+    while not path.exists():
+        path = path.parent
+    return path
+
+
+def publish_scene(staging: Path, scene_dir: Path) -> None:
+    """Move every entry of ``staging`` into ``scene_dir`` (created if needed), each replacing the
+    entry of that name, ``transforms.json`` and ``prepare.json`` last (their presence says the
+    scene is complete); ``staging`` is removed."""
+    scene_dir.mkdir(parents=True, exist_ok=True)
+    last = ("transforms.json", "prepare.json")
+    for entry in sorted(staging.iterdir(), key=lambda p: (p.name in last, last.index(p.name) if p.name in last else 0)):
+        target = scene_dir / entry.name
+        if target.is_dir() and not target.is_symlink():
+            shutil.rmtree(target)
+        elif target.exists() or target.is_symlink():
+            target.unlink()
+        os.replace(entry, target)
+    staging.rmdir()
+
+
 def prepare(source: str | Path, scene_dir: str | Path, *, camera_model: str = "SIMPLE_RADIAL",
             matcher: str | None = None, mapping: str = "auto", num_threads: int = -1, device: str = "auto",
             fps: float = DEFAULT_VIDEO_FPS,
             max_frames: int = DEFAULT_MAX_FRAMES, min_registered_fraction: float = DEFAULT_MIN_REGISTERED_FRACTION,
             downscale_factors=DOWNSCALE_FACTORS, seed: int = 0, progress: bool = True) -> PrepareResult:
-    """Photos folder or video -> posed scene folder (module doc). Returns what was done."""
+    """Photos folder or video -> posed scene folder (module doc). Returns what was done.
+
+    The scene is built in a hidden staging folder beside ``scene_dir`` and moved into it only when
+    every stage succeeded (``publish_scene``): on bad input, a capture that does not register or an
+    interruption, ``scene_dir`` is left as it was (not created if it did not exist). Photos already
+    in ``scene_dir/images`` are prepared in place (not copied)."""
     source, scene_dir = Path(source), Path(scene_dir)
     if not source.exists():
         raise DatasetError(source, "input does not exist (give a folder of photos or a video file)")
     if not 0.0 <= min_registered_fraction <= 1.0:
         raise ValueError(f"min_registered_fraction must be in [0, 1], got {min_registered_fraction}")
-    t_start = time.perf_counter()
-    timings: dict[str, float] = {}
-    image_dir = scene_dir / "images"
+    if scene_dir.exists() and not scene_dir.is_dir():
+        raise DatasetError(scene_dir, "exists and is not a folder: give --out a folder to write the scene into")
     if source.is_file():
         if source.suffix.lower() not in VIDEO_SUFFIXES:
             raise DatasetError(source, f"not a video ({'/'.join(VIDEO_SUFFIXES)}) nor a folder of photos")
-        if image_dir.exists() and any(image_dir.iterdir()):
-            raise DatasetError(image_dir, "already holds images: prepare a video into a new folder")
+        if (scene_dir / "images").is_dir() and any((scene_dir / "images").iterdir()):
+            raise DatasetError(scene_dir / "images", "already holds images: prepare a video into a new folder")
+    staging = Path(tempfile.mkdtemp(prefix=f".{scene_dir.name}.prepare-", dir=_nearest_existing(scene_dir.parent)))
+    try:
+        result = _prepare_into(staging, source, scene_dir, camera_model=camera_model, matcher=matcher,
+                               mapping=mapping, num_threads=num_threads, device=device, fps=fps,
+                               max_frames=max_frames, min_registered_fraction=min_registered_fraction,
+                               downscale_factors=downscale_factors, seed=seed, progress=progress)
+        publish_scene(staging, scene_dir)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+    return result
+
+
+def _prepare_into(staging: Path, source: Path, scene_dir: Path, *, camera_model: str, matcher: str | None,
+                  mapping: str, num_threads: int, device: str, fps: float, max_frames: int,
+                  min_registered_fraction: float, downscale_factors, seed: int, progress: bool) -> PrepareResult:
+    """``prepare``'s stages, every file written into ``staging`` (the scene's layout); photos
+    already in ``scene_dir/images`` are read where they are."""
+    t_start = time.perf_counter()
+    timings: dict[str, float] = {}
+    in_place = source.is_dir() and source.resolve() == (scene_dir / "images").resolve()
+    image_dir = source if in_place else staging / "images"
+    if source.is_file():
         images = extract_video_frames(source, image_dir, fps=fps, max_frames=max_frames, progress=progress)
         timings["frames"] = time.perf_counter() - t_start
         matcher = matcher or "sequential"
@@ -503,7 +558,7 @@ def prepare(source: str | Path, scene_dir: str | Path, *, camera_model: str = "S
         raise DatasetError(source, f"only {len(names)} images: structure from motion needs at least "
                            f"{MIN_REGISTERED_IMAGES}, and a radiance field many more")
     rec, database, sfm_times, strategy, attempts = run_sfm(
-        image_dir, scene_dir / "colmap", names, camera_model=camera_model, matcher=matcher, mapping=mapping,
+        image_dir, staging / "colmap", names, camera_model=camera_model, matcher=matcher, mapping=mapping,
         num_threads=num_threads, device=device, seed=seed, progress=progress)
     timings.update(sfm_times)
     registered = {rec.images[i].name for i in rec.reg_image_ids()} if rec is not None else set()
@@ -513,22 +568,20 @@ def prepare(source: str | Path, scene_dir: str | Path, *, camera_model: str = "S
                               int(pycolmap.TwoViewGeometryOptions().min_num_inliers))
     need = max(MIN_REGISTERED_IMAGES, math.ceil(min_registered_fraction * len(names)))
     if len(registered) < need:
-        listing = scene_dir / "colmap" / "failures.json"
-        atomic_write_text(listing, json.dumps({"mapping_attempts": attempts, "failed": failed}, indent=2))
+        listing = write_failure_listing(scene_dir, {"mapping_attempts": attempts, "failed": failed})
         raise DatasetError(source, f"only {len(registered)} of {len(names)} images registered (need {need}; "
                            f"mapping tried: {mapping_report(strategy, attempts, len(names))}). Not registered: "
-                           f"{failure_summary(failed)}. Every image and its reason: {listing}")
+                           f"{failure_summary(failed)}. Every image and its reason: {listing} "
+                           f"({scene_dir} left as it was)")
     t0 = time.perf_counter()
-    model_dir = scene_dir / "sparse" / "0"
-    if model_dir.exists():
-        shutil.rmtree(model_dir)
+    model_dir = staging / "sparse" / "0"
     model_dir.mkdir(parents=True)
     rec.write(model_dir)
-    shutil.rmtree(scene_dir / "colmap" / "sparse", ignore_errors=True)  # the mapper's own copy
+    shutil.rmtree(staging / "colmap" / "sparse", ignore_errors=True)  # the mapper's own copy
     model = read_colmap_model(model_dir)
-    write_transforms(model_dir, scene_dir)
-    write_points_ply(scene_dir / "sparse_pc.ply", model.points.xyz, model.points.rgb)
-    write_downscaled([image_dir / im.name for im in model.images], scene_dir, downscale_factors, progress=progress)
+    write_transforms(model_dir, staging)
+    write_points_ply(staging / "sparse_pc.ply", model.points.xyz, model.points.rgb)
+    write_downscaled([image_dir / im.name for im in model.images], staging, downscale_factors, progress=progress)
     timings["write"] = time.perf_counter() - t0
     timings["total"] = time.perf_counter() - t_start
     camera = next(iter(model.cameras.values()))
@@ -537,8 +590,18 @@ def prepare(source: str | Path, scene_dir: str | Path, *, camera_model: str = "S
                            camera_model=camera.model, failed=failed,
                            timings_s={k: round(v, 2) for k, v in timings.items()}, mapping=strategy,
                            mapping_attempts=attempts)
-    atomic_write_text(scene_dir / "prepare.json", json.dumps(asdict(result), indent=2))
+    atomic_write_text(staging / "prepare.json", json.dumps(asdict(result), indent=2))
     return result
+
+
+def write_failure_listing(scene_dir: Path, listing: dict) -> Path:
+    """Every image that did not register and its reason, as JSON in the system's temporary folder
+    (``scene_dir`` is left as it was), named after the scene; returns the file."""
+    fd, name = tempfile.mkstemp(prefix=f"prepare-{scene_dir.name}-failures-", suffix=".json")
+    os.close(fd)
+    path = Path(name)
+    atomic_write_text(path, json.dumps(listing, indent=2))
+    return path
 
 
 # ---------------------------------------------------------------------- CLI
