@@ -19,8 +19,8 @@ import torch
 
 from stochastic_fields.cameras import camera_centres, camera_to_world
 from stochastic_fields.data import DatasetError, load_dataset
-from stochastic_fields.data.prepare import (FAILURES_LISTED, extract_video_frames, failure_summary,
-                                               mapping_report, prepare, sharpness)
+from stochastic_fields.data.prepare import (FAILURES_LISTED, area_downscale_rgba, extract_video_frames,
+                                               failure_summary, mapping_report, prepare, sharpness, write_downscaled)
 from stochastic_fields.pose_alignment import pose_errors, similarity_align
 
 #: Threads for pycolmap in tests (the test machine has 2 cores shared with other work).
@@ -171,6 +171,35 @@ def test_unmatchable_photos_fail_with_reasons(tmp_path):
     assert sorted(listing["failed"]) == [f"n{i}.png" for i in range(5)]
     assert listing["mapping_attempts"] == {"incremental": 0, "incremental-relaxed": 0, "global": 0}
     assert all(why.startswith(("too few matches: ", "few SIFT features: ")) for why in listing["failed"].values())
+
+
+def test_downscaled_rgba_copies_composite_like_the_full_size_photo(tmp_path):
+    """A masked object (RGBA, black under a = 0): images_<d> keeps the alpha, averaged premultiplied,
+    so the small copy composited on white (as the loaders composite) is the area average of the
+    full-size photo composited on white, to 8-bit rounding; straight averaging bleeds the black
+    under a = 0 into the border (checked to fail by 0.2 here). RGB photos stay RGB."""
+    rng = np.random.default_rng(0)
+    H, W = 48, 64
+    alpha = np.zeros((H, W))
+    alpha[10:38, 12:50] = 1.0
+    alpha[10:38, 11] = alpha[9, 12:50] = 0.5  # a soft edge
+    rgb = rng.uniform(0.2, 1.0, size=(H, W, 3)) * (alpha[..., None] > 0)
+    photo = np.concatenate([rgb, alpha[..., None]], -1)
+    iio.imwrite(tmp_path / "obj.png", np.round(photo * 255).astype(np.uint8))
+    iio.imwrite(tmp_path / "plain.png", np.round(rgb * 255).astype(np.uint8))
+    write_downscaled([tmp_path / "obj.png", tmp_path / "plain.png"], tmp_path / "scene", factors=(2, 4), progress=False)
+    exact = np.round(photo * 255) / 255
+    on_white = exact[..., :3] * exact[..., 3:] + (1 - exact[..., 3:])
+    for d in (2, 4):
+        small = iio.imread(tmp_path / "scene" / f"images_{d}" / "obj.png").astype(np.float64) / 255
+        assert small.shape == (H // d, W // d, 4)
+        composited = small[..., :3] * small[..., 3:] + (1 - small[..., 3:])
+        want = on_white.reshape(H // d, d, W // d, d, 3).mean(axis=(1, 3))
+        assert np.abs(composited - want).max() < 1.5 / 255
+        straight = exact.reshape(H // d, d, W // d, d, 4).mean(axis=(1, 3))
+        assert np.abs(straight[..., :3] * straight[..., 3:] + 1 - straight[..., 3:] - want).max() > 0.1
+        assert iio.imread(tmp_path / "scene" / f"images_{d}" / "plain.png").shape == (H // d, W // d, 3)
+    assert np.array_equal(area_downscale_rgba(rgb, 1), rgb)
 
 
 def test_failure_summary_counts_kinds_and_lists_a_few():

@@ -463,16 +463,35 @@ def write_points_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:
     atomic_write(path, write)
 
 
+def area_downscale_rgba(image: np.ndarray, factor: int) -> np.ndarray:
+    """[H, W, C] float in [0, 1] (C = 3, or 4 with straight alpha) -> area-averaged copy.
+
+    RGB is averaged as is. RGBA is averaged premultiplied (a c and a, then c = mean(a c) / mean(a)
+    where mean(a) > 0, 0 elsewhere), so that the small copy composited on any background b,
+    c' a' + (1 - a') b, equals the area average of the full-size image composited on b: what the
+    loaders do with RGBA (``blender._load_frames``). Averaging the straight colours would bleed the
+    colour hidden under a = 0 (often black) into the object's border."""
+    if image.shape[-1] != 4:
+        return _area_downscale(np.ascontiguousarray(image), factor)
+    alpha = image[..., 3:]
+    small = _area_downscale(np.ascontiguousarray(np.concatenate([image[..., :3] * alpha, alpha], -1)), factor)
+    a = small[..., 3:]
+    rgb = np.where(a > 0, small[..., :3] / np.maximum(a, 1e-12), 0.0)
+    return np.concatenate([np.clip(rgb, 0.0, 1.0), a], -1)
+
+
 def write_downscaled(images: list[Path], scene_dir: Path, factors=DOWNSCALE_FACTORS, *, progress: bool = True) -> None:
     """Area-downscaled copies ``scene_dir/images_<d>/<name>`` of each image, in its own format.
 
     The file name is kept so that ``images_<d>/<name>`` mirrors ``images/<name>`` (nerfstudio's
-    rule, which the loaders follow). Sizes: ``round(H / d) x round(W / d)``.
+    rule, which the loaders follow). Sizes: ``round(H / d) x round(W / d)``. An RGBA photo (a
+    masked object) keeps its alpha, averaged premultiplied (``area_downscale_rgba``), so every
+    size composites on the scene's background alike.
     """
     for path in tqdm(images, desc="downscaling", unit="img", disable=not progress):
-        image = read_image(path)[..., :3]
+        image = read_image(path)
         for d in factors:
-            small = np.clip(_area_downscale(np.ascontiguousarray(image), int(d)) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+            small = np.clip(area_downscale_rgba(image, int(d)) * 255.0 + 0.5, 0, 255).astype(np.uint8)
             target = scene_dir / f"images_{d}" / path.name
             atomic_write(target, lambda tmp, a=small, ext=path.suffix.lower(): iio.imwrite(tmp, a, extension=ext))
 
