@@ -59,6 +59,11 @@ def test_pose_errors_are_zero_up_to_a_similarity_and_measure_a_known_perturbatio
     exact = pose_errors(ours, ref)
     assert exact["scale"] == pytest.approx(s, rel=1e-12)
     assert exact["centre_error_max"] < 1e-12 and exact["rotation_error_max_deg"] < 1e-5
+    # poses stored in float32 (as the loaders keep them) still read ~0, not acos's 0.03-degree floor
+    assert pose_errors(ours.astype(np.float32), ref.astype(np.float32))["rotation_error_max_deg"] < 1e-3
+    turned = ours.copy()
+    turned[4, :3, :3] = turned[4, :3, :3] @ _rotation([1.0, 0.0, 0.0], 179.5)  # near the half turn too
+    assert pose_errors(turned, ref)["rotation_error_max_deg"] == pytest.approx(179.5, rel=1e-9)
     ours[2, :3, :3] = ours[2, :3, :3] @ _rotation([0.0, 1.0, 1.0], 0.3)  # one camera turned by 0.3 degrees
     assert pose_errors(ours, ref)["rotation_error_max_deg"] == pytest.approx(0.3, rel=1e-6)
     assert pose_errors(ours, ref)["centre_error_max"] < 1e-12
