@@ -182,3 +182,28 @@ def test_options_default_to_the_settings_defaults():
     assert RenderOptions() == RenderOptions.from_settings(RenderSettings())
     assert {f.name for f in dataclasses.fields(RenderOptions)} == set(PER_RENDER_FIELDS) | {"keep_draws", "progress"}
     assert all(RENDER_OPTION_CHECKS[n] is RENDER_CHECKS[n] for n in PER_RENDER_FIELDS)
+
+
+@pytest.mark.parametrize("method", ["snerf", "deterministic", "ensemble"])
+def test_a_model_composites_the_scenes_background_unless_the_config_names_one(method, dataset):
+    """render.background None: the scene's own (the tiny scene's transforms.json says white, the colour
+    its photos show where rays miss), so an object capture trains against the background its photos
+    have; a colour in the config wins; a scene without one (LLFF, COLMAP, RGB photos) stays black."""
+    assert dataset.background == (1.0, 1.0, 1.0)
+    cfg = _config(method)
+    cfg.render.background = None
+    assert build_model(cfg, dataset).render_settings.background == (1.0, 1.0, 1.0)
+    assert cfg.render.background is None  # the config itself (config.json) is not changed
+    cfg.render.background = (0.0, 0.0, 0.0)
+    assert build_model(cfg, dataset).render_settings.background == (0.0, 0.0, 0.0)
+    cfg.render.background = None
+    assert build_model(cfg, dataclasses.replace(dataset, background=None)).render_settings.background is None
+    # and it reaches the pixels: rays turned away from the scene (the cameras stand outside its region)
+    # see nothing and render the background
+    model = build_model(cfg, dataset).eval()
+    patch = _patch(dataset)
+    away = dataclasses.replace(patch, directions=-patch.directions)
+    with torch.no_grad():
+        miss = model.render_view(away, model.render_options(), generator=_gen())
+    torch.testing.assert_close(miss["colour_mean"], torch.ones_like(miss["colour_mean"]), atol=1e-4, rtol=0)
+    torch.testing.assert_close(miss["opacity"], torch.zeros_like(miss["opacity"]), atol=1e-4, rtol=0)

@@ -132,7 +132,7 @@ class RenderSettings:
     chunk_rays: int = 2048
     """Rays per chunk when rendering full images (memory bound: chunk * S * K floats). Range: an integer >= 1 and <= 16777216."""
     background: tuple[float, float, float] | None = None
-    """Background colour composited behind the scene (None: black/no compositing). Range: None or three numbers in [0, 1] (r,g,b)."""
+    """Background colour composited behind the scene. None: the scene's own (a Blender/nerfstudio file's "background", white for RGBA photos: what the photos were composited on), none (black) for a scene without one (LLFF, COLMAP, RGB photos). Range: None or three numbers in [0, 1] (r,g,b)."""
     skip_empty_space: bool = True
     """S-NeRF: keep an occupancy grid (in the scene region's unit cube), updated from the density upper estimate relu(mu_a + n s_a) (n = occupancy_num_std), and evaluate the field only at samples in occupied cells (training and rendering; needs quadrature='alpha'; set false to use 'trapezoid'). Default on: benchmarks/results measures fewer field evaluations per ray and faster training steps at equal PSNR."""
     occupancy_num_std: float = OCCUPANCY_UPPER_NUM_STD

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 from typing import Callable
 
 import torch
 
 from ..config import METHOD_NAMES, ExperimentConfig
+from ..settings import RenderSettings
 from ..scene_region import SceneRegion
 from .base import RadianceModel
 from .baselines import BASELINE_BUILDERS
@@ -28,13 +31,29 @@ if tuple(METHODS) != METHOD_NAMES:
     raise ImportError(f"config.METHOD_NAMES {METHOD_NAMES} and the builders {tuple(METHODS)} disagree")
 
 
+def scene_render_settings(render: RenderSettings, dataset) -> RenderSettings:
+    """``render`` with its background resolved for ``dataset``: ``render.background`` None means the
+    scene's own, ``dataset.background`` (a Blender or nerfstudio file's ``"background"``, white for
+    RGBA photos: the colour the loader composited the photos on), and none (black, no compositing)
+    for a scene without one (LLFF, COLMAP, RGB photos). A colour given in the config wins."""
+    background = getattr(dataset, "background", None)
+    if render.background is not None or background is None:
+        return render
+    return dataclasses.replace(render, background=tuple(float(c) for c in background))
+
+
 def build_model(cfg: ExperimentConfig, dataset, region: SceneRegion | None = None, *,
                 grid_resolution: tuple[int, int, int] | None = None) -> RadianceModel:
     """The configured method's model; ``grid_resolution``: a saved run's finest grid level
-    (``field_builder.trained_grid_resolution``) instead of sizing it from the training views."""
+    (``field_builder.trained_grid_resolution``) instead of sizing it from the training views. The
+    model composites the scene's background (``scene_render_settings``) unless the config names one."""
     if cfg.method not in METHODS:
         raise ValueError(f"unknown method {cfg.method!r}; choose from {sorted(METHODS)}")
     region = fit_scene_region(dataset, cfg) if region is None else region
+    render = scene_render_settings(cfg.render, dataset)
+    if render is not cfg.render:
+        cfg = copy.copy(cfg)
+        cfg.render = render
     return METHODS[cfg.method](cfg, dataset, region, grid_resolution=grid_resolution)
 
 
