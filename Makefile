@@ -52,6 +52,8 @@ bench-next-view: $(STAMP)
 # prepare on LLFF photos without their poses, against LLFF's poses (about 15 minutes; resumable)
 bench-registration: $(STAMP)
 	OMP_NUM_THREADS=1 $(PY) benchmarks/registration.py --out benchmarks/results/registration
+	OMP_NUM_THREADS=1 $(PY) benchmarks/registration.py --scenes --objects lego --seeds 0 --strategies \
+		--out benchmarks/results/registration_objects
 
 # Tables 1-3 at the documented CPU budget (about 1.5 hours on 2 CPU cores; resumable)
 eval-tables: $(STAMP)
