@@ -509,8 +509,8 @@ def publish_scene(staging: Path, scene_dir: Path) -> None:
     entry of that name, ``transforms.json`` and ``prepare.json`` last (their presence says the
     scene is complete); ``staging`` is removed."""
     scene_dir.mkdir(parents=True, exist_ok=True)
-    last = ("transforms.json", "prepare.json")
-    for entry in sorted(staging.iterdir(), key=lambda p: (p.name in last, last.index(p.name) if p.name in last else 0)):
+    order = {"transforms.json": 1, "prepare.json": 2}  # every other entry 0: first
+    for entry in sorted(staging.iterdir(), key=lambda p: order.get(p.name, 0)):
         target = scene_dir / entry.name
         if target.is_dir() and not target.is_symlink():
             shutil.rmtree(target)
