@@ -277,6 +277,54 @@ def test_small_baseline_capture_registers_through_the_fallback(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene", "walk"]
 
 
+def test_matching_every_pair_in_blocks_gives_exhaustive_matching(tmp_path, monkeypatch):
+    """match_every_pair (pair lists of MATCH_PAIRS_PER_CALL pairs, a progress bar over them) stores the
+    same matches as one match_exhaustive call, here 28 pairs in 6 lists of at most 5, and verifies the
+    same pairs with the same geometry; the verification's RANSAC draws in another order, so the inlier
+    counts agree to 1% (two exhaustive runs on two threads differ by 0.5% between themselves)."""
+    import sqlite3
+
+    import pycolmap
+
+    from stochastic_fields.data import prepare as prep
+
+    photos = tmp_path / "walk"
+    photos.mkdir()
+    for i, x in enumerate(np.linspace(-0.15, 0.15, 8)):
+        iio.imwrite(photos / f"v{i}.png", _textured_planes(float(x)))
+    names = sorted(p.name for p in photos.iterdir())
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = THREADS
+    stored = {}
+    for how in ("exhaustive", "blocks"):
+        database = tmp_path / f"{how}.db"
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.num_threads = THREADS
+        pycolmap.extract_features(database, photos, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  extraction_options=extraction, device=pycolmap.Device.cpu)
+        pycolmap.set_random_seed(0)  # the verification's RANSAC, as prepare seeds it
+        if how == "exhaustive":
+            pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
+        else:
+            monkeypatch.setattr(prep, "MATCH_PAIRS_PER_CALL", 5)
+            calls = []
+            real = pycolmap.match_image_pairs
+            monkeypatch.setattr(pycolmap, "match_image_pairs",
+                                lambda *a, **k: (calls.append(Path(k["pairing_options"].match_list_path).read_text()),
+                                                 real(*a, **k)))
+            prep.match_every_pair(database, names, matching, pycolmap.Device.cpu, progress=False)
+            assert len(calls) == 6 and sum(len(c.splitlines()) for c in calls) == 28  # 5 + 5 + 5 + 5 + 5 + 3
+        with sqlite3.connect(database) as db:
+            stored[how] = (db.execute("select pair_id, rows, data from matches order by pair_id").fetchall(),
+                           db.execute("select pair_id, rows, config from two_view_geometries order by pair_id").fetchall())
+    assert len(stored["exhaustive"][0]) == 28 and stored["blocks"][0] == stored["exhaustive"][0]
+    verified = {how: {pair: (rows, config) for pair, rows, config in stored[how][1]} for how in stored}
+    assert verified["blocks"].keys() == verified["exhaustive"].keys()
+    assert all(verified["blocks"][k][1] == verified["exhaustive"][k][1] for k in verified["blocks"])
+    inliers = {how: sum(rows for rows, _ in verified[how].values()) for how in verified}
+    assert inliers["exhaustive"] > 1000 and abs(inliers["blocks"] - inliers["exhaustive"]) < 0.01 * inliers["exhaustive"]
+
+
 @pytest.mark.slow
 def test_fern_photos_without_poses_recover_llff_cameras(shared_data, tmp_path):
     fern = shared_data / "nerf_llff_data" / "fern"
