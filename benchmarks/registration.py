@@ -48,13 +48,18 @@ BLENDER_ROOT = LLFF_ROOT.parent / "nerf_synthetic"
 CENTRE_TARGET, ROTATION_TARGET_DEG = 0.01, 0.5
 
 
+def is_object_scene(scene: str) -> bool:
+    """A Blender scene (object-centred renders) rather than an LLFF one."""
+    return (BLENDER_ROOT / scene).is_dir()
+
+
 @functools.lru_cache(maxsize=None)
 def reference_cameras(scene: str) -> tuple[dict[str, int], np.ndarray]:
     """({image name: index}, camera-to-world [V, 4, 4], OpenCV axes) of the known poses of a scene's
     photos (``photo_folder``), read once per scene."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # LLFF's lens-distortion notice
-        if (BLENDER_ROOT / scene).is_dir():  # the training renders only (test/ reuses their names)
+        if is_object_scene(scene):  # the training renders only (test/ reuses their names)
             ref = load_blender(BLENDER_ROOT / scene / "transforms_train.json", downscale=8, load_depth=False)
         else:
             ref = load_dataset(LLFF_ROOT / scene)
@@ -63,7 +68,7 @@ def reference_cameras(scene: str) -> tuple[dict[str, int], np.ndarray]:
 
 def photo_folder(scene: str) -> Path:
     """The photos a user would prepare: a Blender scene's training renders, an LLFF scene's images_8."""
-    return BLENDER_ROOT / scene / "train" if (BLENDER_ROOT / scene).is_dir() else LLFF_ROOT / scene / "images_8"
+    return BLENDER_ROOT / scene / "train" if is_object_scene(scene) else LLFF_ROOT / scene / "images_8"
 
 
 def score(scene_dir: Path, scene: str) -> dict:

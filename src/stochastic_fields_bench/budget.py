@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from stochastic_fields.config import ExperimentConfig, preset, set_dotted
+from stochastic_fields.models.registry import scene_render_settings
 
 
 #: The documented budget on a CPU (``budget="cpu"``, the default): every method trains 1000 steps
@@ -111,8 +112,7 @@ def base_config(settings: BenchmarkSettings, dataset=None) -> ExperimentConfig:
     cfg = preset("llff")
     if dataset is not None and not getattr(dataset, "forward_facing", True):
         cfg.render.spacing = "linear"
-        background = getattr(dataset, "background", None)
-        cfg.render.background = None if background is None else tuple(float(c) for c in background)
+        cfg.render = scene_render_settings(cfg.render, dataset)  # recorded as the colour the model composites
     # Every method renders the same dense samples with a fixed K: empty-space skipping and adaptive
     # K exist for S-NeRF only, so they are off here unless an override turns them on.
     for key in ("skip_empty_space", "adaptive_draws"):

@@ -646,10 +646,9 @@ def write_failure_listing(scene_dir: Path, listing: dict) -> Path:
     """Every image that did not register and its reason, as JSON in the system's temporary folder
     (``scene_dir`` is left as it was), named after the scene; returns the file."""
     fd, name = tempfile.mkstemp(prefix=f"prepare-{scene_dir.name}-failures-", suffix=".json")
-    os.close(fd)
-    path = Path(name)
-    atomic_write_text(path, json.dumps(listing, indent=2))
-    return path
+    with os.fdopen(fd, "w") as f:  # a new file of its own: nothing to replace atomically
+        f.write(json.dumps(listing, indent=2))
+    return Path(name)
 
 
 # ---------------------------------------------------------------------- CLI
