@@ -5,6 +5,7 @@ refused), and end to end on a mesh: the checked std ranks an error the reported 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -100,6 +101,12 @@ def test_training_depth_file_round_trip_and_refusals(tmp_path):
     back = load_training_depth(tmp_path)
     for name in ("views", "intrinsics", "world_to_camera", "depth", "opacity"):
         np.testing.assert_array_equal(getattr(back, name), getattr(ref, name))
+    assert back.psnr is None  # a file without the pose check's PSNR (written before it) still loads
+    scored = dataclasses.replace(ref, psnr=np.array([24.5, np.inf]))  # +inf: a view rendered exactly
+    save_training_depth(tmp_path, scored)
+    np.testing.assert_array_equal(load_training_depth(tmp_path).psnr, scored.psnr)
+    with pytest.raises(ValueError, match=r"psnr must be \[2\]"):
+        dataclasses.replace(ref, psnr=np.array([24.5]))
     np.savez(path, views=ref.views, intrinsics=ref.intrinsics, world_to_camera=ref.world_to_camera,
              depth=ref.depth)  # no opacity
     with pytest.raises(ValueError, match=f"{TRAINING_DEPTH_FILE}.*malformed"):

@@ -13,7 +13,7 @@ from test_layout import import_graph
 #: (``stochastic_fields.`` for the library, ``bench.`` for ``stochastic_fields_bench``).
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("foundations", ("", "constants", "defaults", "validation", "io_utils", "launch", "settings", "data.errors",
-                     "visualize", "holdout", "pose_alignment", "predictive")),
+                     "visualize", "holdout", "pose_alignment", "pose_check", "predictive")),
     ("geometry and maths", ("rays", "scene_region", "cameras", "distortion", "distributions", "occlusion", "depth_edges", "depth_smoothness", "logistic_normal_table",
                             "volume_rendering", "samplers", "metrics", "row_kernels", "optim", "checkpoint", "view_maps", "plots")),
     ("fields", ("fields", "fields.encoding", "fields.row_gather", "fields.base", "fields.grid", "fields.mlp")),

@@ -89,6 +89,7 @@ from .defaults import (CALIBRATION_FILE, CALIBRATION_PAIR_POINTS, CALIBRATION_PO
 from .depth_edges import edge_range_at_points, edge_range_map
 from .free_space import (TRAINING_DEPTH_FILE, checked_std, free_space_violation, load_training_depth,
                          render_training_depth, rendered_points, save_training_depth, violation_map)
+from .pose_check import check_training_fit, load_training_fit, photo_names, save_training_fit
 
 #: Central level of +-1 standard deviation: Phi(1) - Phi(-1).
 ONE_SIGMA_LEVEL: float = 0.682689492137086
@@ -976,7 +977,8 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
     (``train.holdout_fraction`` > 0 in its config.json), the colour map from them; ``floor``: whether
     the depth map fits a std floor (``fit_std_floor``); ``free_space``: whether it is fitted on the
     free-space-checked std (the training views are rendered once, and stored as
-    ``free_space.TRAINING_DEPTH_FILE`` before calibration.json when the map keeps the check;
+    ``free_space.TRAINING_DEPTH_FILE`` before calibration.json when the map keeps the check, and
+    their PSNR with the pose check's verdict as ``pose_check.TRAINING_FIT_FILE``;
     ``progress``: a bar over them), weighted by ``check_weight`` (None: fitted,
     ``fit_check_weight``; a fitted 0 leaves the map unchecked); ``relative_floor``: whether
     it fits a depth-proportional term (``fit_relative_floor``); ``edges``: whether it adds an
@@ -993,6 +995,8 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
         colour = fit_colour_calibration(model, dataset, fraction=cfg.train.holdout_fraction,
                                         block=cfg.train.holdout_block, seed=seed)
     reference = render_training_depth(model, dataset, seed=seed, progress=progress) if free_space else None
+    if reference is not None and reference.psnr is not None:  # the same renders check the training photos' poses (pose_check)
+        save_training_fit(run_dir, check_training_fit(photo_names(dataset, reference.views), reference.psnr))
     try:
         depth, folds = fit_depth_calibration_and_folds(model, dataset, seed=seed, points=points, floor=floor,
                                                        free_space=reference, relative_floor=relative_floor,
@@ -1084,3 +1088,6 @@ def run(args) -> None:
     if cal.training_depth is not None:
         print(f"written: {Path(args.run) / TRAINING_DEPTH_FILE} (the training views' rendered depths the free-space "
               "check compares with; each view's violation is written as depth_free_space)")
+    fit = load_training_fit(args.run) if args.free_space else None
+    if fit is not None:
+        print(fit.summary())

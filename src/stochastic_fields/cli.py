@@ -127,8 +127,10 @@ def _calibrate_after_training(run_dir: Path, model, dataset, *, progress: bool =
     """Fit the recalibration of an S-NeRF run (calibration.json): depth from its capture points,
     colour from the pixels it held out of training (``train.holdout_fraction``); a run with neither
     keeps the raw stds (said, not an error); ``progress``: a bar over the training views the
-    free-space check renders. Returns the calibration or None."""
+    free-space check renders, which also check the training photos' poses (``pose_check``, said).
+    Returns the calibration or None."""
     from .calibration import calibrate_run, describe  # deferred: loads only when this command runs (keeps --help fast)
+    from .pose_check import load_training_fit  # deferred: loads only when this command runs (keeps --help fast)
 
     if not getattr(model, "accepts_depth", False):
         return None
@@ -136,8 +138,14 @@ def _calibrate_after_training(run_dir: Path, model, dataset, *, progress: bool =
         calibration = calibrate_run(run_dir, model=model, dataset=dataset, progress=progress)
     except ValueError as exc:
         print(f"uncertainty not recalibrated: {exc}")
+        calibration = None
+    else:
+        print(f"uncertainty recalibrated ({run_dir / 'calibration.json'}): {describe(calibration)}")
+    fit = load_training_fit(run_dir)
+    if fit is not None:
+        print(fit.summary())
+    if calibration is None:
         return None
-    print(f"uncertainty recalibrated ({run_dir / 'calibration.json'}): {describe(calibration)}")
     if FREE_PATH_RECALIBRATION and calibration.depth is not None:
         from .products.free_path_calibration import recalibrate_free_path  # deferred: loads only when used
 
@@ -193,7 +201,20 @@ def cmd_eval(args: argparse.Namespace) -> None:
     if ctx is None or ctx.is_main:
         _print_summary(result, f"{cfg.method} on {dataset.name}: {len(views)} views, K={result['num_draws']}"
                        + _on_ranks(ctx))
+        _print_pose_check(dataset, views, result)
         print(f"metrics: {out / 'metrics.json'}")
+
+
+def _print_pose_check(dataset, views: list[int], result: dict) -> None:
+    """The pose check (``pose_check``) on the training views among ``views``, when there are any."""
+    from .pose_check import check_training_fit, photo_names  # deferred: loads only when this command runs (keeps --help fast)
+
+    train = {int(v) for v in dataset.train_indices}
+    picked = [i for i, v in enumerate(views) if v in train]
+    if picked:
+        psnr = result["per_view"]["psnr"]
+        print("  " + check_training_fit(photo_names(dataset, [views[i] for i in picked]),
+                                        [psnr[i] for i in picked]).summary())
 
 
 def _on_ranks(ctx) -> str:

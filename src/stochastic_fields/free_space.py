@@ -37,6 +37,7 @@ from .view_maps import OPACITY_MASK
 from .cameras import intrinsics_3x3, invert_rigid
 from .capture_points import backproject_pixels
 from .io_utils import atomic_write
+from .metrics import psnr as image_psnr
 from .models.snerf import UNIT_CUBE
 from .occupancy import OccupancyGrid
 from .renderer import seeded_chunks
@@ -66,6 +67,8 @@ class TrainingDepth:
         opacity: [T, H, W] rendered opacity.
         spread: [T, H, W] camera-z termination spread (std of where each draw's ray ends, mean over
             draws), or None (files written before it).
+        psnr: [T] PSNR (dB) of each view's rendered colour mean against its photo (the pose check,
+            ``pose_check``), or None (files written before it).
     """
 
     views: np.ndarray
@@ -74,6 +77,7 @@ class TrainingDepth:
     depth: np.ndarray
     opacity: np.ndarray
     spread: np.ndarray | None = None
+    psnr: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         T = len(self.views)
@@ -87,6 +91,8 @@ class TrainingDepth:
                              f"{self.depth.shape} and {self.opacity.shape}")
         if self.spread is not None and self.spread.shape != self.depth.shape:
             raise ValueError(f"training depth: spread must be {self.depth.shape}, got {self.spread.shape}")
+        if self.psnr is not None and self.psnr.shape != (T,):
+            raise ValueError(f"training depth: psnr must be [{T}], got {self.psnr.shape}")
         for name in ("intrinsics", "world_to_camera", "depth", "opacity") + (() if self.spread is None else ("spread",)):
             if not np.isfinite(getattr(self, name)).all():
                 raise ValueError(f"training depth: {name} holds non-finite values")
@@ -95,10 +101,11 @@ class TrainingDepth:
 def render_training_depth(model, dataset, *, options=None, seed: int = 0, progress: bool = True) -> TrainingDepth:
     """Render every training view of ``dataset`` with ``model`` (``options``: the model's render
     options by default; draws seeded per view, as evaluation seeds them) and keep its camera-z
-    depth mean and opacity."""
+    depth mean, opacity, termination spread and the PSNR of its colour mean against the photo (None
+    for a model that renders no colour)."""
     views = [int(v) for v in dataset.train_indices]
     device = next(model.parameters()).device
-    depth, opacity, spread = [], [], []
+    depth, opacity, spread, psnr = [], [], [], []
     for v in tqdm(views, desc="render training views (free-space check)", disable=not progress, leave=False):
         with torch.no_grad():
             maps = model.render_view(dataset.rays(v).to(device), options, generator=seeded_chunks(seed, v, device))
@@ -107,11 +114,14 @@ def render_training_depth(model, dataset, *, options=None, seed: int = 0, progre
         opacity.append(maps["opacity"].double().cpu().numpy())
         spread.append((maps["depth_var_spread"].double().clamp_min(0).sqrt() * z).cpu().numpy()
                       if "depth_var_spread" in maps else np.zeros_like(depth[-1]))
+        if "colour_mean" in maps:  # a depth-only model (tests' stand-ins) has no colour to score
+            psnr.append(image_psnr(maps["colour_mean"], dataset.images[v].to(device)))
     idx = torch.as_tensor(views)
     return TrainingDepth(np.asarray(views, np.int64), intrinsics_3x3(dataset.cameras)[idx].double().cpu().numpy(),
                          dataset.cameras.extrinsics[idx].double().cpu().numpy(),
                          np.stack(depth).astype(np.float32), np.stack(opacity).astype(np.float32),
-                         np.stack(spread).astype(np.float32))
+                         np.stack(spread).astype(np.float32),
+                         np.asarray(psnr, np.float64) if len(psnr) == len(views) else None)
 
 
 def save_training_depth(run_dir: str | Path, ref: TrainingDepth) -> Path:
@@ -122,7 +132,8 @@ def save_training_depth(run_dir: str | Path, ref: TrainingDepth) -> Path:
         with open(tmp, "wb") as f:
             np.savez_compressed(f, views=ref.views, intrinsics=ref.intrinsics, world_to_camera=ref.world_to_camera,
                                 depth=ref.depth, opacity=ref.opacity,
-                                **({} if ref.spread is None else {"spread": ref.spread}))
+                                **({} if ref.spread is None else {"spread": ref.spread}),
+                                **({} if ref.psnr is None else {"psnr": ref.psnr}))
 
     atomic_write(path, write)
     return path
@@ -138,9 +149,10 @@ def load_training_depth(run_dir: str | Path) -> TrainingDepth | None:
         with np.load(path, allow_pickle=False) as f:
             data = {k: f[k] for k in ("views", "intrinsics", "world_to_camera", "depth", "opacity")}
             spread = f["spread"].astype(np.float32) if "spread" in f.files else None
+            psnr = f["psnr"].astype(np.float64) if "psnr" in f.files else None
         return TrainingDepth(data["views"].astype(np.int64), data["intrinsics"].astype(np.float64),
                              data["world_to_camera"].astype(np.float64), data["depth"].astype(np.float32),
-                             data["opacity"].astype(np.float32), spread)
+                             data["opacity"].astype(np.float32), spread, psnr)
     except (OSError, KeyError, ValueError) as exc:
         raise ValueError(f"{path}: malformed training-view depths ({exc})") from exc
 

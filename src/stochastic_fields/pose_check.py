@@ -1,0 +1,137 @@
+"""Training photos the trained field fits far worse than the others: a check of their poses.
+
+Structure from motion can place a camera wrong and report nothing: on an object whose sides look
+alike, a few photos can settle in a mirrored pose (the camera on the other side of the object,
+turned about 180 degrees) that the photos' own verified matches support as well as the right one
+(docs/capture.md measures one). No geometric check of the matches tells it; the radiance field
+does. One field fitted to every photo cannot agree with a photo whose camera is wrong, so that
+photo keeps a colour error far above the others' after training: on lego's mirrored registration
+the five affected training photos ended at 13.9-16.2 dB against a median of 24.5 dB, the next
+worst at 20.4.
+
+The check is a robust outlier test on the training views' PSNR (Iglewicz & Hoaglin 1993): with
+m the median and MAD the median absolute deviation from it, a photo is flagged when
+
+    psnr < m - max(POSE_CHECK_Z * 1.4826 * MAD, POSE_CHECK_MIN_GAP_DB),
+
+that is, its modified z-score is below -3.5 (the textbook cut for outliers) and its mean squared
+error is at least twice the median photo's (3 dB), so that a capture whose photos all fit alike
+(a small MAD) flags no photo for a fraction of a dB. A flag says where to look, not why: a moving
+object, a blurred or over-exposed photo or a lens unlike the others' keep a photo's error high as
+well. Too few photos (under ``POSE_CHECK_MIN_VIEWS``) make no median to compare with; none is
+flagged.
+
+The training views' PSNR comes from the renders the free-space check already makes after
+training (``free_space.render_training_depth``), stored in ``RUN/TRAINING_FIT_FILE``;
+``stochastic-fields eval --views train`` checks any run the same way.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .io_utils import atomic_write_text
+
+#: Modified z-score below which a training photo's PSNR is an outlier (Iglewicz & Hoaglin 1993).
+POSE_CHECK_Z: float = 3.5
+#: ... and the least PSNR gap to the median (dB) that flags it: 3 dB is twice the median's MSE.
+POSE_CHECK_MIN_GAP_DB: float = 3.0
+#: Fewest training photos the check compares.
+POSE_CHECK_MIN_VIEWS: int = 8
+#: 1 / Phi^-1(3/4): the MAD of a normal sample times this estimates its std.
+MAD_TO_STD: float = 1.4826
+#: File of a run's training-view fit (``save_training_fit``).
+TRAINING_FIT_FILE = "training_fit.json"
+#: Flagged photos named in the printed line (the file lists all).
+FLAGGED_LISTED: int = 8
+
+
+@dataclass(frozen=True)
+class TrainingFit:
+    """The PSNR of each training photo after training and the photos the check flags.
+
+    Attributes:
+        names: [T] photo names (file names where the dataset has them, else ``view_NNN``).
+        psnr: [T] PSNR (dB) of each photo's render against it.
+        median_db: median of ``psnr``.
+        threshold_db: the PSNR under which a photo is flagged (module doc); -inf with too few photos.
+        flagged: indices into ``names`` of the flagged photos, worst first.
+    """
+
+    names: tuple[str, ...]
+    psnr: np.ndarray
+    median_db: float
+    threshold_db: float
+    flagged: tuple[int, ...]
+
+    def summary(self) -> str:
+        """One line for people: the flagged photos (the worst first) or that none is."""
+        if not self.flagged:
+            return (f"pose check: the {len(self.names)} training photos fit alike (median {self.median_db:.1f} dB, "
+                    f"none under {self.threshold_db:.1f} dB)" if np.isfinite(self.threshold_db) else
+                    f"pose check: skipped ({len(self.names)} training photos, it compares {POSE_CHECK_MIN_VIEWS} or more)")
+        shown = ", ".join(f"{self.names[i]} {self.psnr[i]:.1f} dB" for i in self.flagged[:FLAGGED_LISTED])
+        more = f" and {len(self.flagged) - FLAGGED_LISTED} more" if len(self.flagged) > FLAGGED_LISTED else ""
+        return (f"pose check: {len(self.flagged)} of {len(self.names)} training photos fit far worse than the others "
+                f"(median {self.median_db:.1f} dB): {shown}{more}. Their poses may be wrong (a mirrored "
+                f"registration) or the photos unlike the others (moving objects, blur, exposure): look at "
+                f"them, then prepare the capture again, with another --seed or without them (docs/capture.md)")
+
+    def to_dict(self) -> dict:
+        return {"median_psnr_db": self.median_db, "threshold_db": self.threshold_db if np.isfinite(self.threshold_db)
+                else None, "flagged": [self.names[i] for i in self.flagged],
+                "psnr_db": {n: float(p) for n, p in zip(self.names, self.psnr)},
+                "rule": f"psnr < median - max({POSE_CHECK_Z} * {MAD_TO_STD} * MAD, {POSE_CHECK_MIN_GAP_DB} dB)"}
+
+
+def check_training_fit(names: Sequence[str], psnr: Sequence[float]) -> TrainingFit:
+    """The check of the module doc on training photos ``names`` [T] with PSNR ``psnr`` [T] (dB).
+
+    ValueError when the lengths differ or a PSNR is NaN (+inf, a photo rendered exactly, is kept)."""
+    psnr = np.asarray(psnr, dtype=np.float64).reshape(-1)
+    names = tuple(str(n) for n in names)
+    if len(names) != len(psnr):
+        raise ValueError(f"pose check: {len(names)} names for {len(psnr)} PSNR values")
+    if np.isnan(psnr).any():
+        raise ValueError(f"pose check: PSNR of {names[int(np.flatnonzero(np.isnan(psnr))[0])]} is NaN")
+    if len(psnr) == 0:
+        return TrainingFit(names, psnr, float("nan"), -np.inf, ())
+    finite = np.where(np.isfinite(psnr), psnr, np.nan)
+    median = float(np.nanmedian(finite)) if np.isfinite(finite).any() else float(np.inf)
+    if len(psnr) < POSE_CHECK_MIN_VIEWS or not np.isfinite(median):
+        return TrainingFit(names, psnr, median, -np.inf, ())
+    mad = float(np.nanmedian(np.abs(finite - median)))
+    threshold = median - max(POSE_CHECK_Z * MAD_TO_STD * mad, POSE_CHECK_MIN_GAP_DB)
+    flagged = np.flatnonzero(psnr < threshold)
+    return TrainingFit(names, psnr, median, threshold, tuple(int(i) for i in flagged[np.argsort(psnr[flagged])]))
+
+
+def photo_names(dataset, views: Sequence[int]) -> list[str]:
+    """The file name of each of ``views``' photos, or ``view_NNN`` where the dataset has none."""
+    paths = getattr(dataset, "image_paths", None) or []
+    return [Path(paths[v]).name if v < len(paths) else f"view_{v:03d}" for v in views]
+
+
+def save_training_fit(run_dir: str | Path, fit: TrainingFit) -> Path:
+    """Write ``fit`` to ``RUN/TRAINING_FIT_FILE`` atomically."""
+    path = Path(run_dir) / TRAINING_FIT_FILE
+    atomic_write_text(path, json.dumps(fit.to_dict(), indent=1))
+    return path
+
+
+def load_training_fit(run_dir: str | Path) -> TrainingFit | None:
+    """The run's training fit, checked again by today's rule, or None when it has none. ValueError
+    naming the file when it is malformed."""
+    path = Path(run_dir) / TRAINING_FIT_FILE
+    if not path.is_file():
+        return None
+    try:
+        values = json.loads(path.read_text())["psnr_db"]
+        return check_training_fit(list(values), [float(v) for v in values.values()])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise ValueError(f"{path}: malformed training fit ({exc})") from exc
