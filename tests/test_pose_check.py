@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from stochastic_fields.pose_check import (POSE_CHECK_MIN_GAP_DB, POSE_CHECK_MIN_VIEWS, TRAINING_FIT_FILE,
-                                          check_training_fit, load_training_fit, photo_names, save_training_fit)
+                                          check_photo_fit, load_training_fit, photo_names, save_training_fit)
 
 
 def _names(n: int) -> list[str]:
@@ -17,14 +17,14 @@ def _names(n: int) -> list[str]:
 
 def test_flags_the_photos_far_below_the_median_worst_first():
     psnr = [25.0, 25.5, 24.5, 25.2, 24.8, 25.1, 24.9, 15.0, 25.3, 13.9, 24.6]
-    fit = check_training_fit(_names(len(psnr)), psnr)
+    fit = check_photo_fit(_names(len(psnr)), psnr)
     # by hand: median 24.9 (of 11); |psnr - 24.9| sorted: 0, .1, .1, .2, .3, .3, .4, .6, ... -> MAD 0.3
     assert fit.median_db == pytest.approx(24.9)
     assert fit.threshold_db == pytest.approx(24.9 - max(3.5 * 1.4826 * 0.3, 3.0))
     assert fit.flagged == (9, 7)  # 13.9 dB before 15.0 dB
     line = fit.summary()
     assert "2 of 11 training photos" in line and line.index("r_9.png 13.9 dB") < line.index("r_7.png 15.0 dB")
-    assert "--seed" in line
+    assert "prepare the capture again" in line
 
 
 def test_a_wide_spread_raises_the_bar_by_the_modified_z_score():
@@ -32,7 +32,7 @@ def test_a_wide_spread_raises_the_bar_by_the_modified_z_score():
 
     psnr = 25.0 + 2.0 * stats.norm.ppf((np.arange(400) + 0.5) / 400)  # normal quantiles, std 2 dB: MAD 1.35
     psnr[[100, 200, 300]] = [20.5, 19.5, 10.0]  # 4.5 and 5.5 dB under are within 3.5 sigma (7 dB); 15 dB is not
-    fit = check_training_fit(_names(400), psnr)
+    fit = check_photo_fit(_names(400), psnr)
     mad = np.median(np.abs(psnr - np.median(psnr)))
     assert fit.threshold_db == pytest.approx(np.median(psnr) - 3.5 * 1.4826 * mad)
     assert 0 < np.median(psnr) - fit.threshold_db - 7.0 < 0.5
@@ -41,34 +41,34 @@ def test_a_wide_spread_raises_the_bar_by_the_modified_z_score():
 
 def test_photos_that_fit_alike_flag_nothing_within_the_least_gap():
     psnr = [25.00, 25.01, 24.99, 25.02, 24.98, 25.00, 25.01, 24.99, 25.0 - POSE_CHECK_MIN_GAP_DB + 0.1]
-    fit = check_training_fit(_names(len(psnr)), psnr)  # z far below -3.5, but 2.9 dB only
+    fit = check_photo_fit(_names(len(psnr)), psnr)  # z far below -3.5, but 2.9 dB only
     assert fit.flagged == () and fit.threshold_db == pytest.approx(25.0 - POSE_CHECK_MIN_GAP_DB)
     assert "fit alike" in fit.summary()
     psnr[-1] = 25.0 - POSE_CHECK_MIN_GAP_DB - 0.1
-    assert check_training_fit(_names(len(psnr)), psnr).flagged == (len(psnr) - 1,)
+    assert check_photo_fit(_names(len(psnr)), psnr).flagged == (len(psnr) - 1,)
 
 
 def test_too_few_photos_or_exact_renders():
-    few = check_training_fit(_names(POSE_CHECK_MIN_VIEWS - 1), [25.0] * (POSE_CHECK_MIN_VIEWS - 2) + [5.0])
+    few = check_photo_fit(_names(POSE_CHECK_MIN_VIEWS - 1), [25.0] * (POSE_CHECK_MIN_VIEWS - 2) + [5.0])
     assert few.flagged == () and "skipped" in few.summary()
-    exact = check_training_fit(_names(9), [np.inf] * 3 + [30.0] * 5 + [10.0])  # +inf: an exact render
+    exact = check_photo_fit(_names(9), [np.inf] * 3 + [30.0] * 5 + [10.0])  # +inf: an exact render
     assert exact.median_db == 30.0 and exact.flagged == (8,)
-    assert check_training_fit([], []).flagged == ()
+    assert check_photo_fit([], []).flagged == ()
     with pytest.raises(ValueError, match="3 names for 2"):
-        check_training_fit(_names(3), [1.0, 2.0])
+        check_photo_fit(_names(3), [1.0, 2.0])
     with pytest.raises(ValueError, match="r_1.png is NaN"):
-        check_training_fit(_names(9), [25.0, np.nan] + [25.0] * 7)
+        check_photo_fit(_names(9), [25.0, np.nan] + [25.0] * 7)
 
 
 def test_the_summary_lists_a_few_and_counts_the_rest():
     psnr = [25.0] * 30 + [10.0 + 0.1 * i for i in range(12)]
-    line = check_training_fit(_names(42), psnr).summary()
+    line = check_photo_fit(_names(42), psnr).summary()
     assert "12 of 42" in line and "and 4 more" in line and "r_30.png 10.0 dB" in line and "r_41.png" not in line
 
 
 def test_file_round_trip_and_a_malformed_file(tmp_path):
     assert load_training_fit(tmp_path) is None
-    fit = check_training_fit(_names(10), [25.0] * 9 + [12.0])
+    fit = check_photo_fit(_names(10), [25.0] * 9 + [12.0])
     assert save_training_fit(tmp_path, fit) == tmp_path / TRAINING_FIT_FILE
     stored = json.loads((tmp_path / TRAINING_FIT_FILE).read_text())
     assert stored["flagged"] == ["r_9.png"] and stored["psnr_db"]["r_9.png"] == 12.0
@@ -118,19 +118,21 @@ def test_training_renders_score_each_photo_as_eval_does(tmp_path):
     np.testing.assert_array_equal(np.delete(swapped.psnr, 1), np.delete(ref.psnr, 1))
 
 
-def test_eval_checks_the_training_views_among_those_it_scored(capsys):
-    """``eval --views train|all``: the check runs on the training views only, in the order scored."""
+def test_eval_checks_training_and_validation_photos_each_as_a_group(capsys):
+    """``eval``: the training photos against each other, the validation photos against each other."""
     from stochastic_fields.cli import _print_pose_check
 
     class Capture:
-        image_paths = [f"/photos/p{i}.jpg" for i in range(12)]
-        train_indices = [i for i in range(12) if i % 4]  # 9 training photos
+        image_paths = [f"/photos/p{i}.jpg" for i in range(40)]
+        train_indices = [i for i in range(40) if i % 4]  # 30 training photos, 10 validate
 
-    views = list(range(12))
+    views = list(range(40))
     psnr = [25.0 + 0.1 * (i % 3) for i in views]
-    psnr[5], psnr[4] = 14.0, 5.0  # a training photo far below, and a validation photo lower still
+    psnr[5] = 14.0  # a training photo far below the others
+    psnr[8] = 5.0  # a validation photo far below the others
     _print_pose_check(Capture(), views, {"per_view": {"psnr": psnr}})
-    line = capsys.readouterr().out
-    assert "1 of 9 training photos" in line and "p5.jpg 14.0 dB" in line and "p4.jpg" not in line
-    _print_pose_check(Capture(), [0, 4, 8], {"per_view": {"psnr": [1.0, 2.0, 3.0]}})  # validation views only
-    assert capsys.readouterr().out == ""
+    training, validation = capsys.readouterr().out.strip().splitlines()
+    assert "1 of 30 training photos" in training and "p5.jpg 14.0 dB" in training and "p8.jpg" not in training
+    assert "1 of 10 validation photos" in validation and "p8.jpg 5.0 dB" in validation
+    _print_pose_check(Capture(), [0, 4, 8], {"per_view": {"psnr": [25.0, 25.0, 5.0]}})  # validation only, 3
+    assert capsys.readouterr().out.strip() == "pose check: skipped (3 validation photos, it compares 8 or more)"

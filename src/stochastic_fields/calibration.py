@@ -89,7 +89,7 @@ from .defaults import (CALIBRATION_FILE, CALIBRATION_PAIR_POINTS, CALIBRATION_PO
 from .depth_edges import edge_range_at_points, edge_range_map
 from .free_space import (TRAINING_DEPTH_FILE, checked_std, free_space_violation, load_training_depth,
                          render_training_depth, rendered_points, save_training_depth, violation_map)
-from .pose_check import check_training_fit, load_training_fit, photo_names, save_training_fit
+from .pose_check import check_photo_fit, load_training_fit, photo_names, save_training_fit
 
 #: Central level of +-1 standard deviation: Phi(1) - Phi(-1).
 ONE_SIGMA_LEVEL: float = 0.682689492137086
@@ -996,7 +996,7 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
                                         block=cfg.train.holdout_block, seed=seed)
     reference = render_training_depth(model, dataset, seed=seed, progress=progress) if free_space else None
     if reference is not None and reference.psnr is not None:  # the same renders check the training photos' poses (pose_check)
-        save_training_fit(run_dir, check_training_fit(photo_names(dataset, reference.views), reference.psnr))
+        save_training_fit(run_dir, check_photo_fit(photo_names(dataset, reference.views), reference.psnr))
     try:
         depth, folds = fit_depth_calibration_and_folds(model, dataset, seed=seed, points=points, floor=floor,
                                                        free_space=reference, relative_floor=relative_floor,
