@@ -277,6 +277,49 @@ def test_small_baseline_capture_registers_through_the_fallback(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["scene", "walk"]
 
 
+def test_photos_left_out_reuse_the_last_features_and_matches_in_place(tmp_path, monkeypatch):
+    """--exclude: the named photos are left out of the reconstruction; prepared in place, the last
+    prepare's features and matches are reused while the photos are the ones they came from (only
+    the mapping runs), and extracted again once a photo changed; an unknown name is refused, the
+    scene left as it was; from another folder a left-out photo is not copied."""
+    import pycolmap
+
+    photos = tmp_path / "walk"
+    photos.mkdir()
+    for i, x in enumerate(np.linspace(-0.15, 0.15, 8)):
+        iio.imwrite(photos / f"v{i}.png", _textured_planes(float(x)))
+    scene = tmp_path / "scene"
+    first = prepare(photos, scene, num_threads=THREADS, progress=False)
+    assert first.num_registered == 8 and first.matcher == "exhaustive" and len(first.database_photos) == 8
+    extracted = []
+    real_extract = pycolmap.extract_features
+    monkeypatch.setattr(pycolmap, "extract_features", lambda *a, **k: (extracted.append(1), real_extract(*a, **k)))
+
+    def frames():
+        return sorted(Path(f["file_path"]).name for f in json.loads((scene / "transforms.json").read_text())["frames"])
+
+    again = prepare(scene / "images", scene, exclude=["v3.png"], num_threads=THREADS, progress=False)
+    assert not extracted and "features and matches reused" in again.timings_s and "matching" not in again.timings_s
+    assert again.num_images == 7 and again.num_registered == 7 and again.excluded == ["v3.png"]
+    assert frames() == [f"v{i}.png" for i in range(8) if i != 3] and (scene / "images" / "v3.png").is_file()
+    assert "left out (1, --exclude): v3.png" in again.summary()
+    assert json.loads((scene / "prepare.json").read_text())["database_photos"] == first.database_photos
+    twice = prepare(scene / "images", scene, exclude=["v7.png", "v3.png"], num_threads=THREADS, progress=False)
+    assert not extracted and twice.num_registered == 6 and twice.excluded == ["v3.png", "v7.png"]
+
+    before = {p.name: p.read_bytes() for p in scene.iterdir() if p.is_file()}
+    with pytest.raises(DatasetError, match=r"--exclude names 'v9.png', not among its 8 photos"):
+        prepare(scene / "images", scene, exclude=["v9.png"], num_threads=THREADS, progress=False)
+    assert {p.name: p.read_bytes() for p in scene.iterdir() if p.is_file()} == before
+
+    iio.imwrite(scene / "images" / "v0.png", _textured_planes(-0.16))  # a photo changed since
+    changed = prepare(scene / "images", scene, exclude=["v3.png"], num_threads=THREADS, progress=False)
+    assert extracted and "matching" in changed.timings_s and changed.num_registered == 7
+
+    elsewhere = prepare(photos, tmp_path / "other", exclude=["v7.png"], num_threads=THREADS, progress=False)
+    assert elsewhere.num_images == 7 and not (tmp_path / "other" / "images" / "v7.png").exists()
+
+
 def test_matching_every_pair_in_blocks_gives_exhaustive_matching(tmp_path, monkeypatch):
     """match_every_pair (pair lists of MATCH_PAIRS_PER_CALL pairs, a progress bar over them) stores the
     same matches as one match_exhaustive call, here 28 pairs in 6 lists of at most 5, and verifies the

@@ -87,7 +87,8 @@ class PhotoFit:
         return (f"pose check: {len(self.flagged)} of {len(self.names)} {self.group} photos fit far worse than the others "
                 f"(median {self.median_db:.1f} dB): {shown}{more}. Their poses may be wrong (a mirrored "
                 f"registration) or the photos unlike the others (moving objects, blur, exposure): look at "
-                f"them, and prepare the capture again without those that are (docs/capture.md)")
+                f"them, and prepare the capture again without those that are: prepare SCENE/images --out SCENE "
+                f"--exclude NAME,... (docs/capture.md)")
 
     def to_dict(self) -> dict:
         return {"median_psnr_db": self.median_db, "threshold_db": self.threshold_db if np.isfinite(self.threshold_db)

@@ -34,6 +34,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--min-registered", type=float, default=DEFAULT_MIN_REGISTERED_FRACTION,
                    help="Fail when fewer than this fraction of the images register (default 0.5).")
     p.add_argument("--seed", type=int, default=0, help="Random seed of COLMAP's RANSAC and mapper.")
+    p.add_argument("--exclude", default="",
+                   help="Photos to leave out, comma-separated file names (e.g. those the pose check of train or "
+                        "eval flagged). Prepared in place (SOURCE is SCENE/images) the last prepare's features and "
+                        "matches are reused when the photos are unchanged: only the mapping runs.")
     p.add_argument("--quiet", action="store_true", help="No progress bars.")
 
 

@@ -5,7 +5,8 @@ Stages (each with a progress bar):
 1. Input. A folder of photos (png/jpg, one size) is copied to ``SCENE/images/``; a video is
    split into frames at ``fps`` frames per second of footage: from each window of
    ``video_fps / fps`` consecutive frames the sharpest (largest variance of the Laplacian) is
-   kept, so the frames are both sharp and spread out; at most ``max_frames`` are kept.
+   kept, so the frames are both sharp and spread out; at most ``max_frames`` are kept. Photos
+   named in ``exclude`` are left out (not copied, matched or mapped).
 2. Structure from motion with pycolmap (COLMAP's SIFT features, exhaustive matching for photos
    (``match_every_pair``: pair lists, a progress bar over the pairs) or sequential matching for
    video frames; one shared camera; CPU, or CUDA where pycolmap is built
@@ -32,7 +33,8 @@ Stages (each with a progress bar):
        SCENE/sparse_pc.ply       the SfM points (nerfstudio's ply_file_path)
        SCENE/images_2, images_4, images_8   area-downscaled copies
        SCENE/colmap/database.db  features and matches (COLMAP's database)
-       SCENE/prepare.json        what was done: counts, reprojection error, timings, failures
+       SCENE/prepare.json        what was done: counts, reprojection error, timings, failures,
+                                 the photos left out, the SHA-256 of the photos the database holds
 
 The transforms.json poses are in the COLMAP model's world frame (``applied_transform`` is the
 identity), so its loader finds the model beside it and takes the points, their tracks and
@@ -50,6 +52,7 @@ was before the command (not created if it did not exist).
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import os
@@ -93,7 +96,8 @@ PYCOLMAP_LOG_LEVEL: int = 3
 
 @dataclass
 class PrepareResult:
-    """What ``prepare`` did (also written to ``SCENE/prepare.json``)."""
+    """What ``prepare`` did (also written to ``SCENE/prepare.json``); ``database_photos``: {name:
+    ``file_digest``} of the photos whose features and matches ``SCENE/colmap/database.db`` holds."""
 
     scene_dir: str
     num_images: int
@@ -105,6 +109,9 @@ class PrepareResult:
     timings_s: dict[str, float] = field(default_factory=dict)
     mapping: str = "incremental"
     mapping_attempts: dict[str, int] = field(default_factory=dict)
+    matcher: str = ""
+    excluded: list[str] = field(default_factory=list)
+    database_photos: dict[str, str] = field(default_factory=dict)
 
     def summary(self) -> str:
         lines = [f"registered {self.num_registered}/{self.num_images} images, {self.num_points} points, "
@@ -112,6 +119,8 @@ class PrepareResult:
                  "mapping: " + mapping_report(self.mapping, self.mapping_attempts, self.num_images),
                  "time: " + ", ".join(f"{k} {v:.1f} s" for k, v in self.timings_s.items())]
         lines += [f"  not registered: {name}: {why}" for name, why in self.failed.items()]
+        if self.excluded:
+            lines.append(f"left out ({len(self.excluded)}, --exclude): " + ", ".join(self.excluded))
         return "\n".join(lines)
 
 
@@ -297,9 +306,10 @@ def _failure_reasons(database: Path, names: list[str], registered: set[str], min
         db.close()
 
 
-def map_images(database: Path, image_dir: Path, out: Path, strategy: str, *, num_images: int,
+def map_images(database: Path, image_dir: Path, out: Path, strategy: str, *, names: list[str],
                num_threads: int = -1, seed: int = 0, progress: bool = True) -> dict:
-    """One mapping strategy of :data:`MAPPING_STRATEGIES` on the database's features and matches.
+    """One mapping strategy of :data:`MAPPING_STRATEGIES` on the database's features and matches of
+    the images ``names`` (a database may hold others: photos left out with ``exclude``).
 
     Writes its models under ``out`` (emptied first) and returns pycolmap's {index: Reconstruction}.
     """
@@ -315,13 +325,15 @@ def map_images(database: Path, image_dir: Path, out: Path, strategy: str, *, num
         options = pycolmap.GlobalPipelineOptions()
         options.num_threads = int(num_threads)
         options.random_seed = int(seed)
+        options.image_names = list(names)
         return pycolmap.global_mapping(database, image_dir, out, options=options)
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = int(num_threads)
     options.random_seed = int(seed)
+    options.image_names = list(names)
     if strategy == "incremental-relaxed":
         options.mapper.init_min_tri_angle = RELAXED_INIT_MIN_TRI_ANGLE_DEG
-    bar = tqdm(total=num_images, desc=f"registering ({strategy})", unit="img", disable=not progress, leave=False)
+    bar = tqdm(total=len(names), desc=f"registering ({strategy})", unit="img", disable=not progress, leave=False)
     try:
         return pycolmap.incremental_mapping(database, image_dir, out, options=options,
                                             initial_image_pair_callback=lambda: bar.update(2),
@@ -357,8 +369,10 @@ def match_every_pair(database: Path, names: list[str], matching, device, *, prog
 
 def run_sfm(image_dir: Path, work_dir: Path, names: list[str], *, camera_model: str = "SIMPLE_RADIAL",
             matcher: str = "exhaustive", mapping: str = "auto", num_threads: int = -1, device: str = "auto",
-            seed: int = 0, progress: bool = True):
-    """Features, matches and mapping with pycolmap (module doc, stage 2).
+            seed: int = 0, reuse_database: Path | None = None, progress: bool = True):
+    """Features, matches and mapping with pycolmap (module doc, stage 2); ``reuse_database``: a
+    database that already holds the features and matches of every image of ``names`` (copied, and
+    only the mapping runs).
 
     ``mapping`` is one strategy of :data:`MAPPING_STRATEGIES`, or ``"auto"``: each in turn until one
     registers every image. Returns (the largest pycolmap.Reconstruction of the strategy kept, or
@@ -378,15 +392,20 @@ def run_sfm(image_dir: Path, work_dir: Path, names: list[str], *, camera_model: 
     database = work_dir / "database.db"
     if database.exists():
         database.unlink()  # a new run: COLMAP would otherwise add to the old features
+    if reuse_database is not None:
+        shutil.copyfile(reuse_database, database)
     pycolmap.set_random_seed(int(seed))
     timings: dict[str, float] = {}
     strategies = MAPPING_STRATEGIES if mapping == "auto" else (mapping,)
     old_level = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = PYCOLMAP_LOG_LEVEL
     stages = tqdm(total=3, desc="SfM", unit="stage", disable=not progress)
-    attempts: dict[str, int] = {}
-    best, best_strategy = None, strategies[0]
     try:
+        if reuse_database is not None:
+            stages.update(2)
+            timings["features and matches reused"] = 0.0
+            return _map_strategies(database, image_dir, work_dir, names, strategies, num_threads=num_threads,
+                                   seed=seed, progress=progress, stages=stages, timings=timings)
         t0 = time.perf_counter()
         stages.set_postfix_str("features")
         reader = pycolmap.ImageReaderOptions()
@@ -408,23 +427,31 @@ def run_sfm(image_dir: Path, work_dir: Path, names: list[str], *, camera_model: 
             pycolmap.match_sequential(database, matching_options=matching, device=dev)
         timings["matching"] = time.perf_counter() - t0
         stages.update(1)
-
-        t0 = time.perf_counter()
-        for strategy in strategies:
-            stages.set_postfix_str(f"{strategy} mapping")
-            recs = map_images(database, image_dir, work_dir / "sparse", strategy, num_images=len(names),
-                              num_threads=num_threads, seed=seed, progress=progress)
-            rec = max(recs.values(), key=lambda r: r.num_reg_images()) if recs else None
-            attempts[strategy] = rec.num_reg_images() if rec is not None else 0
-            if rec is not None and (best is None or attempts[strategy] > best.num_reg_images()):
-                best, best_strategy = rec, strategy
-            if attempts[strategy] == len(names):
-                break
-        timings["mapping"] = time.perf_counter() - t0
-        stages.update(1)
+        return _map_strategies(database, image_dir, work_dir, names, strategies, num_threads=num_threads,
+                               seed=seed, progress=progress, stages=stages, timings=timings)
     finally:
         stages.close()
         pycolmap.logging.minloglevel = old_level
+
+
+def _map_strategies(database: Path, image_dir: Path, work_dir: Path, names: list[str], strategies, *,
+                    num_threads: int, seed: int, progress: bool, stages, timings: dict[str, float]):
+    """``run_sfm``'s mapping stage: each strategy in turn until one registers every image."""
+    attempts: dict[str, int] = {}
+    best, best_strategy = None, strategies[0]
+    t0 = time.perf_counter()
+    for strategy in strategies:
+        stages.set_postfix_str(f"{strategy} mapping")
+        recs = map_images(database, image_dir, work_dir / "sparse", strategy, names=names,
+                          num_threads=num_threads, seed=seed, progress=progress)
+        rec = max(recs.values(), key=lambda r: r.num_reg_images()) if recs else None
+        attempts[strategy] = rec.num_reg_images() if rec is not None else 0
+        if rec is not None and (best is None or attempts[strategy] > best.num_reg_images()):
+            best, best_strategy = rec, strategy
+        if attempts[strategy] == len(names):
+            break
+    timings["mapping"] = time.perf_counter() - t0
+    stages.update(1)
     return best, database, timings, best_strategy, attempts
 
 
@@ -553,8 +580,13 @@ def prepare(source: str | Path, scene_dir: str | Path, *, camera_model: str = "S
             matcher: str | None = None, mapping: str = "auto", num_threads: int = -1, device: str = "auto",
             fps: float = DEFAULT_VIDEO_FPS,
             max_frames: int = DEFAULT_MAX_FRAMES, min_registered_fraction: float = DEFAULT_MIN_REGISTERED_FRACTION,
-            downscale_factors=DOWNSCALE_FACTORS, seed: int = 0, progress: bool = True) -> PrepareResult:
+            downscale_factors=DOWNSCALE_FACTORS, seed: int = 0, exclude=(), progress: bool = True) -> PrepareResult:
     """Photos folder or video -> posed scene folder (module doc). Returns what was done.
+
+    ``exclude``: names of photos left out of the reconstruction (for example those the pose check
+    of ``train`` or ``eval`` flagged, ``pose_check``); DatasetError naming one that is not among
+    the photos. Prepared in place with ``exclude``, the features and matches of the scene's last
+    prepare are reused when its photos are unchanged (``reusable_database``): only the mapping runs.
 
     The scene is built in a hidden staging folder beside ``scene_dir`` and moved into it only when
     every stage succeeded (``publish_scene``): on bad input, a capture that does not register or an
@@ -577,7 +609,8 @@ def prepare(source: str | Path, scene_dir: str | Path, *, camera_model: str = "S
         result = _prepare_into(staging, source, scene_dir, camera_model=camera_model, matcher=matcher,
                                mapping=mapping, num_threads=num_threads, device=device, fps=fps,
                                max_frames=max_frames, min_registered_fraction=min_registered_fraction,
-                               downscale_factors=downscale_factors, seed=seed, progress=progress)
+                               downscale_factors=downscale_factors, seed=seed, exclude=exclude,
+                               progress=progress)
         publish_scene(staging, scene_dir)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
@@ -586,7 +619,7 @@ def prepare(source: str | Path, scene_dir: str | Path, *, camera_model: str = "S
 
 def _prepare_into(staging: Path, source: Path, scene_dir: Path, *, camera_model: str, matcher: str | None,
                   mapping: str, num_threads: int, device: str, fps: float, max_frames: int,
-                  min_registered_fraction: float, downscale_factors, seed: int, progress: bool) -> PrepareResult:
+                  min_registered_fraction: float, downscale_factors, seed: int, exclude, progress: bool) -> PrepareResult:
     """``prepare``'s stages, every file written into ``staging`` (the scene's layout); photos
     already in ``scene_dir/images`` are read where they are."""
     t_start = time.perf_counter()
@@ -601,13 +634,29 @@ def _prepare_into(staging: Path, source: Path, scene_dir: Path, *, camera_model:
         images = collect_photos(source, image_dir, progress=progress)
         timings["photos"] = time.perf_counter() - t_start
         matcher = matcher or "exhaustive"
+    excluded = sorted(set(exclude))
+    unknown = [n for n in excluded if n not in {p.name for p in images}]
+    if unknown:
+        raise DatasetError(source, f"--exclude names {', '.join(repr(n) for n in unknown[:FAILURES_LISTED])}"
+                           f"{' and more' if len(unknown) > FAILURES_LISTED else ''}, not among its "
+                           f"{len(images)} photos (give file names, as the pose check prints them)")
+    if not in_place:  # a photo left out is not copied into the scene
+        for p in images:
+            if p.name in excluded:
+                p.unlink()
+    images = [p for p in images if p.name not in excluded]
     names = [p.name for p in images]
+    digests = {p.name: file_digest(p) for p in images}
+    reuse = reusable_database(scene_dir, digests, camera_model, matcher) if in_place and excluded else None
+    if reuse is not None:
+        digests = reuse[1]  # the copied database holds these photos' features (the left-out ones too)
     if len(names) < MIN_REGISTERED_IMAGES:
         raise DatasetError(source, f"only {len(names)} images: structure from motion needs at least "
                            f"{MIN_REGISTERED_IMAGES}, and a radiance field many more")
     rec, database, sfm_times, strategy, attempts = run_sfm(
         image_dir, staging / "colmap", names, camera_model=camera_model, matcher=matcher, mapping=mapping,
-        num_threads=num_threads, device=device, seed=seed, progress=progress)
+        num_threads=num_threads, device=device, seed=seed, reuse_database=None if reuse is None else reuse[0],
+        progress=progress)
     timings.update(sfm_times)
     registered = {rec.images[i].name for i in rec.reg_image_ids()} if rec is not None else set()
     import pycolmap  # heavy optional dependency (pycolmap): loaded only when used
@@ -637,9 +686,38 @@ def _prepare_into(staging: Path, source: Path, scene_dir: Path, *, camera_model:
                            num_points=len(model.points), mean_reprojection_error_px=model.mean_reprojection_error,
                            camera_model=camera.model, failed=failed,
                            timings_s={k: round(v, 2) for k, v in timings.items()}, mapping=strategy,
-                           mapping_attempts=attempts)
+                           mapping_attempts=attempts, matcher=matcher, excluded=excluded, database_photos=digests)
     atomic_write_text(staging / "prepare.json", json.dumps(asdict(result), indent=2))
     return result
+
+
+def file_digest(path: Path) -> str:
+    """SHA-256 of a file's bytes (hex): whether a photo is the one a database's features came from."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def reusable_database(scene_dir: Path, digests: dict[str, str], camera_model: str,
+                      matcher: str) -> tuple[Path, dict[str, str]] | None:
+    """(``scene_dir/colmap/database.db``, its photos' digests) when the scene's last prepare (its
+    prepare.json) extracted and matched every photo of ``digests`` ({name: ``file_digest``}) as it
+    is now, with the same camera model and matcher; else None (extracted and matched again)."""
+    database, record = scene_dir / "colmap" / "database.db", scene_dir / "prepare.json"
+    if not (database.is_file() and record.is_file()):
+        return None
+    try:
+        last = json.loads(record.read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(last, dict) or last.get("camera_model") != camera_model or last.get("matcher") != matcher:
+        return None
+    held = last.get("database_photos")
+    if not isinstance(held, dict) or any(held.get(name) != d for name, d in digests.items()):
+        return None
+    return database, held
 
 
 def write_failure_listing(scene_dir: Path, listing: dict) -> Path:
@@ -659,6 +737,7 @@ def run(args: argparse.Namespace) -> None:
         raise ValueError(f"--threads must be -1 (all cores) or >= 1, got {args.threads}")
     result = prepare(args.source, args.out, camera_model=args.camera_model, matcher=args.matcher,
                      mapping=args.mapping, num_threads=args.threads, device=args.device, fps=args.fps, max_frames=args.max_frames,
-                     min_registered_fraction=args.min_registered, seed=args.seed, progress=not args.quiet)
+                     min_registered_fraction=args.min_registered, seed=args.seed,
+                     exclude=[n.strip() for n in args.exclude.split(",") if n.strip()], progress=not args.quiet)
     print(result.summary())
     print(f"scene: {args.out} (train with: stochastic-fields train --data.path {args.out} --out RUN)")
