@@ -2,7 +2,7 @@
 
 Structure from motion can place a camera wrong and report nothing: on an object whose sides look
 alike, a few photos can settle in a mirrored pose (the camera on the other side of the object,
-turned about 180 degrees) that the photos' own verified matches support as well as the right one
+turned about 180 degrees) that the photos' own verified matches support better than the right one
 (docs/capture.md measures one). No geometric check of the matches tells it; the radiance field
 does. One field fitted to every photo cannot agree with a photo whose camera is wrong, so that
 photo keeps a colour error far above the others' after training: on lego's mirrored registration
@@ -27,7 +27,8 @@ training (``free_space.render_training_depth``), stored in ``RUN/TRAINING_FIT_FI
 validation photos each against their own group (a validation photo is a new view, rendered a
 little worse than a training photo; a photo whose camera is wrong is rendered far worse still: on
 lego's mirrored registration, the affected validation photo at 16.0 dB against 19.7-25.2 for the
-other 12).
+other 12). The flagged photos are left out with ``prepare --exclude``, which on a scene prepared
+in place maps the others again on the same features and matches.
 """
 
 from __future__ import annotations
