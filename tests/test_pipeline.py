@@ -249,6 +249,9 @@ def test_end_to_end_tiny_synthetic_scene(tmp_path):
     assert means["psnr"] > 14.0, means  # measured 15.0 (seed 0, 150 steps)
     assert means["depth/abs_rel"] < 0.2, means  # measured 0.11
     assert (tmp_path / "metrics.json").exists() and (tmp_path / "views" / f"view_{views[0]:03d}_depth_std.png").exists()
+    checked = json.loads((tmp_path / "metrics.json").read_text())["pose_check"]  # 6 validation photos: too few
+    assert list(checked) == ["validation"] and len(checked["validation"]["psnr_db"]) == 6
+    assert checked["validation"]["flagged"] == [] and checked["validation"]["threshold_db"] is None
     with np.load(tmp_path / "views" / f"view_{views[0]:03d}.npz") as z:
         assert z["depth_mean"].shape == ds.images.shape[1:3]
         assert np.all(z["depth_std"] >= 0) and np.all(np.isfinite(z["depth_std"]))

@@ -134,5 +134,10 @@ def test_eval_checks_training_and_validation_photos_each_as_a_group(capsys):
     training, validation = capsys.readouterr().out.strip().splitlines()
     assert "1 of 30 training photos" in training and "p5.jpg 14.0 dB" in training and "p8.jpg" not in training
     assert "1 of 10 validation photos" in validation and "p8.jpg 5.0 dB" in validation
+    from stochastic_fields.pose_check import check_view_groups
+
+    psnr[9] = float("nan")  # an undefined PSNR is not checked
+    training, validation = check_view_groups(Capture(), views, psnr)
+    assert len(training.names) == 29 and "p9.jpg" not in training.names and validation.group == "validation"
     _print_pose_check(Capture(), [0, 4, 8], {"per_view": {"psnr": [25.0, 25.0, 5.0]}})  # validation only, 3
     assert capsys.readouterr().out.strip() == "pose check: skipped (3 validation photos, it compares 8 or more)"

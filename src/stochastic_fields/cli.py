@@ -208,15 +208,10 @@ def cmd_eval(args: argparse.Namespace) -> None:
 def _print_pose_check(dataset, views: list[int], result: dict) -> None:
     """The pose check (``pose_check``) of the photos among ``views``, the training photos and the
     others (validation) each as a group; a group of none prints nothing."""
-    from .pose_check import check_photo_fit, photo_names  # deferred: loads only when this command runs (keeps --help fast)
+    from .pose_check import check_view_groups  # deferred: loads only when this command runs (keeps --help fast)
 
-    train = {int(v) for v in dataset.train_indices}
-    psnr = result["per_view"]["psnr"]
-    for group, picked in (("training", [i for i, v in enumerate(views) if v in train]),
-                          ("validation", [i for i, v in enumerate(views) if v not in train])):
-        if picked:
-            print("  " + check_photo_fit(photo_names(dataset, [views[i] for i in picked]),
-                                         [psnr[i] for i in picked], group).summary())
+    for fit in check_view_groups(dataset, views, result["per_view"]["psnr"]):
+        print("  " + fit.summary())
 
 
 def _on_ranks(ctx) -> str:

@@ -34,6 +34,7 @@ in place maps the others again on the same features and matches.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -92,7 +93,7 @@ class PhotoFit:
                 f"--exclude NAME,... (docs/capture.md)")
 
     def to_dict(self) -> dict:
-        return {"median_psnr_db": self.median_db, "threshold_db": self.threshold_db if np.isfinite(self.threshold_db)
+        return {"group": self.group, "median_psnr_db": self.median_db, "threshold_db": self.threshold_db if np.isfinite(self.threshold_db)
                 else None, "flagged": [self.names[i] for i in self.flagged],
                 "psnr_db": {n: float(p) for n, p in zip(self.names, self.psnr)},
                 "rule": f"psnr < median - max({POSE_CHECK_Z} * {MAD_TO_STD} * MAD, {POSE_CHECK_MIN_GAP_DB} dB)"}
@@ -124,6 +125,21 @@ def photo_names(dataset, views: Sequence[int]) -> list[str]:
     """The file name of each of ``views``' photos, or ``view_NNN`` where the dataset has none."""
     paths = getattr(dataset, "image_paths", None) or []
     return [Path(paths[v]).name if v < len(paths) else f"view_{v:03d}" for v in views]
+
+
+def check_view_groups(dataset, views: Sequence[int], psnr: Sequence[float]) -> list[PhotoFit]:
+    """The check on the training photos among ``views`` [N] (PSNR ``psnr`` [N], dB) and on the others
+    (validation), each group against itself; a view whose PSNR is undefined (NaN) is not checked, a
+    group without photos is left out."""
+    train = {int(v) for v in dataset.train_indices}
+    defined = [i for i in range(len(views)) if not math.isnan(float(psnr[i]))]
+    fits = []
+    for group, picked in (("training", [i for i in defined if int(views[i]) in train]),
+                          ("validation", [i for i in defined if int(views[i]) not in train])):
+        if picked:
+            fits.append(check_photo_fit(photo_names(dataset, [int(views[i]) for i in picked]),
+                                        [psnr[i] for i in picked], group))
+    return fits
 
 
 def save_training_fit(run_dir: str | Path, fit: PhotoFit) -> Path:
