@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from stochastic_fields.pose_alignment import pose_errors, similarity_align
+from stochastic_fields.pose_alignment import camera_errors, pose_errors, similarity_align
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/registration.py, beside this script
 from registration import reference_cameras  # noqa: E402
@@ -35,6 +35,12 @@ TURNED_DEG, TURNED_CENTRE = 5.0, 0.05
 FIT_SPREAD = 2.5
 
 
+def world_to_camera(image) -> tuple[np.ndarray, np.ndarray]:
+    """(R [3, 3], t [3]) of a registered pycolmap image: x_cam = R x_world + t."""
+    pose = image.cam_from_world()
+    return pose.rotation.matrix(), np.asarray(pose.translation)
+
+
 def read_cameras(scene: Path):
     """(pycolmap.Reconstruction, names [N], camera-to-world [N, 4, 4] OpenCV) of a prepared scene."""
     import pycolmap
@@ -43,8 +49,7 @@ def read_cameras(scene: Path):
     rec = pycolmap.Reconstruction(str(model if model.is_dir() else scene / "sparse"))
     names, c2w = [], []
     for im in rec.images.values():
-        pose = im.cam_from_world() if callable(im.cam_from_world) else im.cam_from_world
-        R, t = pose.rotation.matrix(), np.asarray(pose.translation)
+        R, t = world_to_camera(im)
         M = np.eye(4)
         M[:3, :3], M[:3, 3] = R.T, -R.T @ t
         names.append(im.name)
@@ -56,17 +61,13 @@ def turned_cameras(names: list[str], c2w: np.ndarray, ref: np.ndarray) -> dict[s
     """{name: (centre error / extent, rotation error degrees)} of the cameras off by more than the
     thresholds, after a similarity fitted on the others (five passes keeping the cameras within
     ``FIT_SPREAD`` times the median centre error of the cameras kept before)."""
-    centres, ref_centres = c2w[:, :3, 3], ref[:, :3, 3]
-    extent = float(np.linalg.norm(ref_centres[:, None] - ref_centres[None], axis=-1).max())
     keep = np.ones(len(names), bool)
     for _ in range(5):
-        s, R, t = similarity_align(centres[keep], ref_centres[keep])
-        err = np.linalg.norm(s * centres @ R.T + t - ref_centres, axis=1)
-        keep = err <= FIT_SPREAD * np.median(err[keep]) + 1e-9 * extent
-    rel = np.einsum("ij,njk->nik", R, c2w[:, :3, :3]).transpose(0, 2, 1) @ ref[:, :3, :3]
-    angle = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
-    return {n: (float(err[i] / extent), float(angle[i])) for i, n in enumerate(names)
-            if angle[i] > TURNED_DEG or err[i] / extent > TURNED_CENTRE}
+        similarity = similarity_align(c2w[keep, :3, 3], ref[keep, :3, 3])
+        centre, angle = camera_errors(c2w, ref, similarity)
+        keep = centre <= FIT_SPREAD * np.median(centre[keep]) + 1e-9
+    return {n: (float(centre[i]), float(angle[i])) for i, n in enumerate(names)
+            if angle[i] > TURNED_DEG or centre[i] > TURNED_CENTRE}
 
 
 def sampson_distance(E: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> np.ndarray:
@@ -97,10 +98,6 @@ def contradicted_inliers(rec, database: Path, pixels: float) -> tuple[collection
                 normalised[name] = (np.c_[xy, np.ones(len(xy))], cam.mean_focal_length())
             return normalised[name]
 
-        def pose(name: str):
-            p = images[name].cam_from_world() if callable(images[name].cam_from_world) else images[name].cam_from_world
-            return p.rotation.matrix(), np.asarray(p.translation)
-
         total, contradicted = collections.Counter(), collections.Counter()
         for pair_id, geometry in zip(*db.read_two_view_geometries()):
             i1, i2 = pycolmap.pair_id_to_image_pair(pair_id)
@@ -108,7 +105,7 @@ def contradicted_inliers(rec, database: Path, pixels: float) -> tuple[collection
             matches = np.asarray(geometry.inlier_matches)
             if n1 not in images or n2 not in images or len(matches) == 0:
                 continue
-            (R1, t1), (R2, t2) = pose(n1), pose(n2)
+            (R1, t1), (R2, t2) = world_to_camera(images[n1]), world_to_camera(images[n2])
             R = R2 @ R1.T
             t = t2 - R @ t1
             E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R

@@ -121,6 +121,7 @@ def test_training_renders_score_each_photo_as_eval_does(tmp_path):
 def test_eval_checks_training_and_validation_photos_each_as_a_group(capsys):
     """``eval``: the training photos against each other, the validation photos against each other."""
     from stochastic_fields.cli import _print_pose_check
+    from stochastic_fields.pose_check import check_view_groups, view_groups_record
 
     class Capture:
         image_paths = [f"/photos/p{i}.jpg" for i in range(40)]
@@ -130,14 +131,12 @@ def test_eval_checks_training_and_validation_photos_each_as_a_group(capsys):
     psnr = [25.0 + 0.1 * (i % 3) for i in views]
     psnr[5] = 14.0  # a training photo far below the others
     psnr[8] = 5.0  # a validation photo far below the others
-    _print_pose_check(Capture(), views, {"per_view": {"psnr": psnr}})
+    _print_pose_check({"pose_check": view_groups_record(Capture(), views, psnr)})  # as evaluate records it
     training, validation = capsys.readouterr().out.strip().splitlines()
     assert "1 of 30 training photos" in training and "p5.jpg 14.0 dB" in training and "p8.jpg" not in training
     assert "1 of 10 validation photos" in validation and "p8.jpg 5.0 dB" in validation
-    from stochastic_fields.pose_check import check_view_groups
-
     psnr[9] = float("nan")  # an undefined PSNR is not checked
     training, validation = check_view_groups(Capture(), views, psnr)
     assert len(training.names) == 29 and "p9.jpg" not in training.names and validation.group == "validation"
-    _print_pose_check(Capture(), [0, 4, 8], {"per_view": {"psnr": [25.0, 25.0, 5.0]}})  # validation only, 3
+    _print_pose_check({"pose_check": view_groups_record(Capture(), [0, 4, 8], [25.0, 25.0, 5.0])})  # validation only
     assert capsys.readouterr().out.strip() == "pose check: skipped (3 validation photos, it compares 8 or more)"

@@ -316,8 +316,10 @@ def test_photos_left_out_reuse_the_last_features_and_matches_in_place(tmp_path, 
     changed = prepare(scene / "images", scene, exclude=["v3.png"], num_threads=THREADS, progress=False)
     assert extracted and "matching" in changed.timings_s and changed.num_registered == 7
 
-    elsewhere = prepare(photos, tmp_path / "other", exclude=["v7.png"], num_threads=THREADS, progress=False)
+    (photos / "v8.png").write_bytes(b"not a png")  # a broken photo left out is not even read
+    elsewhere = prepare(photos, tmp_path / "other", exclude=["v7.png", "v8.png"], num_threads=THREADS, progress=False)
     assert elsewhere.num_images == 7 and not (tmp_path / "other" / "images" / "v7.png").exists()
+    assert not (tmp_path / "other" / "images" / "v8.png").exists()
 
 
 def test_matching_every_pair_in_blocks_gives_exhaustive_matching(tmp_path, monkeypatch):

@@ -201,17 +201,16 @@ def cmd_eval(args: argparse.Namespace) -> None:
     if ctx is None or ctx.is_main:
         _print_summary(result, f"{cfg.method} on {dataset.name}: {len(views)} views, K={result['num_draws']}"
                        + _on_ranks(ctx))
-        _print_pose_check(dataset, views, result)
+        _print_pose_check(result)
         print(f"metrics: {out / 'metrics.json'}")
 
 
-def _print_pose_check(dataset, views: list[int], result: dict) -> None:
-    """The pose check (``pose_check``) of the photos among ``views``, the training photos and the
-    others (validation) each as a group; a group of none prints nothing."""
-    from .pose_check import check_view_groups  # deferred: loads only when this command runs (keeps --help fast)
+def _print_pose_check(result: dict) -> None:
+    """The pose check ``evaluate`` recorded (``pose_check``): one line per group of photos scored."""
+    from .pose_check import fit_from_dict  # deferred: loads only when this command runs (keeps --help fast)
 
-    for fit in check_view_groups(dataset, views, result["per_view"]["psnr"]):
-        print("  " + fit.summary())
+    for stored in result.get("pose_check", {}).values():
+        print("  " + fit_from_dict(stored).summary())
 
 
 def _on_ranks(ctx) -> str:

@@ -40,7 +40,7 @@ from .view_maps import OPACITY_MASK, camera_z_maps, draws_summary, view_camera_a
 from .visualize import colourise, to_uint8_rgb
 from .capture_points import block_keys, dense_depth_block_keys, dense_depth_score_mask, load_capture_points
 from .plots import plot_interval_reliability
-from .pose_check import check_view_groups
+from .pose_check import view_groups_record
 
 #: The per-view depth scores kept under ``depth/`` (and ``depth_raw/``) in metrics.json.
 DEPTH_SCORE_KEYS: tuple[str, ...] = ("abs_rel", "rmse", "nll", "ause_rmse", "ause_rmse_normalised", "pearson",
@@ -500,8 +500,8 @@ def evaluate(model, dataset, out_dir: Path, *, views: Sequence[int] | None = Non
         if ds["sparsification"] is not None:
             curves.update(_pack("depth_sparsification_rmse", ds["sparsification"]))
     result["pooled"] = pooled_out
-    result["pose_check"] = {fit.group: fit.to_dict()  # photos rendered far worse than their group's others
-                            for fit in check_view_groups(dataset, views, result["per_view"].get("psnr", []))}
+    # photos rendered far worse than the others of their group: poses to look at (pose_check)
+    result["pose_check"] = view_groups_record(dataset, views, result["per_view"].get("psnr", []))
     result["render_s_per_view"] = float(np.mean(render_s)) if render_s else math.nan
     out_dir.mkdir(parents=True, exist_ok=True)
     with atomic_path(out_dir / "curves.npz") as tmp:

@@ -33,22 +33,39 @@ def similarity_align(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarra
     return s, R, mu_d - s * R @ mu_s
 
 
+def _same_cameras(c2w, c2w_ref) -> tuple[np.ndarray, np.ndarray]:
+    """Both pose sets as float64 arrays; ValueError when they hold different numbers of cameras."""
+    c2w, c2w_ref = np.asarray(c2w, dtype=np.float64), np.asarray(c2w_ref, dtype=np.float64)
+    if c2w.shape[0] != c2w_ref.shape[0]:
+        raise ValueError(f"need the same cameras in both, got {c2w.shape[0]} and {c2w_ref.shape[0]}")
+    return c2w, c2w_ref
+
+
+def camera_errors(c2w: np.ndarray, c2w_ref: np.ndarray,
+                  similarity: tuple[float, np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Per camera, the centre error [N] (fraction of the reference's extent) and the rotation error
+    [N] (degrees) of camera-to-world poses [N, 3|4, 4] against the reference's after ``similarity``
+    (s, R, t) (module doc)."""
+    c2w, c2w_ref = _same_cameras(c2w, c2w_ref)
+    s, R, t = similarity
+    centres_ref = c2w_ref[:, :3, 3]
+    extent = float(np.linalg.norm(centres_ref[:, None] - centres_ref[None], axis=-1).max())
+    centre = np.linalg.norm(s * c2w[:, :3, 3] @ R.T + t - centres_ref, axis=1) / extent
+    relative = np.einsum("ij,njk->nik", R, c2w[:, :3, :3]).transpose(0, 2, 1) @ c2w_ref[:, :3, :3]
+    cos = (np.trace(relative, axis1=1, axis2=2) - 1.0) / 2.0
+    sin = np.linalg.norm(relative - relative.transpose(0, 2, 1), axis=(1, 2)) / (2.0 * np.sqrt(2.0))
+    return centre, np.degrees(np.arctan2(sin, cos))
+
+
 def pose_errors(c2w: np.ndarray, c2w_ref: np.ndarray) -> dict[str, float]:
-    """Centre and rotation errors of camera-to-world poses [N, 3|4, 4] against the reference's (module doc).
+    """Centre and rotation errors of camera-to-world poses [N, 3|4, 4] against the reference's after
+    the similarity fitted on all camera centres (module doc).
 
     Returns scale, centre_error_max / centre_error_median (fractions of the reference's extent) and
     rotation_error_max_deg / rotation_error_median_deg.
     """
-    c2w, c2w_ref = np.asarray(c2w, dtype=np.float64), np.asarray(c2w_ref, dtype=np.float64)
-    if c2w.shape[0] != c2w_ref.shape[0]:
-        raise ValueError(f"need the same cameras in both, got {c2w.shape[0]} and {c2w_ref.shape[0]}")
-    centres, centres_ref = c2w[:, :3, 3], c2w_ref[:, :3, 3]
-    s, R, t = similarity_align(centres, centres_ref)
-    extent = float(np.linalg.norm(centres_ref[:, None] - centres_ref[None], axis=-1).max())
-    centre = np.linalg.norm(s * centres @ R.T + t - centres_ref, axis=1) / extent
-    relative = np.einsum("ij,njk->nik", R, c2w[:, :3, :3]).transpose(0, 2, 1) @ c2w_ref[:, :3, :3]
-    cos = (np.trace(relative, axis1=1, axis2=2) - 1.0) / 2.0
-    sin = np.linalg.norm(relative - relative.transpose(0, 2, 1), axis=(1, 2)) / (2.0 * np.sqrt(2.0))
-    angle = np.degrees(np.arctan2(sin, cos))
-    return {"scale": s, "centre_error_max": float(centre.max()), "centre_error_median": float(np.median(centre)),
+    c2w, c2w_ref = _same_cameras(c2w, c2w_ref)
+    similarity = similarity_align(c2w[:, :3, 3], c2w_ref[:, :3, 3])
+    centre, angle = camera_errors(c2w, c2w_ref, similarity)
+    return {"scale": similarity[0], "centre_error_max": float(centre.max()), "centre_error_median": float(np.median(centre)),
             "rotation_error_max_deg": float(angle.max()), "rotation_error_median_deg": float(np.median(angle))}

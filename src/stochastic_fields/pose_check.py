@@ -111,11 +111,11 @@ def check_photo_fit(names: Sequence[str], psnr: Sequence[float], group: str = "t
         raise ValueError(f"pose check: PSNR of {names[int(np.flatnonzero(np.isnan(psnr))[0])]} is NaN")
     if len(psnr) == 0:
         return PhotoFit(names, psnr, float("nan"), -np.inf, (), group)
-    finite = np.where(np.isfinite(psnr), psnr, np.nan)
-    median = float(np.nanmedian(finite)) if np.isfinite(finite).any() else float(np.inf)
-    if len(psnr) < POSE_CHECK_MIN_VIEWS or not np.isfinite(median):
+    finite = psnr[np.isfinite(psnr)]  # +inf (exact renders) left out of the median and the MAD
+    median = float(np.median(finite)) if finite.size else float(np.inf)
+    if len(psnr) < POSE_CHECK_MIN_VIEWS or not finite.size:
         return PhotoFit(names, psnr, median, -np.inf, (), group)
-    mad = float(np.nanmedian(np.abs(finite - median)))
+    mad = float(np.median(np.abs(finite - median)))
     threshold = median - max(POSE_CHECK_Z * MAD_TO_STD * mad, POSE_CHECK_MIN_GAP_DB)
     flagged = np.flatnonzero(psnr < threshold)
     return PhotoFit(names, psnr, median, threshold, tuple(int(i) for i in flagged[np.argsort(psnr[flagged])]), group)
@@ -142,6 +142,11 @@ def check_view_groups(dataset, views: Sequence[int], psnr: Sequence[float]) -> l
     return fits
 
 
+def view_groups_record(dataset, views: Sequence[int], psnr: Sequence[float]) -> dict[str, dict]:
+    """``check_view_groups`` as metrics.json keeps it: {group: ``PhotoFit.to_dict``}."""
+    return {fit.group: fit.to_dict() for fit in check_view_groups(dataset, views, psnr)}
+
+
 def save_training_fit(run_dir: str | Path, fit: PhotoFit) -> Path:
     """Write ``fit`` to ``RUN/TRAINING_FIT_FILE`` atomically."""
     path = Path(run_dir) / TRAINING_FIT_FILE
@@ -149,14 +154,20 @@ def save_training_fit(run_dir: str | Path, fit: PhotoFit) -> Path:
     return path
 
 
+def fit_from_dict(stored: dict) -> PhotoFit:
+    """A ``PhotoFit.to_dict`` read back (training_fit.json, metrics.json's ``pose_check``), checked
+    again by today's rule."""
+    values = stored["psnr_db"]
+    return check_photo_fit(list(values), [float(v) for v in values.values()], stored.get("group", "training"))
+
+
 def load_training_fit(run_dir: str | Path) -> PhotoFit | None:
-    """The run's training fit, checked again by today's rule, or None when it has none. ValueError
-    naming the file when it is malformed."""
+    """The run's training fit (``fit_from_dict``), or None when it has none. ValueError naming the
+    file when it is malformed."""
     path = Path(run_dir) / TRAINING_FIT_FILE
     if not path.is_file():
         return None
     try:
-        values = json.loads(path.read_text())["psnr_db"]
-        return check_photo_fit(list(values), [float(v) for v in values.values()])
+        return fit_from_dict(json.loads(path.read_text()))
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
         raise ValueError(f"{path}: malformed training fit ({exc})") from exc

@@ -6,7 +6,8 @@ Stages (each with a progress bar):
    split into frames at ``fps`` frames per second of footage: from each window of
    ``video_fps / fps`` consecutive frames the sharpest (largest variance of the Laplacian) is
    kept, so the frames are both sharp and spread out; at most ``max_frames`` are kept. Photos
-   named in ``exclude`` are left out (not copied, matched or mapped).
+   named in ``exclude`` are left out (not read, copied, matched or mapped; a video's frames are left
+   out by preparing its scene again from ``SCENE/images``).
 2. Structure from motion with pycolmap (COLMAP's SIFT features, exhaustive matching for photos
    (``match_every_pair``: pair lists, a progress bar over the pairs) or sequential matching for
    video frames; one shared camera; CPU, or CUDA where pycolmap is built
@@ -217,16 +218,25 @@ def extract_video_frames(video: str | Path, out_dir: str | Path, *, fps: float =
     return written
 
 
-def collect_photos(folder: str | Path, out_dir: str | Path, *, progress: bool = True) -> list[Path]:
-    """Check the photos of ``folder`` (readable, one size) and copy them into ``out_dir``.
+def collect_photos(folder: str | Path, out_dir: str | Path, *, exclude=(), progress: bool = True) -> list[Path]:
+    """Check the photos of ``folder`` (readable, one size) and copy them into ``out_dir``; the photos
+    named in ``exclude`` are left as they are (not read, not copied).
 
-    Returns the copies, sorted by name. DatasetError naming the folder when it holds no photo, or
-    naming the photo that cannot be read or whose size differs from the first.
+    Returns the copies, sorted by name. DatasetError naming the folder when it holds no photo or
+    ``exclude`` names one it does not hold, or naming the photo that cannot be read or whose size
+    differs from the first.
     """
     folder, out_dir = Path(folder), Path(out_dir)
     if not folder.is_dir():
         raise DatasetError(folder, "missing photo folder")
     photos = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    skip = set(exclude)
+    unknown = sorted(skip - {p.name for p in photos})
+    if unknown:
+        raise DatasetError(folder, f"--exclude names {', '.join(repr(n) for n in unknown[:FAILURES_LISTED])}"
+                           f"{' and more' if len(unknown) > FAILURES_LISTED else ''}, not among its "
+                           f"{len(photos)} photos (give file names, as the pose check prints them)")
+    photos = [p for p in photos if p.name not in skip]
     if not photos:
         others = sorted(p.name for p in folder.iterdir())[:5]
         raise DatasetError(folder, f"no images ({'/'.join(IMAGE_SUFFIXES)}) in the folder"
@@ -626,25 +636,18 @@ def _prepare_into(staging: Path, source: Path, scene_dir: Path, *, camera_model:
     timings: dict[str, float] = {}
     in_place = source.is_dir() and source.resolve() == (scene_dir / "images").resolve()
     image_dir = source if in_place else staging / "images"
+    excluded = sorted(set(exclude))
     if source.is_file():
+        if excluded:
+            raise DatasetError(source, "--exclude names photos of a folder: prepare the video, then "
+                               "prepare SCENE/images --out SCENE --exclude ...")
         images = extract_video_frames(source, image_dir, fps=fps, max_frames=max_frames, progress=progress)
         timings["frames"] = time.perf_counter() - t_start
         matcher = matcher or "sequential"
     else:
-        images = collect_photos(source, image_dir, progress=progress)
+        images = collect_photos(source, image_dir, exclude=excluded, progress=progress)
         timings["photos"] = time.perf_counter() - t_start
         matcher = matcher or "exhaustive"
-    excluded = sorted(set(exclude))
-    unknown = [n for n in excluded if n not in {p.name for p in images}]
-    if unknown:
-        raise DatasetError(source, f"--exclude names {', '.join(repr(n) for n in unknown[:FAILURES_LISTED])}"
-                           f"{' and more' if len(unknown) > FAILURES_LISTED else ''}, not among its "
-                           f"{len(images)} photos (give file names, as the pose check prints them)")
-    if not in_place:  # a photo left out is not copied into the scene
-        for p in images:
-            if p.name in excluded:
-                p.unlink()
-    images = [p for p in images if p.name not in excluded]
     names = [p.name for p in images]
     digests = {p.name: file_digest(p) for p in images}
     reuse = reusable_database(scene_dir, digests, camera_model, matcher) if in_place and excluded else None
