@@ -21,7 +21,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
               "data.colmap_scene", "data.loading", "data.prepare", "sparse_depth", "capture_points", "virtual_views")),
     ("rendering and models", ("occupancy", "losses", "renderer", "adaptive", "config", "models", "models.base", "models.field_builder",
                               "models.snerf", "models.baselines", "models.registry", "free_space",
-                              "termination")),
+                              "termination", "laplace")),
     ("runs", ("scenes", "distributed", "trainer", "calibration", "evaluation")),
     ("products", ("products", "products.free_path", "products.free_path_calibration", "products.free_space", "products.occupancy_map",
                   "products.depth_maps", "products.free_path_cli", "products.plan", "products.planner_cli",

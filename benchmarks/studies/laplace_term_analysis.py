@@ -1,0 +1,246 @@
+"""Analysis (decides nothing): a Laplace depth std from coarse cells of the trained density.
+
+S-NeRF's depth std is almost all termination spread (study 34): its trajectories agree where the photos see
+a surface, so a surface rendered in front of the true one often gets a small std. ``stochastic_fields.laplace``
+measures what the training photos leave undetermined over regions of space instead: a diagonal Laplace
+approximation of a log-density offset per coarse cell (32 x 32 x 32 over the field's unit cube, prior std 1,
+the Fisher information of 65,536 training rays' colours), propagated to each ray's expected depth. This
+measures, on study 37's today runs (paper split, seeds 12-14) and their validation photos, how that std
+ranks the depth errors and what the depth map makes of it, in four arms, each map fitted on the same
+calibration renders (the calibration views between the training views, as ``calibrate`` fits them) and
+scored on the validation photos cross-fitted, as ``eval`` scores them:
+
+* ``today``: the run's raw std sigma (the map refitted: free-space weight, rho, s(p));
+* ``term``: sigma with the Laplace std as the map's extra term (the edge term's slot: gamma fitted by the
+  CRPS, ``calibration.fit_edge_weight``);
+* ``replace``: the Laplace std in place of sigma;
+* ``sum``: sqrt(sigma^2 + l^2) in place of sigma.
+
+The Laplace std l is put in sigma's units by one factor per run, median(sigma) / median(l) over the
+calibration renders (no validation photo is read). On the synthetic validation scenes (exact depth) the
+ranking alone: Spearman of |error| against each std per view, at 2,000 opaque pixels of each test view.
+Seed 12's rows were explored first (grid size and prior precision tried there); 13 and 14 confirm them.
+Command (inputs as ``agreement_groups_analysis.py`` lists them; synthetic runs: ``runs/synth/runS`` of
+study 39's ensemble analysis)::
+
+    OMP_NUM_THREADS=1 python benchmarks/studies/laplace_term_analysis.py --runs runs/mondrian \\
+        --seeds 12 13 14 --synthetic runs/synth/run1 runs/synth/run2 --work runs/laplace/analysis \\
+        --out benchmarks/results/laplace_term_analysis
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.stats import spearmanr
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from study_helpers import cached, write_study  # noqa: E402
+from tables_cap_study import validation_views  # noqa: E402
+
+import stochastic_fields.calibration as calibration  # noqa: E402
+from stochastic_fields.calibration import RunCalibration, depth_calibration_renders, depth_map_and_folds  # noqa: E402
+from stochastic_fields.cameras import generate_rays_for_view  # noqa: E402
+from stochastic_fields.capture_points import (block_keys, load_capture_points, rays_through_points,  # noqa: E402
+                                              score_sparse_depth)
+from stochastic_fields.evaluation import calibrated_depth_scores, depth_samples, pool_depth_samples  # noqa: E402
+from stochastic_fields.free_space import checked_std, load_training_depth  # noqa: E402
+from stochastic_fields.laplace import fit_laplace_density  # noqa: E402
+from stochastic_fields import metrics as M  # noqa: E402
+from stochastic_fields.trainer import TrainingRays, load_trained_model  # noqa: E402
+from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
+
+SEEDS = (12, 13, 14)
+SCENES = ("fern", "flower")
+ARMS = ("today", "term", "replace", "sum")
+LEVELS = ("50", "68", "90", "95", "99")
+SYNTHETIC_PIXELS = 2000
+
+
+def laplace_for(model, dataset):
+    """(the fitted LaplaceDensity, fit seconds) of a run."""
+    t0 = time.perf_counter()
+    rays = TrainingRays.from_dataset(dataset, torch.device("cpu")).rays
+    return fit_laplace_density(model, rays), time.perf_counter() - t0
+
+
+def arm_scores(arm: str, renders: dict, lap_cal: np.ndarray, val: list, capture, ref, where: str) -> dict:
+    """The validation photos' scores under ``arm``'s map (module doc)."""
+    r = {k: v for k, v in renders.items() if k != "edge"}
+    if arm == "term":
+        r["edge"] = lap_cal
+    elif arm in ("replace", "sum"):
+        raw = lap_cal if arm == "replace" else np.hypot(renders["std_raw"], lap_cal)
+        r.update(std_raw=raw, std=checked_std(raw, renders["violation"]))
+    depth_map, folds = depth_map_and_folds(r, capture, relative_floor=True, where=where)
+    cal = RunCalibration(depth=depth_map, points="held-out", training_depth=ref, depth_folds=folds)
+    pool = []
+    for sd, products, lap, blocks in val:
+        p = dict(products)
+        if arm == "term":
+            p["depth_edge"] = np.zeros_like(products["depth_mean"])
+            p["depth_edge"][sd.rows, sd.cols] = lap
+        elif arm in ("replace", "sum"):
+            p["depth_std_raw"] = products["depth_std_raw"].copy()
+            at = p["depth_std_raw"][sd.rows, sd.cols]
+            p["depth_std_raw"][sd.rows, sd.cols] = lap if arm == "replace" else np.hypot(at, lap)
+        pool.append(depth_samples(p, sparse=sd, blocks=blocks))
+    samples = pool_depth_samples(pool)
+    iv = calibrated_depth_scores(samples, cal)["intervals"]
+
+    def std_of(s):
+        return depth_map.calibrated_std(s.std_raw, s.violation, s.pred, s.edge)
+
+    per_view = [spearmanr(np.abs(s.pred - s.gt), std_of(s)).correlation for s in pool if s.gt.size > 10]
+    return {"coverage": {M.level_name(p): float(iv[f"coverage_{M.level_name(p)}"]) for p in M.INTERVAL_LEVELS},
+            "halfwidth_median_95": float(iv["halfwidth_median_95"]), "interval_score_95": float(iv["interval_score_95"]),
+            "crps": float(iv["crps"]), "points": int(samples.gt.size),
+            "spearman": float(spearmanr(np.abs(samples.pred - samples.gt), std_of(samples)).correlation),
+            "spearman_per_view": float(np.mean(per_view)),
+            "beta": depth_map.free_space_weight if depth_map.free_space else 0.0, "rho": depth_map.relative_floor,
+            "gamma": depth_map.edge_weight}
+
+
+def analyse(run: Path, evals: Path, views: list[int]) -> dict:
+    """Every arm's scores of one run at ``views`` (rendered in ``evals/views``), with the Laplace fit's
+    and a view's costs."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, model, dataset = load_trained_model(run, device="cpu")
+    laplace, fit_s = laplace_for(model, dataset)
+    ref = load_training_depth(run)
+    capture = load_capture_points(dataset)
+    original = calibration.edge_at_points
+    calibration.edge_at_points = lambda m, cams, near, far, sparse, depth, **_: laplace.depth_std(
+        m, rays_through_points(cams, near, far, sparse)[0]).numpy()
+    try:  # the calibration renders, with the Laplace std of their rays in the edge slot
+        renders = depth_calibration_renders(model, dataset, points="held-out", free_space=ref, pair_points="both",
+                                            edges=True)
+    finally:
+        calibration.edge_at_points = original
+    factor = float(np.median(renders["std_raw"]) / np.median(renders["edge"]))
+    val = []
+    for v, sd in score_sparse_depth(dataset, views).items():
+        with np.load(evals / "views" / f"view_{v:03d}.npz") as f:
+            products = {k: f[k] for k in f.files}
+        rays = generate_rays_for_view(dataset.cameras, v, dataset.near, dataset.far)
+        lap = laplace.depth_std(model, rays[torch.as_tensor(sd.rows), torch.as_tensor(sd.cols)]).numpy()
+        val.append((sd, products, factor * lap, block_keys(capture.xyz[sd.point_index], capture.xyz)))
+    out = {"arms": {arm: arm_scores(arm, renders, factor * renders["edge"], val, capture, ref, str(run)) for arm in ARMS},
+           "factor": factor, "fit_s": fit_s}
+    view = views[0]
+    rays = generate_rays_for_view(dataset.cameras, view, dataset.near, dataset.far).flatten()
+    t0 = time.perf_counter()
+    laplace.depth_std(model, rays)
+    out["view_laplace_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        model.render_view(generate_rays_for_view(dataset.cameras, view, dataset.near, dataset.far))
+    out["view_render_s"] = time.perf_counter() - t0
+    return out
+
+
+def analyse_synthetic(run: Path) -> dict:
+    """Per test view of a synthetic run: Spearman of |error| against the calibrated std, the Laplace std and
+    their sum (the run's map's scale, sigma's units by the median factor of each view's pixels)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, model, dataset = load_trained_model(run, device="cpu")
+    laplace, fit_s = laplace_for(model, dataset)
+    rng = np.random.default_rng(0)
+    rows = []
+    for v in dataset.test_indices:
+        with np.load(run / "eval" / "views" / f"view_{v:03d}.npz") as f:
+            p = {k: f[k] for k in f.files}
+        truth = np.asarray(dataset.depths[v])
+        r, c = np.nonzero(np.isfinite(truth) & (truth > 0) & (p["opacity"] > OPACITY_MASK))
+        pick = rng.choice(len(r), size=min(SYNTHETIC_PIXELS, len(r)), replace=False)
+        r, c = r[pick], c[pick]
+        rays = generate_rays_for_view(dataset.cameras, v, dataset.near, dataset.far)[torch.as_tensor(r), torch.as_tensor(c)]
+        lap = laplace.depth_std(model, rays).numpy()
+        err = np.abs(p["depth_mean"][r, c] - truth[r, c])
+        raw = p["depth_std_raw"][r, c]
+        summed = np.hypot(raw, lap * np.median(raw) / np.median(lap))
+        rows.append({"calibrated": spearmanr(err, p["depth_std"][r, c]).correlation,
+                     "raw": spearmanr(err, raw).correlation, "laplace": spearmanr(err, lap).correlation,
+                     "sum": spearmanr(err, summed).correlation})
+    return {key: float(np.mean([row[key] for row in rows])) for key in rows[0]} | {"views": len(rows), "fit_s": fit_s}
+
+
+def markdown(results: dict, synthetic: dict, seeds: list[int]) -> str:
+    lines = ["# A Laplace depth std from coarse cells of the trained density", "",
+             f"Study 37's today runs (paper split, seeds {', '.join(map(str, seeds))}), scored on their validation "
+             "photos as eval scores them (cross-fitted); each arm's map fitted on the same calibration renders. Means "
+             "over the seeds. Decides nothing.", "",
+             "| scene | arm | cov 50 / 68 / 90 / 95 / 99 | median 95% half-width | IS95 / depth | CRPS / depth | "
+             "depth Spearman pooled / per view |", "|---|---|---|---|---|---|---|"]
+    for scene, arms in results.items():
+        for arm, rows in arms.items():
+            mean = lambda key: float(np.mean([r[key] for r in rows]))  # noqa: E731
+            cov = " / ".join(f"{100 * np.mean([r['coverage'][n] for r in rows]):.1f}" for n in LEVELS)
+            lines.append(f"| {scene} | {arm} | {cov} | {100 * mean('halfwidth_median_95'):.1f}% | "
+                         f"{mean('interval_score_95'):.3f} | {mean('crps'):.4f} | {mean('spearman'):.3f} / "
+                         f"{mean('spearman_per_view'):.3f} |")
+    lines += ["", "Per seed (median 95% half-width, IS95 / depth, per-view Spearman):", "",
+              "| scene | arm | " + " | ".join(f"seed {s}" for s in seeds) + " |", "|---|---|" + "---|" * len(seeds)]
+    for scene, arms in results.items():
+        for arm, rows in arms.items():
+            cells = [f"{100 * r['halfwidth_median_95']:.1f}%, {r['interval_score_95']:.3f}, {r['spearman_per_view']:.3f}"
+                     for r in rows]
+            lines.append(f"| {scene} | {arm} | " + " | ".join(cells) + " |")
+    if synthetic:
+        lines += ["", "Synthetic validation scenes (demo preset, exact depth, 2,000 opaque pixels a test view): mean "
+                  "per-view Spearman of |error| against each std.", "",
+                  "| run | views | calibrated std (today) | raw sigma | Laplace std | sqrt(sigma^2 + l^2) |",
+                  "|---|---|---|---|---|---|"]
+        for label, s in synthetic.items():
+            lines.append(f"| {label} | {s['views']} | {s['calibrated']:.3f} | {s['raw']:.3f} | {s['laplace']:.3f} | "
+                         f"{s['sum']:.3f} |")
+    return "\n".join(lines) + "\n\nCommand: the module docstring of `benchmarks/studies/laplace_term_analysis.py`.\n"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--runs", type=Path, default=Path("runs/mondrian"))
+    ap.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
+    ap.add_argument("--extra", nargs=3, action="append", default=[], metavar=("LABEL", "RUN", "EVALS"),
+                    type=str, help="another run (a capture split's, a candidate's), scored at its eval folder's "
+                                   "views (the run's validation photos)")
+    ap.add_argument("--synthetic", nargs="*", type=Path, default=[], help="synthetic runs with RUN/eval/views")
+    ap.add_argument("--work", type=Path, default=Path("runs/laplace/analysis"), help="per-run results (resumable)")
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/laplace_term_analysis"))
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    args.extra = [(label, Path(run), Path(evals)) for label, run, evals in args.extra]
+    results: dict = {}
+    for scene in args.scenes:
+        per_seed = [cached(args.work / f"s{seed}" / f"{scene}.json",
+                           lambda: analyse(args.runs / f"s{seed}" / "today" / scene / "snerf_default",
+                                           args.runs / "validation" / f"s{seed}" / "today" / scene / "snerf_default",
+                                           validation_views(scene)))
+                    for seed in args.seeds]
+        results[scene] = {arm: [s["arms"][arm] for s in per_seed] for arm in ARMS}
+        results[scene + "_costs"] = [{k: s[k] for k in ("factor", "fit_s", "view_laplace_s", "view_render_s")}
+                                     for s in per_seed]
+    for label, run, evals in args.extra:
+        views = sorted(int(f.stem.split("_")[1]) for f in (evals / "views").glob("view_*.npz"))
+        done = cached(args.work / "extra" / f"{label}.json", lambda: analyse(run, evals, views))
+        results[label] = {arm: [done["arms"][arm]] for arm in ARMS}
+        results[label + "_costs"] = [{k: done[k] for k in ("factor", "fit_s", "view_laplace_s", "view_render_s")}]
+    synthetic = {run.name: cached(args.work / "synthetic" / f"{run.name}.json", lambda: analyse_synthetic(run))
+                 for run in args.synthetic}
+    tables = {k: v for k, v in results.items() if not k.endswith("_costs")}
+    write_study(args.out, {"results": results, "synthetic": synthetic, "seeds": args.seeds},
+                markdown(tables, synthetic, args.seeds))
+
+
+if __name__ == "__main__":
+    main()

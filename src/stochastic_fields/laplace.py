@@ -1,0 +1,217 @@
+"""A Laplace approximation of the trained density over coarse cells of space (post hoc).
+
+S-NeRF's variational posterior gives every sample its own density noise; the noise of a ray's
+samples is independent, so it averages out along the ray, and where the training photos see a
+surface the density's scale is a few hundredths of its location (studies 34 and the analysis
+after it, docs/studies.md): the K trajectories end at the same depth, and the depth std is almost
+all termination spread. What the photos leave undetermined over a *region* (a floater no other
+view refutes, a surface seen from one side) is a perturbation shared by every sample in it. This
+module measures it with a diagonal Laplace approximation, as Bayes' Rays (Goli et al., CVPR 2024)
+does for a deformation field, here for the density itself.
+
+**Perturbation.** A coarse grid of ``resolution`` = (X, Y, Z) cells over the field's unit cube
+(``SceneRegion.to_unit``); cell c scales the mean density of every point inside it,
+``sigma(x) = E[relu(Y(x))] exp(delta_c)``, piecewise constant (a sample lies in one cell; a ray
+crosses a cell in one run of consecutive samples). Samples outside the unit cube belong to no cell.
+
+**Derivatives** (alpha quadrature, one ray, samples i = 1..S, optical depths tau_i = sigma_i
+dt_i, transmittance T_i = exp(-sum_{j<i} tau_j), weights w_i = T_i (1 - exp(-tau_i)), final
+transmittance T_{S+1}, opacity O = 1 - T_{S+1}), d tau_i / d delta_c = tau_i for i in c:
+
+    dC / d tau_i = T_{i+1} c_i - sum_{j>i} w_j c_j - T_{S+1} b             (colour, background b)
+    dD / d tau_i = (T_{i+1} t_i - sum_{j>i} w_j t_j - D T_{S+1}) / O        (D = sum_i w_i t_i / O)
+
+so ``J_c = sum_{i in c} tau_i d/d tau_i`` is a sum over the ray's run of samples in c.
+
+**Posterior.** With the colour likelihood N(C_r | c_r, sigma_n^2) of the training rays and a prior
+delta_c ~ N(0, 1 / lambda), the Gauss-Newton Hessian's diagonal gives each cell the precision
+
+    P_c = lambda + (N / M) sum_{r in M sampled rays} sum_ch (dC_r,ch / d delta_c)^2 / sigma_n,ch^2
+
+(``fit_laplace_density``: M of the N training pixels, scaled to all of them), and a ray's expected
+depth the linearised variance ``V_r = sum_c (dD_r / d delta_c)^2 / P_c`` (``LaplaceDensity.depth_std``,
+in camera-z units: the ray distance times ``RayBundle.z_scale``). A cell no training ray passes
+through keeps the prior's variance 1 / lambda; one many rays see with sensitivity gets a small one.
+The mean density, the colour at the logits' mean (sigmoid(mu_c)) and dense samples (the model's
+``num_samples`` and spacing, not stratified, nothing skipped) define the linearisation point.
+"""
+
+from __future__ import annotations
+
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+from tqdm.auto import tqdm
+
+from .constants import OPACITY_EPS
+from .distributions import RectifiedNormal
+from .io_utils import atomic_write
+from .rays import RayBundle
+from .samplers import sample_along_rays
+
+#: Cells per axis of the perturbation grid (x, y, z of the field's unit cube).
+LAPLACE_RESOLUTION: tuple[int, int, int] = (32, 32, 32)
+#: Prior precision lambda of a cell's log-density offset (prior std 1: a factor e either way).
+LAPLACE_PRIOR_PRECISION: float = 1.0
+#: Training rays the Fisher information is summed over (a random subset, scaled to every pixel).
+LAPLACE_FIT_RAYS: int = 65536
+#: Rays per chunk of the fit and of ``depth_std``.
+LAPLACE_CHUNK: int = 1024
+
+
+def ray_derivatives(tau: Tensor, values: Tensor, background: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """(composited values [R, C], their derivatives d/d tau_i [R, S, C]) of ``values`` [R, S, C]
+    composited with optical depths ``tau`` [R, S] (module doc: ``T_{i+1} v_i - sum_{j>i} w_j v_j
+    - T_{S+1} b``; ``background`` [C] or None)."""
+    zeros = torch.zeros_like(tau[:, :1])
+    cum = torch.cumsum(torch.cat([zeros, tau], dim=1), dim=1)  # [R, S + 1]: sum_{j<i} tau_j, then the total
+    trans = torch.exp(-cum)  # T_1 .. T_{S+1}
+    w = trans[:, :-1] * -torch.expm1(-tau)  # [R, S]
+    wv = w[..., None] * values
+    composited = wv.sum(1)
+    after = composited[:, None, :] - torch.cumsum(wv, dim=1)  # sum_{j>i} w_j v_j
+    grad = trans[:, 1:, None] * values - after
+    if background is not None:
+        composited = composited + trans[:, -1:] * background
+        grad = grad - (trans[:, -1][:, None, None] * background)
+    return composited, grad
+
+
+def expected_depth_derivatives(tau: Tensor, t_mids: Tensor) -> tuple[Tensor, Tensor]:
+    """(D [R], dD / d tau_i [R, S]) of the opacity-normalised expected depth D = sum w_i t_i / O of
+    rays with optical depths ``tau`` and sample distances ``t_mids`` [R, S] (module doc)."""
+    numerator, d_num = ray_derivatives(tau, t_mids[..., None])
+    opacity = -torch.expm1(-tau.sum(1))  # [R]
+    final = 1.0 - opacity
+    o = opacity.clamp_min(OPACITY_EPS)
+    depth = numerator[:, 0] / o
+    return depth, (d_num[..., 0] - depth[:, None] * final[:, None]) / o[:, None]
+
+
+def cell_runs(cells: Tensor, per_sample: Tensor) -> tuple[Tensor, Tensor]:
+    """Sums of ``per_sample`` [R, S, C] over each ray's runs of consecutive samples in one cell.
+
+    ``cells`` [R, S] int64, -1 for a sample in no cell. Returns (cell of each run [R, S], -1 where
+    there is no run; the run's sums [R, S, C]): run k of ray r in slot k (a ray has at most S runs)."""
+    R, S = cells.shape
+    start = torch.ones_like(cells, dtype=torch.bool)
+    start[:, 1:] = cells[:, 1:] != cells[:, :-1]
+    run = torch.cumsum(start.long(), dim=1) - 1  # [R, S] run slot of each sample
+    sums = torch.zeros_like(per_sample).scatter_add_(1, run[..., None].expand_as(per_sample), per_sample)
+    run_cell = torch.full_like(cells, -1).scatter_(1, run, cells)
+    return run_cell, sums
+
+
+@dataclass
+class LaplaceDensity:
+    """The cells' posterior precisions P_c [X Y Z] (module doc), on the grid ``resolution``."""
+
+    resolution: tuple[int, int, int]
+    precision: Tensor
+    prior_precision: float
+    rays_used: int
+
+    def cells_of(self, unit: Tensor) -> Tensor:
+        """Cell index [*B] of unit-cube points [*B, 3] (x fastest), -1 outside the cube."""
+        res = torch.tensor(self.resolution, device=unit.device)
+        ijk = ((unit + 1.0) * 0.5 * res).floor().long().clamp(min=0)
+        ijk = torch.minimum(ijk, res - 1)
+        X, Y, _ = self.resolution
+        idx = (ijk[..., 2] * Y + ijk[..., 1]) * X + ijk[..., 0]
+        return torch.where((unit.abs() <= 1.0).all(-1), idx, torch.full_like(idx, -1))
+
+    def depth_std(self, model, rays: RayBundle, *, chunk: int = LAPLACE_CHUNK) -> Tensor:
+        """sqrt(V_r) [R] of flat ``rays`` [R] in camera-z units (module doc)."""
+        precision = self.precision.to(rays.origins.device)
+        out = []
+        for start in range(0, rays.origins.shape[0], chunk):
+            r = rays[start:start + chunk]
+            tau, _, t_mids, cells = _linearisation(model, r, self, colour=False)
+            _, d_depth = expected_depth_derivatives(tau, t_mids)
+            run_cell, J = cell_runs(cells, (tau * d_depth)[..., None])
+            seen = run_cell >= 0
+            var = torch.where(seen, J[..., 0] ** 2 / precision[run_cell.clamp_min(0)], torch.zeros_like(J[..., 0]))
+            out.append(var.sum(1).sqrt() * r.z_scale)
+        return torch.cat(out) if out else torch.zeros(0, device=rays.origins.device)
+
+    def save(self, path: Path) -> None:
+        def write(tmp: Path) -> None:
+            with open(tmp, "wb") as f:
+                np.savez(f, resolution=np.asarray(self.resolution), precision=self.precision.cpu().numpy(),
+                         prior_precision=self.prior_precision, rays_used=self.rays_used)
+
+        atomic_write(path, write)
+
+    @staticmethod
+    def load(path: Path) -> "LaplaceDensity":
+        try:
+            with np.load(Path(path), allow_pickle=False) as f:
+                res = tuple(int(v) for v in f["resolution"])
+                precision = torch.from_numpy(f["precision"])
+                prior, used = float(f["prior_precision"]), int(f["rays_used"])
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
+            raise ValueError(f"{path}: not a readable Laplace density file ({exc})") from None
+        if len(res) != 3 or precision.shape != (res[0] * res[1] * res[2],) or not bool((precision > 0).all()):
+            raise ValueError(f"{path}: not a Laplace density file (resolution {res}, precision "
+                             f"{tuple(precision.shape)}, all > 0 needed)")
+        return LaplaceDensity(res, precision, prior, used)
+
+
+def _linearisation(model, rays: RayBundle, grid: LaplaceDensity | tuple[int, int, int], *, colour: bool
+                   ) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
+    """(tau [R, S], colours [R, S, 3] or None, t_mids [R, S], cells [R, S]) of the mean field on
+    dense samples of ``rays`` (module doc), in float64."""
+    settings = model.render_settings
+    samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing, stratified=False)
+    positions = samples.positions
+    field = model.field
+    with torch.no_grad():
+        if colour:
+            params = field(positions, rays.directions[:, None, :].expand_as(positions))
+            loc, scale = params.density_loc, params.density_scale
+            rgb = torch.sigmoid(params.rgb_loc).double()
+        else:
+            loc, scale = field.density_params(positions)
+            rgb = None
+        density = RectifiedNormal(loc.double(), scale.double()).mean
+        unit = field.region.to_unit(positions.reshape(-1, 3)).reshape(positions.shape)
+    tau = density * (samples.t_ends - samples.t_starts).double()
+    g = grid if isinstance(grid, LaplaceDensity) else LaplaceDensity(tuple(grid), torch.ones(1), 1.0, 0)
+    return tau, rgb, samples.t_mids.double(), g.cells_of(unit)
+
+
+def fit_laplace_density(model, rays: RayBundle, *, resolution: tuple[int, int, int] = LAPLACE_RESOLUTION,
+                        prior_precision: float = LAPLACE_PRIOR_PRECISION, max_rays: int = LAPLACE_FIT_RAYS,
+                        seed: int = 0, chunk: int = LAPLACE_CHUNK, progress: bool = False) -> LaplaceDensity:
+    """The cells' precisions P_c from the training ``rays`` [N] (flat; module doc): the Fisher
+    information of the colour likelihood (the model's ``likelihood_std``) summed over ``max_rays`` of
+    them drawn with ``seed`` (all when fewer), times N / M, plus ``prior_precision``."""
+    if not prior_precision > 0:
+        raise ValueError(f"prior_precision must be > 0, got {prior_precision}")
+    if len(resolution) != 3 or min(resolution) < 1:
+        raise ValueError(f"resolution must be three cell counts >= 1, got {resolution}")
+    n = rays.origins.shape[0]
+    if n == 0:
+        raise ValueError("fit_laplace_density needs at least one training ray")
+    device = rays.origins.device
+    m = min(n, int(max_rays))
+    pick = torch.randperm(n, generator=torch.Generator().manual_seed(seed))[:m].to(device)
+    noise_var = (model.likelihood_std().detach().double().reshape(-1) ** 2).expand(3).to(device)
+    background = model.render_settings.background
+    bg = None if background is None else torch.tensor(background, dtype=torch.float64, device=device)
+    cells_total = resolution[0] * resolution[1] * resolution[2]
+    fisher = torch.zeros(cells_total, dtype=torch.float64, device=device)
+    grid = LaplaceDensity(tuple(int(v) for v in resolution), fisher, float(prior_precision), m)
+    for start in tqdm(range(0, m, chunk), desc="laplace: training rays", disable=not progress, leave=False):
+        r = rays[pick[start:start + chunk]]
+        tau, rgb, _, cells = _linearisation(model, r, grid, colour=True)
+        _, d_colour = ray_derivatives(tau, rgb, bg)
+        run_cell, J = cell_runs(cells, tau[..., None] * d_colour)
+        seen = run_cell >= 0
+        fisher.index_add_(0, run_cell[seen], (J[seen] ** 2 / noise_var).sum(-1))
+    precision = fisher * (n / m) + float(prior_precision)
+    return LaplaceDensity(grid.resolution, precision, float(prior_precision), m)

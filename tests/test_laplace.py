@@ -1,0 +1,164 @@
+"""The Laplace density uncertainty (stochastic_fields.laplace) against autograd and a brute-force
+Jacobian of every cell's log-density offset, in float64."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from stochastic_fields.fields.base import FieldParams
+from stochastic_fields.laplace import (LaplaceDensity, cell_runs, expected_depth_derivatives, fit_laplace_density,
+                                       ray_derivatives)
+from stochastic_fields.rays import RayBundle
+from stochastic_fields.scene_region import SceneRegion
+
+
+
+@pytest.fixture(autouse=True)
+def _float64():
+    """Every tensor of these tests in float64 (the references are exact to 1e-8)."""
+    before = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(before)
+
+
+def _composite(tau, values, background=None):
+    trans = torch.exp(-torch.cumsum(torch.cat([torch.zeros_like(tau[:, :1]), tau], 1), 1))
+    w = trans[:, :-1] * (1 - torch.exp(-tau))
+    out = (w[..., None] * values).sum(1)
+    return out if background is None else out + trans[:, -1:] * background
+
+
+def test_ray_derivatives_match_autograd():
+    g = torch.Generator().manual_seed(0)
+    tau = (torch.rand(5, 7, generator=g) * 2).requires_grad_()
+    values = torch.rand(5, 7, 3, generator=g)
+    bg = torch.tensor([0.2, 0.5, 0.9])
+    composited, grad = ray_derivatives(tau.detach(), values, bg)
+    ref = _composite(tau, values, bg)
+    assert torch.allclose(composited, ref.detach(), atol=1e-12)
+    for c in range(3):
+        auto, = torch.autograd.grad(ref[:, c].sum(), tau, retain_graph=True)
+        assert torch.allclose(grad[..., c], auto, atol=1e-12)
+
+
+def test_expected_depth_derivatives_match_autograd_including_empty_and_opaque_rays():
+    g = torch.Generator().manual_seed(1)
+    tau = torch.rand(4, 9, generator=g) * 3
+    tau[1] = 0.0  # empty ray: no opacity
+    tau[2, 3] = 80.0  # opaque: nothing behind sample 3 matters
+    t = torch.sort(torch.rand(4, 9, generator=g) * 5 + 1, dim=1).values
+    tau_g = tau.clone().requires_grad_()
+    trans = torch.exp(-torch.cumsum(torch.cat([torch.zeros(4, 1), tau_g], 1), 1))
+    w = trans[:, :-1] * (1 - torch.exp(-tau_g))
+    depth_ref = (w * t).sum(1) / w.sum(1).clamp_min(1e-6)
+    depth, grad = expected_depth_derivatives(tau, t)
+    assert torch.allclose(depth[[0, 2, 3]], depth_ref.detach()[[0, 2, 3]], atol=1e-10)
+    auto, = torch.autograd.grad(depth_ref[[0, 2, 3]].sum(), tau_g)
+    assert torch.allclose(grad[[0, 2, 3]], auto[[0, 2, 3]], atol=1e-9)
+    assert torch.isfinite(grad).all() and depth[1] == 0.0
+    assert torch.allclose(grad[2, 4:], torch.zeros(5), atol=1e-12)
+
+
+def test_cell_runs_by_hand():
+    cells = torch.tensor([[3, 3, 5, 5, 5, -1, 3]])
+    values = torch.arange(1.0, 8.0).reshape(1, 7, 1)
+    run_cell, sums = cell_runs(cells, values)
+    assert run_cell.tolist() == [[3, 5, -1, 3, -1, -1, -1]]
+    assert sums[0, :4, 0].tolist() == [3.0, 12.0, 6.0, 7.0]
+    assert sums[0, 4:, 0].abs().sum() == 0
+
+
+class _BlobField(torch.nn.Module):
+    """An analytic field on the unit cube: a density bump and a colour that varies in space."""
+
+    def __init__(self):
+        super().__init__()
+        self.region = SceneRegion("aabb", torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
+
+    def density_params(self, positions):
+        r2 = ((positions - torch.tensor([0.2, -0.1, 0.3])) ** 2).sum(-1)
+        return 6.0 * torch.exp(-4.0 * r2) - 1.0, 0.3 + 0.1 * positions[..., 0].abs()
+
+    def forward(self, positions, directions):
+        loc, scale = self.density_params(positions)
+        rgb = torch.stack([positions[..., 0], positions[..., 1] - positions[..., 2], positions[..., 2] * 2], -1)
+        return FieldParams(loc, scale, rgb, torch.ones_like(rgb))
+
+
+def _model(background=None):
+    return SimpleNamespace(field=_BlobField(), likelihood_std=lambda: torch.tensor([0.05, 0.1, 0.2]),
+                           render_settings=SimpleNamespace(num_samples=24, spacing="linear", background=background))
+
+
+def _rays(n, seed):
+    g = torch.Generator().manual_seed(seed)
+    origins = torch.tensor([0.0, 0.0, -3.0]) + 0.3 * torch.randn(n, 3, generator=g)
+    target = 0.6 * (torch.rand(n, 3, generator=g) - 0.5)
+    d = torch.nn.functional.normalize(target - origins, dim=-1)
+    return RayBundle(origins, d, torch.full((n,), 1.5), torch.full((n,), 4.5), 0.5 + 0.5 * torch.rand(n, generator=g))
+
+
+def _brute_force(model, rays, resolution, delta):
+    """Colours [R, 3] and depths [R] with every cell's density times exp(delta_c), differentiable in delta."""
+    from stochastic_fields.samplers import sample_along_rays
+    from stochastic_fields.distributions import RectifiedNormal
+    s = sample_along_rays(rays, model.render_settings.num_samples, spacing="linear", stratified=False)
+    pos = s.positions
+    params = model.field(pos, rays.directions[:, None, :].expand_as(pos))
+    dens = RectifiedNormal(params.density_loc, params.density_scale).mean
+    cells = LaplaceDensity(resolution, torch.ones(1), 1.0, 0).cells_of(model.field.region.to_unit(pos))
+    factor = torch.where(cells >= 0, torch.exp(delta[cells.clamp_min(0)]), torch.ones_like(dens))
+    tau = dens * factor * (s.t_ends - s.t_starts)
+    bg = model.render_settings.background
+    colour = _composite(tau, torch.sigmoid(params.rgb_loc), None if bg is None else torch.tensor(bg))
+    trans = torch.exp(-torch.cumsum(torch.cat([torch.zeros_like(tau[:, :1]), tau], 1), 1))
+    w = trans[:, :-1] * (1 - torch.exp(-tau))
+    depth = (w * s.t_mids).sum(1) / w.sum(1).clamp_min(1e-6) * rays.z_scale
+    return colour, depth
+
+
+@pytest.mark.parametrize("background", [None, (1.0, 1.0, 1.0)])
+def test_fit_and_depth_std_match_the_brute_force_jacobian(background):
+    model, res, lam = _model(background), (3, 2, 4), 0.7
+    train, test = _rays(40, 2), _rays(6, 3)
+    fitted = fit_laplace_density(model, train, resolution=res, prior_precision=lam, max_rays=25, seed=4, chunk=7)
+    nc = 3 * 2 * 4
+    delta = torch.zeros(nc, requires_grad=True)
+    pick = torch.randperm(40, generator=torch.Generator().manual_seed(4))[:25]
+    colour, _ = _brute_force(model, train[pick], res, delta)
+    fisher = torch.zeros(nc)
+    noise = model.likelihood_std() ** 2
+    for r in range(25):
+        for c in range(3):
+            j, = torch.autograd.grad(colour[r, c], delta, retain_graph=True)
+            fisher += j ** 2 / noise[c]
+    assert torch.allclose(fitted.precision, fisher * 40 / 25 + lam, rtol=1e-8, atol=1e-10)
+    assert fitted.rays_used == 25
+    _, depth = _brute_force(model, test, res, delta)
+    var = torch.stack([(torch.autograd.grad(depth[r], delta, retain_graph=True)[0] ** 2 / fitted.precision).sum()
+                       for r in range(6)])
+    assert torch.allclose(fitted.depth_std(model, test, chunk=4), var.sqrt(), rtol=1e-8, atol=1e-12)
+
+
+def test_unseen_cells_keep_the_prior_and_round_trip(tmp_path):
+    model = _model()
+    fitted = fit_laplace_density(model, _rays(10, 5), resolution=(4, 4, 4), prior_precision=2.0)
+    assert fitted.precision.min() == pytest.approx(2.0)  # cells no ray crossed
+    assert (fitted.precision > 2.0).any()
+    fitted.save(tmp_path / "laplace.npz")
+    back = LaplaceDensity.load(tmp_path / "laplace.npz")
+    assert back.resolution == (4, 4, 4) and torch.equal(back.precision, fitted.precision)
+    (tmp_path / "bad.npz").write_bytes(b"not a file")
+    with pytest.raises(ValueError, match="bad.npz"):
+        LaplaceDensity.load(tmp_path / "bad.npz")
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="prior_precision"):
+        fit_laplace_density(_model(), _rays(3, 0), prior_precision=0.0)
+    with pytest.raises(ValueError, match="resolution"):
+        fit_laplace_density(_model(), _rays(3, 0), resolution=(0, 2, 2))
