@@ -19,13 +19,32 @@ scored on the validation photos cross-fitted, as ``eval`` scores them:
 The Laplace std l is put in sigma's units by one factor per run, median(sigma) / median(l) over the
 calibration renders (no validation photo is read). On the synthetic validation scenes (exact depth) the
 ranking alone: Spearman of |error| against each std per view, at 2,000 opaque pixels of each test view.
-Seed 12's rows were explored first (grid size and prior precision tried there); 13 and 14 confirm them.
-Command (inputs as ``agreement_groups_analysis.py`` lists them; synthetic runs: ``runs/synth/runS`` of
-study 39's ensemble analysis)::
+Seed 12's rows were explored first (grid sizes 16^3 to 128 x 128 x 32 and prior precisions 0.01 to 10^4 tried
+there, with trilinear cells); 13 and 14 confirm them. Beside them (``--extra LABEL RUN EVALS``, scored at the
+photos EVALS/views holds): study 39's candidate (``field.grid_decoder_width=64 field.grid_feature_dim=16
+loss.lambda_smoothness=60``) at the paper split, seeds 12-14, and the capture split (seed 21, ten minutes on one
+thread). Commands (inputs as ``agreement_groups_analysis.py`` lists them; the synthetic runs ``runs/synth/runS``
+are study 39's ensemble analysis's; VALIDATION as there)::
 
-    OMP_NUM_THREADS=1 python benchmarks/studies/laplace_term_analysis.py --runs runs/mondrian \\
-        --seeds 12 13 14 --synthetic runs/synth/run1 runs/synth/run2 --work runs/laplace/analysis \\
-        --out benchmarks/results/laplace_term_analysis
+    # study 39's candidate, SEED 12-14, SCENE fern / flower
+    OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes SCENE --methods snerf_default --seed SEED \
+        --no-timing --quiet --set field.grid_decoder_width=64 --set field.grid_feature_dim=16 \
+        --set loss.lambda_smoothness=60 --out runs/laplace/sSEED/wide_smooth_SCENE
+    stochastic-fields eval --run runs/laplace/sSEED/wide_smooth_SCENE/SCENE/snerf_default --views VALIDATION \
+        --quiet --out runs/laplace/validation/sSEED/wide_smooth/SCENE/views_eval
+    # the capture split
+    OMP_NUM_THREADS=1 python benchmarks/capture_quality.py --scenes SCENE --methods snerf --marks 1 --threads 1 \
+        --seed 21 --quiet --work runs/laplace/capture --out runs/laplace/capture_report_SCENE
+    stochastic-fields eval --run runs/laplace/capture/SCENE/snerf/run --quiet \
+        --out runs/laplace/capture/SCENE/snerf/views_eval
+    # the analysis (each --extra as above for every run), then one setting tried on every scene
+    OMP_NUM_THREADS=1 python benchmarks/studies/laplace_term_analysis.py --runs runs/mondrian \
+        --seeds 12 13 14 --synthetic runs/synth/run1 runs/synth/run2 \
+        --extra wide_smooth_flower_s12 RUN EVALS ... --extra capture_fern_s21 RUN EVALS ... \
+        --work runs/laplace/analysis --out benchmarks/results/laplace_term_analysis
+    OMP_NUM_THREADS=1 python benchmarks/studies/laplace_term_analysis.py --runs runs/mondrian \
+        --seeds 12 13 14 --synthetic runs/synth/run1 runs/synth/run2 --resolution 96 96 32 --prior 100 \
+        --work runs/laplace/analysis_96 --out benchmarks/results/laplace_term_analysis/grid_96
 """
 
 from __future__ import annotations
@@ -52,7 +71,7 @@ from stochastic_fields.capture_points import (block_keys, load_capture_points, r
                                               score_sparse_depth)
 from stochastic_fields.evaluation import calibrated_depth_scores, depth_samples, pool_depth_samples  # noqa: E402
 from stochastic_fields.free_space import checked_std, load_training_depth  # noqa: E402
-from stochastic_fields.laplace import fit_laplace_density  # noqa: E402
+from stochastic_fields.laplace import LAPLACE_PRIOR_PRECISION, LAPLACE_RESOLUTION, fit_laplace_density  # noqa: E402
 from stochastic_fields import metrics as M  # noqa: E402
 from stochastic_fields.trainer import TrainingRays, load_trained_model  # noqa: E402
 from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
@@ -64,11 +83,15 @@ LEVELS = ("50", "68", "90", "95", "99")
 SYNTHETIC_PIXELS = 2000
 
 
+#: The perturbation grid and prior of a run's fit (``--resolution``, ``--prior``; the module's defaults).
+GRID = {"resolution": LAPLACE_RESOLUTION, "prior_precision": LAPLACE_PRIOR_PRECISION}
+
+
 def laplace_for(model, dataset):
     """(the fitted LaplaceDensity, fit seconds) of a run."""
     t0 = time.perf_counter()
     rays = TrainingRays.from_dataset(dataset, torch.device("cpu")).rays
-    return fit_laplace_density(model, rays), time.perf_counter() - t0
+    return fit_laplace_density(model, rays, **GRID), time.perf_counter() - t0
 
 
 def arm_scores(arm: str, renders: dict, lap_cal: np.ndarray, val: list, capture, ref, where: str) -> dict:
@@ -174,20 +197,24 @@ def analyse_synthetic(run: Path) -> dict:
     return {key: float(np.mean([row[key] for row in rows])) for key in rows[0]} | {"views": len(rows), "fit_s": fit_s}
 
 
-def markdown(results: dict, synthetic: dict, seeds: list[int]) -> str:
+def arm_row(label: str, arm: str, rows: list[dict]) -> str:
+    """One table row: the means over ``rows`` of coverage, width, interval score, CRPS and rankings."""
+    mean = lambda key: float(np.mean([r[key] for r in rows]))  # noqa: E731
+    cov = " / ".join(f"{100 * np.mean([r['coverage'][n] for r in rows]):.1f}" for n in LEVELS)
+    return (f"| {label} | {arm} | {cov} | {100 * mean('halfwidth_median_95'):.1f}% | {mean('interval_score_95'):.3f} | "
+            f"{mean('crps'):.4f} | {mean('spearman'):.3f} / {mean('spearman_per_view'):.3f} |")
+
+
+def markdown(results: dict, extra: dict, synthetic: dict, seeds: list[int]) -> str:
     lines = ["# A Laplace depth std from coarse cells of the trained density", "",
              f"Study 37's today runs (paper split, seeds {', '.join(map(str, seeds))}), scored on their validation "
              "photos as eval scores them (cross-fitted); each arm's map fitted on the same calibration renders. Means "
-             "over the seeds. Decides nothing.", "",
+             f"over the seeds. Perturbation grid {' x '.join(map(str, GRID['resolution']))} cells, prior precision "
+             f"{GRID['prior_precision']:g}. Decides nothing.", "",
              "| scene | arm | cov 50 / 68 / 90 / 95 / 99 | median 95% half-width | IS95 / depth | CRPS / depth | "
              "depth Spearman pooled / per view |", "|---|---|---|---|---|---|---|"]
     for scene, arms in results.items():
-        for arm, rows in arms.items():
-            mean = lambda key: float(np.mean([r[key] for r in rows]))  # noqa: E731
-            cov = " / ".join(f"{100 * np.mean([r['coverage'][n] for r in rows]):.1f}" for n in LEVELS)
-            lines.append(f"| {scene} | {arm} | {cov} | {100 * mean('halfwidth_median_95'):.1f}% | "
-                         f"{mean('interval_score_95'):.3f} | {mean('crps'):.4f} | {mean('spearman'):.3f} / "
-                         f"{mean('spearman_per_view'):.3f} |")
+        lines += [arm_row(scene, arm, rows) for arm, rows in arms.items()]
     lines += ["", "Per seed (median 95% half-width, IS95 / depth, per-view Spearman):", "",
               "| scene | arm | " + " | ".join(f"seed {s}" for s in seeds) + " |", "|---|---|" + "---|" * len(seeds)]
     for scene, arms in results.items():
@@ -195,6 +222,13 @@ def markdown(results: dict, synthetic: dict, seeds: list[int]) -> str:
             cells = [f"{100 * r['halfwidth_median_95']:.1f}%, {r['interval_score_95']:.3f}, {r['spearman_per_view']:.3f}"
                      for r in rows]
             lines.append(f"| {scene} | {arm} | " + " | ".join(cells) + " |")
+    if extra:
+        lines += ["", "Single runs (``--extra``): study 39's candidate at the paper split (its validation photos) and the "
+                  "capture split (its validation photos); the same four maps.", "",
+                  "| run | arm | cov 50 / 68 / 90 / 95 / 99 | median 95% half-width | IS95 / depth | CRPS / depth | "
+                  "depth Spearman pooled / per view |", "|---|---|---|---|---|---|---|"]
+        for label, arms in extra.items():
+            lines += [arm_row(label, arm, rows) for arm, rows in arms.items()]
     if synthetic:
         lines += ["", "Synthetic validation scenes (demo preset, exact depth, 2,000 opaque pixels a test view): mean "
                   "per-view Spearman of |error| against each std.", "",
@@ -209,16 +243,19 @@ def markdown(results: dict, synthetic: dict, seeds: list[int]) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--runs", type=Path, default=Path("runs/mondrian"))
-    ap.add_argument("--seeds", nargs="+", type=int, default=list(SEEDS))
-    ap.add_argument("--scenes", nargs="+", default=list(SCENES), choices=SCENES)
+    ap.add_argument("--seeds", nargs="*", type=int, default=list(SEEDS))
+    ap.add_argument("--scenes", nargs="*", default=list(SCENES), choices=SCENES)
     ap.add_argument("--extra", nargs=3, action="append", default=[], metavar=("LABEL", "RUN", "EVALS"),
                     type=str, help="another run (a capture split's, a candidate's), scored at its eval folder's "
                                    "views (the run's validation photos)")
     ap.add_argument("--synthetic", nargs="*", type=Path, default=[], help="synthetic runs with RUN/eval/views")
+    ap.add_argument("--resolution", type=int, nargs=3, default=list(LAPLACE_RESOLUTION), metavar=("X", "Y", "Z"))
+    ap.add_argument("--prior", type=float, default=LAPLACE_PRIOR_PRECISION, help="prior precision lambda")
     ap.add_argument("--work", type=Path, default=Path("runs/laplace/analysis"), help="per-run results (resumable)")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/laplace_term_analysis"))
     args = ap.parse_args()
     torch.set_num_threads(1)
+    GRID.update(resolution=tuple(args.resolution), prior_precision=args.prior)
     args.extra = [(label, Path(run), Path(evals)) for label, run, evals in args.extra]
     results: dict = {}
     for scene in args.scenes:
@@ -230,16 +267,17 @@ def main() -> None:
         results[scene] = {arm: [s["arms"][arm] for s in per_seed] for arm in ARMS}
         results[scene + "_costs"] = [{k: s[k] for k in ("factor", "fit_s", "view_laplace_s", "view_render_s")}
                                      for s in per_seed]
+    extra: dict = {}
     for label, run, evals in args.extra:
         views = sorted(int(f.stem.split("_")[1]) for f in (evals / "views").glob("view_*.npz"))
         done = cached(args.work / "extra" / f"{label}.json", lambda: analyse(run, evals, views))
-        results[label] = {arm: [done["arms"][arm]] for arm in ARMS}
+        extra[label] = {arm: [done["arms"][arm]] for arm in ARMS}
         results[label + "_costs"] = [{k: done[k] for k in ("factor", "fit_s", "view_laplace_s", "view_render_s")}]
     synthetic = {run.name: cached(args.work / "synthetic" / f"{run.name}.json", lambda: analyse_synthetic(run))
                  for run in args.synthetic}
     tables = {k: v for k, v in results.items() if not k.endswith("_costs")}
-    write_study(args.out, {"results": results, "synthetic": synthetic, "seeds": args.seeds},
-                markdown(tables, synthetic, args.seeds))
+    write_study(args.out, {"results": results, "extra": extra, "synthetic": synthetic, "seeds": args.seeds,
+                           "grid": dict(GRID)}, markdown(tables, extra, synthetic, args.seeds))
 
 
 if __name__ == "__main__":
