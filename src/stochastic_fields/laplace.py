@@ -73,7 +73,7 @@ def ray_derivatives(tau: Tensor, values: Tensor, background: Tensor | None = Non
     w = trans[:, :-1] * -torch.expm1(-tau)  # [R, S]
     wv = w[..., None] * values
     composited = wv.sum(1)
-    after = composited[:, None, :] - torch.cumsum(wv, dim=1)  # sum_{j>i} w_j v_j
+    after = torch.flip(torch.cumsum(torch.flip(wv, [1]), dim=1), [1]) - wv  # sum_{j>i} w_j v_j, summed from the far end
     grad = trans[:, 1:, None] * values - after
     if background is not None:
         composited = composited + trans[:, -1:] * background
