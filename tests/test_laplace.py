@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from stochastic_fields.fields.base import FieldParams
-from stochastic_fields.laplace import (LaplaceDensity, cell_runs, expected_depth_derivatives, fit_laplace_density,
+from stochastic_fields.laplace import (LaplaceDensity, cell_index, cell_runs, expected_depth_derivatives, fit_laplace_density,
                                        ray_derivatives)
 from stochastic_fields.rays import RayBundle
 from stochastic_fields.scene_region import SceneRegion
@@ -110,7 +110,7 @@ def _brute_force(model, rays, resolution, delta):
     pos = s.positions
     params = model.field(pos, rays.directions[:, None, :].expand_as(pos))
     dens = RectifiedNormal(params.density_loc, params.density_scale).mean
-    cells = LaplaceDensity(resolution, torch.ones(1), 1.0, 0).cells_of(model.field.region.to_unit(pos))
+    cells = cell_index(model.field.region.to_unit(pos), resolution)
     factor = torch.where(cells >= 0, torch.exp(delta[cells.clamp_min(0)]), torch.ones_like(dens))
     tau = dens * factor * (s.t_ends - s.t_starts)
     bg = model.render_settings.background

@@ -106,6 +106,16 @@ def cell_runs(cells: Tensor, per_sample: Tensor) -> tuple[Tensor, Tensor]:
     return run_cell, sums
 
 
+def cell_index(unit: Tensor, resolution: tuple[int, int, int]) -> Tensor:
+    """Cell index [*B] of unit-cube points [*B, 3] on a grid of ``resolution`` (X, Y, Z) cells (x
+    fastest), -1 outside the cube."""
+    res = torch.tensor(resolution, device=unit.device)
+    ijk = torch.minimum(((unit + 1.0) * 0.5 * res).floor().long().clamp(min=0), res - 1)
+    X, Y, _ = resolution
+    idx = (ijk[..., 2] * Y + ijk[..., 1]) * X + ijk[..., 0]
+    return torch.where((unit.abs() <= 1.0).all(-1), idx, torch.full_like(idx, -1))
+
+
 @dataclass
 class LaplaceDensity:
     """The cells' posterior precisions P_c [X Y Z] (module doc), on the grid ``resolution``."""
@@ -116,13 +126,8 @@ class LaplaceDensity:
     rays_used: int
 
     def cells_of(self, unit: Tensor) -> Tensor:
-        """Cell index [*B] of unit-cube points [*B, 3] (x fastest), -1 outside the cube."""
-        res = torch.tensor(self.resolution, device=unit.device)
-        ijk = ((unit + 1.0) * 0.5 * res).floor().long().clamp(min=0)
-        ijk = torch.minimum(ijk, res - 1)
-        X, Y, _ = self.resolution
-        idx = (ijk[..., 2] * Y + ijk[..., 1]) * X + ijk[..., 0]
-        return torch.where((unit.abs() <= 1.0).all(-1), idx, torch.full_like(idx, -1))
+        """Cell index [*B] of unit-cube points [*B, 3] on this grid (``cell_index``)."""
+        return cell_index(unit, self.resolution)
 
     def depth_std(self, model, rays: RayBundle, *, chunk: int = LAPLACE_CHUNK) -> Tensor:
         """sqrt(V_r) [R] of flat ``rays`` [R] in camera-z units (module doc)."""
@@ -130,7 +135,7 @@ class LaplaceDensity:
         out = []
         for start in range(0, rays.origins.shape[0], chunk):
             r = rays[start:start + chunk]
-            tau, _, t_mids, cells = _linearisation(model, r, self, colour=False)
+            tau, _, t_mids, cells = _linearisation(model, r, self.resolution, colour=False)
             _, d_depth = expected_depth_derivatives(tau, t_mids)
             run_cell, J = cell_runs(cells, (tau * d_depth)[..., None])
             seen = run_cell >= 0
@@ -161,7 +166,7 @@ class LaplaceDensity:
         return LaplaceDensity(res, precision, prior, used)
 
 
-def _linearisation(model, rays: RayBundle, grid: LaplaceDensity | tuple[int, int, int], *, colour: bool
+def _linearisation(model, rays: RayBundle, resolution: tuple[int, int, int], *, colour: bool
                    ) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
     """(tau [R, S], colours [R, S, 3] or None, t_mids [R, S], cells [R, S]) of the mean field on
     dense samples of ``rays`` (module doc), in float64."""
@@ -180,8 +185,7 @@ def _linearisation(model, rays: RayBundle, grid: LaplaceDensity | tuple[int, int
         density = RectifiedNormal(loc.double(), scale.double()).mean
         unit = field.region.to_unit(positions.reshape(-1, 3)).reshape(positions.shape)
     tau = density * (samples.t_ends - samples.t_starts).double()
-    g = grid if isinstance(grid, LaplaceDensity) else LaplaceDensity(tuple(grid), torch.ones(1), 1.0, 0)
-    return tau, rgb, samples.t_mids.double(), g.cells_of(unit)
+    return tau, rgb, samples.t_mids.double(), cell_index(unit, resolution)
 
 
 def fit_laplace_density(model, rays: RayBundle, *, resolution: tuple[int, int, int] = LAPLACE_RESOLUTION,
@@ -205,13 +209,13 @@ def fit_laplace_density(model, rays: RayBundle, *, resolution: tuple[int, int, i
     bg = None if background is None else torch.tensor(background, dtype=torch.float64, device=device)
     cells_total = resolution[0] * resolution[1] * resolution[2]
     fisher = torch.zeros(cells_total, dtype=torch.float64, device=device)
-    grid = LaplaceDensity(tuple(int(v) for v in resolution), fisher, float(prior_precision), m)
+    resolution = tuple(int(v) for v in resolution)
     for start in tqdm(range(0, m, chunk), desc="laplace: training rays", disable=not progress, leave=False):
         r = rays[pick[start:start + chunk]]
-        tau, rgb, _, cells = _linearisation(model, r, grid, colour=True)
+        tau, rgb, _, cells = _linearisation(model, r, resolution, colour=True)
         _, d_colour = ray_derivatives(tau, rgb, bg)
         run_cell, J = cell_runs(cells, tau[..., None] * d_colour)
         seen = run_cell >= 0
         fisher.index_add_(0, run_cell[seen], (J[seen] ** 2 / noise_var).sum(-1))
     precision = fisher * (n / m) + float(prior_precision)
-    return LaplaceDensity(grid.resolution, precision, float(prior_precision), m)
+    return LaplaceDensity(resolution, precision, float(prior_precision), m)
