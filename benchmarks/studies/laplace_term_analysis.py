@@ -50,6 +50,7 @@ are study 39's ensemble analysis's; VALIDATION as there)::
 from __future__ import annotations
 
 import argparse
+import functools
 import sys
 import time
 import warnings
@@ -257,28 +258,28 @@ def main() -> None:
     torch.set_num_threads(1)
     GRID.update(resolution=tuple(args.resolution), prior_precision=args.prior)
     args.extra = [(label, Path(run), Path(evals)) for label, run, evals in args.extra]
+    cost_keys = ("factor", "fit_s", "view_laplace_s", "view_render_s")
+    views_of = functools.cache(validation_views)  # a scene's photos, loaded once and only for a run not yet cached
     results: dict = {}
+    costs: dict = {}
     for scene in args.scenes:
         per_seed = [cached(args.work / f"s{seed}" / f"{scene}.json",
                            lambda: analyse(args.runs / f"s{seed}" / "today" / scene / "snerf_default",
                                            args.runs / "validation" / f"s{seed}" / "today" / scene / "snerf_default",
-                                           validation_views(scene)))
+                                           views_of(scene)))
                     for seed in args.seeds]
         results[scene] = {arm: [s["arms"][arm] for s in per_seed] for arm in ARMS}
-        results[scene + "_costs"] = [{k: s[k] for k in ("factor", "fit_s", "view_laplace_s", "view_render_s")}
-                                     for s in per_seed]
+        costs[scene] = [{k: s[k] for k in cost_keys} for s in per_seed]
     extra: dict = {}
     for label, run, evals in args.extra:
         views = sorted(int(f.stem.split("_")[1]) for f in (evals / "views").glob("view_*.npz"))
         done = cached(args.work / "extra" / f"{label}.json", lambda: analyse(run, evals, views))
         extra[label] = {arm: [done["arms"][arm]] for arm in ARMS}
-        results[label + "_costs"] = [{k: done[k] for k in ("factor", "fit_s", "view_laplace_s", "view_render_s")}]
+        costs[label] = [{k: done[k] for k in cost_keys}]
     synthetic = {run.name: cached(args.work / "synthetic" / f"{run.name}.json", lambda: analyse_synthetic(run))
                  for run in args.synthetic}
-    tables = {k: v for k, v in results.items() if not k.endswith("_costs")}
-    write_study(args.out, {"results": results, "extra": extra, "synthetic": synthetic, "seeds": args.seeds,
-                           "grid": dict(GRID)}, markdown(tables, extra, synthetic, args.seeds))
-
+    write_study(args.out, {"results": results, "extra": extra, "synthetic": synthetic, "costs": costs,
+                           "seeds": args.seeds, "grid": dict(GRID)}, markdown(results, extra, synthetic, args.seeds))
 
 if __name__ == "__main__":
     main()

@@ -52,6 +52,7 @@ from .distributions import RectifiedNormal
 from .io_utils import atomic_write
 from .rays import RayBundle
 from .samplers import sample_along_rays
+from .volume_rendering import weights_alpha_from_optical_depth
 
 #: Cells per axis of the perturbation grid (x, y, z of the field's unit cube).
 LAPLACE_RESOLUTION: tuple[int, int, int] = (32, 32, 32)
@@ -67,17 +68,15 @@ def ray_derivatives(tau: Tensor, values: Tensor, background: Tensor | None = Non
     """(composited values [R, C], their derivatives d/d tau_i [R, S, C]) of ``values`` [R, S, C]
     composited with optical depths ``tau`` [R, S] (module doc: ``T_{i+1} v_i - sum_{j>i} w_j v_j
     - T_{S+1} b``; ``background`` [C] or None)."""
-    zeros = torch.zeros_like(tau[:, :1])
-    cum = torch.cumsum(torch.cat([zeros, tau], dim=1), dim=1)  # [R, S + 1]: sum_{j<i} tau_j, then the total
-    trans = torch.exp(-cum)  # T_1 .. T_{S+1}
-    w = trans[:, :-1] * -torch.expm1(-tau)  # [R, S]
-    wv = w[..., None] * values
+    w = weights_alpha_from_optical_depth(tau)[..., None]  # [R, S, 1]
+    after_i = torch.exp(-torch.cumsum(tau, dim=1))[..., None]  # T_{i+1} [R, S, 1]; its last is T_{S+1}
+    wv = w * values
     composited = wv.sum(1)
-    after = torch.flip(torch.cumsum(torch.flip(wv, [1]), dim=1), [1]) - wv  # sum_{j>i} w_j v_j, summed from the far end
-    grad = trans[:, 1:, None] * values - after
+    later = torch.flip(torch.cumsum(torch.flip(wv, [1]), dim=1), [1]) - wv  # sum_{j>i} w_j v_j, from the far end
+    grad = after_i * values - later
     if background is not None:
-        composited = composited + trans[:, -1:] * background
-        grad = grad - (trans[:, -1][:, None, None] * background)
+        composited = composited + after_i[:, -1] * background
+        grad = grad - after_i[:, -1:] * background
     return composited, grad
 
 
@@ -207,9 +206,8 @@ def fit_laplace_density(model, rays: RayBundle, *, resolution: tuple[int, int, i
     noise_var = (model.likelihood_std().detach().double().reshape(-1) ** 2).expand(3).to(device)
     background = model.render_settings.background
     bg = None if background is None else torch.tensor(background, dtype=torch.float64, device=device)
-    cells_total = resolution[0] * resolution[1] * resolution[2]
-    fisher = torch.zeros(cells_total, dtype=torch.float64, device=device)
     resolution = tuple(int(v) for v in resolution)
+    fisher = torch.zeros(resolution[0] * resolution[1] * resolution[2], dtype=torch.float64, device=device)
     for start in tqdm(range(0, m, chunk), desc="laplace: training rays", disable=not progress, leave=False):
         r = rays[pick[start:start + chunk]]
         tau, rgb, _, cells = _linearisation(model, r, resolution, colour=True)
