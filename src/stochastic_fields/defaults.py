@@ -64,6 +64,9 @@ CAMERA_MODELS: dict[str, str] = {
 MAPPING_STRATEGIES: tuple[str, ...] = ("incremental", "incremental-relaxed", "global")
 #: Median triangulation angle (degrees) the initial pair needs in ``incremental-relaxed`` (COLMAP: 16).
 RELAXED_INIT_MIN_TRI_ANGLE_DEG: float = 4.0
+#: Scale (pixels) of the soft-L1 loss of the final global bundle adjustment (``refine_robust``): COLMAP's
+#: incremental mapper uses soft L1 at 1 px in its local bundle adjustments, a squared loss in its global ones.
+FINAL_BA_LOSS_SCALE_PX: float = 1.0
 
 # products/occupancy_map
 #: Opacity of one voxel crossing that counts as "blocked" for the default density threshold.
