@@ -369,8 +369,8 @@ def refine_robust(rec, *, num_threads: int = -1, loss_scale_px: float = FINAL_BA
     points; the principal point held, as the mappers hold it) with the soft-L1 loss
     ``rho(s) = 2 b^2 (sqrt(1 + s / b^2) - 1)`` of each squared reprojection error s (b =
     ``loss_scale_px``): quadratic below b pixels, linear above, so a mismatched observation pulls
-    with a bounded force (module doc). Returns (the refined copy, or ``rec`` itself where the solve
-    left a non-finite reprojection error; a report: the loss, its scale, the mean reprojection error
+    with a bounded force (module doc). Returns (the refined copy, or ``rec`` itself where Ceres
+    reports no usable solution; a report: the loss, its scale, the mean reprojection error
     before and after in pixels, ``applied``)."""
     import pycolmap  # heavy optional dependency, loaded only when prepare runs
 
@@ -382,15 +382,15 @@ def refine_robust(rec, *, num_threads: int = -1, loss_scale_px: float = FINAL_BA
     options.ceres.loss_function_type = pycolmap.LossFunctionType.SOFT_L1
     options.ceres.loss_function_scale = float(loss_scale_px)
     options.ceres.solver_options.num_threads = int(num_threads)
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in rec.reg_image_ids():
+        config.add_image(image_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)  # as pycolmap.bundle_adjustment
     refined = pycolmap.Reconstruction(rec)
-    old_level = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = PYCOLMAP_LOG_LEVEL
-    try:
-        pycolmap.bundle_adjustment(refined, options)
-    finally:
-        pycolmap.logging.minloglevel = old_level
+    summary = pycolmap.create_default_bundle_adjuster(options, config, refined).solve()
+    refined.update_point_3d_errors()
     before, after = float(rec.compute_mean_reprojection_error()), float(refined.compute_mean_reprojection_error())
-    applied = math.isfinite(after)
+    applied = bool(summary.is_solution_usable()) and math.isfinite(after)
     report = {"loss": "soft_l1", "scale_px": float(loss_scale_px), "reprojection_before_px": before,
               "reprojection_after_px": after if applied else before, "applied": applied}
     return (refined if applied else rec), report
