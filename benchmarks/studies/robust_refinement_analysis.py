@@ -1,0 +1,108 @@
+"""Analysis: which loss for prepare's final bundle adjustment (the models decide; the references score).
+
+``prepare`` keeps the mapper's model as it comes out of pycolmap's incremental or global mapping,
+whose last global bundle adjustment uses a squared loss. This applies one more global adjustment to
+each mapped model with each loss below and scores the cameras against the known poses of the same
+photos (``benchmarks/registration.py``'s ``score``: a similarity fitted on the camera centres, then
+the largest and median centre and rotation errors). ``none`` is the mapped model as it was.
+
+The models are the registration benchmark's prepared scenes of commit 722b82d (before
+``prepare`` refined them), copied to ``runs/registration_raw_722b82d`` before the benchmark was run
+again::
+
+    OMP_NUM_THREADS=1 python benchmarks/studies/robust_refinement_analysis.py \\
+        --models runs/registration_raw_722b82d --out benchmarks/results/robust_refinement_analysis
+
+Blender lego's poses are exact; LLFF's ``poses_bounds.npy`` are COLMAP's own from the full-size photos,
+a reference with errors of its own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from registration import reference_cameras  # noqa: E402
+from study_helpers import study_command, write_study  # noqa: E402
+
+from stochastic_fields.pose_alignment import pose_errors  # noqa: E402
+
+#: (label, pycolmap loss name or None, scale in pixels): the losses Ceres offers through pycolmap.
+LOSSES = (("none", None, None), ("squared", "TRIVIAL", 1.0), ("soft_l1 1px", "SOFT_L1", 1.0),
+          ("cauchy 0.5px", "CAUCHY", 0.5), ("cauchy 1px", "CAUCHY", 1.0), ("cauchy 2px", "CAUCHY", 2.0),
+          ("huber 1px", "HUBER", 1.0))
+
+
+def camera_to_world(rec) -> tuple[list[str], np.ndarray]:
+    """(image names, camera-to-world [N, 4, 4] in OpenCV axes) of a pycolmap Reconstruction's posed images."""
+    names, poses = [], []
+    for image_id in sorted(rec.reg_image_ids()):
+        image = rec.images[image_id]
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = image.cam_from_world().rotation.matrix(), image.cam_from_world().translation
+        names.append(image.name)
+        poses.append(np.linalg.inv(w2c))
+    return names, np.array(poses)
+
+
+def adjusted(model: Path, loss: str | None, scale: float | None):
+    """The model of ``model/sparse/0`` after one global adjustment with ``loss`` (None: as mapped)."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(model / "sparse" / "0")
+    if loss is not None:
+        options = pycolmap.BundleAdjustmentOptions()
+        options.print_summary = False
+        options.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, loss)
+        options.ceres.loss_function_scale = float(scale)
+        options.ceres.solver_options.num_threads = 1
+        config = pycolmap.BundleAdjustmentConfig()
+        for image_id in rec.reg_image_ids():
+            config.add_image(image_id)
+        config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+        pycolmap.create_default_bundle_adjuster(options, config, rec).solve()
+        rec.update_point_3d_errors()
+    return rec
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--models", type=Path, required=True, help="SCENE/LABEL/sparse/0 folders (registration's --work)")
+    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/robust_refinement_analysis"))
+    args = ap.parse_args()
+    rows = []
+    for model in sorted(p.parent.parent for p in args.models.glob("*/*/sparse/0")):
+        scene = model.parent.name
+        index, reference = reference_cameras(scene)
+        for label, loss, scale in LOSSES:
+            t0 = time.perf_counter()
+            rec = adjusted(model, loss, scale)
+            names, poses = camera_to_world(rec)
+            errors = pose_errors(poses, reference[[index[n] for n in names]])
+            rows.append({"scene": scene, "model": model.name, "loss": label, "seconds": time.perf_counter() - t0,
+                         "reprojection_px": float(rec.compute_mean_reprojection_error()), **errors})
+            print(f"{scene} {model.name} {label}: rotation max {errors['rotation_error_max_deg']:.3f}", flush=True)
+    lines = ["# The loss of a final global bundle adjustment", "", f"Command: `{study_command(Path(__file__).name, sys.argv[1:])}`",
+             "", "| scene | model | loss | centre err max / median (% extent) | rotation err max / median (deg) | "
+             "reproj. px |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['scene']} | {r['model']} | {r['loss']} | {100 * r['centre_error_max']:.2f} / "
+                     f"{100 * r['centre_error_median']:.2f} | {r['rotation_error_max_deg']:.2f} / "
+                     f"{r['rotation_error_median_deg']:.2f} | {r['reprojection_px']:.3f} |")
+    worst = {label: max(r["rotation_error_max_deg"] for r in rows if r["loss"] == label) for label, _, _ in LOSSES}
+    lines += ["", "Largest rotation error over every model, per loss: "
+              + ", ".join(f"{k} {v:.2f} deg" for k, v in worst.items()), ""]
+    write_study(args.out, {"command": study_command(Path(__file__).name, sys.argv[1:]), "rows": rows, "worst_rotation_deg": worst},
+                "\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
