@@ -384,6 +384,11 @@ def test_fern_photos_without_poses_recover_llff_cameras(shared_data, tmp_path):
     assert result.num_images == 21 and result.num_registered == 20
     assert list(result.failed) == ["zz_other.png"] and "too few matches" in result.failed["zz_other.png"]
     assert 0 < result.mean_reprojection_error_px < 1.5
+    refinement = result.refinement  # the robust adjustment ran on the mapped model and is what was written
+    assert refinement["applied"] and refinement["loss"] == "soft_l1"
+    assert result.mean_reprojection_error_px == pytest.approx(refinement["reprojection_after_px"], rel=1e-6)
+    assert refinement["reprojection_after_px"] < refinement["reprojection_before_px"]
+    assert "refinement: robust (soft_l1, 1 px) bundle adjustment" in result.summary()
     scene = tmp_path / "scene"
     for rel in ("sparse/0/cameras.bin", "sparse/0/images.bin", "sparse/0/points3D.bin", "transforms.json",
                 "sparse_pc.ply", "prepare.json", "images_2/image000.png", "images_8/image019.png"):
