@@ -464,16 +464,24 @@ def _camera_to_world(rec) -> np.ndarray:
     return np.array(out)
 
 
-def test_robust_refinement_resists_mismatched_observations():
-    """5% of the observations 15 px off: a squared-loss bundle adjustment (the mappers' last one)
-    leaves the cameras a quarter of a degree off; the soft-L1 one comes within a twentieth."""
-    pycolmap = pytest.importorskip("pycolmap")
-    exact, noisy = _synthetic_reconstruction(0.05)
-    squared = pycolmap.Reconstruction(noisy)
+def _squared_loss_adjustment(rec):
+    """A copy of ``rec`` after pycolmap's global bundle adjustment with its default squared loss."""
+    import pycolmap
+
+    adjusted = pycolmap.Reconstruction(rec)
     options = pycolmap.BundleAdjustmentOptions()
     options.print_summary = False
     options.ceres.solver_options.num_threads = THREADS
-    pycolmap.bundle_adjustment(squared, options)
+    pycolmap.bundle_adjustment(adjusted, options)
+    return adjusted
+
+
+def test_robust_refinement_resists_mismatched_observations():
+    """5% of the observations 15 px off: a squared-loss bundle adjustment (the mappers' last one)
+    leaves the cameras a quarter of a degree off; the soft-L1 one comes within a twentieth."""
+    pytest.importorskip("pycolmap")
+    exact, noisy = _synthetic_reconstruction(0.05)
+    squared = _squared_loss_adjustment(noisy)
     refined, report = refine_robust(noisy, num_threads=THREADS)
     truth = _camera_to_world(exact)
     plain_err = pose_errors(_camera_to_world(squared), truth)
@@ -492,13 +500,9 @@ def test_robust_refinement_resists_mismatched_observations():
 def test_robust_refinement_matches_squared_loss_without_outliers():
     """Gaussian 0.5 px noise only (every residual inside the soft-L1 loss's quadratic core): both
     adjustments land on the same cameras to a hundredth of a degree."""
-    pycolmap = pytest.importorskip("pycolmap")
+    pytest.importorskip("pycolmap")
     exact, noisy = _synthetic_reconstruction(0.0)
-    squared = pycolmap.Reconstruction(noisy)
-    options = pycolmap.BundleAdjustmentOptions()
-    options.print_summary = False
-    options.ceres.solver_options.num_threads = THREADS
-    pycolmap.bundle_adjustment(squared, options)
+    squared = _squared_loss_adjustment(noisy)
     refined, _ = refine_robust(noisy, num_threads=THREADS)
     truth = _camera_to_world(exact)
     a, b = pose_errors(_camera_to_world(squared), truth), pose_errors(_camera_to_world(refined), truth)
