@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import re
 import sys
 import time
 import warnings
@@ -206,9 +207,21 @@ def arm_row(label: str, arm: str, rows: list[dict]) -> str:
             f"{mean('crps'):.4f} | {mean('spearman'):.3f} / {mean('spearman_per_view'):.3f} |")
 
 
+def seed_groups(extra: dict) -> dict[str, list[str]]:
+    """{label without its ``_sSEED`` suffix: the ``--extra`` labels of that group}, groups of two or more runs."""
+    groups: dict[str, list[str]] = {}
+    for label in extra:
+        groups.setdefault(re.sub(r"_s\d+$", "", label), []).append(label)
+    return {group: labels for group, labels in groups.items() if len(labels) > 1}
+
+
 def markdown(results: dict, extra: dict, synthetic: dict, seeds: list[int]) -> str:
-    lines = ["# A Laplace depth std from coarse cells of the trained density", "",
-             f"Study 37's today runs (paper split, seeds {', '.join(map(str, seeds))}), scored on their validation "
+    lines = ["# A Laplace depth std from coarse cells of the trained density", ""]
+    if not results:
+        lines += [f"Perturbation grid {' x '.join(map(str, GRID['resolution']))} cells, prior precision "
+                  f"{GRID['prior_precision']:g}; the ``--extra`` runs only. Decides nothing."]
+        return _extra_markdown(lines, extra, synthetic)
+    lines += [f"Study 37's today runs (paper split, seeds {', '.join(map(str, seeds))}), scored on their validation "
              "photos as eval scores them (cross-fitted); each arm's map fitted on the same calibration renders. Means "
              f"over the seeds. Perturbation grid {' x '.join(map(str, GRID['resolution']))} cells, prior precision "
              f"{GRID['prior_precision']:g}. Decides nothing.", "",
@@ -223,6 +236,19 @@ def markdown(results: dict, extra: dict, synthetic: dict, seeds: list[int]) -> s
             cells = [f"{100 * r['halfwidth_median_95']:.1f}%, {r['interval_score_95']:.3f}, {r['spearman_per_view']:.3f}"
                      for r in rows]
             lines.append(f"| {scene} | {arm} | " + " | ".join(cells) + " |")
+    return _extra_markdown(lines, extra, synthetic)
+
+
+def _extra_markdown(lines: list[str], extra: dict, synthetic: dict) -> str:
+    """``markdown``'s tables of the ``--extra`` runs (each, then the means of each seed group) and the synthetic scenes."""
+    groups = seed_groups(extra)
+    if groups:
+        lines += ["", "Means over the seeds of each group of ``--extra`` runs (LABEL_sSEED):", "",
+                  "| runs | arm | cov 50 / 68 / 90 / 95 / 99 | median 95% half-width | IS95 / depth | CRPS / depth | "
+                  "depth Spearman pooled / per view |", "|---|---|---|---|---|---|---|"]
+        for group, labels in groups.items():
+            name = f"{group} ({', '.join(label[len(group) + 1:] for label in labels)})"
+            lines += [arm_row(name, arm, [extra[label][arm][0] for label in labels]) for arm in ARMS]
     if extra:
         lines += ["", "Single runs (``--extra``): study 39's candidate at the paper split (its validation photos) and the "
                   "capture split (its validation photos); the same four maps.", "",
