@@ -45,6 +45,10 @@ are study 39's ensemble analysis's; VALIDATION as there)::
     OMP_NUM_THREADS=1 python benchmarks/studies/laplace_term_analysis.py --runs runs/mondrian \
         --seeds 12 13 14 --synthetic runs/synth/run1 runs/synth/run2 --resolution 96 96 32 --prior 100 \
         --work runs/laplace/analysis_96 --out benchmarks/results/laplace_term_analysis/grid_96
+    # the candidate on fresh seeds 15-17 (trained and evaluated as above), the --extra runs alone
+    OMP_NUM_THREADS=1 python benchmarks/studies/laplace_term_analysis.py --seeds --scenes \
+        --extra wide_smooth_SCENE_sSEED RUN EVALS ... (every SCENE and SEED) \
+        --work runs/laplace/analysis_fresh --out benchmarks/results/laplace_term_analysis/fresh_seeds
 """
 
 from __future__ import annotations
