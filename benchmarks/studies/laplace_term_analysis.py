@@ -90,14 +90,15 @@ SYNTHETIC_PIXELS = 2000
 
 
 #: The perturbation grid and prior of a run's fit (``--resolution``, ``--prior``; the module's defaults).
-GRID = {"resolution": LAPLACE_RESOLUTION, "prior_precision": LAPLACE_PRIOR_PRECISION}
+GRID = {"resolution": LAPLACE_RESOLUTION, "prior_precision": LAPLACE_PRIOR_PRECISION, "pair_points": "both"}
 
 
 def laplace_for(model, dataset):
     """(the fitted LaplaceDensity, fit seconds) of a run."""
     t0 = time.perf_counter()
     rays = TrainingRays.from_dataset(dataset, torch.device("cpu")).rays
-    return fit_laplace_density(model, rays, **GRID), time.perf_counter() - t0
+    return (fit_laplace_density(model, rays, resolution=GRID["resolution"], prior_precision=GRID["prior_precision"]),
+            time.perf_counter() - t0)
 
 
 def arm_scores(arm: str, renders: dict, lap_cal: np.ndarray, val: list, capture, ref, where: str) -> dict:
@@ -150,7 +151,7 @@ def analyse(run: Path, evals: Path, views: list[int]) -> dict:
     calibration.edge_at_points = lambda m, cams, near, far, sparse, depth, **_: laplace.depth_std(
         m, rays_through_points(cams, near, far, sparse)[0]).numpy()
     try:  # the calibration renders, with the Laplace std of their rays in the edge slot
-        renders = depth_calibration_renders(model, dataset, points="held-out", free_space=ref, pair_points="both",
+        renders = depth_calibration_renders(model, dataset, points="held-out", free_space=ref, pair_points=GRID["pair_points"],
                                             edges=True)
     finally:
         calibration.edge_at_points = original
@@ -223,7 +224,8 @@ def markdown(results: dict, extra: dict, synthetic: dict, seeds: list[int]) -> s
     lines = ["# A Laplace depth std from coarse cells of the trained density", ""]
     if not results:
         lines += [f"Perturbation grid {' x '.join(map(str, GRID['resolution']))} cells, prior precision "
-                  f"{GRID['prior_precision']:g}; the ``--extra`` runs only. Decides nothing."]
+                  f"{GRID['prior_precision']:g}; calibration points seen by {GRID['pair_points']} view(s) of a pair; the "
+                  "``--extra`` runs only. Decides nothing."]
         return _extra_markdown(lines, extra, synthetic)
     lines += [f"Study 37's today runs (paper split, seeds {', '.join(map(str, seeds))}), scored on their validation "
              "photos as eval scores them (cross-fitted); each arm's map fitted on the same calibration renders. Means "
@@ -282,11 +284,13 @@ def main() -> None:
     ap.add_argument("--synthetic", nargs="*", type=Path, default=[], help="synthetic runs with RUN/eval/views")
     ap.add_argument("--resolution", type=int, nargs=3, default=list(LAPLACE_RESOLUTION), metavar=("X", "Y", "Z"))
     ap.add_argument("--prior", type=float, default=LAPLACE_PRIOR_PRECISION, help="prior precision lambda")
+    ap.add_argument("--pair-points", choices=("both", "either"), default="both",
+                    help="the calibration renders' points: seen by both views of a pair (calibrate's default) or either")
     ap.add_argument("--work", type=Path, default=Path("runs/laplace/analysis"), help="per-run results (resumable)")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/laplace_term_analysis"))
     args = ap.parse_args()
     torch.set_num_threads(1)
-    GRID.update(resolution=tuple(args.resolution), prior_precision=args.prior)
+    GRID.update(resolution=tuple(args.resolution), prior_precision=args.prior, pair_points=args.pair_points)
     args.extra = [(label, Path(run), Path(evals)) for label, run, evals in args.extra]
     cost_keys = ("factor", "fit_s", "view_laplace_s", "view_render_s")
     views_of = functools.cache(validation_views)  # a scene's photos, loaded once and only for a run not yet cached
