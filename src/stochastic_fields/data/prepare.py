@@ -31,10 +31,10 @@ Stages (each with a progress bar):
    Then one global bundle adjustment of that reconstruction with a robust loss
    (``refine_robust``: soft L1 at :data:`FINAL_BA_LOSS_SCALE_PX` pixels, the loss of COLMAP's local
    adjustments; the mappers end on a squared loss, which lets a few mismatched observations pull a
-   camera). On Blender lego's 100 renders (exact poses) it halves the largest rotation error (0.50
-   -> 0.37 degrees) and the largest centre error (0.35 -> 0.24% of the extent); docs/capture.md
-   has the measurements on LLFF's scenes. ``prepare.json`` records the reprojection error before
-   and after.
+   camera). On Blender lego's 100 renders (exact poses) the largest rotation error falls from 0.50
+   to 0.35 degrees and the largest centre error from 0.35% to 0.21-0.23% of the extent (seeds
+   0-2); docs/capture.md has the measurements on LLFF's scenes. ``prepare.json`` records the
+   reprojection error before and after.
 3. Output, next to the images::
 
        SCENE/sparse/0/{cameras,images,points3D}.bin   COLMAP model (+ rigs/frames.bin of COLMAP 3.12+)
