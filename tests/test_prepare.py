@@ -19,6 +19,7 @@ import torch
 
 from stochastic_fields.cameras import camera_centres, camera_to_world
 from stochastic_fields.data import DatasetError, load_dataset
+from stochastic_fields.data.colmap import world_to_camera
 from stochastic_fields.data.prepare import (FAILURES_LISTED, area_downscale_rgba, extract_video_frames,
                                                failure_summary, mapping_report, prepare, refine_robust, sharpness,
                                                write_downscaled)
@@ -455,13 +456,8 @@ def _synthetic_reconstruction(outlier_fraction: float, seed: int = 0):
 
 
 def _camera_to_world(rec) -> np.ndarray:
-    out = []
-    for image_id in sorted(rec.reg_image_ids()):
-        pose = rec.images[image_id].cam_from_world()
-        w2c = np.eye(4)
-        w2c[:3, :3], w2c[:3, 3] = pose.rotation.matrix(), pose.translation
-        out.append(np.linalg.inv(w2c))
-    return np.array(out)
+    """Camera-to-world [N, 4, 4] of a pycolmap Reconstruction's posed images, by image id."""
+    return np.array([np.linalg.inv(world_to_camera(rec.images[i])) for i in sorted(rec.reg_image_ids())])
 
 
 def _squared_loss_adjustment(rec):

@@ -20,7 +20,6 @@ a reference with errors of its own.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -33,6 +32,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from registration import reference_cameras  # noqa: E402
 from study_helpers import study_command, write_study  # noqa: E402
 
+from stochastic_fields.data.colmap import world_to_camera  # noqa: E402
+from stochastic_fields.data.prepare import bundle_adjust  # noqa: E402
 from stochastic_fields.pose_alignment import pose_errors  # noqa: E402
 
 #: (label, pycolmap loss name or None, scale in pixels): the losses Ceres offers through pycolmap.
@@ -43,34 +44,8 @@ LOSSES = (("none", None, None), ("squared", "TRIVIAL", 1.0), ("soft_l1 1px", "SO
 
 def camera_to_world(rec) -> tuple[list[str], np.ndarray]:
     """(image names, camera-to-world [N, 4, 4] in OpenCV axes) of a pycolmap Reconstruction's posed images."""
-    names, poses = [], []
-    for image_id in sorted(rec.reg_image_ids()):
-        image = rec.images[image_id]
-        w2c = np.eye(4)
-        w2c[:3, :3], w2c[:3, 3] = image.cam_from_world().rotation.matrix(), image.cam_from_world().translation
-        names.append(image.name)
-        poses.append(np.linalg.inv(w2c))
-    return names, np.array(poses)
-
-
-def adjusted(model: Path, loss: str | None, scale: float | None):
-    """The model of ``model/sparse/0`` after one global adjustment with ``loss`` (None: as mapped)."""
-    import pycolmap
-
-    rec = pycolmap.Reconstruction(model / "sparse" / "0")
-    if loss is not None:
-        options = pycolmap.BundleAdjustmentOptions()
-        options.print_summary = False
-        options.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, loss)
-        options.ceres.loss_function_scale = float(scale)
-        options.ceres.solver_options.num_threads = 1
-        config = pycolmap.BundleAdjustmentConfig()
-        for image_id in rec.reg_image_ids():
-            config.add_image(image_id)
-        config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
-        pycolmap.create_default_bundle_adjuster(options, config, rec).solve()
-        rec.update_point_3d_errors()
-    return rec
+    images = [rec.images[image_id] for image_id in sorted(rec.reg_image_ids())]
+    return [im.name for im in images], np.array([np.linalg.inv(world_to_camera(im)) for im in images])
 
 
 def main() -> None:
@@ -78,13 +53,16 @@ def main() -> None:
     ap.add_argument("--models", type=Path, required=True, help="SCENE/LABEL/sparse/0 folders (registration's --work)")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/robust_refinement_analysis"))
     args = ap.parse_args()
+    import pycolmap
+
     rows = []
     for model in sorted(p.parent.parent for p in args.models.glob("*/*/sparse/0")):
         scene = model.parent.name
         index, reference = reference_cameras(scene)
+        mapped = pycolmap.Reconstruction(model / "sparse" / "0")
         for label, loss, scale in LOSSES:
             t0 = time.perf_counter()
-            rec = adjusted(model, loss, scale)
+            rec = mapped if loss is None else bundle_adjust(mapped, loss, scale, num_threads=1)[0]
             names, poses = camera_to_world(rec)
             errors = pose_errors(poses, reference[[index[n] for n in names]])
             rows.append({"scene": scene, "model": model.name, "loss": label, "seconds": time.perf_counter() - t0,

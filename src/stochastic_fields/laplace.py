@@ -124,10 +124,6 @@ class LaplaceDensity:
     prior_precision: float
     rays_used: int
 
-    def cells_of(self, unit: Tensor) -> Tensor:
-        """Cell index [*B] of unit-cube points [*B, 3] on this grid (``cell_index``)."""
-        return cell_index(unit, self.resolution)
-
     def depth_std(self, model, rays: RayBundle, *, chunk: int = LAPLACE_CHUNK) -> Tensor:
         """sqrt(V_r) [R] of flat ``rays`` [R] in camera-z units (module doc)."""
         precision = self.precision.to(rays.origins.device)

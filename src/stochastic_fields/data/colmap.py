@@ -251,6 +251,13 @@ def find_colmap_model(root: str | Path) -> Path | None:
     return None
 
 
+def world_to_camera(image) -> np.ndarray:
+    """The world-to-camera matrix [4, 4] (OpenCV axes) of a posed pycolmap Image."""
+    w2c = np.eye(4)
+    w2c[:3] = image.cam_from_world().matrix()
+    return w2c
+
+
 def read_colmap_model(path: str | Path) -> ColmapModel:
     """Read a complete COLMAP model folder (binary or text) with pycolmap.
 
@@ -277,9 +284,7 @@ def read_colmap_model(path: str | Path) -> ColmapModel:
     for iid, im in rec.images.items():
         if not im.has_pose:
             continue
-        w2c = np.eye(4)
-        w2c[:3] = im.cam_from_world().matrix()
-        images.append(ColmapImage(int(iid), str(im.name), int(im.camera_id), w2c))
+        images.append(ColmapImage(int(iid), str(im.name), int(im.camera_id), world_to_camera(im)))
     if not images:
         raise DatasetError(path, "the COLMAP model has no registered image")
     images.sort(key=lambda im: im.name)

@@ -364,14 +364,11 @@ def map_images(database: Path, image_dir: Path, out: Path, strategy: str, *, nam
         bar.close()
 
 
-def refine_robust(rec, *, num_threads: int = -1, loss_scale_px: float = FINAL_BA_LOSS_SCALE_PX) -> tuple[object, dict]:
+def bundle_adjust(rec, loss: str, loss_scale_px: float, *, num_threads: int = -1) -> tuple[object, bool]:
     """One global bundle adjustment of a copy of the pycolmap Reconstruction ``rec`` (cameras, poses,
-    points; the principal point held, as the mappers hold it) with the soft-L1 loss
-    ``rho(s) = 2 b^2 (sqrt(1 + s / b^2) - 1)`` of each squared reprojection error s (b =
-    ``loss_scale_px``): quadratic below b pixels, linear above, so a mismatched observation pulls
-    with a bounded force (module doc). Returns (the refined copy, or ``rec`` itself where Ceres
-    reports no usable solution; a report: the loss, its scale, the mean reprojection error
-    before and after in pixels, ``applied``)."""
+    points; the principal point held, as the mappers hold it; the gauge of pycolmap.bundle_adjustment)
+    with Ceres's ``loss`` (a ``pycolmap.LossFunctionType`` name: TRIVIAL, SOFT_L1, CAUCHY, HUBER) at
+    ``loss_scale_px``. Returns (the adjusted copy, whether Ceres reports a usable solution)."""
     import pycolmap  # heavy optional dependency, loaded only when prepare runs
 
     if not loss_scale_px > 0:
@@ -379,18 +376,28 @@ def refine_robust(rec, *, num_threads: int = -1, loss_scale_px: float = FINAL_BA
     options = pycolmap.BundleAdjustmentOptions()
     options.print_summary = False
     options.refine_principal_point = False
-    options.ceres.loss_function_type = pycolmap.LossFunctionType.SOFT_L1
+    options.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, loss)
     options.ceres.loss_function_scale = float(loss_scale_px)
     options.ceres.solver_options.num_threads = int(num_threads)
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in rec.reg_image_ids():
         config.add_image(image_id)
-    config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)  # as pycolmap.bundle_adjustment
-    refined = pycolmap.Reconstruction(rec)
-    summary = pycolmap.create_default_bundle_adjuster(options, config, refined).solve()
-    refined.update_point_3d_errors()
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    adjusted = pycolmap.Reconstruction(rec)
+    summary = pycolmap.create_default_bundle_adjuster(options, config, adjusted).solve()
+    adjusted.update_point_3d_errors()
+    return adjusted, bool(summary.is_solution_usable())
+
+
+def refine_robust(rec, *, num_threads: int = -1, loss_scale_px: float = FINAL_BA_LOSS_SCALE_PX) -> tuple[object, dict]:
+    """``bundle_adjust`` of ``rec`` with the soft-L1 loss ``rho(s) = 2 b^2 (sqrt(1 + s / b^2) - 1)`` of
+    each squared reprojection error s (b = ``loss_scale_px``): quadratic below b pixels, linear above,
+    so a mismatched observation pulls with a bounded force (module doc). Returns (the refined copy, or
+    ``rec`` itself where Ceres reports no usable solution; a report: the loss, its scale, the mean
+    reprojection error before and after in pixels, ``applied``)."""
+    refined, usable = bundle_adjust(rec, "SOFT_L1", loss_scale_px, num_threads=num_threads)
     before, after = float(rec.compute_mean_reprojection_error()), float(refined.compute_mean_reprojection_error())
-    applied = bool(summary.is_solution_usable()) and math.isfinite(after)
+    applied = usable and math.isfinite(after)
     report = {"loss": "soft_l1", "scale_px": float(loss_scale_px), "reprojection_before_px": before,
               "reprojection_after_px": after if applied else before, "applied": applied}
     return (refined if applied else rec), report
