@@ -1,6 +1,6 @@
-"""Studies 27, 28, 29, 31, 37 and 39: one training factor of the tables at the paper split (27 and 28: the
-steps; 29: the occlusion regulariser; 31: the unseen-view depth smoothness; 37: the colour branch's
-capacity; 39: 31's and 37's candidates together), judged by their rules.
+"""Studies 27, 28, 29, 31, 37, 39 and 40: one training factor of the tables at the paper split (27 and 28:
+the steps; 29: the occlusion regulariser; 31: the unseen-view depth smoothness; 37: the colour branch's
+capacity; 39: 31's and 37's candidates together; 40: the sparse-depth weight), judged by their rules.
 
 **Study 27** (twice the steps, 1000 against 2000). The rows are ``benchmarks/eval_tables.py`` runs
 (S-NeRF (default) and the deterministic NeRF, paper split, one thread), seeds 1, 2 and 3, today's steps
@@ -69,12 +69,24 @@ training (``score_run``, the same cache this script reads)::
     python benchmarks/studies/tables_steps_study.py --study 39 --runs runs/wide_smooth_paper \
         --out benchmarks/results/wide_smooth_paper_study
 
+**Study 40** (``--study 40``: ``loss.lambda_depth`` 1 against 3, S-NeRF only: the deterministic NeRF has
+no depth likelihood). Seeds 12, 13 and 14; the ``today`` rows (both methods) and the candidate's
+deterministic rows are study 37's committed ``today`` scores
+(``benchmarks/results/colour_capacity_paper_study/results.json``), not re-trained; ARM ``depth3``, each run
+scored on its validation views right after its training (the same cache this script reads)::
+
+    OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes SCENE --methods snerf_default \
+        --seed SEED --no-timing --quiet --set loss.lambda_depth=3 --out runs/depth_weight_paper/sSEED/depth3
+    python benchmarks/studies/tables_steps_study.py --study 40 --runs runs/depth_weight_paper \
+        --out benchmarks/results/depth_weight_paper_study
+
 The tables' own test-view scores (each run's metrics.json) are not read.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import sys
 from pathlib import Path
@@ -98,6 +110,10 @@ class Study(NamedTuple):
     seed1_runs: Path | None = None  # runs that stand for the seed-1 1000-step rows (study 27: study 26's)
     row_name: str = "steps"  # the tables' column naming the rows
     sharper: bool = False  # study 29: S-NeRF's median 95% half-width and 95% interval score must not grow either
+    ranking: bool = False  # study 40: S-NeRF's depth Spearman may fall at most MAX_SPEARMAN_LOSS on each scene
+    reference: Path | None = None  # committed results.json whose rows stand for rows not trained here
+    reference_rows: dict | None = None  # row label -> the reference's label it is read from (every method)
+    trained_methods: tuple[str, ...] = METHODS  # methods the factor reaches: the others' rows come from the reference's first row
 
 
 STUDIES = {
@@ -162,7 +178,22 @@ STUDIES = {
               "the tables' CPU budget (fern 1000 steps, flower 1750), `field.grid_decoder_width` / "
               "`field.grid_feature_dim` / `loss.lambda_smoothness` 32 / 8 / 0 and 64 / 16 / 60",
               row_name="decoder / features / smoothness", sharper=True),
+    40: Study(40, "three times the sparse-depth weight at the paper split",
+              {"1 (today)": "today", "3 (candidate)": "depth3"}, (12, 13, 14), SCENES,
+              "How this was run: the `depth3` row commands of the script's docstring in two shell chains side by "
+              "side (`OMP_NUM_THREADS=1`; one chain fern's seeds 12-14 and flower's seed 14, the other flower's "
+              "seeds 12 and 13), each run scored on its validation views right after its training; the `today` "
+              "rows and the candidate's deterministic rows are study 37's committed `today` scores (not "
+              "re-trained: the factor does not reach the deterministic NeRF). Then `python "
+              "benchmarks/studies/tables_steps_study.py --study 40 --runs runs/depth_weight_paper --out "
+              "benchmarks/results/depth_weight_paper_study`. The decision and what it shows: docs/studies.md, study 40.",
+              "the tables' CPU budget (fern 1000 steps, flower 1750), `loss.lambda_depth` 1 and 3",
+              row_name="depth weight", sharper=True, ranking=True,
+              reference=Path(__file__).resolve().parents[1] / "results" / "colour_capacity_paper_study" / "results.json",
+              reference_rows={"1 (today)": "32 / 8 (today)"}, trained_methods=("snerf_default",)),
 }
+#: Study 40's ranking check: S-NeRF's depth Spearman (|error| against the std) may fall at most this much.
+MAX_SPEARMAN_LOSS = 0.02
 #: What each score's seed mean is taken of (None where a run has none: the deterministic NeRF's intervals).
 MEAN_KEYS = ("psnr", "ssim", "abs_rel", "spearman", "halfwidth_median_95", "interval_score_95", "crps", "train_s")
 
@@ -176,14 +207,31 @@ def run_folders(runs: Path, seed1_runs: Path | None, seed: int, row: str, scene:
 
 
 def scored_rows(runs: Path, row_folders: dict[str, str], seeds: tuple[int, ...], views: dict[str, list[int]], *,
-                methods: tuple[str, ...] = METHODS, seed1_runs: Path | None = None) -> tuple[dict, dict]:
+                methods: tuple[str, ...] = METHODS, seed1_runs: Path | None = None,
+                study: Study | None = None) -> tuple[dict, dict]:
     """Every seed's validation scores ({label: {scene: {method: [per seed]}}}, ``score_run``: cached) of the
-    rows ``row_folders`` ({label: its folder under sSEED}) on the scenes of ``views``, and their seed means."""
-    def score(seed: int, row: str, scene: str, method: str) -> dict:
+    rows ``row_folders`` ({label: its folder under sSEED}) on the scenes of ``views``, and their seed means.
+    With ``study.reference``, its ``reference_rows`` are read from that committed results.json, and the
+    methods the factor does not reach (not in ``study.trained_methods``) from the reference's first row."""
+    reference = {}
+    if study is not None and study.reference is not None:
+        committed = json.loads(study.reference.read_text())
+        if list(committed["seeds"]) != list(seeds):
+            raise SystemExit(f"{study.reference}: seeds {committed['seeds']}, this study's {list(seeds)}")
+        reference = {label: committed["rows"][ref] for label, ref in study.reference_rows.items()}
+        first = next(iter(reference.values()))
+    trained = study.trained_methods if study is not None else methods
+
+    def score(seed: int, label: str, row: str, scene: str, method: str) -> dict:
+        if label in reference:
+            return reference[label][scene][method][seeds.index(seed)]
+        if method not in trained:
+            return first[scene][method][seeds.index(seed)]
         run, scores = run_folders(runs, seed1_runs, seed, row, scene, method)
         return score_run(run, views[scene], scores)
 
-    rows = {label: {scene: {m: [score(seed, row, scene, m) for seed in seeds] for m in methods} for scene in views}
+    rows = {label: {scene: {m: [score(seed, label, row, scene, m) for seed in seeds] for m in methods}
+                    for scene in views}
             for label, row in row_folders.items()}
     means = {label: {scene: {m: seed_mean(per_seed) for m, per_seed in scenes[scene].items()} for scene in scenes}
              for label, scenes in rows.items()}
@@ -210,8 +258,8 @@ SHARPNESS_KEYS = (("halfwidth_median_95", "median 95% half-width"), ("interval_s
 
 def verdict(means: dict, study: Study = STUDIES[27]) -> tuple[bool, list[str]]:
     """The rule on the seed means: study 26's checks on every scene the candidate changes (docs/studies.md,
-    studies 27-29), and with ``study.sharper`` S-NeRF's median 95% half-width and 95% interval score no
-    larger than today's."""
+    studies 27-29), with ``study.sharper`` S-NeRF's median 95% half-width and 95% interval score no
+    larger than today's, and with ``study.ranking`` its depth Spearman at most ``MAX_SPEARMAN_LOSS`` lower."""
     today, cand = study.rows
     failed = [f for scene in study.scenes for f in scene_checks(scene, means[today][scene], means[cand][scene])]
     if study.sharper:
@@ -220,6 +268,11 @@ def verdict(means: dict, study: Study = STUDIES[27]) -> tuple[bool, list[str]]:
             for key, name in SHARPNESS_KEYS:
                 if t[key] is None or c[key] is None or c[key] > t[key]:
                     failed.append(f"{scene}: S-NeRF {name} {fmt(c[key], '{:.4f}')} against {fmt(t[key], '{:.4f}')}")
+    if study.ranking:
+        for scene in study.scenes:
+            t, c = means[today][scene]["snerf_default"]["spearman"], means[cand][scene]["snerf_default"]["spearman"]
+            if t is None or c is None or c < t - MAX_SPEARMAN_LOSS:
+                failed.append(f"{scene}: S-NeRF depth Spearman {fmt(c, '{:.3f}')} against {fmt(t, '{:.3f}')}")
     return not failed, failed
 
 
@@ -261,7 +314,7 @@ def main() -> None:
     seed1_runs = args.seed1_runs or study.seed1_runs
     views = {scene: validation_views(scene) for scene in study.scenes}
 
-    rows, means = scored_rows(args.runs, study.rows, study.seeds, views, seed1_runs=seed1_runs)
+    rows, means = scored_rows(args.runs, study.rows, study.seeds, views, seed1_runs=seed1_runs, study=study)
     taken, failed = verdict(means, study)
     write_study(args.out, {"study": study.number, "rows": rows, "means": means, "seeds": list(study.seeds),
                            "validation_views": views, "taken": taken, "failed": failed},
