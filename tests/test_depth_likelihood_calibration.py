@@ -121,6 +121,92 @@ def test_predictive_depth_nll_matches_float64_loop_and_jensen():
     assert np.isfinite(expected_one)
 
 
+def _robust_nll_loop(weights, t_mids, deltas, target, rho, eps, form) -> float:
+    """float64 loop of the outlier-share likelihood: p'_rk = (1 - eps) p_rk + eps / L_r,
+    L_r = sum_i delta_ri; 'expected' -1/(R K) sum log p'_rk, 'predictive' -1/R sum log mean_k p'_rk."""
+    R, K, S = weights.shape
+    total = 0.0
+    for r in range(R):
+        span = float(sum(deltas[r]))
+        per_k = []
+        for k in range(K):
+            mix = 0.0
+            for i in range(S):
+                var = deltas[r, i] ** 2 / 12 + (rho * target[r]) ** 2
+                dens = math.exp(-0.5 * (target[r] - t_mids[r, i]) ** 2 / var) / math.sqrt(2 * math.pi * var)
+                mix += max(weights[r, k, i], DEPTH_MIXTURE_WEIGHT_FLOOR) * dens
+            per_k.append((1 - eps) * mix + eps / span)
+        if form == "predictive":
+            total -= math.log(sum(per_k) / K)
+        else:
+            total -= sum(math.log(p) for p in per_k) / K
+    return total / R
+
+
+@pytest.mark.parametrize("form", ["expected", "predictive"])
+def test_depth_nll_outlier_share_matches_float64_loop(form):
+    """loss.depth_outlier_share: the Gaussian mixture mixed with a uniform density over the ray's sampled
+    range, against a float64 loop; 0 gives today's value bit for bit."""
+    g = torch.Generator().manual_seed(5)
+    R, K, S = 6, 3, 9
+    edges = torch.sort(torch.rand(R, S + 1, generator=g, dtype=torch.float64) * 10 + 1, dim=-1).values
+    t_mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
+    w = torch.rand(R, K, S, generator=g, dtype=torch.float64)
+    w = w / w.sum(-1, keepdim=True) * 0.9
+    w[0, 0] = 0.0  # an empty trajectory
+    target = t_mids[:, 4] + 0.2
+    target[1] = edges[1, -1] + 40.0  # a point far behind every sample: an outlier
+    for eps in (0.01, 0.2):
+        got = termination_depth_nll(w, t_mids, deltas, target, 0.03, form, eps).item()
+        ref = _robust_nll_loop(w.numpy(), t_mids.numpy(), deltas.numpy(), target.numpy(), 0.03, eps, form)
+        assert got == pytest.approx(ref, rel=1e-10)
+    assert torch.equal(termination_depth_nll(w, t_mids, deltas, target, 0.03, form, 0.0),
+                       termination_depth_nll(w, t_mids, deltas, target, 0.03, form))
+
+
+def test_depth_nll_outlier_share_bounds_an_outliers_pull():
+    """A point far from the rendered surface: with eps > 0 its loss is at most -log(eps / L) and its
+    gradient on the weights is far smaller than the Gaussian's; a point at the surface keeps almost
+    all of its pull."""
+    S = 32
+    t_mids = torch.linspace(1, 10, S, dtype=torch.float64).expand(2, S).clone()
+    deltas = torch.full((2, S), 9 / (S - 1), dtype=torch.float64)
+    base = torch.full((2, 1, S), 1e-4, dtype=torch.float64)
+    base[:, 0, 5] = 0.9  # an opaque surface near t = 2.3
+    target = torch.tensor([float(t_mids[0, 5]), 9.5], dtype=torch.float64)  # at the surface; far behind it
+
+    def pull(eps: float):
+        w = base.clone().requires_grad_()
+        per_ray = [termination_depth_nll(w[r:r + 1], t_mids[r:r + 1], deltas[r:r + 1], target[r:r + 1], 0.03,
+                                         "expected", eps) for r in range(2)]
+        grads = [torch.autograd.grad(loss, w, retain_graph=True)[0][r].abs().sum().item()
+                 for r, loss in enumerate(per_ray)]
+        return [loss.item() for loss in per_ray], grads
+
+    (near0, far0), (gnear0, gfar0) = pull(0.0)
+    (near1, far1), (gnear1, gfar1) = pull(0.05)
+    span = float(deltas[1].sum())
+    assert far1 <= -math.log(0.05 / span) + 1e-12 < far0
+    # d(-log p')/dw_i = (1 - eps) N_i / p' = [(1 - eps) p / p'] d(-log p)/dw_i: the pull scales by the
+    # share of the point's likelihood the surface still explains
+    share_far, share_near = (0.95 * math.exp(-x0) / math.exp(-x1) for x0, x1 in ((far0, far1), (near0, near1)))
+    assert gfar1 == pytest.approx(share_far * gfar0, rel=1e-9) and share_far < 0.1
+    assert gnear1 == pytest.approx(share_near * gnear0, rel=1e-9) and share_near > 0.94
+    with pytest.raises(ValueError, match="outlier share"):
+        termination_depth_nll(base, t_mids, deltas, target, 0.03, "expected", 1.0)
+
+
+def test_depth_outlier_share_option_range():
+    from stochastic_fields.config import ExperimentConfig, set_dotted, validate_experiment
+
+    cfg = ExperimentConfig()
+    assert cfg.loss.depth_outlier_share == 0.0
+    for bad in (1.0, -0.1, float("nan")):
+        with pytest.raises(ValueError, match="depth_outlier_share"):
+            set_dotted(cfg, "loss.depth_outlier_share", bad)
+            validate_experiment(cfg)
+
+
 def test_predictive_depth_nll_hand_value_two_trajectories():
     """One ray, two samples, K = 2: trajectory 0 puts all its mass on the sample at the point, 1 on
     the far one. With bins of width sqrt(12) (s^2 = 1 + (rho t*)^2, rho tiny) and N(0) = 1/sqrt(2 pi),

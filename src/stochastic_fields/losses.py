@@ -124,7 +124,7 @@ def depth_weight(lambda_depth: float, final_factor: float, progress: float) -> f
 
 
 def termination_depth_nll(weights: Tensor, t_mids: Tensor, deltas: Tensor, target_t: Tensor,
-                          relative_std: float, form: str = "expected") -> Tensor:
+                          relative_std: float, form: str = "expected", outlier_share: float = 0.0) -> Tensor:
     """Negative log-likelihood of an observed surface at ray distance t* under the termination
     distributions of the K trajectories, with p_rk = sum_i w_rki N(t*_r | t_ri, s_ri^2),
     s_ri^2 = delta_ri^2 / 12 + (rho t*_r)^2 (each sample's weight spread over its bin, widened by the
@@ -138,10 +138,18 @@ def termination_depth_nll(weights: Tensor, t_mids: Tensor, deltas: Tensor, targe
     the surface is penalised too. Weights below ``DEPTH_MIXTURE_WEIGHT_FLOOR`` count as that floor
     inside the log.
 
+    ``outlier_share`` eps in [0, 1): a point may be an outlier of the structure from motion, placed
+    anywhere on the ray's sampled range with equal density: p_rk is replaced by
+    (1 - eps) p_rk + eps / L_r, L_r = sum_i delta_ri, so a point far from every trajectory's mass
+    costs at most -log(eps / L_r) and pulls on the density with a weight that falls with its
+    distance (a robust, heavy-tailed likelihood). eps = 0 is the formula above exactly.
+
     Shapes: weights [R, K, S], t_mids [R, S], deltas [R, S], target_t [R] -> scalar.
     """
     if form not in DEPTH_LIKELIHOOD_FORMS:
         raise ValueError(f"depth likelihood form must be one of {DEPTH_LIKELIHOOD_FORMS}, got {form!r}")
+    if not 0.0 <= outlier_share < 1.0:
+        raise ValueError(f"depth likelihood outlier share must be in [0, 1), got {outlier_share!r}")
     var = deltas ** 2 / 12.0 + (relative_std * target_t[:, None]) ** 2  # [R, S]
     log_normal = -0.5 * (target_t[:, None] - t_mids) ** 2 / var - 0.5 * torch.log(2 * math.pi * var)
     # log sum_i w_i N_i = m + log sum_i w_i exp(log N_i - m), m = max_i log N_i per ray: the
@@ -151,8 +159,15 @@ def termination_depth_nll(weights: Tensor, t_mids: Tensor, deltas: Tensor, targe
     ratio = torch.exp(log_normal - peak)  # [R, S]
     mixture = torch.matmul(weights.clamp_min(DEPTH_MIXTURE_WEIGHT_FLOOR), ratio[:, :, None])[..., 0]  # [R, K]
     if form == "predictive":  # log mean_k p_rk = peak + log mean_k mixture_rk (mixture_rk >= the floor)
-        return -(torch.log(mixture.mean(dim=-1)) + peak[:, 0]).mean()
-    return -(torch.log(mixture) + peak).mean()
+        log_p = torch.log(mixture.mean(dim=-1)) + peak[:, 0]  # [R]
+    else:
+        log_p = torch.log(mixture) + peak  # [R, K]
+    if outlier_share > 0.0:  # log((1 - eps) p + eps / L), one logaddexp: nothing overflows
+        log_uniform = math.log(outlier_share) - torch.log(deltas.sum(dim=-1))  # [R]
+        if form != "predictive":
+            log_uniform = log_uniform[:, None]
+        log_p = torch.logaddexp(log_p + math.log1p(-outlier_share), log_uniform.expand_as(log_p))
+    return -log_p.mean()
 
 
 def field_kl(params: FieldParams, prior: tuple[Tensor, Tensor, Tensor, Tensor], *,

@@ -52,6 +52,8 @@ class LossConfig:
     """Depth noise of a capture point relative to its depth (added to each sample's bin width in the depth likelihood). Default 0.03 (0.01 before study 35): on the validation scenes depth abs-rel 0.0232 -> 0.0226, CRPS / depth 0.0162 -> 0.0159 and the depth ranking 0.454 -> 0.490 at +0.05 dB, flower's capture abs-rel 0.0576 -> 0.0550, fern's unchanged (benchmarks/results/point_noise_study). Range: a finite number > 0."""
     depth_likelihood: Literal["expected", "predictive"] = "expected"
     """How the depth likelihood combines the K trajectories of a capture-point ray: 'expected' (the ELBO's expected log-likelihood, -1/K sum_k log p(t* | w_k): every trajectory must put mass at the point) or 'predictive' (the log of the predictive mixture, -log 1/K sum_k p(t* | w_k): the trajectories together must, so they may disagree where the data do not decide; a proper scoring rule on the predictive termination distribution, as predictive / PAC^2 variational objectives, Masegosa 2020). The two are equal for K = 1 (termination_depth_nll). Default 'expected': 'predictive' changed nothing on the validation scenes, whose trajectories agree at the capture points to 0.03-0.08% of the depth (docs/studies.md, study 34)."""
+    depth_outlier_share: float = 0.0
+    """The share eps of capture points the depth likelihood treats as possible outliers of the structure from motion: each point's likelihood under a trajectory is (1 - eps) sum_i w_i N(t* | t_i, s_i^2) + eps / L, L the ray's sampled range (termination_depth_nll), so a point far from the rendered surface pulls on it less the farther it lies (a heavy-tailed likelihood). 0 = the Gaussian mixture alone (the default). Range: a finite number >= 0 and < 1."""
     depth_trains_scale: bool = True
     """Whether the sparse-depth likelihood's gradient reaches the density's scale s_a. On (the ELBO): the likelihood asks every trajectory to stop at each capture point, which shrinks the density's scale at the surfaces until the K trajectories agree. Off: its trajectories are drawn with stopgrad(s_a), so the capture points place the surfaces through the density's location mu_a only and the scale is set by the pixels and the priors. Off changed nothing measurable on a validation scene (benchmarks/results/predictive_depth_study/objective_knobs): the sharp surfaces, not the scale's gradient, keep the trajectories together."""
     depth_final_factor: float = 1.0
@@ -95,6 +97,7 @@ def _loss_checks() -> dict:
         "depth_rays_per_batch": integer(1, 2**20),
         "depth_relative_std": real(0.0, lo_open=True),
         "depth_likelihood": choice("expected", "predictive"),
+        "depth_outlier_share": real(0.0, 1.0, hi_open=True),
         "depth_draws": integer(0, 4096),
         "depth_trains_scale": boolean(),
         "depth_final_factor": real(0.0, 1.0),

@@ -58,7 +58,7 @@ _NOISE_HEAD_OPTIONS = ("loss.per_point_noise", "loss.noise_head_decoupled")
 
 #: Options of S-NeRF's sparse-depth likelihood (the baselines take no depth term).
 _DEPTH_OPTIONS = ("loss.lambda_depth", "loss.depth_rays_per_batch", "loss.depth_relative_std",
-                  "loss.depth_likelihood", "loss.depth_draws")
+                  "loss.depth_likelihood", "loss.depth_draws", "loss.depth_outlier_share")
 
 #: S-NeRF's training-likelihood estimator: the baselines' likelihoods draw no colours.
 _LIKELIHOOD_OPTIONS = ("loss.likelihood_estimator",)

@@ -263,7 +263,8 @@ class SNeRF(RadianceModel):
         trajectories of ``depth_trajectories``."""
         samples, _, _, weights = self.depth_trajectories(rays, generator=generator)
         return termination_depth_nll(weights, samples.t_mids, samples.deltas, target_t,
-                                     self.loss_config.depth_relative_std, self.loss_config.depth_likelihood)
+                                     self.loss_config.depth_relative_std, self.loss_config.depth_likelihood,
+                                     self.loss_config.depth_outlier_share)
 
     def _distortion(self, out: RayRender, samples: RaySamples | PackedRaySamples) -> Tensor:
         """Mean distortion over training rays and trajectories (stochastic_fields.distortion)."""
