@@ -21,19 +21,21 @@ from stochastic_fields.losses import termination_depth_nll
 
 
 # ----------------------------------------------------------------------------- depth likelihood
+def _mixture_loop(weights, t_mids, deltas, target, rho, r, k) -> float:
+    """float64 loop of sum_i max(w_rki, floor) N(t*_r | t_ri, s_ri^2), s_ri^2 = delta_ri^2 / 12 + (rho t*_r)^2."""
+    mix = 0.0
+    for i in range(weights.shape[2]):
+        var = deltas[r, i] ** 2 / 12 + (rho * target[r]) ** 2
+        dens = math.exp(-0.5 * (target[r] - t_mids[r, i]) ** 2 / var) / math.sqrt(2 * math.pi * var)
+        mix += max(weights[r, k, i], DEPTH_MIXTURE_WEIGHT_FLOOR) * dens
+    return mix
+
+
 def _nll_loop(weights, t_mids, deltas, target, rho) -> float:
     """float64 triple loop of -1/(R K) sum_{r,k} log sum_i max(w, floor) N(t* | t_i, s_i^2)."""
-    R, K, S = weights.shape
-    total = 0.0
-    for r in range(R):
-        for k in range(K):
-            mix = 0.0
-            for i in range(S):
-                var = deltas[r, i] ** 2 / 12 + (rho * target[r]) ** 2
-                dens = math.exp(-0.5 * (target[r] - t_mids[r, i]) ** 2 / var) / math.sqrt(2 * math.pi * var)
-                mix += max(weights[r, k, i], DEPTH_MIXTURE_WEIGHT_FLOOR) * dens
-            total -= math.log(mix)
-    return total / (R * K)
+    R, K, _ = weights.shape
+    return -sum(math.log(_mixture_loop(weights, t_mids, deltas, target, rho, r, k))
+                for r in range(R) for k in range(K)) / (R * K)
 
 
 def test_termination_depth_nll_matches_float64_loop():
@@ -84,17 +86,9 @@ def test_termination_depth_nll_hard_cases_finite():
 
 def _predictive_nll_loop(weights, t_mids, deltas, target, rho) -> float:
     """float64 loop of -1/R sum_r log (1/K sum_k sum_i max(w, floor) N(t* | t_i, s_i^2))."""
-    R, K, S = weights.shape
-    total = 0.0
-    for r in range(R):
-        mean = 0.0
-        for k in range(K):
-            for i in range(S):
-                var = deltas[r, i] ** 2 / 12 + (rho * target[r]) ** 2
-                dens = math.exp(-0.5 * (target[r] - t_mids[r, i]) ** 2 / var) / math.sqrt(2 * math.pi * var)
-                mean += max(weights[r, k, i], DEPTH_MIXTURE_WEIGHT_FLOOR) * dens / K
-        total -= math.log(mean)
-    return total / R
+    R, K, _ = weights.shape
+    return -sum(math.log(sum(_mixture_loop(weights, t_mids, deltas, target, rho, r, k) for k in range(K)) / K)
+                for r in range(R)) / R
 
 
 def test_predictive_depth_nll_matches_float64_loop_and_jensen():
@@ -124,18 +118,11 @@ def test_predictive_depth_nll_matches_float64_loop_and_jensen():
 def _robust_nll_loop(weights, t_mids, deltas, target, rho, eps, form) -> float:
     """float64 loop of the outlier-share likelihood: p'_rk = (1 - eps) p_rk + eps / L_r,
     L_r = sum_i delta_ri; 'expected' -1/(R K) sum log p'_rk, 'predictive' -1/R sum log mean_k p'_rk."""
-    R, K, S = weights.shape
+    R, K, _ = weights.shape
     total = 0.0
     for r in range(R):
         span = float(sum(deltas[r]))
-        per_k = []
-        for k in range(K):
-            mix = 0.0
-            for i in range(S):
-                var = deltas[r, i] ** 2 / 12 + (rho * target[r]) ** 2
-                dens = math.exp(-0.5 * (target[r] - t_mids[r, i]) ** 2 / var) / math.sqrt(2 * math.pi * var)
-                mix += max(weights[r, k, i], DEPTH_MIXTURE_WEIGHT_FLOOR) * dens
-            per_k.append((1 - eps) * mix + eps / span)
+        per_k = [(1 - eps) * _mixture_loop(weights, t_mids, deltas, target, rho, r, k) + eps / span for k in range(K)]
         if form == "predictive":
             total -= math.log(sum(per_k) / K)
         else:

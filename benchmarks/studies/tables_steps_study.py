@@ -125,6 +125,28 @@ class Study(NamedTuple):
     trained_methods: tuple[str, ...] = METHODS  # methods the factor reaches: the others' rows come from the reference's first row
 
 
+#: Study 37's committed scores: the today rows (and the deterministic NeRF's) of studies 40 and 41.
+STUDY_37_RESULTS = Path(__file__).resolve().parents[1] / "results" / "colour_capacity_paper_study" / "results.json"
+
+
+def depth_likelihood_study(number: int, title: str, arm: str, factor: str, row_name: str, today: str,
+                           candidate: str, results: str) -> Study:
+    """A study of one option of S-NeRF's sparse-depth likelihood (40, 41): seeds 12-14, ARM ``arm`` trained
+    here (S-NeRF only: the deterministic NeRF has no depth likelihood), today's rows and the deterministic
+    NeRF's read from study 37's committed scores; study 37's rule with the sharpness and ranking checks."""
+    how_run = (f"How this was run: the `{arm}` row commands of the script's docstring in two shell chains side by "
+               "side (`OMP_NUM_THREADS=1`; one chain fern's seeds 12-14 and flower's seed 14, the other flower's "
+               "seeds 12 and 13), each run scored on its validation views right after its training; the `today` "
+               "rows and the candidate's deterministic rows are study 37's committed `today` scores (not "
+               "re-trained: the factor does not reach the deterministic NeRF). Then `python "
+               f"benchmarks/studies/tables_steps_study.py --study {number} --runs runs/depth_weight_paper --out "
+               f"benchmarks/results/{results}`. The decision and what it shows: docs/studies.md, study {number}.")
+    return Study(number, title, {today: "today", candidate: arm}, (12, 13, 14), SCENES, how_run,
+                 f"the tables' CPU budget (fern 1000 steps, flower 1750), {factor}", row_name=row_name,
+                 sharper=True, ranking=True, reference=STUDY_37_RESULTS, reference_rows={today: "32 / 8 (today)"},
+                 trained_methods=("snerf_default",))
+
+
 STUDIES = {
     27: Study(27, "twice the tables' training steps at the paper split", {"1000 (today)": "1000", "2000 (candidate)": "2000"},
               (1, 2, 3), SCENES,
@@ -187,31 +209,12 @@ STUDIES = {
               "the tables' CPU budget (fern 1000 steps, flower 1750), `field.grid_decoder_width` / "
               "`field.grid_feature_dim` / `loss.lambda_smoothness` 32 / 8 / 0 and 64 / 16 / 60",
               row_name="decoder / features / smoothness", sharper=True),
-    40: Study(40, "three times the sparse-depth weight at the paper split",
-              {"1 (today)": "today", "3 (candidate)": "depth3"}, (12, 13, 14), SCENES,
-              "How this was run: the `depth3` row commands of the script's docstring in two shell chains side by "
-              "side (`OMP_NUM_THREADS=1`; one chain fern's seeds 12-14 and flower's seed 14, the other flower's "
-              "seeds 12 and 13), each run scored on its validation views right after its training; the `today` "
-              "rows and the candidate's deterministic rows are study 37's committed `today` scores (not "
-              "re-trained: the factor does not reach the deterministic NeRF). Then `python "
-              "benchmarks/studies/tables_steps_study.py --study 40 --runs runs/depth_weight_paper --out "
-              "benchmarks/results/depth_weight_paper_study`. The decision and what it shows: docs/studies.md, study 40.",
-              "the tables' CPU budget (fern 1000 steps, flower 1750), `loss.lambda_depth` 1 and 3",
-              row_name="depth weight", sharper=True, ranking=True,
-              reference=Path(__file__).resolve().parents[1] / "results" / "colour_capacity_paper_study" / "results.json",
-              reference_rows={"1 (today)": "32 / 8 (today)"}, trained_methods=("snerf_default",)),
-    41: Study(41, "a heavy-tailed sparse-depth likelihood at the paper split",
-              {"0 (today)": "today", "0.05 (candidate)": "outlier5"}, (12, 13, 14), SCENES,
-              "How this was run: the `outlier5` row commands of the script's docstring in two shell chains side by "
-              "side (`OMP_NUM_THREADS=1`; one chain fern's seeds 12-14 and flower's seed 14, the other flower's "
-              "seeds 12 and 13), each run scored on its validation views right after its training; the `today` "
-              "rows and the candidate's deterministic rows are study 37's committed `today` scores. Then `python "
-              "benchmarks/studies/tables_steps_study.py --study 41 --runs runs/depth_weight_paper --out "
-              "benchmarks/results/depth_outlier_paper_study`. The decision and what it shows: docs/studies.md, study 41.",
-              "the tables' CPU budget (fern 1000 steps, flower 1750), `loss.depth_outlier_share` 0 and 0.05",
-              row_name="outlier share", sharper=True, ranking=True,
-              reference=Path(__file__).resolve().parents[1] / "results" / "colour_capacity_paper_study" / "results.json",
-              reference_rows={"0 (today)": "32 / 8 (today)"}, trained_methods=("snerf_default",)),
+    40: depth_likelihood_study(40, "three times the sparse-depth weight at the paper split", "depth3",
+                               "`loss.lambda_depth` 1 and 3", "depth weight", "1 (today)", "3 (candidate)",
+                               "depth_weight_paper_study"),
+    41: depth_likelihood_study(41, "a heavy-tailed sparse-depth likelihood at the paper split", "outlier5",
+                               "`loss.depth_outlier_share` 0 and 0.05", "outlier share", "0 (today)",
+                               "0.05 (candidate)", "depth_outlier_paper_study"),
 }
 #: Study 40's ranking check: S-NeRF's depth Spearman (|error| against the std) may fall at most this much.
 MAX_SPEARMAN_LOSS = 0.02
