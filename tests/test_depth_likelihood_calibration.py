@@ -38,13 +38,19 @@ def _nll_loop(weights, t_mids, deltas, target, rho) -> float:
                 for r in range(R) for k in range(K)) / (R * K)
 
 
-def test_termination_depth_nll_matches_float64_loop():
-    g = torch.Generator().manual_seed(0)
-    R, K, S = 5, 3, 7
+def _random_rays(seed: int, R: int, K: int, S: int):
+    """float64 rays of S random bins in [1, 11] (edges [R, S+1], t_mids and deltas [R, S]) and K random
+    trajectories' weights [R, K, S] of opacity 0.9 each."""
+    g = torch.Generator().manual_seed(seed)
     edges = torch.sort(torch.rand(R, S + 1, generator=g, dtype=torch.float64) * 10 + 1, dim=-1).values
     t_mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
     w = torch.rand(R, K, S, generator=g, dtype=torch.float64)
-    w = w / w.sum(-1, keepdim=True) * 0.9
+    return edges, t_mids, deltas, w / w.sum(-1, keepdim=True) * 0.9
+
+
+def test_termination_depth_nll_matches_float64_loop():
+    R, K, S = 5, 3, 7
+    edges, t_mids, deltas, w = _random_rays(0, R, K, S)
     w[0, 0] = 0.0  # an empty trajectory: only the floor remains
     target = t_mids[:, 3] + 0.3
     got = termination_depth_nll(w, t_mids, deltas, target, 0.01).item()
@@ -92,12 +98,8 @@ def _predictive_nll_loop(weights, t_mids, deltas, target, rho) -> float:
 
 
 def test_predictive_depth_nll_matches_float64_loop_and_jensen():
-    g = torch.Generator().manual_seed(3)
     R, K, S = 5, 4, 7
-    edges = torch.sort(torch.rand(R, S + 1, generator=g, dtype=torch.float64) * 10 + 1, dim=-1).values
-    t_mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
-    w = torch.rand(R, K, S, generator=g, dtype=torch.float64)
-    w = w / w.sum(-1, keepdim=True) * 0.9
+    edges, t_mids, deltas, w = _random_rays(3, R, K, S)
     w[0, 0] = 0.0  # an empty trajectory: the others still explain the point
     target = t_mids[:, 3] + 0.3
     got = termination_depth_nll(w, t_mids, deltas, target, 0.01, "predictive").item()
@@ -134,12 +136,8 @@ def _robust_nll_loop(weights, t_mids, deltas, target, rho, eps, form) -> float:
 def test_depth_nll_outlier_share_matches_float64_loop(form):
     """loss.depth_outlier_share: the Gaussian mixture mixed with a uniform density over the ray's sampled
     range, against a float64 loop; 0 gives today's value bit for bit."""
-    g = torch.Generator().manual_seed(5)
     R, K, S = 6, 3, 9
-    edges = torch.sort(torch.rand(R, S + 1, generator=g, dtype=torch.float64) * 10 + 1, dim=-1).values
-    t_mids, deltas = 0.5 * (edges[:, 1:] + edges[:, :-1]), edges[:, 1:] - edges[:, :-1]
-    w = torch.rand(R, K, S, generator=g, dtype=torch.float64)
-    w = w / w.sum(-1, keepdim=True) * 0.9
+    edges, t_mids, deltas, w = _random_rays(5, R, K, S)
     w[0, 0] = 0.0  # an empty trajectory
     target = t_mids[:, 4] + 0.2
     target[1] = edges[1, -1] + 40.0  # a point far behind every sample: an outlier
