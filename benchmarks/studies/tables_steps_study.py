@@ -120,9 +120,10 @@ class Study(NamedTuple):
     row_name: str = "steps"  # the tables' column naming the rows
     sharper: bool = False  # study 29: S-NeRF's median 95% half-width and 95% interval score must not grow either
     ranking: bool = False  # study 40: S-NeRF's depth Spearman may fall at most MAX_SPEARMAN_LOSS on each scene
-    reference: Path | None = None  # committed results.json whose rows stand for rows not trained here
-    reference_rows: dict | None = None  # row label -> the reference's label it is read from (every method)
-    trained_methods: tuple[str, ...] = METHODS  # methods the factor reaches: the others' rows come from the reference's first row
+    # (results.json, label): committed scores whose row ``label`` stands for today's row (the first of
+    # ``rows``, every method) and for the candidate's rows of the methods not in ``trained_methods``
+    reference: tuple[Path, str] | None = None
+    trained_methods: tuple[str, ...] = METHODS  # methods the factor reaches (trained for the candidate's row)
 
 
 #: Study 37's committed scores: the today rows (and the deterministic NeRF's) of studies 40 and 41.
@@ -143,7 +144,7 @@ def depth_likelihood_study(number: int, title: str, arm: str, factor: str, row_n
                f"benchmarks/results/{results}`. The decision and what it shows: docs/studies.md, study {number}.")
     return Study(number, title, {today: "today", candidate: arm}, (12, 13, 14), SCENES, how_run,
                  f"the tables' CPU budget (fern 1000 steps, flower 1750), {factor}", row_name=row_name,
-                 sharper=True, ranking=True, reference=STUDY_37_RESULTS, reference_rows={today: "32 / 8 (today)"},
+                 sharper=True, ranking=True, reference=(STUDY_37_RESULTS, "32 / 8 (today)"),
                  trained_methods=("snerf_default",))
 
 
@@ -235,22 +236,20 @@ def scored_rows(runs: Path, row_folders: dict[str, str], seeds: tuple[int, ...],
                 study: Study | None = None) -> tuple[dict, dict]:
     """Every seed's validation scores ({label: {scene: {method: [per seed]}}}, ``score_run``: cached) of the
     rows ``row_folders`` ({label: its folder under sSEED}) on the scenes of ``views``, and their seed means.
-    With ``study.reference``, its ``reference_rows`` are read from that committed results.json, and the
-    methods the factor does not reach (not in ``study.trained_methods``) from the reference's first row."""
-    reference = {}
+    With ``study.reference``, today's row (the first) is read from that committed results.json, and so
+    are the other rows' scores of the methods the factor does not reach (not in ``study.trained_methods``)."""
+    today = None
     if study is not None and study.reference is not None:
-        committed = json.loads(study.reference.read_text())
+        path, label = study.reference
+        committed = json.loads(path.read_text())
         if list(committed["seeds"]) != list(seeds):
-            raise SystemExit(f"{study.reference}: seeds {committed['seeds']}, this study's {list(seeds)}")
-        reference = {label: committed["rows"][ref] for label, ref in study.reference_rows.items()}
-        first = next(iter(reference.values()))
-    trained = study.trained_methods if study is not None else methods
+            raise SystemExit(f"{path}: seeds {committed['seeds']}, this study's {list(seeds)}")
+        today = committed["rows"][label]
+    first_label = next(iter(row_folders))
 
     def score(seed: int, label: str, row: str, scene: str, method: str) -> dict:
-        if label in reference:
-            return reference[label][scene][method][seeds.index(seed)]
-        if method not in trained:
-            return first[scene][method][seeds.index(seed)]
+        if today is not None and (label == first_label or method not in study.trained_methods):
+            return today[scene][method][seeds.index(seed)]
         run, scores = run_folders(runs, seed1_runs, seed, row, scene, method)
         return score_run(run, views[scene], scores)
 

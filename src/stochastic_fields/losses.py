@@ -166,7 +166,7 @@ def termination_depth_nll(weights: Tensor, t_mids: Tensor, deltas: Tensor, targe
         log_uniform = math.log(outlier_share) - torch.log(deltas.sum(dim=-1))  # [R]
         if form != "predictive":
             log_uniform = log_uniform[:, None]
-        log_p = torch.logaddexp(log_p + math.log1p(-outlier_share), log_uniform.expand_as(log_p))
+        log_p = torch.logaddexp(log_p + math.log1p(-outlier_share), log_uniform)
     return -log_p.mean()
 
 
