@@ -272,6 +272,22 @@ def test_metric_figures_plot_the_metric_curves(inspector, view):
     np.testing.assert_allclose(lines[2].get_ydata(), m["depth_calibration"].coverage)
 
 
+def test_interval_figure_draws_the_views_intervals(inspector, view):
+    m = inspector.view_metrics(view)
+    iv = m["depth_intervals"]
+    assert iv["num_values"] == int(m["depth_mask"].sum())
+    assert m["scores"]["depth_intervals/coverage_95"] == pytest.approx(iv["coverage_95"])
+    # the pooled coverage is the calibration curve's at the same levels (one distribution)
+    cal = m["depth_calibration"]
+    i95 = int(np.argmin(np.abs(cal.levels - 0.95)))
+    assert iv["coverage_95"] == pytest.approx(cal.coverage[i95], abs=2.0 / iv["num_values"] + 0.011)
+    fig = inspector.interval_figure(view)
+    lines = fig.axes[0].lines  # ideal, all, narrowest third, widest third
+    np.testing.assert_allclose(lines[1].get_ydata(), iv["coverage"])
+    np.testing.assert_allclose(lines[2].get_ydata(), iv["width_groups"]["coverage"][0])
+    np.testing.assert_allclose(lines[3].get_ydata(), iv["width_groups"]["coverage"][-1])
+
+
 @pytest.mark.parametrize("name", list(MAP_SPECS))
 def test_map_figures_have_colour_bars_with_units(inspector, view, name):
     if name not in inspector.map_names():  # the free-space map (its run is below) and the edge map

@@ -130,3 +130,36 @@ def test_event_reliability_of_perfect_and_bad_input():
         M.event_reliability([1.5], [1])
     with pytest.raises(ValueError, match="at least one event"):
         M.event_reliability([], [])
+
+
+def test_width_groups_by_hand():
+    # six depths of 10, bands of half-widths 0.1 .. 0.6 (relative 1% .. 6%), errors chosen per value:
+    # the narrowest two miss at every level, the middle two one each, the widest two hold at 95% and miss at 68%
+    y = np.full(6, 10.0)
+    half95 = np.array([0.3, 0.1, 0.4, 0.2, 0.6, 0.5])  # out of order: the groups sort by width
+    err = np.array([0.5, 0.2, 0.0, 0.3, 0.5, 0.45])
+    z95 = norm.ppf(0.975)
+    std = half95 / z95
+    iv = M.interval_sharpness(y, lambda t: M.gaussian_quantiles(y - err, std, t))
+    g = iv["width_groups"]
+    assert g["num_values"] == [2, 2, 2] and g["level"] == 0.95
+    np.testing.assert_allclose(g["upper_edge"], [0.02, 0.04, 0.06], rtol=1e-9)
+    np.testing.assert_allclose(g["halfwidth_median"], [0.015, 0.035, 0.055], rtol=1e-9)
+    # narrowest third = values 1 (0.1, err 0.2) and 3 (0.2, err 0.3): both outside at every level
+    assert iv["coverage_95_narrowest_third"] == 0.0 and iv["coverage_68_narrowest_third"] == 0.0
+    # widest third = values 4 (0.6, err 0.5) and 5 (0.5, err 0.45): inside at 95%, outside at 68%
+    # (68% half-width = z68 / z95 x 0.5 or 0.6 = 0.26 / 0.31 < the errors)
+    assert iv["coverage_95_widest_third"] == 1.0 and iv["coverage_68_widest_third"] == 0.0
+    assert iv["halfwidth_95_narrowest_third_max"] == pytest.approx(0.02, rel=1e-9)
+    # the groups' coverage averages to the pool's (equal sizes)
+    np.testing.assert_allclose(np.mean(g["coverage"], axis=0), iv["coverage"], atol=1e-12)
+
+
+def test_width_groups_need_as_many_values_as_groups():
+    iv = M.interval_sharpness([5.0, 6.0], lambda t: M.gaussian_quantiles([5.0, 6.0], [0.1, 0.2], t))
+    assert iv["width_groups"]["coverage"] == [] and math.isnan(iv["coverage_95_narrowest_third"])
+    assert math.isnan(iv["halfwidth_95_narrowest_third_max"])
+    # unequal sizes: 7 values -> 3, 2, 2 (numpy's array_split), ties kept in input order
+    y = np.full(7, 4.0)
+    iv = M.interval_sharpness(y, lambda t: M.gaussian_quantiles(y, np.full(7, 0.1), t))
+    assert iv["width_groups"]["num_values"] == [3, 2, 2]

@@ -151,6 +151,6 @@ def test_notebook_runs_static(tiny_run, kernel_env):
     outs = _all_outputs(nb)
     _assert_no_errors(outs)
     assert "widgets" not in nb.metadata
-    # overview, map, probe, static 3D cloud, sparsification, calibration: all in the cells themselves
-    assert _mime_count(outs, "image/png") == 6
+    # overview, map, probe, static 3D cloud, sparsification, calibration, depth intervals: all in the cells
+    assert _mime_count(outs, "image/png") == 7
     assert _mime_count(outs, "application/vnd.plotly.v1+json") == 0

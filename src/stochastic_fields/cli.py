@@ -239,6 +239,12 @@ def _print_summary(result: dict, title: str) -> None:
               f"90th percentile {100 * iv['halfwidth_p90_95']:.1f}%; interval score / depth 68% "
               f"{iv['interval_score_68']:.3f}, 95% {iv['interval_score_95']:.3f}; CRPS / depth {iv['crps']:.4f} "
               f"(plot: {INTERVAL_PLOT})")
+        if math.isfinite(iv.get("coverage_95_narrowest_third", math.nan)):
+            print(f"  where the 95% band is narrowest (a third of the depths, half-width at most "
+                  f"{100 * iv['halfwidth_95_narrowest_third_max']:.1f}% of the depth): coverage 68% "
+                  f"{100 * iv['coverage_68_narrowest_third']:.1f}, 95% {100 * iv['coverage_95_narrowest_third']:.1f}; "
+                  f"widest third: 68% {100 * iv['coverage_68_widest_third']:.1f}, "
+                  f"95% {100 * iv['coverage_95_widest_third']:.1f}")
 
 
 def set_aside_run(run_dir: Path) -> Path:

@@ -46,10 +46,9 @@ import matplotlib
 from .cameras import generate_rays_for_view, image_size, intrinsics_3x3
 from .distributions import RectifiedNormal
 from . import metrics as M
-from .plots import calibration_figure
+from .plots import calibration_figure, interval_reliability_figure
 from .calibration import apply_calibration, load_run_calibration
-from .evaluation import ColourTerms, depth_samples, interval_scale_of, score_colour, score_depth
-from .sparse_depth import paired_depth_scores
+from .evaluation import ColourTerms, calibrated_depth_scores, depth_samples, score_colour, score_depth
 from .view_maps import OPACITY_MASK, camera_z_maps
 from .models.snerf import SNeRF
 from .products.depth_maps import DepthProducts, compute_depth_products
@@ -447,10 +446,11 @@ class RunInspector:
             scores: ``evaluation.score_view``'s (PSNR, SSIM, NLL, correlations, AUSE, depth scores).
             colour_sparsification: RMSE curve (``metrics.colour_sparsification``).
             colour_calibration: pooled over pixels and channels (``metrics.calibration_curve``).
-            depth_sparsification, depth_calibration: on pixels with ground-truth depth and
-                opacity > OPACITY_MASK (``sparse_depth.paired_depth_scores``, recalibrated
-                intervals), or None (no ground truth, fewer than 2 such pixels, or for the
-                sparsification a constant depth std).
+            depth_sparsification, depth_calibration, depth_intervals: on pixels with ground-truth
+                depth and opacity > OPACITY_MASK (``evaluation.calibrated_depth_scores``, recalibrated
+                intervals as eval scores them; the intervals' coverage, width, interval scores and
+                CRPS: ``metrics.interval_sharpness``), or None (no ground truth, fewer than 2 such
+                pixels, or for the sparsification a constant depth std).
             depth_mask [H, W] bool or None.
         """
         products = self.render(view, num_draws, quadrature)
@@ -461,17 +461,17 @@ class RunInspector:
             "colour_sparsification": M.colour_sparsification(gt, products["colour_mean"],
                                                              products["colour_std"].astype(np.float64) ** 2, "rmse"),
             "colour_calibration": colour.calibration,
-            "depth_sparsification": None, "depth_calibration": None, "depth_mask": None,
+            "depth_sparsification": None, "depth_calibration": None, "depth_intervals": None, "depth_mask": None,
         }
         samples = depth_samples(products, gt_depth)
         if samples is not None:
-            depth = paired_depth_scores(samples.gt, samples.pred, samples.std,
-                                        interval_scale=interval_scale_of(self.calibration))
+            depth = calibrated_depth_scores(samples, self.calibration)
             out["scores"].update(score_depth(samples, self.calibration, depth))
             if samples.gt.size >= 2:
                 out["depth_mask"] = (gt_depth > 0) & (products["opacity"] > OPACITY_MASK)  # depth_samples' pixels
                 out["depth_sparsification"] = depth["sparsification"]
                 out["depth_calibration"] = depth["calibration"]
+                out["depth_intervals"] = depth["intervals"]
         return out
 
     def sparsification_figure(self, view: int, num_draws: int | None = None,
@@ -491,6 +491,17 @@ class RunInspector:
         if m["depth_calibration"] is not None:
             curves["depth"] = m["depth_calibration"]
         return calibration_figure(curves, title=f"view {view}: calibration")
+
+    def interval_figure(self, view: int, num_draws: int | None = None,
+                        quadrature: Quadrature | None = None) -> Figure | None:
+        """The depth intervals' reliability diagram (with the narrowest and widest third of the
+        bands) beside their sharpness histogram, as eval draws them for a whole run
+        (``plots.interval_reliability_figure``); None when the view has no scored depth."""
+        m = self.view_metrics(view, num_draws, quadrature)
+        if m["depth_intervals"] is None:
+            return None
+        return interval_reliability_figure({"depth": m["depth_intervals"]},
+                                           title=f"view {view}: depth intervals ({m['depth_intervals']['num_values']} values)")
 
 
 # ---------------------------------------------------------------------------- drawing helpers

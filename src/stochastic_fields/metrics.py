@@ -649,6 +649,13 @@ INTERVAL_LEVELS: tuple[float, ...] = (0.5, 0.682689492137086, 0.9, 0.95, 0.99)
 INTERVAL_SCORE_LEVELS: tuple[float, ...] = (0.682689492137086, 0.95)
 #: Quantile levels of the CRPS quadrature: the midpoints (j + 1/2) / CRPS_NUM_LEVELS.
 CRPS_NUM_LEVELS: int = 99
+#: Groups of equal size the scored values are sorted into by their relative half-width at
+#: ``WIDTH_GROUP_LEVEL`` (narrowest first), each with its own coverage (docs/definitions.md §6.7).
+WIDTH_GROUPS: int = 3
+#: The level whose band width sorts the values into ``WIDTH_GROUPS`` (a planner's margin).
+WIDTH_GROUP_LEVEL: float = 0.95
+#: Names of the narrowest and the widest width group in the scalar keys.
+WIDTH_GROUP_NAMES: tuple[str, str] = ("narrowest_third", "widest_third")
 
 
 def crps_levels(num: int = CRPS_NUM_LEVELS) -> np.ndarray:
@@ -718,7 +725,15 @@ def interval_sharpness(gt: Any, quantile_fn, levels: Sequence[float] = INTERVAL_
         interval_score_<p>      mean of IS_(1-p)(lower, upper; y) / y (``interval_score``),
         crps                    mean of CRPS(F, y) / y (``crps_from_quantiles``),
     with "coverage", "halfwidth_median", "halfwidth_p90" also as lists over ``levels`` and
-    "halfwidth" [N, L] the per-value relative half-widths (for histograms)."""
+    "halfwidth" [N, L] the per-value relative half-widths (for histograms). Conditional on the
+    width (``width_groups``): the values sorted by their relative half-width at ``WIDTH_GROUP_LEVEL``
+    (known before the truth is) and cut into ``WIDTH_GROUPS`` groups of equal size (sizes differ by
+    at most one; ties by input order), under "width_groups" each group's "coverage" [G, L], "halfwidth_median"
+    [G] (at that level), "upper_edge" [G] (its largest half-width) and "num_values" [G]; and
+        coverage_<p>_narrowest_third, coverage_<p>_widest_third     the first and last group's coverage,
+        halfwidth_95_narrowest_third_max                           the first group's largest half-width
+    (NaN with fewer values than groups), so a planner sees whether the narrow bands, the ones to act
+    on, are honest too."""
     g = _f64(gt, "gt").reshape(-1)
     if g.numel() == 0 or not bool((torch.isfinite(g) & (g > 0)).all()):
         raise ValueError("interval_sharpness: needs at least one ground-truth depth, all finite and > 0")
@@ -744,6 +759,30 @@ def interval_sharpness(gt: Any, quantile_fn, levels: Sequence[float] = INTERVAL_
     for p, i in zip(score_levels, at):
         out[f"interval_score_{level_name(p)}"] = float((interval_score(g, lo[:, i], hi[:, i], p) / g).mean())
     out["crps"] = float((crps_from_quantiles(g, q_crps) / g).mean())
+    out.update(_width_groups(((y >= lo) & (y <= hi)).cpu().numpy(), half.cpu().numpy(), lv))
+    return out
+
+
+def _width_groups(inside: np.ndarray, half: np.ndarray, levels: np.ndarray) -> dict[str, Any]:
+    """``interval_sharpness``' coverage per width group from ``inside`` [N, L] (bool) and the relative
+    half-widths ``half`` [N, L] at ``levels`` [L] (its docstring)."""
+    at = np.flatnonzero(np.isclose(levels, WIDTH_GROUP_LEVEL))
+    if at.size == 0:
+        return {}
+    n = inside.shape[0]
+    order = np.argsort(half[:, int(at[0])], kind="stable")
+    groups = np.array_split(order, WIDTH_GROUPS) if n >= WIDTH_GROUPS else []
+    out: dict[str, Any] = {"width_groups": {
+        "level": WIDTH_GROUP_LEVEL,
+        "coverage": [inside[g].mean(axis=0).tolist() for g in groups],
+        "halfwidth_median": [float(np.median(half[g, int(at[0])])) for g in groups],
+        "upper_edge": [float(half[g, int(at[0])].max()) for g in groups],
+        "num_values": [int(g.size) for g in groups]}}
+    for i, p in enumerate(levels):
+        for name, g in zip(WIDTH_GROUP_NAMES, (0, -1)):
+            out[f"coverage_{level_name(p)}_{name}"] = float(inside[groups[g], i].mean()) if groups else math.nan
+    out[f"halfwidth_{level_name(WIDTH_GROUP_LEVEL)}_{WIDTH_GROUP_NAMES[0]}_max"] = (
+        out["width_groups"]["upper_edge"][0] if groups else math.nan)
     return out
 
 

@@ -118,9 +118,10 @@ def plot_calibration(
 
 
 def interval_reliability_figure(intervals: Mapping[str, Mapping], title: str | None = None) -> Figure:
-    """Left: coverage of the central intervals against their nominal level (reliability diagram);
-    right: the distribution of their 95% half-widths relative to depth (sharpness), per name, from
-    ``metrics.interval_sharpness`` outputs {name: result} (a Figure)."""
+    """Left: coverage of the central intervals against their nominal level (reliability diagram),
+    with the narrowest and the widest third of the bands' own coverage where the result has
+    ``width_groups``; right: the distribution of their 95% half-widths relative to depth
+    (sharpness), per name, from ``metrics.interval_sharpness`` outputs {name: result} (a Figure)."""
     if not intervals:
         raise ValueError("interval_reliability_figure needs at least one result")
     fig = Figure(figsize=(10.0, 4.5))
@@ -129,6 +130,12 @@ def interval_reliability_figure(intervals: Mapping[str, Mapping], title: str | N
     for i, (name, r) in enumerate(intervals.items()):
         levels = np.asarray(r["levels"])
         ax.plot(levels, r["coverage"], "o-", color=f"C{i % 10}", label=name)
+        groups = r.get("width_groups") or {}
+        if len(groups.get("coverage", [])) >= 2:  # the narrowest and the widest bands' own coverage
+            for g, style, which in ((0, "--", "narrowest"), (-1, ":", "widest")):
+                ax.plot(levels, groups["coverage"][g], style, color=f"C{i % 10}", alpha=0.8,
+                        label=f"{name}, {which} third of the {100 * groups['level']:.0f}% bands "
+                              f"(median {100 * groups['halfwidth_median'][g]:.0f}%)")
         at95 = int(np.argmin(np.abs(levels - 0.95)))
         half = np.asarray(r["halfwidth"])[:, at95]
         half = half[np.isfinite(half) & (half > 0)]
