@@ -1,0 +1,166 @@
+"""Are the narrow depth bands honest? Coverage by width, and a level map per width bin (decides nothing).
+
+A planner acts on the narrow bands. Pooled coverage can hold while the narrowest bands miss and
+the widest over-cover. Part 1 reads, from ``stochastic-fields eval`` on the paper split's validation
+photos, the coverage of the narrowest and the widest third of the 95% bands (``metrics.
+interval_sharpness``' width groups; cross-fitted as eval scores them). Part 2 asks whether a level map
+per bin of the predicted relative width (Mondrian calibration on the std itself: the calibration
+renders' terciles of c / d, c today's std sqrt(sigma^2 + (beta e)^2 + (rho d)^2), one s(p) per bin)
+evens the coverage over the groups without widening the bands. Part 2 refits both arms, today's one
+map and the binned maps, from the same calibration renders (every held-out point, the calibration
+views) and scores them on the validation photos' SCORE points without cross-fitting, so its
+coverages are optimistic alike for both arms; the comparison between them is the point.
+
+    python benchmarks/studies/width_groups_analysis.py --run fern:12=RUN:EVAL ... \
+        --out benchmarks/results/width_groups_analysis
+
+RUN: a run folder of ``benchmarks/eval_tables.py --methods snerf_default --seed SEED`` with its
+calibration (SCENE/snerf_default); EVAL: the folder of ``stochastic-fields eval --run RUN --views
+VALIDATION --no-products`` (``tables_cap_study.validation_views``). One torch thread; resumable.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO_ROOT / "benchmarks" / "studies"))
+
+from stochastic_fields import metrics as M  # noqa: E402
+from stochastic_fields.calibration import (QuantileCalibration, _fit_depth_map, depth_calibration_renders,  # noqa: E402
+                                           render_at_points, violation_at_points)
+from stochastic_fields.capture_points import load_capture_points, score_sparse_depth  # noqa: E402
+from stochastic_fields.free_space import load_training_depth  # noqa: E402
+from stochastic_fields.trainer import load_trained_model  # noqa: E402
+from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
+from tables_cap_study import validation_views  # noqa: E402
+
+#: Bins of the predicted relative width in part 2 (the width groups' count).
+WIDTH_BINS: int = M.WIDTH_GROUPS
+
+
+def eval_width_groups(eval_dir: Path) -> dict[str, float]:
+    """Part 1: the pooled interval scores of an eval's metrics.json, the width groups' among them."""
+    iv = json.loads((eval_dir / "metrics.json").read_text())["pooled"]["depth_intervals"]
+    return {k: float(v) for k, v in iv.items()}
+
+
+def summary(iv: dict) -> dict[str, float]:
+    """The scores part 2 compares, from a ``metrics.interval_sharpness`` output."""
+    groups = iv["width_groups"]["coverage"]
+    out = {f"coverage_{M.level_name(p)}": c for p, c in zip(iv["levels"], iv["coverage"])}
+    out.update({"halfwidth_median_95": iv["halfwidth_median_95"], "interval_score_95": iv["interval_score_95"],
+                "crps": iv["crps"]})
+    for name, g in (("narrowest", 0), ("middle", 1), ("widest", -1)):
+        out[f"coverage_68_{name}_third"], out[f"coverage_95_{name}_third"] = groups[g][1], groups[g][3]
+    return out
+
+
+def binned_maps(run: Path, scene: str) -> dict:
+    """Part 2 for one run: today's one map and the maps per width bin, both fitted on the run's
+    calibration renders, scored on the validation photos' SCORE points."""
+    _, model, dataset = load_trained_model(run)
+    reference = load_training_depth(run)
+    renders = depth_calibration_renders(model, dataset, points="held-out", free_space=reference)
+    one, std_fit = _fit_depth_map(renders, floor=False, relative_floor=True)
+    c_cal = np.hypot(std_fit, one.relative_floor * renders["depth"])  # the std the level map standardises
+    sparse = score_sparse_depth(dataset, validation_views(scene))
+    r = render_at_points(model, dataset.cameras, dataset.near, dataset.far, sparse,
+                         generator=torch.Generator().manual_seed(0))
+    keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(r["depth_mean"]) & (r["depth_std"] > 0)
+    beta = one.free_space_weight if one.free_space else 0.0
+    violation = (violation_at_points(dataset.cameras, sparse, load_capture_points(dataset).xyz, r["gt"],
+                                     np.where(keep, r["depth_mean"], r["gt"]), reference)
+                 if reference is not None else np.zeros_like(r["gt"]))
+    c = np.hypot(np.hypot(r["depth_std"], beta * violation), one.relative_floor * r["depth_mean"])
+    gt, pred, c = r["gt"][keep], r["depth_mean"][keep], c[keep]
+    edges = np.quantile(c_cal / renders["depth"], np.linspace(0.0, 1.0, WIDTH_BINS + 1)[1:-1])
+    cal_bin, val_bin = np.searchsorted(edges, c_cal / renders["depth"]), np.searchsorted(edges, c / pred)
+    maps = [QuantileCalibration.fit(renders["abs_err"][cal_bin == b] / c_cal[cal_bin == b], quantity="depth_std")
+            for b in range(WIDTH_BINS)]
+
+    def binned(t: np.ndarray) -> np.ndarray:
+        out = np.zeros((gt.size, np.size(t)))
+        for b, m in enumerate(maps):
+            i = val_bin == b
+            out[i] = M.gaussian_quantiles(pred[i], m.std_scale * c[i], t, m.relative_scale)
+        return out
+
+    return {"points": int(gt.size), "calibration_points": int(renders["abs_err"].size),
+            "bin_edges": edges.tolist(), "validation_share_per_bin": (np.bincount(val_bin, minlength=WIDTH_BINS)
+                                                                      / gt.size).tolist(),
+            "bin_scale_68": [m.std_scale for m in maps], "bin_scale_95": [float(m.scale_at(0.95)) for m in maps],
+            "one map": summary(M.interval_sharpness(
+                gt, lambda t: M.gaussian_quantiles(pred, one.std_scale * c, t, one.relative_scale))),
+            "maps per width bin": summary(M.interval_sharpness(gt, binned))}
+
+
+def mean_over(runs: list[dict], key: str) -> dict[str, float]:
+    return {k: float(np.mean([r[key][k] for r in runs])) for k in runs[0][key]}
+
+
+def report(results: dict[str, dict]) -> str:
+    scenes = sorted({label.split(":")[0] for label in results})
+    lines = ["# Are the narrow depth bands honest?", "",
+             "Command: " + " ".join(["python benchmarks/studies/width_groups_analysis.py"] + sys.argv[1:]), "",
+             "## Part 1: eval's width groups (cross-fitted; validation photos; mean over the runs)", "",
+             "| scene | runs | cov 68 / 95 | narrowest third: cov 68 / 95, largest 95% half-width | widest third: cov 68 / 95 "
+             "| median 95% half-width |", "|---|---|---|---|---|---|"]
+    for scene in scenes:
+        runs = [r["eval"] for label, r in results.items() if label.startswith(scene + ":")]
+        m = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
+        lines.append(f"| {scene} | {len(runs)} | {100 * m['coverage_68']:.1f} / {100 * m['coverage_95']:.1f} | "
+                     f"{100 * m['coverage_68_narrowest_third']:.1f} / {100 * m['coverage_95_narrowest_third']:.1f}, "
+                     f"{100 * m['halfwidth_95_narrowest_third_max']:.1f}% | {100 * m['coverage_68_widest_third']:.1f} / "
+                     f"{100 * m['coverage_95_widest_third']:.1f} | {100 * m['halfwidth_median_95']:.1f}% |")
+    lines += ["", "## Part 2: one map against a map per width bin (same calibration renders; not cross-fitted)", "",
+              "| scene | maps | cov 50 / 68 / 90 / 95 / 99 | narrowest / middle / widest third, cov 68 | "
+              "narrowest / middle / widest third, cov 95 | median 95% half-width | IS95 / depth | CRPS / depth |",
+              "|---|---|---|---|---|---|---|---|"]
+    for scene in scenes:
+        runs = [r["bins"] for label, r in results.items() if label.startswith(scene + ":") and "bins" in r]
+        if not runs:
+            continue
+        for arm in ("one map", "maps per width bin"):
+            m = mean_over(runs, arm)
+            cov = " / ".join(f"{100 * m[f'coverage_{n}']:.1f}" for n in ("50", "68", "90", "95", "99"))
+            thirds = [" / ".join(f"{100 * m[f'coverage_{p}_{g}_third']:.1f}" for g in ("narrowest", "middle", "widest"))
+                      for p in ("68", "95")]
+            lines.append(f"| {scene} | {arm} | {cov} | {thirds[0]} | {thirds[1]} | {100 * m['halfwidth_median_95']:.1f}% | "
+                         f"{m['interval_score_95']:.3f} | {m['crps']:.4f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", action="append", required=True, metavar="SCENE:SEED=RUN:EVAL")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--no-bins", action="store_true", help="part 1 only (no renders)")
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    args.out.mkdir(parents=True, exist_ok=True)
+    saved = args.out / "results.json"
+    results = json.loads(saved.read_text()) if saved.is_file() else {}
+    for text in args.run:
+        label, sep, folders = text.partition("=")
+        run, colon, eval_dir = folders.partition(":")
+        if not sep or not colon or ":" not in label:
+            p.error(f"--run {text!r}: expected SCENE:SEED=RUN:EVAL")
+        entry = results.setdefault(label, {})
+        entry["eval"] = eval_width_groups(Path(eval_dir))
+        if not args.no_bins and "bins" not in entry:  # resumable: a finished run is read back
+            entry["bins"] = binned_maps(Path(run), label.split(":")[0])
+        saved.write_text(json.dumps(results, indent=1))
+        print(f"{label}: done")
+    (args.out / "study.md").write_text(report(results))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
