@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import sys
 from pathlib import Path
 
@@ -42,6 +41,7 @@ sys.path.insert(0, str(REPO_ROOT / "benchmarks" / "studies"))
 from stochastic_fields.capture_points import rays_through_points, score_sparse_depth  # noqa: E402
 from stochastic_fields.trainer import load_trained_model  # noqa: E402
 from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
+from study_helpers import labelled_run_results, save_results  # noqa: E402
 from tables_cap_study import validation_views  # noqa: E402
 
 #: Candidate std (name, from the independent render "a" and the shared render "b": variance [N]).
@@ -112,23 +112,15 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", action="append", required=True, metavar="SCENE:SEED=FOLDER")
     p.add_argument("--out", type=Path, required=True)
-    args = p.parse_args(argv)
-    torch.set_num_threads(1)
-    args.out.mkdir(parents=True, exist_ok=True)
-    saved = args.out / "results.json"
-    results = json.loads(saved.read_text()) if saved.is_file() else {}
-    for text in args.run:
-        label, sep, folder = text.partition("=")
-        if not sep or ":" not in label:
-            p.error(f"--run {text!r}: expected SCENE:SEED=FOLDER")
+    args, runs, results = labelled_run_results(p, argv)
+    for label, (folder,) in runs:
         if label in results:
             continue  # resumable: a finished run is read back
-        results[label] = analyse_run(label.split(":")[0], Path(folder))
-        saved.write_text(json.dumps(results, indent=1))
+        results[label] = analyse_run(label.split(":")[0], folder)
+        save_results(args.out, results)
         print(f"{label}: " + ", ".join(f"{k} {v:.3f}" for k, v in results[label]["mean"].items() if k != "points per photo"))
     (args.out / "study.md").write_text(report(results))
     return 0
-
 
 if __name__ == "__main__":
     raise SystemExit(main())

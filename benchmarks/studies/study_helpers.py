@@ -154,6 +154,32 @@ def begin_study(parser: argparse.ArgumentParser, argv: list[str] | None, script:
     return args, runs, {"command": study_command(script, argv), "levels": list(LEVELS), "torch_threads": 1}
 
 
+def labelled_run_results(parser: argparse.ArgumentParser, argv: list[str] | None, *, folders: int = 1
+                         ) -> tuple[argparse.Namespace, list[tuple[str, list[Path]]], dict]:
+    """What a renders-only analysis over ``--run SCENE:SEED=FOLDER[:FOLDER]`` items (``folders`` per
+    item; the parser has ``--run`` with action "append" and ``--out``) starts with: parse ``argv``, put
+    torch on 1 thread, create OUT and read back OUT/results.json (so a stopped analysis resumes;
+    ``save_results`` writes it). Returns (args, [(label "SCENE:SEED", [folder, ...])], results); a
+    parser error names a malformed item."""
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    args.out.mkdir(parents=True, exist_ok=True)
+    saved = args.out / "results.json"
+    runs = []
+    for item in args.run:
+        label, sep, paths = item.partition("=")
+        parts = paths.split(":")
+        if not sep or ":" not in label or len(parts) != folders or not all(parts):
+            parser.error(f"--run {item!r}: expected SCENE:SEED=" + ":".join(["FOLDER"] * folders))
+        runs.append((label, [Path(x) for x in parts]))
+    return args, runs, (json.loads(saved.read_text()) if saved.is_file() else {})
+
+
+def save_results(out: Path, results: dict) -> None:
+    """``OUT/results.json``, atomically (``labelled_run_results`` reads it back)."""
+    atomic_write_text(out / "results.json", json.dumps(results, indent=1))
+
+
 def coverage(abs_err: np.ndarray, std: np.ndarray, calibration, levels=LEVELS) -> np.ndarray:
     """Share of ``abs_err`` [N] inside the central intervals at ``levels`` [L] that render, eval and
     export draw from the map: |err| <= z_p calibrated_std(std) relative_scale(p), i.e.

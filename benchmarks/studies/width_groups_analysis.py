@@ -39,6 +39,7 @@ from stochastic_fields.capture_points import load_capture_points, score_sparse_d
 from stochastic_fields.free_space import load_training_depth  # noqa: E402
 from stochastic_fields.trainer import load_trained_model  # noqa: E402
 from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
+from study_helpers import labelled_run_results, save_results  # noqa: E402
 from tables_cap_study import validation_views  # noqa: E402
 
 #: Bins of the predicted relative width in part 2 (the width groups' count).
@@ -142,25 +143,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--run", action="append", required=True, metavar="SCENE:SEED=RUN:EVAL")
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--no-bins", action="store_true", help="part 1 only (no renders)")
-    args = p.parse_args(argv)
-    torch.set_num_threads(1)
-    args.out.mkdir(parents=True, exist_ok=True)
-    saved = args.out / "results.json"
-    results = json.loads(saved.read_text()) if saved.is_file() else {}
-    for text in args.run:
-        label, sep, folders = text.partition("=")
-        run, colon, eval_dir = folders.partition(":")
-        if not sep or not colon or ":" not in label:
-            p.error(f"--run {text!r}: expected SCENE:SEED=RUN:EVAL")
+    args, runs, results = labelled_run_results(p, argv, folders=2)
+    for label, (run, eval_dir) in runs:
         entry = results.setdefault(label, {})
-        entry["eval"] = eval_width_groups(Path(eval_dir))
+        entry["eval"] = eval_width_groups(eval_dir)
         if not args.no_bins and "bins" not in entry:  # resumable: a finished run is read back
-            entry["bins"] = binned_maps(Path(run), label.split(":")[0])
-        saved.write_text(json.dumps(results, indent=1))
+            entry["bins"] = binned_maps(run, label.split(":")[0])
+        save_results(args.out, results)
         print(f"{label}: done")
     (args.out / "study.md").write_text(report(results))
     return 0
-
 
 if __name__ == "__main__":
     raise SystemExit(main())
