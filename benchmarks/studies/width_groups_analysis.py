@@ -17,6 +17,8 @@ coverages are optimistic alike for both arms; the comparison between them is the
 RUN: a run folder of ``benchmarks/eval_tables.py --methods snerf_default --seed SEED`` with its
 calibration (SCENE/snerf_default); EVAL: the folder of ``stochastic-fields eval --run RUN --views
 VALIDATION --no-products`` (``tables_cap_study.validation_views``). One torch thread; resumable.
+``--no-bins`` reads part 1 only, for runs of another split (a capture run and its ``eval`` of the
+validation photos: ``benchmarks/results/width_groups_analysis/capture_seed22``).
 """
 
 from __future__ import annotations
@@ -120,6 +122,8 @@ def report(results: dict[str, dict]) -> str:
                      f"{100 * m['coverage_68_narrowest_third']:.1f} / {100 * m['coverage_95_narrowest_third']:.1f}, "
                      f"{100 * m['halfwidth_95_narrowest_third_max']:.1f}% | {100 * m['coverage_68_widest_third']:.1f} / "
                      f"{100 * m['coverage_95_widest_third']:.1f} | {100 * m['halfwidth_median_95']:.1f}% |")
+    if not any("bins" in r for r in results.values()):
+        return "\n".join(lines) + "\n"
     lines += ["", "## Part 2: one map against a map per width bin (same calibration renders; not cross-fitted)", "",
               "| scene | maps | cov 50 / 68 / 90 / 95 / 99 | narrowest / middle / widest third, cov 68 | "
               "narrowest / middle / widest third, cov 95 | median 95% half-width | IS95 / depth | CRPS / depth |",
