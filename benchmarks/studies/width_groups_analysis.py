@@ -6,8 +6,10 @@ photos, the coverage of the narrowest and the widest third of the 95% bands (``m
 interval_sharpness``' width groups; cross-fitted as eval scores them). Part 2 asks whether a level map
 per bin of the predicted relative width (Mondrian calibration on the std itself: the calibration
 renders' terciles of c / d, c today's std sqrt(sigma^2 + (beta e)^2 + (rho d)^2), one s(p) per bin)
-evens the coverage over the groups without widening the bands. Part 2 refits both arms, today's one
-map and the binned maps, from the same calibration renders (every held-out point, the calibration
+evens the coverage over the groups without widening the bands, and whether a smooth compression of
+the widths does (std_a = d (c/d)^a m^(1-a), m the calibration renders' median c/d, a fitted like rho
+by their mean CRPS / depth). Part 2 refits the arms, today's one map, the binned maps and the power,
+from the same calibration renders (every held-out point, the calibration
 views) and scores them on the validation photos' SCORE points without cross-fitting, so its
 coverages are optimistic alike for both arms; the comparison between them is the point.
 
@@ -36,7 +38,7 @@ sys.path.insert(0, str(REPO_ROOT / "benchmarks" / "studies"))
 
 from stochastic_fields import metrics as M  # noqa: E402
 from stochastic_fields.calibration import (QuantileCalibration, _fit_depth_map, depth_calibration_renders,  # noqa: E402
-                                           render_at_points, violation_at_points)
+                                           relative_crps, render_at_points, violation_at_points)
 from stochastic_fields.capture_points import load_capture_points, score_sparse_depth  # noqa: E402
 from stochastic_fields.free_space import load_training_depth  # noqa: E402
 from stochastic_fields.trainer import load_trained_model  # noqa: E402
@@ -46,6 +48,8 @@ from tables_cap_study import validation_views  # noqa: E402
 
 #: Bins of the predicted relative width in part 2 (the width groups' count).
 WIDTH_BINS: int = M.WIDTH_GROUPS
+#: Exponents a of part 2's third arm (1: today's std).
+POWER_GRID: tuple[float, ...] = tuple(np.round(np.linspace(0.2, 1.0, 17), 3))
 
 
 def eval_width_groups(eval_dir: Path) -> dict[str, float]:
@@ -95,13 +99,26 @@ def binned_maps(run: Path, scene: str) -> dict:
             out[i] = M.gaussian_quantiles(pred[i], m.std_scale * c[i], t, m.relative_scale)
         return out
 
-    return {"points": int(gt.size), "calibration_points": int(renders["abs_err"].size),
+    # a power of the relative width: std_a = d (c / d)^a m^(1 - a), m the calibration renders' median c / d, so a < 1
+    # narrows the spread of the widths about m; a fitted by the mean CRPS / depth of the calibration renders
+    m_cal = float(np.median(c_cal / renders["depth"]))
+
+    def powered(c_: np.ndarray, d_: np.ndarray, a: float) -> np.ndarray:
+        return d_ * (c_ / d_) ** a * m_cal ** (1.0 - a)
+
+    a = float(min(POWER_GRID, key=lambda a_: relative_crps(renders["abs_err"], powered(c_cal, renders["depth"], a_),
+                                                           renders["depth"], 0.0)))
+    power = QuantileCalibration.fit(renders["abs_err"] / powered(c_cal, renders["depth"], a), quantity="depth_std")
+    c_pow = powered(c, pred, a)
+    return {"points": int(gt.size), "calibration_points": int(renders["abs_err"].size), "power": a,
             "bin_edges": edges.tolist(), "validation_share_per_bin": (np.bincount(val_bin, minlength=WIDTH_BINS)
                                                                       / gt.size).tolist(),
             "bin_scale_68": [m.std_scale for m in maps], "bin_scale_95": [float(m.scale_at(0.95)) for m in maps],
             "one map": summary(M.interval_sharpness(
                 gt, lambda t: M.gaussian_quantiles(pred, one.std_scale * c, t, one.relative_scale))),
-            "maps per width bin": summary(M.interval_sharpness(gt, binned))}
+            "maps per width bin": summary(M.interval_sharpness(gt, binned)),
+            "a power of the width": summary(M.interval_sharpness(
+                gt, lambda t: M.gaussian_quantiles(pred, power.std_scale * c_pow, t, power.relative_scale)))}
 
 
 def mean_over(runs: list[dict], key: str) -> dict[str, float]:
@@ -132,13 +149,16 @@ def report(results: dict[str, dict]) -> str:
         runs = [r["bins"] for label, r in results.items() if label.startswith(scene + ":") and "bins" in r]
         if not runs:
             continue
-        for arm in ("one map", "maps per width bin"):
+        for arm in ("one map", "maps per width bin", "a power of the width"):
             m = mean_over(runs, arm)
             cov = " / ".join(f"{100 * m[f'coverage_{n}']:.1f}" for n in ("50", "68", "90", "95", "99"))
             thirds = [" / ".join(f"{100 * m[f'coverage_{p}_{g}_third']:.1f}" for g in ("narrowest", "middle", "widest"))
                       for p in ("68", "95")]
             lines.append(f"| {scene} | {arm} | {cov} | {thirds[0]} | {thirds[1]} | {100 * m['halfwidth_median_95']:.1f}% | "
                          f"{m['interval_score_95']:.3f} | {m['crps']:.4f} |")
+    fitted = [f"{label} {r['bins']['power']:g}" for label, r in results.items() if "power" in r.get("bins", {})]
+    if fitted:
+        lines += ["", "The power a fitted on each run's calibration renders: " + ", ".join(fitted) + "."]
     return "\n".join(lines) + "\n"
 
 
