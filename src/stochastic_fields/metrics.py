@@ -654,7 +654,7 @@ CRPS_NUM_LEVELS: int = 99
 WIDTH_GROUPS: int = 3
 #: The level whose band width sorts the values into ``WIDTH_GROUPS`` (a planner's margin).
 WIDTH_GROUP_LEVEL: float = 0.95
-#: Names of the narrowest and the widest width group in the scalar keys.
+#: Names of the narrowest and the widest width group in the scalar keys (thirds: ``WIDTH_GROUPS`` = 3).
 WIDTH_GROUP_NAMES: tuple[str, str] = ("narrowest_third", "widest_third")
 
 
