@@ -20,7 +20,7 @@ RUN: a run folder of ``benchmarks/eval_tables.py --methods snerf_default --seed 
 calibration (SCENE/snerf_default); EVAL: the folder of ``stochastic-fields eval --run RUN --views
 VALIDATION --no-products`` (``tables_cap_study.validation_views``). One torch thread; resumable.
 ``--no-bins`` reads part 1 only, for runs of another split (a capture run and its ``eval`` of the
-validation photos: ``benchmarks/results/width_groups_analysis/capture_seed22``).
+validation photos: ``benchmarks/results/width_groups_analysis/capture``).
 """
 
 from __future__ import annotations
