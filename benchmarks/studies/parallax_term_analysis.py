@@ -35,7 +35,6 @@ violation, cross-fitted folds, a rule on fresh seeds); otherwise seed 12's gain 
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -55,7 +54,7 @@ from stochastic_fields.capture_points import load_capture_points, score_sparse_d
 from stochastic_fields.free_space import _look_up, load_training_depth, render_training_depth, rendered_points  # noqa: E402
 from stochastic_fields.trainer import load_trained_model  # noqa: E402
 from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
-from study_helpers import labelled_run_results, save_results  # noqa: E402
+from study_helpers import analyse_each, labelled_run_parser  # noqa: E402
 from tables_cap_study import validation_views  # noqa: E402
 
 #: A training view sees X unless its rendered surface there lies nearer than (1 - TOLERANCE) z.
@@ -157,18 +156,8 @@ def report(results: dict[str, dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--run", action="append", required=True, metavar="SCENE:SEED=RUN")
-    p.add_argument("--out", type=Path, required=True)
-    args, runs, results = labelled_run_results(p, argv)
-    for label, (run,) in runs:
-        if label not in results:  # resumable: a finished run is read back
-            results[label] = analyse_run(run, label.split(":")[0])
-            save_results(args.out, results)
-        print(f"{label}: kappa {results[label]['kappa']:.3g}")
-    (args.out / "study.md").write_text(report(results))
-    return 0
-
+    return analyse_each(labelled_run_parser(__doc__), argv, lambda label, run: analyse_run(run, label.split(":")[0]),
+                        report, lambda label, result: f"kappa {result['kappa']:.3g}")
 
 if __name__ == "__main__":
     raise SystemExit(main())

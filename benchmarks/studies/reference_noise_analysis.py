@@ -26,7 +26,6 @@ free-space violation), not cross-fitted (the map saw these points; optimistic al
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -45,7 +44,7 @@ from stochastic_fields.data.colmap import read_cameras_binary  # noqa: E402
 from stochastic_fields.sparse_depth import points_file  # noqa: E402
 from stochastic_fields.trainer import load_trained_model  # noqa: E402
 from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
-from study_helpers import labelled_run_results, save_results  # noqa: E402
+from study_helpers import analyse_each, labelled_run_parser  # noqa: E402
 from tables_cap_study import validation_views  # noqa: E402
 
 #: Levels whose coverage is reported (one sigma and 95%).
@@ -126,18 +125,8 @@ def report(results: dict[str, dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--run", action="append", required=True, metavar="SCENE:SEED=RUN")
-    p.add_argument("--out", type=Path, required=True)
-    args, runs, results = labelled_run_results(p, argv)
-    for label, (run,) in runs:
-        if label not in results:  # resumable: a finished run is read back
-            results[label] = analyse_run(run, label.split(":")[0])
-            save_results(args.out, results)
-        print(f"{label}: done")
-    (args.out / "study.md").write_text(report(results))
-    return 0
-
+    return analyse_each(labelled_run_parser(__doc__), argv, lambda label, run: analyse_run(run, label.split(":")[0]),
+                        report, lambda label, result: "done")
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -26,7 +26,6 @@ One torch thread. OUT/study.md and OUT/results.json hold the per-run and mean ro
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 from pathlib import Path
@@ -41,7 +40,7 @@ sys.path.insert(0, str(REPO_ROOT / "benchmarks" / "studies"))
 from stochastic_fields.capture_points import rays_through_points, score_sparse_depth  # noqa: E402
 from stochastic_fields.trainer import load_trained_model  # noqa: E402
 from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
-from study_helpers import labelled_run_results, save_results  # noqa: E402
+from study_helpers import analyse_each, labelled_run_parser  # noqa: E402
 from tables_cap_study import validation_views  # noqa: E402
 
 #: Candidate std (name, from the independent render "a" and the shared render "b": variance [N]).
@@ -109,18 +108,10 @@ def report(results: dict[str, dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--run", action="append", required=True, metavar="SCENE:SEED=FOLDER")
-    p.add_argument("--out", type=Path, required=True)
-    args, runs, results = labelled_run_results(p, argv)
-    for label, (folder,) in runs:
-        if label in results:
-            continue  # resumable: a finished run is read back
-        results[label] = analyse_run(label.split(":")[0], folder)
-        save_results(args.out, results)
-        print(f"{label}: " + ", ".join(f"{k} {v:.3f}" for k, v in results[label]["mean"].items() if k != "points per photo"))
-    (args.out / "study.md").write_text(report(results))
-    return 0
+    return analyse_each(labelled_run_parser(__doc__, "SCENE:SEED=FOLDER"), argv,
+                        lambda label, folder: analyse_run(label.split(":")[0], folder), report,
+                        lambda label, result: ", ".join(f"{k} {v:.3f}" for k, v in result["mean"].items()
+                                                        if k != "points per photo"))
 
 if __name__ == "__main__":
     raise SystemExit(main())

@@ -180,6 +180,29 @@ def save_results(out: Path, results: dict) -> None:
     atomic_write_text(out / "results.json", json.dumps(results, indent=1))
 
 
+def labelled_run_parser(doc: str, metavar: str = "SCENE:SEED=RUN") -> argparse.ArgumentParser:
+    """The options of a renders-only analysis over labelled runs: ``--run`` (repeated, ``metavar``)
+    and ``--out``."""
+    p = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--run", action="append", required=True, metavar=metavar)
+    p.add_argument("--out", type=Path, required=True)
+    return p
+
+
+def analyse_each(parser: argparse.ArgumentParser, argv: list[str] | None, analyse, report, line) -> int:
+    """Run a one-folder-per-run analysis (``labelled_run_results``): ``analyse(label, folder)`` for
+    each run not yet in OUT/results.json (saved after each, so a stopped analysis resumes), print
+    ``line(label, result)``, then write OUT/study.md = ``report(results)``. Returns 0."""
+    args, runs, results = labelled_run_results(parser, argv)
+    for label, (folder,) in runs:
+        if label not in results:
+            results[label] = analyse(label, folder)
+            save_results(args.out, results)
+        print(f"{label}: {line(label, results[label])}")
+    atomic_write_text(args.out / "study.md", report(results))
+    return 0
+
+
 def coverage(abs_err: np.ndarray, std: np.ndarray, calibration, levels=LEVELS) -> np.ndarray:
     """Share of ``abs_err`` [N] inside the central intervals at ``levels`` [L] that render, eval and
     export draw from the map: |err| <= z_p calibrated_std(std) relative_scale(p), i.e.

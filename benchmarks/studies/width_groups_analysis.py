@@ -25,7 +25,6 @@ validation photos: ``benchmarks/results/width_groups_analysis/capture``).
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -43,7 +42,7 @@ from stochastic_fields.capture_points import load_capture_points, score_sparse_d
 from stochastic_fields.free_space import load_training_depth  # noqa: E402
 from stochastic_fields.trainer import load_trained_model  # noqa: E402
 from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
-from study_helpers import labelled_run_results, save_results  # noqa: E402
+from study_helpers import labelled_run_parser, labelled_run_results, save_results  # noqa: E402
 from tables_cap_study import validation_views  # noqa: E402
 
 #: Bins of the predicted relative width in part 2 (the width groups' count).
@@ -163,9 +162,7 @@ def report(results: dict[str, dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--run", action="append", required=True, metavar="SCENE:SEED=RUN:EVAL")
-    p.add_argument("--out", type=Path, required=True)
+    p = labelled_run_parser(__doc__, "SCENE:SEED=RUN:EVAL")
     p.add_argument("--no-bins", action="store_true", help="part 1 only (no renders)")
     args, runs, results = labelled_run_results(p, argv, folders=2)
     for label, (run, eval_dir) in runs:
