@@ -39,23 +39,17 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 from scipy.stats import spearmanr
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO_ROOT / "benchmarks" / "studies"))
 
 from stochastic_fields import metrics as M  # noqa: E402
-from stochastic_fields.calibration import (QuantileCalibration, _fit_depth_map, calibration_views,  # noqa: E402
-                                           depth_calibration_renders, relative_crps, render_at_points,
-                                           violation_at_points)
+from stochastic_fields.calibration import QuantileCalibration, calibration_views, relative_crps  # noqa: E402
 from stochastic_fields.cameras import camera_to_world  # noqa: E402
-from stochastic_fields.capture_points import load_capture_points, score_sparse_depth  # noqa: E402
-from stochastic_fields.free_space import _look_up, load_training_depth, render_training_depth, rendered_points  # noqa: E402
-from stochastic_fields.trainer import load_trained_model  # noqa: E402
+from stochastic_fields.free_space import _look_up, rendered_points  # noqa: E402
 from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
-from study_helpers import analyse_each, labelled_run_parser  # noqa: E402
-from tables_cap_study import validation_views  # noqa: E402
+from study_helpers import analyse_each, interval_scores, labelled_run_parser, todays_std_on_photos  # noqa: E402
 
 #: A training view sees X unless its rendered surface there lies nearer than (1 - TOLERANCE) z.
 TOLERANCE: float = 0.05
@@ -85,25 +79,15 @@ def sin_parallax(X: np.ndarray, reference) -> tuple[np.ndarray, np.ndarray]:
 
 
 def scores(gt: np.ndarray, pred: np.ndarray, std: np.ndarray, m: QuantileCalibration) -> dict[str, float]:
+    """``study_helpers.interval_scores`` of the map ``m`` on ``std``, with the Spearman of |error| against it."""
     iv = M.interval_sharpness(gt, lambda t: M.gaussian_quantiles(pred, m.std_scale * std, t, m.relative_scale))
-    groups = iv["width_groups"]["coverage"]
-    out = {f"coverage_{M.level_name(p)}": c for p, c in zip(iv["levels"], iv["coverage"])}
-    out.update({"halfwidth_median_95": iv["halfwidth_median_95"], "interval_score_95": iv["interval_score_95"],
-                "crps": iv["crps"], "spearman": float(spearmanr(np.abs(gt - pred), std).correlation)})
-    for name, g in (("narrowest", 0), ("middle", 1), ("widest", -1)):
-        out[f"coverage_68_{name}_third"], out[f"coverage_95_{name}_third"] = groups[g][1], groups[g][3]
-    return out
+    return {**interval_scores(iv), "spearman": float(spearmanr(np.abs(gt - pred), std).correlation)}
 
 
 def analyse_run(run: Path, scene: str) -> dict:
-    cfg, model, dataset = load_trained_model(run)
-    reference = load_training_depth(run)
-    if reference is None:
-        reference = render_training_depth(model, dataset, progress=False)
-    capture = load_capture_points(dataset)
-    renders = depth_calibration_renders(model, dataset, points="held-out", free_space=reference)
-    today, std_fit = _fit_depth_map(renders, floor=False, relative_floor=True)
-    c_cal = np.hypot(std_fit, today.relative_floor * renders["depth"])
+    base = todays_std_on_photos(run, scene)
+    dataset, capture, reference, renders = base["dataset"], base["capture"], base["reference"], base["renders"]
+    today, c_cal, r, keep, depth, c = base["today"], base["c_cal"], base["render"], base["keep"], base["depth"], base["c"]
     cal_cams = camera_to_world(calibration_views(dataset)[0]).double()[:, :3, 3].numpy()
     X = rendered_points(cal_cams[renders["view"]], capture.xyz[renders["index"]], renders["depth"] + renders["err"],
                         renders["depth"])
@@ -113,19 +97,9 @@ def analyse_run(run: Path, scene: str) -> dict:
     kappa = float(KAPPA_GRID[int(np.argmin(crps))])
     with_term = QuantileCalibration.fit(renders["abs_err"] / np.hypot(c_cal, kappa * term_cal), quantity="depth_std")
 
-    views = validation_views(scene) if cfg.data.split == "paper" else list(dataset.test_indices)
-    sparse = score_sparse_depth(dataset, views)
-    r = render_at_points(model, dataset.cameras, dataset.near, dataset.far, sparse,
-                         generator=torch.Generator().manual_seed(0))
-    keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(r["depth_mean"]) & (r["depth_std"] > 0)
-    depth = np.where(keep, r["depth_mean"], r["gt"])
-    beta = today.free_space_weight if today.free_space else 0.0
-    violation = violation_at_points(dataset.cameras, sparse, capture.xyz, r["gt"], depth, reference)
-    c = np.hypot(np.hypot(r["depth_std"], beta * violation), today.relative_floor * r["depth_mean"])
-    view_of = np.concatenate([np.full(len(sparse[v]), v) for v in sparse if len(sparse[v])])
-    point_of = np.concatenate([sparse[v].point_index for v in sparse if len(sparse[v])])
     centres = camera_to_world(dataset.cameras).double()[:, :3, 3].numpy()
-    sin_val, seen_val = sin_parallax(rendered_points(centres[view_of], capture.xyz[point_of], r["gt"], depth), reference)
+    sin_val, seen_val = sin_parallax(rendered_points(centres[base["view"]], capture.xyz[base["point"]], r["gt"], depth),
+                                     reference)
     term = r["depth_mean"] / np.maximum(sin_val, P_MIN)
     gt, pred = r["gt"][keep], r["depth_mean"][keep]
     return {"kappa": kappa, "points": int(keep.sum()), "calibration_points": int(renders["abs_err"].size),

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from scipy.special import ndtri
 
+from stochastic_fields import metrics as M
 from stochastic_fields.calibration import render_at_points
 from stochastic_fields.cameras import camera_to_world, intrinsics_3x3
 from stochastic_fields.capture_points import SCORE, backproject_pixels, block_keys, depth_map_observes, restrict_sparse_depth
@@ -201,6 +202,60 @@ def analyse_each(parser: argparse.ArgumentParser, argv: list[str] | None, analys
         print(f"{label}: {line(label, results[label])}")
     atomic_write_text(args.out / "study.md", report(results))
     return 0
+
+
+def todays_std_on_photos(run: Path, scene: str) -> dict:
+    """What the calibration-side analyses of a trained run start from. The run's model, dataset,
+    capture points and training-view depths ("reference"; rendered when the run kept none); the
+    calibration renders of every held-out point ("renders", ``depth_calibration_renders`` with the
+    free-space check) with today's map refitted on them ("today") and the std it standardises,
+    "c_cal" [M] = sqrt(sigma^2 + (beta e)^2 + (rho d)^2); and the rays through the validation photos'
+    SCORE points (paper split: ``tables_cap_study.validation_views``; other splits: the run's held-out
+    photos), rendered with seed 0 in ``render_at_points``' order: "render" (its dict), "keep" [N]
+    (opacity > mask, finite depth, std > 0), "depth" [N] (rendered, the point's where not kept),
+    "view" and "point" [N] (each ray's photo and capture point) and today's std "c" [N]."""
+    from stochastic_fields.calibration import (_fit_depth_map, depth_calibration_renders,
+                                               violation_at_points)
+    from stochastic_fields.capture_points import load_capture_points, score_sparse_depth
+    from stochastic_fields.free_space import load_training_depth, render_training_depth
+    from stochastic_fields.trainer import load_trained_model
+    from tables_cap_study import validation_views
+
+    cfg, model, dataset = load_trained_model(run)
+    reference = load_training_depth(run)
+    if reference is None:
+        reference = render_training_depth(model, dataset, progress=False)
+    capture = load_capture_points(dataset)
+    renders = depth_calibration_renders(model, dataset, points="held-out", free_space=reference)
+    today, std_fit = _fit_depth_map(renders, floor=False, relative_floor=True)
+    views = validation_views(scene) if cfg.data.split == "paper" else list(dataset.test_indices)
+    sparse = score_sparse_depth(dataset, views)
+    r = render_at_points(model, dataset.cameras, dataset.near, dataset.far, sparse,
+                         generator=torch.Generator().manual_seed(0))
+    keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(r["depth_mean"]) & (r["depth_std"] > 0)
+    depth = np.where(keep, r["depth_mean"], r["gt"])
+    beta = today.free_space_weight if today.free_space else 0.0
+    violation = violation_at_points(dataset.cameras, sparse, capture.xyz, r["gt"], depth, reference)
+    views_held = [v for v in sparse if len(sparse[v])]
+    return {"model": model, "dataset": dataset, "capture": capture, "reference": reference, "renders": renders,
+            "today": today, "c_cal": np.hypot(std_fit, today.relative_floor * renders["depth"]),
+            "render": r, "keep": keep, "depth": depth,
+            "view": np.concatenate([np.full(len(sparse[v]), v) for v in views_held]),
+            "point": np.concatenate([sparse[v].point_index for v in views_held]),
+            "c": np.hypot(np.hypot(r["depth_std"], beta * violation), today.relative_floor * r["depth_mean"])}
+
+
+def interval_scores(iv: dict) -> dict[str, float]:
+    """The scores the calibration-side analyses compare, from a ``metrics.interval_sharpness`` output:
+    coverage at each level, the median 95% half-width, the 95% interval score and the CRPS (relative
+    to depth), and each third of the bands' coverage at 68% and 95%."""
+    groups = iv["width_groups"]["coverage"]
+    out = {f"coverage_{M.level_name(p)}": c for p, c in zip(iv["levels"], iv["coverage"])}
+    out.update({"halfwidth_median_95": iv["halfwidth_median_95"], "interval_score_95": iv["interval_score_95"],
+                "crps": iv["crps"]})
+    for name, g in (("narrowest", 0), ("middle", 1), ("widest", -1)):
+        out[f"coverage_68_{name}_third"], out[f"coverage_95_{name}_third"] = groups[g][1], groups[g][3]
+    return out
 
 
 def coverage(abs_err: np.ndarray, std: np.ndarray, calibration, levels=LEVELS) -> np.ndarray:

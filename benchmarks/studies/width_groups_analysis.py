@@ -30,20 +30,14 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO_ROOT / "benchmarks" / "studies"))
 
 from stochastic_fields import metrics as M  # noqa: E402
-from stochastic_fields.calibration import (QuantileCalibration, _fit_depth_map, depth_calibration_renders,  # noqa: E402
-                                           relative_crps, render_at_points, violation_at_points)
-from stochastic_fields.capture_points import load_capture_points, score_sparse_depth  # noqa: E402
-from stochastic_fields.free_space import load_training_depth  # noqa: E402
-from stochastic_fields.trainer import load_trained_model  # noqa: E402
-from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
-from study_helpers import labelled_run_parser, labelled_run_results, save_results  # noqa: E402
-from tables_cap_study import validation_views  # noqa: E402
+from stochastic_fields.calibration import QuantileCalibration, relative_crps  # noqa: E402
+from study_helpers import (interval_scores, labelled_run_parser, labelled_run_results, save_results,  # noqa: E402
+                           todays_std_on_photos)
 
 #: Bins of the predicted relative width in part 2 (the width groups' count).
 WIDTH_BINS: int = M.WIDTH_GROUPS
@@ -57,35 +51,12 @@ def eval_width_groups(eval_dir: Path) -> dict[str, float]:
     return {k: float(v) for k, v in iv.items()}
 
 
-def summary(iv: dict) -> dict[str, float]:
-    """The scores part 2 compares, from a ``metrics.interval_sharpness`` output."""
-    groups = iv["width_groups"]["coverage"]
-    out = {f"coverage_{M.level_name(p)}": c for p, c in zip(iv["levels"], iv["coverage"])}
-    out.update({"halfwidth_median_95": iv["halfwidth_median_95"], "interval_score_95": iv["interval_score_95"],
-                "crps": iv["crps"]})
-    for name, g in (("narrowest", 0), ("middle", 1), ("widest", -1)):
-        out[f"coverage_68_{name}_third"], out[f"coverage_95_{name}_third"] = groups[g][1], groups[g][3]
-    return out
-
-
 def binned_maps(run: Path, scene: str) -> dict:
     """Part 2 for one run: today's one map and the maps per width bin, both fitted on the run's
     calibration renders, scored on the validation photos' SCORE points."""
-    _, model, dataset = load_trained_model(run)
-    reference = load_training_depth(run)
-    renders = depth_calibration_renders(model, dataset, points="held-out", free_space=reference)
-    one, std_fit = _fit_depth_map(renders, floor=False, relative_floor=True)
-    c_cal = np.hypot(std_fit, one.relative_floor * renders["depth"])  # the std the level map standardises
-    sparse = score_sparse_depth(dataset, validation_views(scene))
-    r = render_at_points(model, dataset.cameras, dataset.near, dataset.far, sparse,
-                         generator=torch.Generator().manual_seed(0))
-    keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(r["depth_mean"]) & (r["depth_std"] > 0)
-    beta = one.free_space_weight if one.free_space else 0.0
-    violation = (violation_at_points(dataset.cameras, sparse, load_capture_points(dataset).xyz, r["gt"],
-                                     np.where(keep, r["depth_mean"], r["gt"]), reference)
-                 if reference is not None else np.zeros_like(r["gt"]))
-    c = np.hypot(np.hypot(r["depth_std"], beta * violation), one.relative_floor * r["depth_mean"])
-    gt, pred, c = r["gt"][keep], r["depth_mean"][keep], c[keep]
+    base = todays_std_on_photos(run, scene)
+    renders, one, c_cal, keep = base["renders"], base["today"], base["c_cal"], base["keep"]
+    gt, pred, c = base["render"]["gt"][keep], base["render"]["depth_mean"][keep], base["c"][keep]
     edges = np.quantile(c_cal / renders["depth"], np.linspace(0.0, 1.0, WIDTH_BINS + 1)[1:-1])
     cal_bin, val_bin = np.searchsorted(edges, c_cal / renders["depth"]), np.searchsorted(edges, c / pred)
     maps = [QuantileCalibration.fit(renders["abs_err"][cal_bin == b] / c_cal[cal_bin == b], quantity="depth_std")
@@ -113,10 +84,10 @@ def binned_maps(run: Path, scene: str) -> dict:
             "bin_edges": edges.tolist(), "validation_share_per_bin": (np.bincount(val_bin, minlength=WIDTH_BINS)
                                                                       / gt.size).tolist(),
             "bin_scale_68": [m.std_scale for m in maps], "bin_scale_95": [float(m.scale_at(0.95)) for m in maps],
-            "one map": summary(M.interval_sharpness(
+            "one map": interval_scores(M.interval_sharpness(
                 gt, lambda t: M.gaussian_quantiles(pred, one.std_scale * c, t, one.relative_scale))),
-            "maps per width bin": summary(M.interval_sharpness(gt, binned)),
-            "a power of the width": summary(M.interval_sharpness(
+            "maps per width bin": interval_scores(M.interval_sharpness(gt, binned)),
+            "a power of the width": interval_scores(M.interval_sharpness(
                 gt, lambda t: M.gaussian_quantiles(pred, power.std_scale * c_pow, t, power.relative_scale)))}
 
 

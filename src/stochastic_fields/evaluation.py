@@ -297,7 +297,7 @@ INTERVAL_KEYS: tuple[str, ...] = tuple(
     + [f"halfwidth_p90_{M.level_name(p)}" for p in M.INTERVAL_LEVELS]
     + [f"interval_score_{M.level_name(p)}" for p in M.INTERVAL_SCORE_LEVELS] + ["crps"]
     + [f"coverage_{M.level_name(p)}_{g}" for g in M.WIDTH_GROUP_NAMES for p in M.INTERVAL_SCORE_LEVELS]
-    + [f"halfwidth_{M.level_name(M.WIDTH_GROUP_LEVEL)}_{M.WIDTH_GROUP_NAMES[0]}_max"])
+    + [M.NARROWEST_WIDTH_KEY])
 
 
 def interval_summary(intervals: dict | None) -> dict[str, float]:

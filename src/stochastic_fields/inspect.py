@@ -135,6 +135,7 @@ class RunInspector:
         self.height, self.width = image_size(self.dataset.cameras)
         self._cache: dict[tuple[int, int, str], dict[str, np.ndarray]] = {}
         self._depth_cache: dict[tuple[int, int, str], DepthProducts] = {}
+        self._metrics_cache: dict[tuple[int, int, str], dict[str, Any]] = {}
 
     # ------------------------------------------------------------------ basics
     @property
@@ -273,6 +274,7 @@ class RunInspector:
     def clear_cache(self) -> None:
         self._cache.clear()
         self._depth_cache.clear()
+        self._metrics_cache.clear()
 
     def map_names(self) -> list[str]:
         """Names of the maps this run can show (error against GT depth only where it exists, the
@@ -440,7 +442,8 @@ class RunInspector:
     # ------------------------------------------------------------------ metrics
     def view_metrics(self, view: int, num_draws: int | None = None, quadrature: Quadrature | None = None
                      ) -> dict[str, Any]:
-        """Sparsification and calibration curves of one view, and its scores.
+        """Sparsification and calibration curves of one view, and its scores, cached with its render
+        (the figures below and the notebook ask for them several times; do not modify the result).
 
         Returns:
             scores: ``evaluation.score_view``'s (PSNR, SSIM, NLL, correlations, AUSE, depth scores).
@@ -453,6 +456,13 @@ class RunInspector:
                 pixels, or for the sparsification a constant depth std).
             depth_mask [H, W] bool or None.
         """
+        key = (self._check_view(view), *self._args(num_draws, quadrature))
+        if key not in self._metrics_cache:
+            self._metrics_cache[key] = self._view_metrics(*key)
+        return self._metrics_cache[key]
+
+    def _view_metrics(self, view: int, num_draws: int, quadrature: str) -> dict[str, Any]:
+        """``view_metrics``, computed."""
         products = self.render(view, num_draws, quadrature)
         gt, gt_depth = self.ground_truth(view)
         colour = ColourTerms.of(products, gt)

@@ -656,6 +656,8 @@ WIDTH_GROUPS: int = 3
 WIDTH_GROUP_LEVEL: float = 0.95
 #: Names of the narrowest and the widest width group in the scalar keys (thirds: ``WIDTH_GROUPS`` = 3).
 WIDTH_GROUP_NAMES: tuple[str, str] = ("narrowest_third", "widest_third")
+#: Key of the narrowest group's largest relative half-width at ``WIDTH_GROUP_LEVEL``.
+NARROWEST_WIDTH_KEY: str = "halfwidth_95_narrowest_third_max"
 
 
 def crps_levels(num: int = CRPS_NUM_LEVELS) -> np.ndarray:
@@ -745,7 +747,8 @@ def interval_sharpness(gt: Any, quantile_fn, levels: Sequence[float] = INTERVAL_
     q = _f64(quantile_fn(np.concatenate([(1.0 - lv) / 2.0, (1.0 + lv) / 2.0, crps_levels()])), "quantiles")
     lo, hi, q_crps = q[:, :lv.size], q[:, lv.size:2 * lv.size], q[:, 2 * lv.size:]
     y = g.reshape(-1, 1)
-    inside = ((y >= lo) & (y <= hi)).to(torch.float64).mean(dim=0)
+    hit = (y >= lo) & (y <= hi)  # [N, L]
+    inside = hit.to(torch.float64).mean(dim=0)
     half = (hi - lo) / (2.0 * y)
     out: dict[str, Any] = {"levels": lv.tolist(), "coverage": inside.tolist(),
                            "halfwidth_median": torch.quantile(half, 0.5, dim=0).tolist(),
@@ -759,7 +762,7 @@ def interval_sharpness(gt: Any, quantile_fn, levels: Sequence[float] = INTERVAL_
     for p, i in zip(score_levels, at):
         out[f"interval_score_{level_name(p)}"] = float((interval_score(g, lo[:, i], hi[:, i], p) / g).mean())
     out["crps"] = float((crps_from_quantiles(g, q_crps) / g).mean())
-    out.update(_width_groups(((y >= lo) & (y <= hi)).cpu().numpy(), half.cpu().numpy(), lv))
+    out.update(_width_groups(hit.cpu().numpy(), half.cpu().numpy(), lv))
     return out
 
 
@@ -769,20 +772,19 @@ def _width_groups(inside: np.ndarray, half: np.ndarray, levels: np.ndarray) -> d
     at = np.flatnonzero(np.isclose(levels, WIDTH_GROUP_LEVEL))
     if at.size == 0:
         return {}
-    n = inside.shape[0]
-    order = np.argsort(half[:, int(at[0])], kind="stable")
-    groups = np.array_split(order, WIDTH_GROUPS) if n >= WIDTH_GROUPS else []
+    width = half[:, int(at[0])]
+    groups = np.array_split(np.argsort(width, kind="stable"), WIDTH_GROUPS) if len(width) >= WIDTH_GROUPS else []
+    upper = [float(width[g].max()) for g in groups]
     out: dict[str, Any] = {"width_groups": {
         "level": WIDTH_GROUP_LEVEL,
         "coverage": [inside[g].mean(axis=0).tolist() for g in groups],
-        "halfwidth_median": [float(np.median(half[g, int(at[0])])) for g in groups],
-        "upper_edge": [float(half[g, int(at[0])].max()) for g in groups],
-        "num_values": [int(g.size) for g in groups]}}
+        "halfwidth_median": [float(np.median(width[g])) for g in groups],
+        "upper_edge": upper,
+        "num_values": [int(g.size) for g in groups]},
+        NARROWEST_WIDTH_KEY: upper[0] if groups else math.nan}
     for i, p in enumerate(levels):
         for name, g in zip(WIDTH_GROUP_NAMES, (0, -1)):
             out[f"coverage_{level_name(p)}_{name}"] = float(inside[groups[g], i].mean()) if groups else math.nan
-    out[f"halfwidth_{level_name(WIDTH_GROUP_LEVEL)}_{WIDTH_GROUP_NAMES[0]}_max"] = (
-        out["width_groups"]["upper_edge"][0] if groups else math.nan)
     return out
 
 
