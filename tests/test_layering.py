@@ -20,7 +20,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("data", ("data", "data.colmap", "data.capture", "data.dataset", "data.synthetic", "data.blender", "data.llff",
               "data.colmap_scene", "data.loading", "data.prepare", "sparse_depth", "capture_points", "virtual_views")),
     ("rendering and models", ("occupancy", "losses", "renderer", "adaptive", "config", "models", "models.base", "models.field_builder",
-                              "models.snerf", "models.baselines", "models.registry", "free_space",
+                              "models.snerf", "models.baselines", "models.registry", "free_space", "parallax",
                               "termination", "laplace")),
     ("runs", ("scenes", "distributed", "trainer", "calibration", "evaluation")),
     ("products", ("products", "products.free_path", "products.free_path_calibration", "products.free_space", "products.occupancy_map",

@@ -47,7 +47,7 @@ sys.path.insert(0, str(REPO_ROOT / "benchmarks" / "studies"))
 from stochastic_fields import metrics as M  # noqa: E402
 from stochastic_fields.calibration import QuantileCalibration, calibration_views, relative_crps  # noqa: E402
 from stochastic_fields.cameras import camera_to_world  # noqa: E402
-from stochastic_fields.free_space import _look_up, rendered_points  # noqa: E402
+from stochastic_fields.free_space import look_up, rendered_points  # noqa: E402
 from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
 from study_helpers import analyse_each, interval_scores, labelled_run_parser, todays_std_on_photos  # noqa: E402
 
@@ -65,7 +65,7 @@ def sin_parallax(X: np.ndarray, reference) -> tuple[np.ndarray, np.ndarray]:
     centres = np.linalg.inv(reference.world_to_camera)[:, :3, 3]
     sees, rays = [], []
     for t in range(len(reference.views)):
-        z, inside, rows, cols = _look_up(X, reference, t)
+        z, inside, rows, cols = look_up(X, reference, t)
         surface = reference.depth[t][rows, cols].astype(np.float64)
         sees.append(inside & (reference.opacity[t][rows, cols] > OPACITY_MASK) & (surface >= z * (1.0 - TOLERANCE)))
         u = centres[t][None] - X

@@ -39,6 +39,11 @@ the errors are standardised by sqrt(sigma^2 + (gamma Delta)^2 + ...), Delta the 
 rendered around the pixel (``depth_edges``): a pixel beside an occlusion edge may render the other
 surface, an error about the size of the step there whatever its own ray's std says.
 
+A depth map may also hold a parallax term kappa (``fit_parallax_weight``, ``DEPTH_PARALLAX_TERM``): the
+errors are standardised by sqrt(sigma^2 + ... + (kappa d / max(sin theta, PARALLAX_MIN_SIN))^2), theta the
+widest angle between the training views that see the rendered point (``parallax``): a surface the
+photos saw with little parallax is placed less surely than its std says.
+
 A map may also hold a std floor tau (``fit_std_floor``; depth only, ``DEPTH_STD_FLOOR``): the
 errors are standardised by sqrt(sigma^2 + tau^2) instead of sigma, and
 
@@ -85,10 +90,11 @@ from .virtual_views import BOUNDS_CHOICES, views_between  # noqa: F401 (BOUNDS_C
 from .view_maps import OPACITY_MASK
 from .defaults import (CALIBRATION_FILE, CALIBRATION_PAIR_POINTS, CALIBRATION_POINTS, CROSS_FIT_FOLDS,  # noqa: F401
                        DEFAULT_CALIBRATION_PAIR_POINTS, DEFAULT_CALIBRATION_POINTS, DEPTH_EDGE_TERM, DEPTH_FREE_SPACE,
-                       DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR)  # (defaults the command line shows)
+                       DEPTH_PARALLAX_TERM, DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR)  # (defaults the command line shows)
 from .depth_edges import edge_range_at_points, edge_range_map
 from .free_space import (TRAINING_DEPTH_FILE, checked_std, free_space_violation, load_training_depth,
                          render_training_depth, rendered_points, save_training_depth, violation_map)
+from .parallax import parallax_angle, parallax_map, parallax_term
 from .pose_check import check_photo_fit, load_training_fit, photo_names, save_training_fit
 
 #: Central level of +-1 standard deviation: Phi(1) - Phi(-1).
@@ -117,6 +123,10 @@ CHECK_WEIGHT_GRID: np.ndarray = np.concatenate([[0.0], np.geomspace(0.03, 1.0, 1
 #: Weights gamma of the occlusion-edge size Delta an edge-term depth map tries (``fit_edge_weight``): 0
 #: (no term) and 12 log-spaced values from 0.05 to 2 (the depth error anatomy measured 0.25 to 1).
 EDGE_WEIGHT_GRID: np.ndarray = np.concatenate([[0.0], np.geomspace(0.05, 2.0, 12)])
+#: Weights kappa of the parallax term d / max(sin theta, PARALLAX_MIN_SIN) a parallax depth map tries
+#: (``fit_parallax_weight``): 0 (no term) and 31 log-spaced values from 1e-6 to 0.1 (the research log's
+#: analysis fitted 3e-4 to 3e-3 on LLFF).
+PARALLAX_WEIGHT_GRID: np.ndarray = np.concatenate([[0.0], np.geomspace(1e-6, 0.1, 31)])
 #: What the calibration renders' source says of a checked std (the fit names the weight it chose).
 CHECKED_SOURCE: str = ", std checked against the training views' free space"
 
@@ -144,6 +154,10 @@ class QuantileCalibration:
         edge_weight: gamma, the weight of the occlusion-edge size Delta (``depth_edges``; 0: no term,
             files without it): errors are standardised by sqrt(sigma^2 + ... + (gamma Delta)^2)
             (``fit_edge_weight``; depth only).
+        parallax_weight: kappa, the weight of the parallax term d / max(sin theta, PARALLAX_MIN_SIN),
+            theta the widest angle between training views that see the rendered point (``parallax``;
+            0: no term, files without it): errors are standardised by sqrt(sigma^2 + ... + (kappa d /
+            max(sin theta, PARALLAX_MIN_SIN))^2) (``fit_parallax_weight``; depth only).
     """
 
     quantity: str
@@ -156,6 +170,13 @@ class QuantileCalibration:
     relative_floor: float = 0.0
     free_space_weight: float = 1.0
     edge_weight: float = 0.0
+    parallax_weight: float = 0.0
+
+    @property
+    def needs_training_depth(self) -> bool:
+        """Whether applying the map needs the training views' rendered depths (``free_space.TrainingDepth``):
+        a free-space check or a parallax term."""
+        return self.free_space or self.parallax_weight > 0.0
 
     @classmethod
     def fit(cls, abs_z: np.ndarray, *, quantity: str, source: str = "",
@@ -203,11 +224,15 @@ class QuantileCalibration:
         return out
 
     def calibrated_std(self, raw: np.ndarray, violation: np.ndarray | None = None,
-                       depth: np.ndarray | None = None, edge: np.ndarray | None = None) -> np.ndarray:
-        """s(0.6827) sqrt(raw^2 + floor^2 [+ (beta violation)^2] [+ (gamma edge)^2] [+ (relative_floor depth)^2])
-        in float64: the calibrated one-sigma std of raw stds [...]; a ``free_space`` map needs the
-        free-space ``violation`` [...], a map with an ``edge_weight`` the occlusion-edge size ``edge``
-        [...] (``depth_edges``), a map with a ``relative_floor`` the rendered ``depth`` [...] (same shape)."""
+                       depth: np.ndarray | None = None, edge: np.ndarray | None = None,
+                       parallax: np.ndarray | None = None) -> np.ndarray:
+        """s(0.6827) sqrt(raw^2 + floor^2 [+ (beta violation)^2] [+ (gamma edge)^2]
+        [+ (kappa depth / max(sin parallax, PARALLAX_MIN_SIN))^2] [+ (relative_floor depth)^2]) in float64:
+        the calibrated one-sigma std of raw stds [...]; a ``free_space`` map needs the free-space
+        ``violation`` [...], a map with an ``edge_weight`` the occlusion-edge size ``edge`` [...]
+        (``depth_edges``), a map with a ``parallax_weight`` the parallax angle ``parallax`` [...]
+        (degrees, ``parallax``) and the rendered ``depth``, a map with a ``relative_floor`` the
+        rendered ``depth`` [...] (same shape)."""
         std = np.hypot(np.asarray(raw, dtype=np.float64), self.floor)
         if self.free_space:
             if violation is None:
@@ -219,6 +244,11 @@ class QuantileCalibration:
                 raise ValueError(f"the {self.quantity} map has an occlusion-edge term: it needs each pixel's edge size "
                                  "(depth_edges.edge_range_map)")
             std = np.hypot(std, self.edge_weight * np.asarray(edge, dtype=np.float64))
+        if self.parallax_weight > 0.0:
+            if parallax is None or depth is None:
+                raise ValueError(f"the {self.quantity} map has a parallax term: it needs each pixel's parallax angle "
+                                 "(parallax.parallax_map) and rendered depth")
+            std = np.hypot(std, self.parallax_weight * parallax_term(parallax, depth))
         if self.relative_floor > 0.0:
             if depth is None:
                 raise ValueError(f"the {self.quantity} map has a depth-proportional term: it needs each pixel's "
@@ -243,7 +273,8 @@ class QuantileCalibration:
         return {"quantity": self.quantity, "levels": self.levels.tolist(), "scales": self.scales.tolist(),
                 "num_samples": self.num_samples, "source": self.source, "std_scale": self.std_scale,
                 "floor": self.floor, "free_space": self.free_space, "relative_floor": self.relative_floor,
-                "free_space_weight": self.free_space_weight, "edge_weight": self.edge_weight}
+                "free_space_weight": self.free_space_weight, "edge_weight": self.edge_weight,
+                "parallax_weight": self.parallax_weight}
 
     @classmethod
     def from_dict(cls, data: dict, *, where: str = "calibration") -> "QuantileCalibration":
@@ -255,7 +286,8 @@ class QuantileCalibration:
                       data.get("free_space", False),  # ... before the free-space check: none
                       float(data.get("relative_floor", 0.0)),  # ... before the depth-proportional term: none
                       float(data.get("free_space_weight", 1.0)),  # ... before the check's weight: the full check
-                      float(data.get("edge_weight", 0.0)))  # ... before the edge term: none
+                      float(data.get("edge_weight", 0.0)),  # ... before the edge term: none
+                      float(data.get("parallax_weight", 0.0)))  # ... before the parallax term: none
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{where}: malformed quantile calibration ({exc!r})") from exc
         if not isinstance(out.free_space, bool):
@@ -264,6 +296,7 @@ class QuantileCalibration:
             raise ValueError(f"{where}: the std floor must be finite and >= 0, got {out.floor}")
         _check_weight(out.free_space_weight, where)
         _edge_weight(out.edge_weight, where)
+        _parallax_weight(out.parallax_weight, where)
         if not (math.isfinite(out.relative_floor) and out.relative_floor >= 0.0):
             raise ValueError(f"{where}: the depth-proportional term must be finite and >= 0, got {out.relative_floor}")
         if (levels.ndim != 1 or levels.shape != scales.shape or levels.size == 0 or not np.isfinite(levels).all()
@@ -354,13 +387,14 @@ def fit_depth_folds(abs_err: np.ndarray, std: np.ndarray, keys: np.ndarray, scor
 def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, raw_std: np.ndarray, fold: np.ndarray,
                               folds: DepthFolds, *, violation: np.ndarray | None = None,
                               var_floor: float | None = None, coverage_levels=None,
-                              edge: np.ndarray | None = None) -> dict[str, Any]:
+                              edge: np.ndarray | None = None, parallax: np.ndarray | None = None) -> dict[str, Any]:
     """The interval scores of depths judged by their folds' maps (``DepthFolds``): each depth i of
     fold f = ``fold`` [N] gets std_i = map_f.calibrated_std(raw_std_i, violation_i) and the interval
     at level p pred_i +- z_p std_i s_f(p) / s_f(0.6827). ``raw_std`` [N]: the raw total std;
     ``violation`` [N]: each depth's free-space violation, which maps fitted with the free-space
     check need (``QuantileCalibration.calibrated_std``); ``edge`` [N]: each depth's occlusion-edge size,
-    which maps with an edge term need. Pooled over the folds:
+    which maps with an edge term need; ``parallax`` [N]: each depth's parallax angle, which maps with a
+    parallax term need. Pooled over the folds:
     {"nll": mean Gaussian NLL (``metrics.depth_nll``), "coverage_68", "coverage_95", "coverage" (at
     ``coverage_levels`` [L], default ``sparse_depth.COVERAGE_LEVELS``: +-1 and +-2 std; the first two
     are "coverage_68" and "coverage_95"), "auce", "calibration": ``metrics.CalibrationResult`` at the
@@ -368,6 +402,7 @@ def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, raw_std: np.ndar
     gt, pred, raw_std = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (gt, pred, raw_std))
     violation = None if violation is None else np.asarray(violation, dtype=np.float64).reshape(-1)
     edge = None if edge is None else np.asarray(edge, dtype=np.float64).reshape(-1)
+    parallax = None if parallax is None else np.asarray(parallax, dtype=np.float64).reshape(-1)
     fold = np.asarray(fold, dtype=np.int64).reshape(-1)
     if (fold < 0).any() or (fold >= len(folds.maps)).any():
         raise ValueError(f"cross-fitted depth scores: {int(((fold < 0) | (fold >= len(folds.maps))).sum())} of "
@@ -381,7 +416,7 @@ def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, raw_std: np.ndar
         if not i.any():
             continue
         std = m.calibrated_std(raw_std[i], None if violation is None else violation[i], pred[i],
-                               None if edge is None else edge[i])
+                               None if edge is None else edge[i], None if parallax is None else parallax[i])
         inside += M.calibration_curve(gt[i], pred[i], std, interval_scale=m.relative_scale).coverage * i.sum()
         inside_cov += M.calibration_curve(gt[i], pred[i], std, levels=coverage_levels,
                                           interval_scale=m.relative_scale).coverage * i.sum()
@@ -395,7 +430,8 @@ def cross_fitted_depth_scores(gt: np.ndarray, pred: np.ndarray, raw_std: np.ndar
 
 
 def cross_fitted_depth_quantiles(pred: np.ndarray, raw_std: np.ndarray, fold: np.ndarray, folds: DepthFolds, *,
-                                 violation: np.ndarray | None = None, edge: np.ndarray | None = None):
+                                 violation: np.ndarray | None = None, edge: np.ndarray | None = None,
+                                 parallax: np.ndarray | None = None):
     """The predictive quantile function of depths judged by their folds' maps: t [Q] -> [N, Q], depth i
     of fold f = ``fold`` [N] getting ``metrics.gaussian_quantiles`` of (pred_i, map_f's calibrated
     std of raw_std_i, map_f's interval scale): the distribution whose intervals
@@ -411,7 +447,8 @@ def cross_fitted_depth_quantiles(pred: np.ndarray, raw_std: np.ndarray, fold: np
         i = fold == f
         if i.any():
             stds[i] = m.calibrated_std(raw_std[i], None if violation is None else np.asarray(violation)[i], pred[i],
-                                       None if edge is None else np.asarray(edge)[i])
+                                       None if edge is None else np.asarray(edge)[i],
+                                       None if parallax is None else np.asarray(parallax)[i])
 
     def quantiles(levels: np.ndarray) -> np.ndarray:
         out = np.zeros((pred.size, np.asarray(levels).size))
@@ -501,6 +538,13 @@ def _edge_weight(weight: float, where: str) -> float:
     return weight
 
 
+def _parallax_weight(weight: float, where: str) -> float:
+    """``weight`` when it is a valid parallax-term weight (finite, >= 0); ValueError naming ``where``."""
+    if not (math.isfinite(weight) and weight >= 0.0):
+        raise ValueError(f"{where}: the parallax term's weight must be finite and >= 0, got {weight}")
+    return weight
+
+
 def _check_weight(weight: float, where: str) -> float:
     """``weight`` when it is a valid free-space check weight (finite, >= 0); ValueError naming ``where``."""
     if not (math.isfinite(weight) and weight >= 0.0):
@@ -526,6 +570,22 @@ def fit_edge_weight(abs_err: np.ndarray, std: np.ndarray, edge: np.ndarray, dept
     term where edges do not explain the errors). ``abs_err`` [N] (>= 0), ``std`` [N] (> 0; the
     checked std where the map checks free space), ``edge`` Delta [N] (>= 0), ``depth`` [N] (> 0)."""
     return _fit_term_weight(abs_err, std, edge, depth, grid, "fit_edge_weight", "edge size")
+
+
+def fit_parallax_weight(abs_err: np.ndarray, std: np.ndarray, angle: np.ndarray, depth: np.ndarray,
+                        grid: np.ndarray = PARALLAX_WEIGHT_GRID) -> float:
+    """The weight kappa of the parallax term (``parallax``): the value of ``grid`` whose std
+    sqrt(std^2 + (kappa d / max(sin theta, PARALLAX_MIN_SIN))^2), with rho fitted on it
+    (``fit_relative_floor``), gives the smallest mean CRPS / depth (``relative_crps``) on these points;
+    ties go to the smaller kappa (0 first: no term where the parallax does not explain the errors).
+    ``abs_err`` [N] (>= 0), ``std`` [N] (> 0; with the map's other terms), ``angle`` theta [N]
+    (degrees, >= 0), ``depth`` d [N] (> 0)."""
+    angle, depth = (np.asarray(a, dtype=np.float64).reshape(-1) for a in (angle, depth))
+    if angle.shape != depth.shape or not (np.isfinite(angle).all() and (angle >= 0).all()):
+        raise ValueError(f"fit_parallax_weight: needs one finite parallax angle >= 0 per depth, got {angle.size} for "
+                         f"{depth.size}")
+    return _fit_term_weight(abs_err, std, parallax_term(angle, depth), depth, grid, "fit_parallax_weight",
+                            "parallax term")
 
 
 def _fit_term_weight(abs_err: np.ndarray, std: np.ndarray, term: np.ndarray, depth: np.ndarray, grid: np.ndarray,
@@ -708,19 +768,35 @@ def violation_at_points(cameras, sparse: dict, xyz: np.ndarray, gt: np.ndarray, 
     for ``sparse`` ({view: SparseDepth} of ``cameras``, in its ray order): on each view's ray through
     capture point ``xyz[point_index]`` [P, 3], whose camera z is ``gt`` [N], the point at the rendered
     camera z ``depth`` [N] (finite; ``free_space.rendered_points``)."""
+    return free_space_violation(rendered_points_of(cameras, sparse, xyz, gt, depth), reference)
+
+
+def parallax_at_points(cameras, sparse: dict, xyz: np.ndarray, gt: np.ndarray, depth: np.ndarray,
+                       reference) -> np.ndarray:
+    """The parallax angle theta_max [N] (degrees, ``parallax.parallax_angle`` over the training views of
+    ``reference``, a ``free_space.TrainingDepth``) of the points ``render_at_points`` rendered for
+    ``sparse`` (as ``violation_at_points``)."""
+    return parallax_angle(rendered_points_of(cameras, sparse, xyz, gt, depth), reference)[0]
+
+
+def rendered_points_of(cameras, sparse: dict, xyz: np.ndarray, gt: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """World points [N, 3] ``render_at_points`` put for ``sparse`` ({view: SparseDepth} of ``cameras``,
+    in its ray order): on each view's ray through capture point ``xyz[point_index]`` [P, 3], whose
+    camera z is ``gt`` [N], the point at the rendered camera z ``depth`` [N]
+    (``free_space.rendered_points``)."""
     views = [v for v, sd in sparse.items() if len(sd)]
     if not views:
-        return np.zeros(0)
+        return np.zeros((0, 3))
     centres = camera_to_world(cameras).double()[:, :3, 3].numpy()[np.concatenate(
         [np.full(len(sparse[v]), v) for v in views])]
     index = np.concatenate([sparse[v].point_index for v in views])
-    return free_space_violation(rendered_points(centres, np.asarray(xyz)[index], gt, depth), reference)
+    return rendered_points(centres, np.asarray(xyz)[index], gt, depth)
 
 
 def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: float | None = None,
                               points: str = "calibrate", options=None, bounds: str = CALIBRATION_BOUNDS,
                               free_space=None, edges: bool = False,
-                              pair_points: str = DEFAULT_CALIBRATION_PAIR_POINTS) -> dict[str, Any]:
+                              pair_points: str = DEFAULT_CALIBRATION_PAIR_POINTS, parallax=None) -> dict[str, Any]:
     """What a depth map is fitted on: the absolute camera-z errors "abs_err" [N] (signed, true minus
     rendered: "err") and raw total stds
     "std" [N] (> 0), with the capture point of each ("index" [N] int64), its calibration view ("view"
@@ -734,7 +810,9 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     ``calibration_views``); with ``free_space`` (``free_space.TrainingDepth``) "std" holds the
     checked ones at full weight, sqrt(sigma^2 + e^2) with e the rendered point's free-space violation
     (``free_space.checked_std``), "std_raw" the raw sigma and "violation" e [N]; with ``edges``,
-    "edge" [N] holds each point's occlusion-edge size (``edge_at_points``: 8 more renders).
+    "edge" [N] holds each point's occlusion-edge size (``edge_at_points``: 8 more renders); with
+    ``parallax`` (``free_space.TrainingDepth``), "parallax" [N] each rendered point's parallax angle
+    (``parallax_at_points``, degrees).
     ValueError when the scene has no capture points, or for an unknown ``points``."""
     if points not in CALIBRATION_POINTS:
         raise ValueError(f"calibration points must be one of {CALIBRATION_POINTS}, got {points!r}")
@@ -756,9 +834,9 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     violation = None
     views = [v for v, sd in sparse.items() if len(sd)]  # the order of render_at_points' rays
     index = np.concatenate([sparse[v].point_index for v in views] or [np.zeros(0, np.int64)])
+    at = np.where(keep, r["depth_mean"], r["gt"])  # where each kept ray's render put its point
     if free_space is not None and len(std):
-        violation = violation_at_points(cams, sparse, capture.xyz, r["gt"], np.where(keep, r["depth_mean"], r["gt"]),
-                                        free_space)
+        violation = violation_at_points(cams, sparse, capture.xyz, r["gt"], at, free_space)
         std = checked_std(sigma, violation)
         source += CHECKED_SOURCE
     err = r["gt"][keep] - r["depth_mean"][keep]
@@ -769,6 +847,8 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
         out.update({"std_raw": sigma[keep], "violation": violation[keep]})
     if edges:
         out["edge"] = edge_at_points(model, cams, near, far, sparse, r["depth_mean"], seed=seed, options=options)[keep]
+    if parallax is not None:
+        out["parallax"] = parallax_at_points(cams, sparse, capture.xyz, r["gt"], at, parallax)[keep]
     return out
 
 
@@ -776,29 +856,34 @@ def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float 
                           points: str = "calibrate", options=None, floor: bool = DEPTH_STD_FLOOR,
                           free_space=None, relative_floor: bool = DEPTH_RELATIVE_FLOOR,
                           check_weight: float | None = None, edges: bool = DEPTH_EDGE_TERM,
-                          edge_weight: float | None = None) -> QuantileCalibration:
+                          edge_weight: float | None = None, parallax=None,
+                          parallax_weight: float | None = None) -> QuantileCalibration:
     """The depth map fitted on ``depth_calibration_errors`` (same arguments, the default bounds);
     with ``floor``, a std floor first (``fit_std_floor``); with ``free_space``
     (``free_space.TrainingDepth``), on the free-space-checked std (the map's ``free_space``); with
     ``relative_floor``, a depth-proportional term (``fit_relative_floor``); ``check_weight``: the
     free-space violation's weight (None: fitted, ``fit_check_weight``); with ``edges``, an
-    occlusion-edge term weighted ``edge_weight`` (None: fitted, ``fit_edge_weight``). ValueError when
-    the scene has no capture points or too few of those roles, or for an unknown ``points``."""
+    occlusion-edge term weighted ``edge_weight`` (None: fitted, ``fit_edge_weight``); with ``parallax``
+    (``free_space.TrainingDepth``), a parallax term weighted ``parallax_weight`` (None: fitted,
+    ``fit_parallax_weight``). ValueError when the scene has no capture points or too few of those
+    roles, or for an unknown ``points``."""
     r = depth_calibration_renders(model, dataset, seed=seed, opacity_mask=opacity_mask, points=points,
-                                  options=options, free_space=free_space, edges=edges)
+                                  options=options, free_space=free_space, edges=edges, parallax=parallax)
     return _fit_depth_map(r, floor=floor, relative_floor=relative_floor, check_weight=check_weight,
-                          edge_weight=edge_weight)[0]
+                          edge_weight=edge_weight, parallax_weight=parallax_weight)[0]
 
 
 def _fit_depth_map(renders: dict[str, Any], *, floor: bool, relative_floor: bool,
-                   check_weight: float | None = None, edge_weight: float | None = None
-                   ) -> tuple[QuantileCalibration, np.ndarray]:
+                   check_weight: float | None = None, edge_weight: float | None = None,
+                   parallax_weight: float | None = None) -> tuple[QuantileCalibration, np.ndarray]:
     """The depth map of ``depth_calibration_renders``' output and the stds [N] it was fitted on. Renders
     with the free-space check (a "violation" entry) weigh it by ``check_weight``, or when None by the
     weight beta ``fit_check_weight`` fits (with rho when ``relative_floor``; without the term, the
     full check); a weight of 0 leaves an unchecked map. Renders with edge sizes (an "edge" entry)
     then add the edge term weighted ``edge_weight``, or when None by the gamma ``fit_edge_weight``
-    fits on the checked std (without rho: no term); a weight of 0 leaves a map without it."""
+    fits on the checked std (without rho: no term); a weight of 0 leaves a map without it. Renders with
+    parallax angles (a "parallax" entry) then add the parallax term weighted ``parallax_weight``, or
+    when None by the kappa ``fit_parallax_weight`` fits on the std so far (without rho: no term)."""
     weight = 1.0 if check_weight is None else _check_weight(float(check_weight), "check_weight")
     std, source, checked = renders["std"], renders["source"], "violation" in renders
     if checked:
@@ -816,11 +901,20 @@ def _fit_depth_map(renders: dict[str, Any], *, floor: bool, relative_floor: bool
         std = np.hypot(std, gamma * renders["edge"])
         source += (f", occlusion-edge term weight {gamma:.3g}" if gamma > 0.0
                    else ", the occlusion-edge term fitted with weight 0 (none)")
+    kappa = 0.0
+    if "parallax" in renders:
+        if parallax_weight is not None:
+            kappa = _parallax_weight(float(parallax_weight), "parallax_weight")
+        elif relative_floor and renders["abs_err"].size >= MIN_CALIBRATION_SAMPLES:
+            kappa = fit_parallax_weight(renders["abs_err"], std, renders["parallax"], renders["depth"])
+        std = np.hypot(std, kappa * parallax_term(renders["parallax"], renders["depth"]))
+        source += (f", parallax term weight {kappa:.3g}" if kappa > 0.0
+                   else ", the parallax term fitted with weight 0 (none)")
     out = QuantileCalibration.fit_errors(renders["abs_err"], std, quantity="depth_std", floor=floor,
                                          depth=renders["depth"] if relative_floor else None, source=source)
     if checked and weight > 0.0:  # a weight of 0 leaves the unchecked map (free_space False, weight 1)
         out.free_space, out.free_space_weight = True, weight
-    out.edge_weight = gamma
+    out.edge_weight, out.parallax_weight = gamma, kappa
     return out, std
 
 
@@ -829,7 +923,8 @@ def fit_depth_calibration_and_folds(model, dataset, *, seed: int = 0, points: st
                                     relative_floor: bool = DEPTH_RELATIVE_FLOOR, check_weight: float | None = None,
                                     folds: int = CROSS_FIT_FOLDS, edges: bool = DEPTH_EDGE_TERM,
                                     edge_weight: float | None = None,
-                                    pair_points: str = DEFAULT_CALIBRATION_PAIR_POINTS
+                                    pair_points: str = DEFAULT_CALIBRATION_PAIR_POINTS, parallax=None,
+                                    parallax_weight: float | None = None
                                     ) -> tuple[QuantileCalibration, DepthFolds | None]:
     """The depth map (as ``fit_depth_calibration``) and, when it is fitted on the SCORE points too
     (``points="held-out"``), its cross-fitted ``DepthFolds`` from the same renders (``pair_points``:
@@ -837,22 +932,23 @@ def fit_depth_calibration_and_folds(model, dataset, *, seed: int = 0, points: st
     or with a warning when the scene has too few SCORE blocks or points to fit them. ValueError as
     ``fit_depth_calibration``."""
     r = depth_calibration_renders(model, dataset, seed=seed, points=points, options=options, free_space=free_space,
-                                  edges=edges, pair_points=pair_points)
+                                  edges=edges, pair_points=pair_points, parallax=parallax)
     return depth_map_and_folds(r, load_capture_points(dataset) if points != "calibrate" else None, floor=floor,
                                relative_floor=relative_floor, check_weight=check_weight, edge_weight=edge_weight,
-                               folds=folds, where=str(dataset.root))
+                               parallax_weight=parallax_weight, folds=folds, where=str(dataset.root))
 
 
 def depth_map_and_folds(renders: dict[str, Any], capture=None, *, floor: bool = DEPTH_STD_FLOOR,
                         relative_floor: bool = DEPTH_RELATIVE_FLOOR, check_weight: float | None = None,
-                        edge_weight: float | None = None, folds: int = CROSS_FIT_FOLDS, where: str = "capture"
+                        edge_weight: float | None = None, parallax_weight: float | None = None,
+                        folds: int = CROSS_FIT_FOLDS, where: str = "capture"
                         ) -> tuple[QuantileCalibration, DepthFolds | None]:
     """The depth map of ``depth_calibration_renders``' output ``renders`` (its free-space check and
     edge term weighted as ``_fit_depth_map`` fits them) and, with the scene's ``capture`` points
     (held-out renders: CALIBRATE and SCORE), its cross-fitted ``DepthFolds``: None without
     ``capture``, or with a warning naming ``where`` when the scene has too few SCORE blocks."""
     out, std = _fit_depth_map(renders, floor=floor, relative_floor=relative_floor, check_weight=check_weight,
-                              edge_weight=edge_weight)
+                              edge_weight=edge_weight, parallax_weight=parallax_weight)
     if capture is None:
         return out, None
     keys = block_keys(capture.xyz, capture.xyz)
@@ -866,6 +962,7 @@ def depth_map_and_folds(renders: dict[str, Any], capture=None, *, floor: bool = 
         return out, None
     for m in folded.maps:  # the weights the run's map chose; each fold's own s(p) and rho
         m.free_space, m.free_space_weight, m.edge_weight = out.free_space, out.free_space_weight, out.edge_weight
+        m.parallax_weight = out.parallax_weight
     return out, folded
 
 
@@ -909,7 +1006,8 @@ class RunCalibration:
     colour: QuantileCalibration | None = None
     training_depth: Any = None
     """The training views' rendered depths (``free_space.TrainingDepth``) a ``free_space`` depth map
-    checks against, stored beside calibration.json (``free_space.TRAINING_DEPTH_FILE``)."""
+    checks against and a parallax term measures the parallax with, stored beside calibration.json
+    (``free_space.TRAINING_DEPTH_FILE``)."""
     depth_folds: DepthFolds | None = None
     """The depth map's cross-fitted fold maps (``points="held-out"``): what its interval scores use."""
 
@@ -957,11 +1055,12 @@ def load_run_calibration(run_dir: str | Path) -> RunCalibration | None:
     if not path.is_file():
         return None
     out = RunCalibration.from_dict(read_json(path, "calibration"), where=str(path))
-    if out.depth is not None and out.depth.free_space:
+    if out.depth is not None and out.depth.needs_training_depth:
         out.training_depth = load_training_depth(run_dir)
         if out.training_depth is None:
-            raise ValueError(f"{path}: the depth map checks free space, but {Path(run_dir) / TRAINING_DEPTH_FILE} "
-                             f"is missing (run `stochastic-fields calibrate --run {run_dir} --free-space` again)")
+            raise ValueError(f"{path}: the depth map checks free space or has a parallax term, but "
+                             f"{Path(run_dir) / TRAINING_DEPTH_FILE} is missing (run `stochastic-fields calibrate "
+                             f"--run {run_dir}` again)")
     return out
 
 
@@ -970,7 +1069,8 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
                   free_space: bool = DEPTH_FREE_SPACE, relative_floor: bool = DEPTH_RELATIVE_FLOOR,
                   check_weight: float | None = None, progress: bool = True, edges: bool = DEPTH_EDGE_TERM,
                   edge_weight: float | None = None,
-                  pair_points: str = DEFAULT_CALIBRATION_PAIR_POINTS) -> RunCalibration:
+                  pair_points: str = DEFAULT_CALIBRATION_PAIR_POINTS, parallax: bool = DEPTH_PARALLAX_TERM,
+                  parallax_weight: float | None = None) -> RunCalibration:
     """Fit the run's calibration and write ``RUN/calibration.json``: the depth map from its capture
     points (``points``: ``CALIBRATION_POINTS``; "held-out" adds the cross-fitted ``DepthFolds``
     that score it) and, when the run held pixels out of training
@@ -983,8 +1083,10 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
     ``fit_check_weight``; a fitted 0 leaves the map unchecked); ``relative_floor``: whether
     it fits a depth-proportional term (``fit_relative_floor``); ``edges``: whether it adds an
     occlusion-edge term (``depth_edges``) weighted ``edge_weight`` (None: fitted, ``fit_edge_weight``;
-    a fitted 0 leaves it out); ``pair_points``: which capture points a calibration view renders
-    (``pair_visible_points``). ValueError (the depth fit's reason) when neither can be fitted; a depth
+    a fitted 0 leaves it out); ``parallax``: whether it adds the training views' parallax term
+    (``parallax``; the training views are rendered as for the check) weighted ``parallax_weight``
+    (None: fitted, ``fit_parallax_weight``; a fitted 0 leaves it out); ``pair_points``: which
+    capture points a calibration view renders (``pair_visible_points``). ValueError (the depth fit's reason) when neither can be fitted; a depth
     fit that fails beside a colour one leaves depth raw."""
     if model is None:
         cfg, model, dataset = load_trained_model(Path(run_dir), dataset=dataset, device=device)
@@ -994,22 +1096,26 @@ def calibrate_run(run_dir: str | Path, *, device: str | None = None, seed: int =
     if cfg.train.holdout_fraction > 0:
         colour = fit_colour_calibration(model, dataset, fraction=cfg.train.holdout_fraction,
                                         block=cfg.train.holdout_block, seed=seed)
-    reference = render_training_depth(model, dataset, seed=seed, progress=progress) if free_space else None
+    reference = (render_training_depth(model, dataset, seed=seed, progress=progress) if free_space or parallax
+                 else None)
     if reference is not None and reference.psnr is not None:  # the same renders check the training photos' poses (pose_check)
         save_training_fit(run_dir, check_photo_fit(photo_names(dataset, reference.views), reference.psnr))
     try:
         depth, folds = fit_depth_calibration_and_folds(model, dataset, seed=seed, points=points, floor=floor,
-                                                       free_space=reference, relative_floor=relative_floor,
+                                                       free_space=reference if free_space else None,
+                                                       relative_floor=relative_floor,
                                                        check_weight=check_weight, edges=edges,
-                                                       edge_weight=edge_weight, pair_points=pair_points)
+                                                       edge_weight=edge_weight, pair_points=pair_points,
+                                                       parallax=reference if parallax else None,
+                                                       parallax_weight=parallax_weight)
     except ValueError:
         if colour is None:
             raise
         depth = folds = None
-    if depth is not None and depth.free_space:  # a fitted weight of 0 leaves the map unchecked: no file
+    if depth is not None and depth.needs_training_depth:  # fitted weights of 0 leave the map without them: no file
         save_training_depth(run_dir, reference)  # before the calibration.json that names it
     calibration = RunCalibration(depth=depth, points=points, colour=colour,
-                                 training_depth=None if depth is None or not depth.free_space else reference,
+                                 training_depth=None if depth is None or not depth.needs_training_depth else reference,
                                  depth_folds=folds)
     save_run_calibration(run_dir, calibration)
     return calibration
@@ -1032,6 +1138,7 @@ def _std_formula(m: QuantileCalibration) -> str:
              else f"({m.free_space_weight:.3g} free-space violation)^2")
     terms = (["raw^2"] + ([f"{m.floor:.3g}^2"] if m.floor else []) + ([check] if m.free_space else [])
              + ([f"({m.edge_weight:.3g} edge size)^2"] if m.edge_weight else [])
+             + ([f"({m.parallax_weight:.3g} depth / sin parallax)^2"] if m.parallax_weight else [])
              + ([f"({m.relative_floor:.3g} depth)^2"] if m.relative_floor else []))
     return "x" if len(terms) == 1 else f"sqrt({' + '.join(terms)}) x"
 
@@ -1045,16 +1152,24 @@ def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibrati
     violation (``free_space.violation_map`` at pixels with opacity above ``OPACITY_MASK``), which
     needs the view's ``camera`` (intrinsics [3, 3], OpenCV world-to-camera [4, 4]); a depth map with
     an occlusion-edge term adds ``depth_edge`` [H, W], each pixel's edge size
-    (``depth_edges.edge_range_map`` of ``depth_mean``). Returns a new dict (unchanged entries where a
+    (``depth_edges.edge_range_map`` of ``depth_mean``); a depth map with a parallax term adds
+    ``depth_parallax`` [H, W], each pixel's parallax angle in degrees (``parallax.parallax_map`` at
+    pixels with opacity above ``OPACITY_MASK``; the view's ``camera`` too). Returns a new dict (unchanged entries where a
     map is missing)."""
     out = dict(products)
     if calibration is None:
         return out
-    violation = None
-    if calibration.depth is not None and calibration.depth.free_space and "depth_std" in products:
+    violation = parallax = None
+    if calibration.depth is not None and calibration.depth.needs_training_depth and "depth_std" in products:
         if camera is None or calibration.training_depth is None:
-            raise ValueError("the depth map checks free space: applying it needs the view's camera and the run's "
-                             "training-view depths (load the calibration with load_run_calibration)")
+            raise ValueError("the depth map checks free space or has a parallax term: applying it needs the view's "
+                             "camera and the run's training-view depths (load the calibration with "
+                             "load_run_calibration)")
+    if calibration.depth is not None and calibration.depth.parallax_weight > 0.0 and "depth_std" in products:
+        parallax = parallax_map(products["depth_mean"], camera[0], camera[1], calibration.training_depth,
+                                mask=products["opacity"] > OPACITY_MASK)
+        out["depth_parallax"] = parallax
+    if calibration.depth is not None and calibration.depth.free_space and "depth_std" in products:
         violation = violation_map(products["depth_mean"], camera[0], camera[1], calibration.training_depth,
                                   mask=products["opacity"] > OPACITY_MASK)
         out["depth_free_space"] = violation
@@ -1067,7 +1182,8 @@ def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibrati
             raw = products[key]
             extra = violation if key == "depth_std" else None
             depth = products.get("depth_mean") if key == "depth_std" else None
-            std = cal.calibrated_std(raw, extra, depth, edge if key == "depth_std" else None)
+            std = cal.calibrated_std(raw, extra, depth, edge if key == "depth_std" else None,
+                                     parallax if key == "depth_std" else None)
             out.update({f"{key}_raw": raw, key: std.astype(raw.dtype)})
     return out
 
@@ -1081,13 +1197,15 @@ def run(args) -> None:
     cal = calibrate_run(Path(args.run), device=args.device, seed=args.seed, points=args.points,
                         floor=args.std_floor, free_space=args.free_space, relative_floor=args.relative_floor,
                         check_weight=args.free_space_weight, edges=args.edge_term, edge_weight=args.edge_weight,
-                        pair_points=args.pair_points)
+                        pair_points=args.pair_points, parallax=args.parallax_term,
+                        parallax_weight=args.parallax_weight)
     print(f"calibrated {args.run}: {describe(cal)}")
     print(f"written: {Path(args.run) / CALIBRATION_FILE} (render, eval and export apply it; raw stds as depth_std_raw "
           "and colour_std_raw)")
     if cal.training_depth is not None:
         print(f"written: {Path(args.run) / TRAINING_DEPTH_FILE} (the training views' rendered depths the free-space "
-              "check compares with; each view's violation is written as depth_free_space)")
-    fit = load_training_fit(args.run) if args.free_space else None
+              "check compares with and the parallax term measures with; each view's violation is written as "
+              "depth_free_space, its parallax angle as depth_parallax)")
+    fit = load_training_fit(args.run) if args.free_space or args.parallax_term else None
     if fit is not None:
         print(fit.summary())

@@ -160,3 +160,7 @@ DISTRIBUTED_TIMEOUT_S: float = 1800.0
 #: coordinates (about 1e-5 pixel at a few hundred pixels) stays far below the motion (on LLFF
 #: about 0.06 pixel along the depth axis, 0.4 across the image).
 PARALLAX_PROBE_STEP: float = 1e-3
+
+#: Floor of sin theta in the parallax term kappa d / sin theta (``parallax``): about 0.6 degrees, so
+#: a point fewer than two training views see (theta 0) gets a large but finite term, 100 d kappa.
+PARALLAX_MIN_SIN: float = 0.01

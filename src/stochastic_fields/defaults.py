@@ -42,6 +42,10 @@ DEPTH_RELATIVE_FLOOR: bool = True
 #: the range of the depths rendered within 2 pixels (``depth_edges``, ``calibration.fit_edge_weight``;
 #: docs/studies.md, study 30: off, it lowers flower's 95% interval score but widens the median band).
 DEPTH_EDGE_TERM: bool = False
+#: Whether depth maps add the training views' parallax term, depth_std = s sqrt(raw^2 + ... +
+#: (kappa d / max(sin theta_max, 0.01))^2), theta_max the widest angle between training views that see
+#: the rendered point (``parallax``, ``calibration.fit_parallax_weight``; docs/studies.md, study 42).
+DEPTH_PARALLAX_TERM: bool = False
 
 # free_space
 #: File of a run's rendered training-view depths (``save_training_depth``).

@@ -71,7 +71,7 @@ def write_view_products(out_dir: Path, name: str, products: dict[str, np.ndarray
     depth_img, lo, hi = colourise(products["depth_mean"], cmap="turbo", mask=mask)
     _save_png(out_dir / f"{name}_depth_mean.png", depth_img)
     _save_png(out_dir / f"{name}_depth_std.png", colourise(products["depth_std"], cmap="magma", mask=mask, vmin=0.0)[0])
-    for key in ("depth_free_space", "depth_edge"):  # the free-space check's violation, the edge size (calibrate)
+    for key in ("depth_free_space", "depth_edge", "depth_parallax"):  # the calibration's terms (calibrate)
         if key in products:
             _save_png(out_dir / f"{name}_{key}.png", colourise(products[key], cmap="magma", mask=mask, vmin=0.0)[0])
     if gt_colour is not None:
@@ -99,6 +99,8 @@ class DepthSamples:
     calibration has cross-fitted folds that judge the samples by block."""
     edge: np.ndarray | None = None
     """Each sample's occlusion-edge size, where the products have it (``depth_edge``)."""
+    parallax: np.ndarray | None = None
+    """Each sample's parallax angle (degrees), where the products have it (``depth_parallax``)."""
 
 
 def depth_samples(products: dict[str, np.ndarray], gt_depth: np.ndarray | None = None,
@@ -111,6 +113,7 @@ def depth_samples(products: dict[str, np.ndarray], gt_depth: np.ndarray | None =
     s_raw = products.get("depth_std_raw", s)
     e = products.get("depth_free_space")
     edge = products.get("depth_edge")
+    parallax = products.get("depth_parallax")
     parts = {name: products[key] for name, key in DEPTH_STD_PARTS.items() if key in products}
     if sparse is not None:
         keep = sparse.sample(op) > OPACITY_MASK
@@ -118,13 +121,14 @@ def depth_samples(products: dict[str, np.ndarray], gt_depth: np.ndarray | None =
                             sparse.sample(s_raw)[keep], {k: sparse.sample(v)[keep] for k, v in parts.items()},
                             None if e is None else sparse.sample(e)[keep],
                             None if blocks is None else np.asarray(blocks)[keep],
-                            None if edge is None else sparse.sample(edge)[keep])
+                            None if edge is None else sparse.sample(edge)[keep],
+                            None if parallax is None else sparse.sample(parallax)[keep])
     if gt_depth is None:
         return None
     mask = (gt_depth > 0) & (op > OPACITY_MASK)
     return DepthSamples(gt_depth[mask], d[mask], s[mask], s_raw[mask], {k: v[mask] for k, v in parts.items()},
                         None if e is None else e[mask], None if blocks is None else np.asarray(blocks)[mask],
-                        None if edge is None else edge[mask])
+                        None if edge is None else edge[mask], None if parallax is None else parallax[mask])
 
 
 def pool_depth_samples(pool: Sequence[DepthSamples]) -> DepthSamples:
@@ -138,7 +142,8 @@ def pool_depth_samples(pool: Sequence[DepthSamples]) -> DepthSamples:
                         {k: cat(p.parts[k] for p in pool) for k in names},
                         cat(p.violation for p in pool) if every("violation") else None,
                         np.concatenate([p.block for p in pool]).astype(np.int64) if every("block") else None,
-                        cat(p.edge for p in pool) if every("edge") else None)
+                        cat(p.edge for p in pool) if every("edge") else None,
+                        cat(p.parallax for p in pool) if every("parallax") else None)
 
 
 def depth_part_rankings(samples: DepthSamples) -> dict[str, M.CorrelationResult]:
@@ -175,9 +180,11 @@ def calibrated_depth_scores(samples: DepthSamples, calibration=None) -> dict[str
     if folds is not None and samples.block is not None and samples.gt.size >= 2:
         fold = folds.fold_of(samples.block)
         scores.update(cross_fitted_depth_scores(samples.gt, samples.pred, samples.std_raw, fold, folds,
-                                                violation=samples.violation, edge=samples.edge))
+                                                violation=samples.violation, edge=samples.edge,
+                                                parallax=samples.parallax))
         quantiles = cross_fitted_depth_quantiles(samples.pred, samples.std_raw, fold, folds,
-                                                 violation=samples.violation, edge=samples.edge)
+                                                 violation=samples.violation, edge=samples.edge,
+                                                 parallax=samples.parallax)
     scores["intervals"] = M.interval_sharpness(samples.gt, quantiles) if samples.gt.size >= 2 else None
     return scores
 

@@ -157,7 +157,7 @@ def load_training_depth(run_dir: str | Path) -> TrainingDepth | None:
         raise ValueError(f"{path}: malformed training-view depths ({exc})") from exc
 
 
-def _look_up(X: np.ndarray, ref: TrainingDepth, t: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def look_up(X: np.ndarray, ref: TrainingDepth, t: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """World points ``X`` [N, 3] in training view ``t``: their camera z [N], whether they lie in front
     of the camera inside the image [N], and the row and column of their pixel [N] (0 where not)."""
     T, H, W = ref.depth.shape
@@ -181,7 +181,7 @@ def free_space_violation(points: np.ndarray, ref: TrainingDepth, *, exclude: Seq
     for t in range(len(ref.views)):
         if int(ref.views[t]) in exclude:
             continue
-        z, inside, rows, cols = _look_up(X, ref, t)
+        z, inside, rows, cols = look_up(X, ref, t)
         surface = ref.depth[t][rows, cols].astype(np.float64)
         checked = inside & (ref.opacity[t][rows, cols] > OPACITY_MASK)
         out = np.maximum(out, np.where(checked, np.maximum(surface - z, 0.0), 0.0))
@@ -201,7 +201,7 @@ def agreeing_views(points: np.ndarray, ref: TrainingDepth, *, tolerance: float) 
     X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     agree, seen = np.zeros(len(X), np.int64), np.zeros(len(X), np.int64)
     for t in range(len(ref.views)):
-        z, inside, rows, cols = _look_up(X, ref, t)
+        z, inside, rows, cols = look_up(X, ref, t)
         opaque = inside & (ref.opacity[t][rows, cols] > OPACITY_MASK)
         seen += opaque
         agree += opaque & (np.abs(z - ref.depth[t][rows, cols].astype(np.float64)) <= tolerance * z)
@@ -222,6 +222,15 @@ def violation_map(depth: np.ndarray, intrinsics: np.ndarray, world_to_camera: np
     """e [H, W] (float32) of a rendered camera-z ``depth`` map [H, W] of the camera ``intrinsics``
     [3, 3], ``world_to_camera`` [4, 4]: each pixel centre back-projected to its depth, then
     ``free_space_violation``; 0 where ``mask`` [H, W] is False (default: every pixel)."""
+    return map_at_pixels(depth, intrinsics, world_to_camera, lambda X: free_space_violation(X, ref, exclude=exclude),
+                         mask=mask)
+
+
+def map_at_pixels(depth: np.ndarray, intrinsics: np.ndarray, world_to_camera: np.ndarray, value,
+                  *, mask: np.ndarray | None = None) -> np.ndarray:
+    """[H, W] (float32) ``value`` (world points [N, 3] -> [N]) of each pixel centre of a rendered
+    camera-z ``depth`` map [H, W], back-projected to its depth with the camera ``intrinsics`` [3, 3],
+    ``world_to_camera`` [4, 4]; 0 where ``mask`` [H, W] is False (default: every pixel)."""
     depth = torch.as_tensor(np.asarray(depth, dtype=np.float64))
     H, W = depth.shape
     rows, cols = torch.nonzero(torch.ones(H, W, dtype=torch.bool) if mask is None
@@ -230,7 +239,7 @@ def violation_map(depth: np.ndarray, intrinsics: np.ndarray, world_to_camera: np
                                invert_rigid(torch.as_tensor(np.asarray(world_to_camera, np.float64))),
                                rows, cols, depth[rows, cols])
     out = np.zeros((H, W), np.float32)
-    out[rows.numpy(), cols.numpy()] = free_space_violation(world.numpy(), ref, exclude=exclude)
+    out[rows.numpy(), cols.numpy()] = value(world.numpy())
     return out
 
 
@@ -250,7 +259,7 @@ def carved_points(points: np.ndarray, ref: TrainingDepth, *, margin: float = CAR
     X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     out = np.zeros(len(X), bool)
     for t in range(len(ref.views)):
-        z, inside, rows, cols = _look_up(X, ref, t)
+        z, inside, rows, cols = look_up(X, ref, t)
         d = ref.depth[t][rows, cols].astype(np.float64)
         s = ref.spread[t][rows, cols].astype(np.float64)
         sharp = inside & (ref.opacity[t][rows, cols] > min_opacity) & (s < max_spread * d)

@@ -72,7 +72,8 @@ COLOUR_UNITS = "colour units [0, 1]"
 class MapSpec:
     """How one map is shown: label, colour-bar unit, colour map, and whether it is a depth
     quantity (masked by opacity), needs ground truth, needs a depth map fitted with the
-    free-space check (``calibrate --free-space``) or with the occlusion-edge term (``--edge-term``)."""
+    free-space check (``calibrate --free-space``), the occlusion-edge term (``--edge-term``) or the
+    parallax term (``--parallax-term``)."""
 
     label: str
     unit: str
@@ -81,6 +82,7 @@ class MapSpec:
     needs_gt_depth: bool = False
     needs_free_space: bool = False
     needs_edge_term: bool = False
+    needs_parallax_term: bool = False
 
 
 #: Every map ``RunInspector.render`` returns that can be shown, in the notebook's order.
@@ -95,6 +97,8 @@ MAP_SPECS: dict[str, MapSpec] = {
                                 "magma", depth=True, needs_free_space=True),
     "depth_edge": MapSpec("occlusion-edge size (depth range within 2 pixels)", DEPTH_UNITS, "magma", depth=True,
                           needs_edge_term=True),
+    "depth_parallax": MapSpec("parallax angle (widest between training views that see the point)", "degrees",
+                              "viridis", depth=True, needs_parallax_term=True),
     "opacity": MapSpec("opacity (accumulated)", "[0, 1]", "gray"),
     "colour_abs_error": MapSpec("|colour mean - GT| (mean over RGB)", COLOUR_UNITS, "inferno"),
     "depth_abs_error": MapSpec("|depth mean - GT depth|", DEPTH_UNITS, "inferno", depth=True, needs_gt_depth=True),
@@ -278,15 +282,16 @@ class RunInspector:
 
     def map_names(self) -> list[str]:
         """Names of the maps this run can show (error against GT depth only where it exists, the
-        free-space violation only where the run's depth map checks it, the edge size only where it
-        has the occlusion-edge term)."""
+        free-space violation only where the run's depth map checks it, the edge size and the parallax
+        angle only where it has their terms)."""
         has_depth = getattr(self.dataset, "depths", None) is not None
         cal = self.calibration
         checks = cal is not None and cal.depth is not None and cal.depth.free_space
         edges = cal is not None and cal.depth is not None and cal.depth.edge_weight > 0.0
+        parallax = cal is not None and cal.depth is not None and cal.depth.parallax_weight > 0.0
         return [n for n, s in MAP_SPECS.items()
                 if (has_depth or not s.needs_gt_depth) and (checks or not s.needs_free_space)
-                and (edges or not s.needs_edge_term)]
+                and (edges or not s.needs_edge_term) and (parallax or not s.needs_parallax_term)]
 
     # ------------------------------------------------------------------ figures of maps
     def map_figure(self, view: int, name: str, num_draws: int | None = None, quadrature: Quadrature | None = None,
@@ -301,7 +306,9 @@ class RunInspector:
             need = ("a depth map fitted with the free-space check (stochastic-fields calibrate --run RUN --free-space)"
                     if spec.needs_free_space else
                     "a depth map fitted with the occlusion-edge term (stochastic-fields calibrate --run RUN --edge-term)"
-                    if spec.needs_edge_term else "ground-truth depth")
+                    if spec.needs_edge_term else
+                    "a depth map fitted with the parallax term (stochastic-fields calibrate --run RUN --parallax-term)"
+                    if spec.needs_parallax_term else "ground-truth depth")
             raise KeyError(f"map {name!r} needs {need}, which run {self.run_dir} has not")
         K, q = self._args(num_draws, quadrature)
         fig = Figure(figsize=figsize)

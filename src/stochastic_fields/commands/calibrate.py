@@ -10,8 +10,8 @@ import argparse
 import math
 
 from ..defaults import (CALIBRATION_PAIR_POINTS, CALIBRATION_POINTS, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_PAIR_POINTS,
-                        DEFAULT_CALIBRATION_POINTS, DEPTH_EDGE_TERM, DEPTH_FREE_SPACE, DEPTH_RELATIVE_FLOOR,
-                        DEPTH_STD_FLOOR, FREE_PATH_RECALIBRATION)
+                        DEFAULT_CALIBRATION_POINTS, DEPTH_EDGE_TERM, DEPTH_FREE_SPACE, DEPTH_PARALLAX_TERM,
+                        DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR, FREE_PATH_RECALIBRATION)
 
 
 def add_arguments(p) -> None:
@@ -57,6 +57,16 @@ def add_arguments(p) -> None:
     p.add_argument("--edge-weight", type=_edge_weight, default=None, metavar="GAMMA",
                    help="Weight of the occlusion-edge size with --edge-term (default: fitted with the depth-proportional "
                         "term by the CRPS on the map's points).")
+    p.add_argument("--parallax-term", action=argparse.BooleanOptionalAction, default=DEPTH_PARALLAX_TERM,
+                   help="Add the training views' parallax term, depth_std = s * sqrt(raw^2 + ... + (kappa depth / "
+                        "max(sin theta, 0.01))^2), theta the widest angle between training views that see the rendered "
+                        "point, written as depth_parallax (degrees): a surface the photos saw with little parallax is "
+                        "placed less surely (renders the training views once into RUN/training_depth.npz; kappa "
+                        "fitted, 0 where the parallax does not explain the errors; docs/studies.md, study 42; "
+                        f"default: {'on' if DEPTH_PARALLAX_TERM else 'off'}).")
+    p.add_argument("--parallax-weight", type=_parallax_weight, default=None, metavar="KAPPA",
+                   help="Weight of the parallax term with --parallax-term (default: fitted with the depth-proportional "
+                        "term by the CRPS on the map's points).")
     p.add_argument("--free-path", action=argparse.BooleanOptionalAction, default=FREE_PATH_RECALIBRATION,
                    help="Also fit the recalibration of free-path's P(free) on segments whose answer the held-out "
                         "points know (RUN/free_path_calibration.json; docs/uncertainty.md; default: "
@@ -75,6 +85,10 @@ def _weight(text: str, option: str = "--free-space-weight") -> float:
 
 def _edge_weight(text: str) -> float:
     return _weight(text, "--edge-weight")
+
+
+def _parallax_weight(text: str) -> float:
+    return _weight(text, "--parallax-weight")
 
 
 def run(args) -> None:
