@@ -290,8 +290,9 @@ def test_interval_figure_draws_the_views_intervals(inspector, view):
 
 @pytest.mark.parametrize("name", list(MAP_SPECS))
 def test_map_figures_have_colour_bars_with_units(inspector, view, name):
-    if name not in inspector.map_names():  # the free-space map (its run is below) and the edge map
-        flag = "--edge-term" if MAP_SPECS[name].needs_edge_term else "--free-space"
+    if name not in inspector.map_names():  # the free-space map (its run is below), the edge and parallax maps
+        spec = MAP_SPECS[name]
+        flag = "--edge-term" if spec.needs_edge_term else "--parallax-term" if spec.needs_parallax_term else "--free-space"
         with pytest.raises(KeyError, match=f"calibrate --run RUN {flag}"):
             inspector.map_figure(view, name)
         return

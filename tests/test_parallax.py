@@ -225,3 +225,33 @@ def test_a_run_calibrated_with_the_parallax_term_applies_it_in_eval_and_export(t
     np.testing.assert_allclose(products.depth_std, cal.depth.std_scale * np.sqrt(
         products.depth_std_raw.astype(np.float64) ** 2 + (0.002 * parallax_term(theta, products.depth_mean)) ** 2
         + (rho * products.depth_mean.astype(np.float64)) ** 2), rtol=1e-5)
+
+
+def test_parallax_study_rule_by_hand(load_script):
+    """Study 42's verdict on hand-made group means: each condition fails alone where it should."""
+    study = load_script("benchmarks/studies/parallax_term_study.py")
+
+    def arm(is95=1.0, crps=0.08, rho=0.6, band=0.20, cov=(0.5, 0.683, 0.9, 0.95)):
+        return {"interval_score_95": is95, "crps": crps, "spearman": rho, "halfwidth_median_95": band,
+                **{f"coverage_{n}": c for n, c in zip(study.LEVELS, cov)}}
+
+    today = arm()
+    good = {"paper fern": {"today": today, "parallax term": arm(is95=0.9, band=0.215)},
+            "capture fern": {"today": today, "parallax term": arm(is95=0.9, band=0.19)}}
+    assert study.verdict(good) == (True, [])
+    for group, change, words in (("paper fern", {"is95": 1.0}, "IS95"),
+                                 ("paper fern", {"is95": 0.9, "crps": 0.0809}, "CRPS"),
+                                 ("paper fern", {"is95": 0.9, "rho": 0.594}, "Spearman"),
+                                 ("paper fern", {"is95": 0.9, "cov": (0.5, 0.683, 0.849, 0.95)}, "90%"),
+                                 ("paper fern", {"is95": 0.9, "band": 0.221}, "band"),
+                                 ("capture fern", {"is95": 0.9, "band": 0.201}, "band")):
+        means = {g: dict(a) for g, a in good.items()}
+        means[group] = {"today": today, "parallax term": arm(**change)}
+        taken, failed = study.verdict(means)
+        assert not taken and len(failed) == 1 and group in failed[0] and words in failed[0], failed
+    # group means average each group's runs
+    res = {"fern:15": {"protocol": "paper", "today": {"x": 1.0}, "parallax term": {"x": 3.0}},
+           "fern:16": {"protocol": "paper", "today": {"x": 2.0}, "parallax term": {"x": 5.0}},
+           "fern:25": {"protocol": "capture", "today": {"x": 7.0}, "parallax term": {"x": 8.0}}}
+    assert study.group_means(res) == {"capture fern": {"today": {"x": 7.0}, "parallax term": {"x": 8.0}},
+                                      "paper fern": {"today": {"x": 1.5}, "parallax term": {"x": 4.0}}}
