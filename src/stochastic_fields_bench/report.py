@@ -274,11 +274,15 @@ def format_markdown(tables: dict[str, Any]) -> str:
             names = [M.level_name(p) for p in M.INTERVAL_LEVELS]
             L += ["## Table 6: depth intervals, coverage and width per level (pooled over the scored depths)", "",
                   "Half-widths, interval scores (Gneiting & Raftery 2007) and CRPS are relative to the true depth "
-                  "(docs/definitions.md §6.7); S-NeRF (default) is cross-fitted as in Table 5.", ""]
+                  "(docs/definitions.md §6.7); S-NeRF (default) is cross-fitted as in Table 5. The narrowest third: "
+                  "the third of the scored depths with the narrowest 95% bands, the ones a planner acts on.", ""]
+            narrow = M.WIDTH_GROUP_NAMES[0]  # the third of the depths with the narrowest 95% bands
             header = (["method", "scene"] + [f"cov. {n}%" for n in names] + [f"median half-width {n}%" for n in names[1:4]]
-                      + ["p90 half-width 95%", "IS 68%", "IS 95%", "CRPS"])
+                      + ["p90 half-width 95%", "IS 68%", "IS 95%", "CRPS", "narrowest third: cov. 68%", "cov. 95%",
+                         "its widest half-width 95%"])
             keys = ([f"coverage_{n}" for n in names] + [f"halfwidth_median_{n}" for n in names[1:4]]
-                    + ["halfwidth_p90_95", "interval_score_68", "interval_score_95", "crps"])
+                    + ["halfwidth_p90_95", "interval_score_68", "interval_score_95", "crps", f"coverage_68_{narrow}",
+                       f"coverage_95_{narrow}", M.NARROWEST_WIDTH_KEY])
             rows = [[e["label"], s] + [_fmt(e[k][s], 3) for k in keys] for e in tables["depth_intervals"].values()
                     for s in cols]
             L += _md_table(header, rows) + [""]
