@@ -47,8 +47,8 @@ sys.path.insert(0, str(REPO_ROOT / "benchmarks" / "studies"))
 from stochastic_fields import metrics as M  # noqa: E402
 from stochastic_fields.calibration import QuantileCalibration, calibration_views, relative_crps  # noqa: E402
 from stochastic_fields.cameras import camera_to_world  # noqa: E402
-from stochastic_fields.free_space import look_up, rendered_points  # noqa: E402
-from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
+from stochastic_fields.free_space import rendered_points  # noqa: E402
+from stochastic_fields.parallax import parallax_angle  # noqa: E402
 from study_helpers import analyse_each, interval_scores, labelled_run_parser, todays_std_on_photos  # noqa: E402
 
 #: A training view sees X unless its rendered surface there lies nearer than (1 - TOLERANCE) z.
@@ -61,21 +61,9 @@ KAPPA_GRID: np.ndarray = np.concatenate([[0.0], np.logspace(-6, -1, 31)])
 
 def sin_parallax(X: np.ndarray, reference) -> tuple[np.ndarray, np.ndarray]:
     """sin theta_max [N] of world points ``X`` [N, 3] over the training views that see them (module
-    doc; 0 when fewer than two do) and how many see each [N]."""
-    centres = np.linalg.inv(reference.world_to_camera)[:, :3, 3]
-    sees, rays = [], []
-    for t in range(len(reference.views)):
-        z, inside, rows, cols = look_up(X, reference, t)
-        surface = reference.depth[t][rows, cols].astype(np.float64)
-        sees.append(inside & (reference.opacity[t][rows, cols] > OPACITY_MASK) & (surface >= z * (1.0 - TOLERANCE)))
-        u = centres[t][None] - X
-        rays.append(u / np.linalg.norm(u, axis=1, keepdims=True))
-    cos_min = np.ones(len(X))
-    for i in range(len(rays)):
-        for j in range(i + 1, len(rays)):
-            both = sees[i] & sees[j]
-            cos_min = np.where(both, np.minimum(cos_min, np.einsum("nk,nk->n", rays[i], rays[j])), cos_min)
-    return np.sqrt(1.0 - np.clip(cos_min, 0.0, 1.0) ** 2), np.sum(sees, axis=0)
+    doc; 0 when fewer than two do; ``parallax.parallax_angle``) and how many see each [N]."""
+    angle, seen = parallax_angle(X, reference, tolerance=TOLERANCE)
+    return np.sin(np.radians(angle)), seen
 
 
 def scores(gt: np.ndarray, pred: np.ndarray, std: np.ndarray, m: QuantileCalibration) -> dict[str, float]:

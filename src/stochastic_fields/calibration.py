@@ -873,6 +873,12 @@ def fit_depth_calibration(model, dataset, *, seed: int = 0, opacity_mask: float 
                           edge_weight=edge_weight, parallax_weight=parallax_weight)[0]
 
 
+def _add_term(std: np.ndarray, source: str, weight: float, term: np.ndarray, name: str) -> tuple[np.ndarray, str]:
+    """sqrt(std^2 + (weight term)^2) [N] and ``source`` with the term's weight said (``name``)."""
+    return np.hypot(std, weight * term), source + (f", {name} weight {weight:.3g}" if weight > 0.0
+                                                   else f", the {name} fitted with weight 0 (none)")
+
+
 def _fit_depth_map(renders: dict[str, Any], *, floor: bool, relative_floor: bool,
                    check_weight: float | None = None, edge_weight: float | None = None,
                    parallax_weight: float | None = None) -> tuple[QuantileCalibration, np.ndarray]:
@@ -892,24 +898,18 @@ def _fit_depth_map(renders: dict[str, Any], *, floor: bool, relative_floor: bool
         std = checked_std(renders["std_raw"], weight * renders["violation"])
         source = source.replace(CHECKED_SOURCE, f"{CHECKED_SOURCE} (weight {weight:.3g})" if weight > 0.0
                                 else ", the free-space check fitted with weight 0 (std unchecked)")
-    gamma = 0.0
+    fits = relative_floor and renders["abs_err"].size >= MIN_CALIBRATION_SAMPLES  # a weight is fitted with rho only
+    gamma = kappa = 0.0
     if "edge" in renders:
-        if edge_weight is not None:
-            gamma = _edge_weight(float(edge_weight), "edge_weight")
-        elif relative_floor and renders["abs_err"].size >= MIN_CALIBRATION_SAMPLES:
-            gamma = fit_edge_weight(renders["abs_err"], std, renders["edge"], renders["depth"])
-        std = np.hypot(std, gamma * renders["edge"])
-        source += (f", occlusion-edge term weight {gamma:.3g}" if gamma > 0.0
-                   else ", the occlusion-edge term fitted with weight 0 (none)")
-    kappa = 0.0
+        gamma = (_edge_weight(float(edge_weight), "edge_weight") if edge_weight is not None
+                 else fit_edge_weight(renders["abs_err"], std, renders["edge"], renders["depth"]) if fits else 0.0)
+        std, source = _add_term(std, source, gamma, renders["edge"], "occlusion-edge term")
     if "parallax" in renders:
-        if parallax_weight is not None:
-            kappa = _parallax_weight(float(parallax_weight), "parallax_weight")
-        elif relative_floor and renders["abs_err"].size >= MIN_CALIBRATION_SAMPLES:
-            kappa = fit_parallax_weight(renders["abs_err"], std, renders["parallax"], renders["depth"])
-        std = np.hypot(std, kappa * parallax_term(renders["parallax"], renders["depth"]))
-        source += (f", parallax term weight {kappa:.3g}" if kappa > 0.0
-                   else ", the parallax term fitted with weight 0 (none)")
+        kappa = (_parallax_weight(float(parallax_weight), "parallax_weight") if parallax_weight is not None
+                 else fit_parallax_weight(renders["abs_err"], std, renders["parallax"], renders["depth"]) if fits
+                 else 0.0)
+        std, source = _add_term(std, source, kappa, parallax_term(renders["parallax"], renders["depth"]),
+                                "parallax term")
     out = QuantileCalibration.fit_errors(renders["abs_err"], std, quantity="depth_std", floor=floor,
                                          depth=renders["depth"] if relative_floor else None, source=source)
     if checked and weight > 0.0:  # a weight of 0 leaves the unchecked map (free_space False, weight 1)
