@@ -173,7 +173,8 @@ def test_calibrate_command_takes_the_parallax_term(capsys):
 
     parser = build_parser()
     args = parser.parse_args(["calibrate", "--run", "r"])
-    assert args.parallax_term is False and args.parallax_weight is None
+    assert args.parallax_term is True and args.parallax_weight is None  # the default since study 42
+    assert parser.parse_args(["calibrate", "--run", "r", "--no-parallax-term"]).parallax_term is False
     args = parser.parse_args(["calibrate", "--run", "r", "--parallax-term", "--parallax-weight", "0.001"])
     assert args.parallax_term is True and args.parallax_weight == 0.001
     with pytest.raises(SystemExit):

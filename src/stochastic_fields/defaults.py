@@ -44,8 +44,10 @@ DEPTH_RELATIVE_FLOOR: bool = True
 DEPTH_EDGE_TERM: bool = False
 #: Whether depth maps add the training views' parallax term, depth_std = s sqrt(raw^2 + ... +
 #: (kappa d / max(sin theta_max, 0.01))^2), theta_max the widest angle between training views that see
-#: the rendered point (``parallax``, ``calibration.fit_parallax_weight``; docs/studies.md, study 42).
-DEPTH_PARALLAX_TERM: bool = False
+#: the rendered point (``parallax``, ``calibration.fit_parallax_weight``; docs/studies.md, study 42: on,
+#: the 95% interval score falls on every group, -3% to -11%, the depth ranking rises 0.02-0.05, every
+#: level holds and the capture split's median 95% band narrows, 6.3 -> 5.6% and 13.9 -> 12.4%).
+DEPTH_PARALLAX_TERM: bool = True
 
 # free_space
 #: File of a run's rendered training-view depths (``save_training_depth``).

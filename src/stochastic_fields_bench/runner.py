@@ -18,7 +18,7 @@ from stochastic_fields.calibration import (CHECKED_SOURCE, CROSS_FIT_FOLDS, DEFA
                                            describe, load_run_calibration)
 from stochastic_fields.config import (LEGACY_VALUES, ExperimentConfig, flatten, save_config, saved_config,
                                      set_dotted, to_dict)
-from stochastic_fields.defaults import DEPTH_FREE_SPACE
+from stochastic_fields.defaults import DEPTH_FREE_SPACE, DEPTH_PARALLAX_TERM
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.evaluation import evaluate, synchronize
 from stochastic_fields.trainer import RESUMABLE_OPTIONS, load_trained_model, Trainer
@@ -42,11 +42,13 @@ SCORED_PIXELS = "score-role blocks of the exact depth"
 
 
 #: How the depth recalibration is fitted (part of the calibrate fingerprint: a new protocol refits).
-#: (The free-space check joined it with study 22e; the text without it is the protocol runs fitted before.)
+#: (The free-space check joined it with study 22e, the parallax term with study 42; the text without them is the
+#: protocol runs fitted before.)
 CALIBRATION_PROTOCOL = (f"{DEFAULT_CALIBRATION_POINTS} (calibrate and score role) capture points from views halfway "
                         "between neighbouring training views, interval scores cross-fitted over "
                         f"{CROSS_FIT_FOLDS} folds of the score blocks"
-                        + (f"{CHECKED_SOURCE} with a fitted weight" if DEPTH_FREE_SPACE else ""))
+                        + (f"{CHECKED_SOURCE} with a fitted weight" if DEPTH_FREE_SPACE else "")
+                        + (", the training views' parallax term with a fitted weight" if DEPTH_PARALLAX_TERM else ""))
 
 
 #: Config entries that do not change what a run computes (left out of fingerprints).
