@@ -106,7 +106,7 @@ def render_training_depth(model, dataset, *, options=None, seed: int = 0, progre
     views = [int(v) for v in dataset.train_indices]
     device = next(model.parameters()).device
     depth, opacity, spread, psnr = [], [], [], []
-    for v in tqdm(views, desc="render training views (free-space and pose checks)", disable=not progress, leave=False):
+    for v in tqdm(views, desc="render training views (free-space check, parallax, pose check)", disable=not progress, leave=False):
         with torch.no_grad():
             maps = model.render_view(dataset.rays(v).to(device), options, generator=seeded_chunks(seed, v, device))
         z = maps["z_scale"].double()
