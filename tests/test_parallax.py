@@ -14,7 +14,8 @@ from stochastic_fields.calibration import (ONE_SIGMA_LEVEL, PARALLAX_WEIGHT_GRID
                                            fit_parallax_weight)
 from stochastic_fields.constants import PARALLAX_MIN_SIN
 from stochastic_fields.free_space import TrainingDepth
-from stochastic_fields.parallax import SEE_TOLERANCE, parallax_angle, parallax_map, parallax_term
+from stochastic_fields.parallax import (SEE_TOLERANCE, parallax_angle, parallax_map, parallax_term, widest_cosine,
+                                       widest_cosine_loop)
 
 
 def _three_views() -> TrainingDepth:
@@ -58,6 +59,32 @@ def test_parallax_angle_by_hand():
     ref.opacity[:] = 0.0
     np.testing.assert_array_equal(parallax_angle(X[:2], ref)[0], [0.0, 0.0])
     assert parallax_angle(np.zeros((0, 3)), ref)[0].shape == (0,)
+
+
+def test_the_compiled_pair_search_matches_the_pair_loop():
+    """The compiled widest_cosine against the numpy pair loop and a naive float64 loop over pairs:
+    random visibility, points seen by none or one view (cosine 1), a point at a camera centre (a
+    zero ray), views behind the point (angles past 90 degrees)."""
+    rng = np.random.default_rng(3)
+    centres = rng.normal(size=(9, 3))
+    points = rng.normal(size=(400, 3)) * 2.0
+    points[0] = centres[4]  # a zero-length ray
+    sees = rng.random((400, 9)) < 0.6
+    sees[1] = False
+    sees[2] = False
+    sees[2, 3] = True
+    got, loop = widest_cosine(points, centres, sees), widest_cosine_loop(points, centres, sees)
+    naive = np.ones(len(points))
+    for n in range(len(points)):
+        seen = np.flatnonzero(sees[n])
+        for a in range(len(seen)):
+            for b in range(a + 1, len(seen)):
+                u, v = (centres[seen[a]] - points[n]), (centres[seen[b]] - points[n])
+                u, v = (w / max(np.linalg.norm(w), np.finfo(np.float64).tiny) for w in (u, v))
+                naive[n] = min(naive[n], float(u @ v))
+    np.testing.assert_allclose(got, naive, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(loop, naive, rtol=0, atol=1e-14)
+    assert got[1] == got[2] == 1.0 and (got < 0).any()
 
 
 def test_parallax_map_back_projects_each_pixel():
@@ -256,3 +283,15 @@ def test_parallax_study_rule_by_hand(load_script):
            "fern:25": {"protocol": "capture", "today": {"x": 7.0}, "parallax term": {"x": 8.0}}}
     assert study.group_means(res) == {"capture fern": {"today": {"x": 7.0}, "parallax term": {"x": 8.0}},
                                       "paper fern": {"today": {"x": 1.5}, "parallax term": {"x": 4.0}}}
+
+
+def test_parallax_speed_benchmark_writes_its_table(load_script, tmp_path):
+    """The cost benchmark on a few points: both searches timed where the loop runs, the angles equal."""
+    bench = load_script("benchmarks/parallax_speed.py")
+    assert bench.main(["--views", "3", "12", "--points", "500", "--loop-max-views", "3", "--out", str(tmp_path)]) == 0
+    import json
+    rows = json.loads((tmp_path / "results.json").read_text())["rows"]
+    assert [r["views"] for r in rows] == [3, 12]
+    assert rows[0]["max_diff_deg"] < 1e-10 and rows[1]["loop_s"] is None
+    assert 0 < rows[1]["mean_views_seeing"] <= 12
+    assert "| 12 |" in (tmp_path / "README.md").read_text()

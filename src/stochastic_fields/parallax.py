@@ -28,6 +28,11 @@ from __future__ import annotations
 
 import numpy as np
 
+try:  # a declared dependency; the numpy pair loop stands in where it is missing
+    import numba
+except ImportError:  # pragma: no cover - exercised only on machines without numba
+    numba = None
+
 from .constants import PARALLAX_MIN_SIN
 from .free_space import TrainingDepth, look_up, map_at_pixels
 from .view_maps import OPACITY_MASK
@@ -42,22 +47,75 @@ def parallax_angle(points: np.ndarray, ref: TrainingDepth, *, tolerance: float =
     """theta_max [N] (degrees, in [0, 90]) of world ``points`` [N, 3] over the training views of
     ``ref`` that see them (module doc), and how many views see each [N] int64."""
     X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    centres = np.linalg.inv(ref.world_to_camera)[:, :3, 3]
-    sees, rays = [], []
+    sees = views_seeing(X, ref, tolerance=tolerance)
+    cos_min = (widest_cosine if numba is not None else widest_cosine_loop)(X, camera_centres(ref), sees)
+    angle = np.degrees(np.arccos(np.clip(cos_min, 0.0, 1.0)))
+    return angle, sees.sum(axis=1).astype(np.int64)
+
+
+def views_seeing(points: np.ndarray, ref: TrainingDepth, *, tolerance: float = SEE_TOLERANCE) -> np.ndarray:
+    """[N, T] bool: which training views of ``ref`` see each world point of ``points`` [N, 3] (module
+    doc: inside the image, in front of the camera, on an opaque pixel, not behind its rendered
+    surface by more than ``tolerance`` of the point's camera z)."""
+    X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    sees = np.zeros((len(ref.views), len(X)), bool)
     for t in range(len(ref.views)):
         z, inside, rows, cols = look_up(X, ref, t)
         surface = ref.depth[t][rows, cols].astype(np.float64)
-        sees.append(inside & (ref.opacity[t][rows, cols] > OPACITY_MASK) & (surface >= z * (1.0 - tolerance)))
-        u = centres[t][None] - X
-        rays.append(u / np.maximum(np.linalg.norm(u, axis=1, keepdims=True), np.finfo(np.float64).tiny))
-    cos_min = np.ones(len(X))
-    for i in range(len(rays)):
-        for j in range(i + 1, len(rays)):
-            both = sees[i] & sees[j]
+        sees[t] = inside & (ref.opacity[t][rows, cols] > OPACITY_MASK) & (surface >= z * (1.0 - tolerance))
+    return np.ascontiguousarray(sees.T)
+
+
+def camera_centres(ref: TrainingDepth) -> np.ndarray:
+    """[T, 3] world positions of the training cameras of ``ref``."""
+    return np.linalg.inv(ref.world_to_camera)[:, :3, 3]
+
+
+def widest_cosine_loop(points: np.ndarray, centres: np.ndarray, sees: np.ndarray) -> np.ndarray:
+    """cos theta_max [N]: the smallest u_i . u_j over pairs i < j of the views that both see point n
+    (1 where fewer than two see it), u_t = (c_t - X_n) / |c_t - X_n|, of world ``points`` X [N, 3],
+    camera ``centres`` c [T, 3] and ``sees`` [N, T] (bool); float64. numpy, one pass over the points
+    per pair of views: the reference of the compiled ``widest_cosine``."""
+    rays = centres[:, None, :] - points[None, :, :]  # [T, N, 3]: each view's rays contiguous
+    rays /= np.maximum(np.linalg.norm(rays, axis=2, keepdims=True), np.finfo(np.float64).tiny)
+    by_view = np.ascontiguousarray(np.asarray(sees, bool).T)  # [T, N]
+    cos_min = np.ones(len(points))
+    for i in range(len(centres)):
+        for j in range(i + 1, len(centres)):
+            both = by_view[i] & by_view[j]
             if both.any():
                 cos_min = np.where(both, np.minimum(cos_min, np.einsum("nk,nk->n", rays[i], rays[j])), cos_min)
-    angle = np.degrees(np.arccos(np.clip(cos_min, 0.0, 1.0)))
-    return angle, np.sum(sees, axis=0).astype(np.int64) if sees else np.zeros(len(X), np.int64)
+    return cos_min
+
+
+def _widest_cosine(points: np.ndarray, centres: np.ndarray, sees: np.ndarray) -> np.ndarray:
+    """``widest_cosine_loop``'s values one point at a time: the unit rays of the views that see it,
+    then its pairs (compiled by numba: no [N, T, 3] rays in memory, T^2 / 2 multiply-adds a point)."""
+    N, T = sees.shape
+    out = np.ones(N)
+    rays = np.empty((T, 3))
+    tiny = np.finfo(np.float64).tiny
+    for n in range(N):
+        k = 0
+        for t in range(T):
+            if sees[n, t]:
+                u0 = centres[t, 0] - points[n, 0]
+                u1 = centres[t, 1] - points[n, 1]
+                u2 = centres[t, 2] - points[n, 2]
+                norm = max(np.sqrt(u0 * u0 + u1 * u1 + u2 * u2), tiny)
+                rays[k, 0], rays[k, 1], rays[k, 2] = u0 / norm, u1 / norm, u2 / norm
+                k += 1
+        best = 1.0
+        for a in range(k):
+            for b in range(a + 1, k):
+                c = rays[a, 0] * rays[b, 0] + rays[a, 1] * rays[b, 1] + rays[a, 2] * rays[b, 2]
+                if c < best:
+                    best = c
+        out[n] = best
+    return out
+
+
+widest_cosine = numba.njit(cache=True, nogil=True)(_widest_cosine) if numba is not None else _widest_cosine
 
 
 def parallax_map(depth: np.ndarray, intrinsics: np.ndarray, world_to_camera: np.ndarray, ref: TrainingDepth,
