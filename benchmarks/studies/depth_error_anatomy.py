@@ -194,7 +194,7 @@ def anatomy_of_run(folder: Path, *, radius: float = NEIGHBOUR_RADIUS_PX, seed: i
     import torch
 
     from stochastic_fields.calibration import cross_fitted_depth_quantiles, depth_calibration_renders, \
-        load_run_calibration, render_at_points, violation_at_points
+        load_run_calibration, parallax_at_points, render_at_points, violation_at_points
     from stochastic_fields.capture_points import block_keys, load_capture_points, score_sparse_depth
     from stochastic_fields.view_maps import OPACITY_MASK
     from stochastic_fields.trainer import load_trained_model
@@ -228,16 +228,20 @@ def anatomy_of_run(folder: Path, *, radius: float = NEIGHBOUR_RADIUS_PX, seed: i
     capture = load_capture_points(dataset)
     index = np.concatenate([sd.point_index for sd in sparse.values()])
     maps, folds = calibration.depth, calibration.depth_folds
-    violation = None
+    violation = parallax = None
+    rendered = np.where(np.isfinite(centre["depth_mean"]), centre["depth_mean"], centre["gt"])
     if maps.free_space:
-        violation = violation_at_points(dataset.cameras, sparse, capture.xyz, centre["gt"],
-                                        np.where(np.isfinite(centre["depth_mean"]), centre["depth_mean"], centre["gt"]),
+        violation = violation_at_points(dataset.cameras, sparse, capture.xyz, centre["gt"], rendered,
                                         calibration.training_depth)
+    if maps.parallax_weight > 0.0:  # the map's parallax term, at the same rendered points (the product's std)
+        parallax = parallax_at_points(dataset.cameras, sparse, capture.xyz, centre["gt"], rendered,
+                                      calibration.training_depth)
     keep = (centre["opacity"] > OPACITY_MASK) & np.isfinite(centre["depth_mean"]) & np.isfinite(delta) \
         & (centre["depth_std"] > 0)
     gt, pred, raw, delta = centre["gt"][keep], centre["depth_mean"][keep], centre["depth_std"][keep], delta[keep]
     near = near[keep]
     e = None if violation is None else violation[keep]
+    angle = None if parallax is None else parallax[keep]
     keys = block_keys(capture.xyz, capture.xyz)
     fold = folds.fold_of(keys[index[keep]])
     if (fold < 0).any():
@@ -245,18 +249,21 @@ def anatomy_of_run(folder: Path, *, radius: float = NEIGHBOUR_RADIUS_PX, seed: i
     total = np.zeros_like(raw)  # each point's total std under its own fold's map (before the level map)
     for f, m in enumerate(folds.maps):
         i = fold == f
-        total[i] = m.calibrated_std(raw[i], None if e is None else e[i], pred[i]) / m.std_scale
+        total[i] = m.calibrated_std(raw[i], None if e is None else e[i], pred[i],
+                                    parallax=None if angle is None else angle[i]) / m.std_scale
     abs_err = np.abs(pred - gt)
-    product = cross_fitted_depth_quantiles(pred, raw, fold, folds, violation=e)
+    product = cross_fitted_depth_quantiles(pred, raw, fold, folds, violation=e, parallax=angle)
     # the calibration renders, signed, as the run's map was fitted on them
     cal = depth_calibration_renders(model, dataset, seed=seed, points=calibration.points,
-                                    free_space=calibration.training_depth if maps.free_space else None)
+                                    free_space=calibration.training_depth if maps.free_space else None,
+                                    parallax=calibration.training_depth if parallax is not None else None)
     cal_fold = folds.fold_of(keys[cal["index"]])
     t_outside = {}
     for f, m in enumerate(folds.maps):
         out = cal_fold != f
         s = m.calibrated_std(cal.get("std_raw", cal["std"])[out], None if not maps.free_space else cal["violation"][out],
-                             cal["depth"][out]) / m.std_scale
+                             cal["depth"][out], parallax=cal["parallax"][out] if "parallax" in cal else None
+                             ) / m.std_scale
         t_outside[f] = cal["err"][out] / s
     edge_rows = {"run's std s": interval_row(gt, out_of_fold_level_quantiles(pred, abs_err, total, fold), abs_err)}
     for gamma in EDGE_WEIGHTS:
