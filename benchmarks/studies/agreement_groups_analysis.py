@@ -95,10 +95,12 @@ def scored(samples, groups: np.ndarray, fitted: list) -> dict:
         i = np.flatnonzero(groups == g) if len(fitted) > 1 else np.arange(n)
         if i.size == 0:
             continue
-        std[i] = m.calibrated_std(samples.std_raw[i], samples.violation[i], samples.pred[i])
+        std[i] = m.calibrated_std(samples.std_raw[i], samples.violation[i], samples.pred[i],
+                                  parallax=None if samples.parallax is None else samples.parallax[i])
         fold = folds.fold_of(samples.block[i])
         fns.append((i, cross_fitted_depth_quantiles(samples.pred[i], samples.std_raw[i], fold, folds,
-                                                    violation=samples.violation[i])))
+                                                    violation=samples.violation[i],
+                                                    parallax=None if samples.parallax is None else samples.parallax[i])))
 
     def quantiles(t: np.ndarray) -> np.ndarray:
         out = np.zeros((n, np.asarray(t).size))

@@ -126,7 +126,7 @@ def arm_scores(arm: str, renders: dict, lap_cal: np.ndarray, val: list, capture,
     iv = calibrated_depth_scores(samples, cal)["intervals"]
 
     def std_of(s):
-        return depth_map.calibrated_std(s.std_raw, s.violation, s.pred, s.edge)
+        return depth_map.calibrated_std(s.std_raw, s.violation, s.pred, s.edge, parallax=s.parallax)
 
     per_view = [spearmanr(np.abs(s.pred - s.gt), std_of(s)).correlation for s in pool if s.gt.size > 10]
     return {"coverage": {M.level_name(p): float(iv[f"coverage_{M.level_name(p)}"]) for p in M.INTERVAL_LEVELS},
