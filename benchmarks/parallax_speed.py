@@ -62,14 +62,14 @@ def main(argv: list[str] | None = None) -> int:
     for T in args.views:
         ref = forward_facing_views(T)
         sees, sees_s = timed(parallax.views_seeing, X, ref)
-        centres = parallax.camera_centres(ref)
+        centres = ref.centres
         cos, pairs_s = timed(parallax.widest_cosine, X, centres, sees)
         row = {"views": T, "points": args.points, "mean_views_seeing": float(sees.sum(1).mean()),
                "compiled_s": sees_s + pairs_s, "loop_s": None, "max_diff_deg": None}
         if T <= args.loop_max_views:
             loop_cos, loop_pairs_s = timed(parallax.widest_cosine_loop, X, centres, sees)
             row["loop_s"] = sees_s + loop_pairs_s
-            row["max_diff_deg"] = float(np.abs(_degrees(loop_cos) - _degrees(cos)).max())
+            row["max_diff_deg"] = float(np.abs(parallax.angle_of_cosine(loop_cos) - parallax.angle_of_cosine(cos)).max())
         rows.append(row)
         print(f"T={T:4d}: compiled {row['compiled_s']:6.2f} s" + (
               f", numpy loop {row['loop_s']:6.2f} s ({row['loop_s'] / row['compiled_s']:.1f}x), max angle "
@@ -92,11 +92,6 @@ def main(argv: list[str] | None = None) -> int:
                   "the compiled search holds one flag per point and view. The angles agree to float rounding."]
         atomic_write_text(args.out / "README.md", "\n".join(lines) + "\n")
     return 0
-
-
-def _degrees(cos_min: np.ndarray) -> np.ndarray:
-    """theta_max in degrees of its cosine (as ``parallax.parallax_angle``)."""
-    return np.degrees(np.arccos(np.clip(cos_min, 0.0, 1.0)))
 
 
 if __name__ == "__main__":

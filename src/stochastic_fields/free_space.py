@@ -97,6 +97,11 @@ class TrainingDepth:
             if not np.isfinite(getattr(self, name)).all():
                 raise ValueError(f"training depth: {name} holds non-finite values")
 
+    @property
+    def centres(self) -> np.ndarray:
+        """[T, 3] world positions of the training cameras (float64)."""
+        return np.linalg.inv(self.world_to_camera)[:, :3, 3]
+
 
 def render_training_depth(model, dataset, *, options=None, seed: int = 0, progress: bool = True) -> TrainingDepth:
     """Render every training view of ``dataset`` with ``model`` (``options``: the model's render
@@ -171,6 +176,14 @@ def look_up(X: np.ndarray, ref: TrainingDepth, t: int) -> tuple[np.ndarray, np.n
     return z, inside, rows, cols
 
 
+def opaque_surface(X: np.ndarray, ref: TrainingDepth, t: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World points ``X`` [N, 3] (float64) against training view ``t``: their camera z [N], whether they
+    fall inside its image in front of the camera on a pixel of opacity above ``OPACITY_MASK`` [N], and
+    the camera-z depth the view rendered at that pixel [N] (float64; meaningless where not opaque)."""
+    z, inside, rows, cols = look_up(X, ref, t)
+    return z, inside & (ref.opacity[t][rows, cols] > OPACITY_MASK), ref.depth[t][rows, cols].astype(np.float64)
+
+
 def free_space_violation(points: np.ndarray, ref: TrainingDepth, *, exclude: Sequence[int] = ()) -> np.ndarray:
     """e(X) [N] >= 0 of world points ``points`` [N, 3] (module doc): how far in front of a training
     view's rendered surface the point lies, the largest over the training views (0 where no view
@@ -181,9 +194,7 @@ def free_space_violation(points: np.ndarray, ref: TrainingDepth, *, exclude: Seq
     for t in range(len(ref.views)):
         if int(ref.views[t]) in exclude:
             continue
-        z, inside, rows, cols = look_up(X, ref, t)
-        surface = ref.depth[t][rows, cols].astype(np.float64)
-        checked = inside & (ref.opacity[t][rows, cols] > OPACITY_MASK)
+        z, checked, surface = opaque_surface(X, ref, t)
         out = np.maximum(out, np.where(checked, np.maximum(surface - z, 0.0), 0.0))
     return out
 
@@ -201,10 +212,9 @@ def agreeing_views(points: np.ndarray, ref: TrainingDepth, *, tolerance: float) 
     X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     agree, seen = np.zeros(len(X), np.int64), np.zeros(len(X), np.int64)
     for t in range(len(ref.views)):
-        z, inside, rows, cols = look_up(X, ref, t)
-        opaque = inside & (ref.opacity[t][rows, cols] > OPACITY_MASK)
+        z, opaque, surface = opaque_surface(X, ref, t)
         seen += opaque
-        agree += opaque & (np.abs(z - ref.depth[t][rows, cols].astype(np.float64)) <= tolerance * z)
+        agree += opaque & (np.abs(z - surface) <= tolerance * z)
     return agree, seen
 
 

@@ -34,8 +34,7 @@ except ImportError:  # pragma: no cover - exercised only on machines without num
     numba = None
 
 from .constants import PARALLAX_MIN_SIN
-from .free_space import TrainingDepth, look_up, map_at_pixels
-from .view_maps import OPACITY_MASK
+from .free_space import TrainingDepth, map_at_pixels, opaque_surface
 
 #: A training view sees a point X unless the surface it rendered at X's pixel lies nearer than
 #: (1 - SEE_TOLERANCE) of X's camera z (a point behind that surface is hidden from it).
@@ -48,9 +47,7 @@ def parallax_angle(points: np.ndarray, ref: TrainingDepth, *, tolerance: float =
     ``ref`` that see them (module doc), and how many views see each [N] int64."""
     X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     sees = views_seeing(X, ref, tolerance=tolerance)
-    cos_min = (widest_cosine if numba is not None else widest_cosine_loop)(X, camera_centres(ref), sees)
-    angle = np.degrees(np.arccos(np.clip(cos_min, 0.0, 1.0)))
-    return angle, sees.sum(axis=1).astype(np.int64)
+    return angle_of_cosine(widest_cosine(X, ref.centres, sees)), sees.sum(axis=1).astype(np.int64)
 
 
 def views_seeing(points: np.ndarray, ref: TrainingDepth, *, tolerance: float = SEE_TOLERANCE) -> np.ndarray:
@@ -60,15 +57,14 @@ def views_seeing(points: np.ndarray, ref: TrainingDepth, *, tolerance: float = S
     X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     sees = np.zeros((len(ref.views), len(X)), bool)
     for t in range(len(ref.views)):
-        z, inside, rows, cols = look_up(X, ref, t)
-        surface = ref.depth[t][rows, cols].astype(np.float64)
-        sees[t] = inside & (ref.opacity[t][rows, cols] > OPACITY_MASK) & (surface >= z * (1.0 - tolerance))
+        z, opaque, surface = opaque_surface(X, ref, t)
+        sees[t] = opaque & (surface >= z * (1.0 - tolerance))
     return np.ascontiguousarray(sees.T)
 
 
-def camera_centres(ref: TrainingDepth) -> np.ndarray:
-    """[T, 3] world positions of the training cameras of ``ref``."""
-    return np.linalg.inv(ref.world_to_camera)[:, :3, 3]
+def angle_of_cosine(cos_min: np.ndarray) -> np.ndarray:
+    """theta_max [N] in degrees of its cosine [N], clipped to [0, 90] (sin is what the term uses)."""
+    return np.degrees(np.arccos(np.clip(cos_min, 0.0, 1.0)))
 
 
 def widest_cosine_loop(points: np.ndarray, centres: np.ndarray, sees: np.ndarray) -> np.ndarray:
@@ -115,7 +111,7 @@ def _widest_cosine(points: np.ndarray, centres: np.ndarray, sees: np.ndarray) ->
     return out
 
 
-widest_cosine = numba.njit(cache=True, nogil=True)(_widest_cosine) if numba is not None else _widest_cosine
+widest_cosine = numba.njit(cache=True, nogil=True)(_widest_cosine) if numba is not None else widest_cosine_loop
 
 
 def parallax_map(depth: np.ndarray, intrinsics: np.ndarray, world_to_camera: np.ndarray, ref: TrainingDepth,
