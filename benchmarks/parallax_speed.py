@@ -8,7 +8,10 @@ views that see a point, and a user's capture may hold 30-200 photos. This times
 it replaced (``parallax.widest_cosine_loop``, run up to ``--loop-max-views`` views: it holds every
 point's rays, [T, N, 3] float64, in memory) on the same points, in one process on one thread (both
 run serially; OMP_NUM_THREADS=1 keeps numpy's own threads out), and prints the largest difference
-of their angles beside the seconds.
+of their angles beside the seconds. The default depth map also checks free space, which projects the
+same points into the same views: the free-space violation and the parallax angle are timed as two
+passes (``free_space.free_space_violation`` then ``parallax_angle``) and as the one pass the product
+runs (``parallax.training_view_terms``), whose values must equal the two passes' bit for bit.
 
 The scene: T cameras on a 1 x 1 patch of the plane z = 0 looking along +z (504 x 378 pixels,
 f = 400), each rendering a wall at z = 4; ``--points`` points in x, y in [-1.5, 1.5] and z in
@@ -27,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from stochastic_fields import parallax
-from stochastic_fields.free_space import TrainingDepth
+from stochastic_fields.free_space import TrainingDepth, free_space_violation
 from stochastic_fields.io_utils import atomic_write_text
 
 
@@ -70,26 +73,39 @@ def main(argv: list[str] | None = None) -> int:
             loop_cos, loop_pairs_s = timed(parallax.widest_cosine_loop, X, centres, sees)
             row["loop_s"] = sees_s + loop_pairs_s
             row["max_diff_deg"] = float(np.abs(parallax.angle_of_cosine(loop_cos) - parallax.angle_of_cosine(cos)).max())
+        (violation, angle), one_s = timed(lambda: parallax.training_view_terms(X, ref, free_space=True, parallax=True))
+        two_violation, violation_s = timed(free_space_violation, X, ref)
+        two_angle, angle_s = timed(lambda: parallax.parallax_angle(X, ref)[0])
+        row.update(two_pass_s=violation_s + angle_s, one_pass_s=one_s,
+                   one_pass_equal=bool(np.array_equal(violation, two_violation) and np.array_equal(angle, two_angle)))
         rows.append(row)
         print(f"T={T:4d}: compiled {row['compiled_s']:6.2f} s" + (
               f", numpy loop {row['loop_s']:6.2f} s ({row['loop_s'] / row['compiled_s']:.1f}x), max angle "
-              f"difference {row['max_diff_deg']:.1e} deg" if row["loop_s"] is not None else ""), flush=True)
+              f"difference {row['max_diff_deg']:.1e} deg" if row["loop_s"] is not None else "")
+              + f"; violation and parallax: two passes {row['two_pass_s']:.2f} s, one pass {one_s:.2f} s "
+              f"({row['two_pass_s'] / one_s:.2f}x), equal: {row['one_pass_equal']}", flush=True)
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         atomic_write_text(args.out / "results.json", json.dumps({"rows": rows}, indent=1))
         lines = ["# The parallax angle's cost against the training views", "",
                  f"Command: `OMP_NUM_THREADS=1 python benchmarks/parallax_speed.py --out {args.out}` "
                  f"({args.points} points, one thread, this machine; scene in the script's docstring).", "",
-                 "| training views | views seeing a point (mean) | compiled s | numpy loop s | ratio | max angle difference (deg) |",
-                 "|---|---|---|---|---|---|"]
+                 "| training views | views seeing a point (mean) | compiled s | numpy loop s | ratio | max angle difference (deg) "
+                 "| violation + parallax, two passes s | one pass s | ratio | one pass equal |",
+                 "|---|---|---|---|---|---|---|---|---|---|"]
         for r in rows:
             loop = "-" if r["loop_s"] is None else f"{r['loop_s']:.2f}"
             ratio = "-" if r["loop_s"] is None else f"{r['loop_s'] / r['compiled_s']:.1f}x"
             diff = "-" if r["max_diff_deg"] is None else f"{r['max_diff_deg']:.1e}"
-            lines.append(f"| {r['views']} | {r['mean_views_seeing']:.1f} | {r['compiled_s']:.2f} | {loop} | {ratio} | {diff} |")
+            lines.append(f"| {r['views']} | {r['mean_views_seeing']:.1f} | {r['compiled_s']:.2f} | {loop} | {ratio} | {diff} "
+                         f"| {r['two_pass_s']:.2f} | {r['one_pass_s']:.2f} | {r['two_pass_s'] / r['one_pass_s']:.2f}x "
+                         f"| {'yes' if r['one_pass_equal'] else 'NO'} |")
         lines += ["", "Both columns include finding the views that see each point (`parallax.views_seeing`, shared). "
                   "The numpy loop holds every view's rays, T x N x 3 float64 (0.9 GB at 200 views and 190k points); "
-                  "the compiled search holds one flag per point and view. The angles agree to float rounding."]
+                  "the compiled search holds one flag per point and view. The angles agree to float rounding. The last "
+                  "four columns: the free-space violation and the parallax angle (the default depth map's two "
+                  "training-view terms) as two passes and as the one pass `apply_calibration` runs "
+                  "(`parallax.training_view_terms`), with whether its values equal the two passes' bit for bit."]
         atomic_write_text(args.out / "README.md", "\n".join(lines) + "\n")
     return 0
 

@@ -13,9 +13,9 @@ from stochastic_fields.calibration import (ONE_SIGMA_LEVEL, PARALLAX_WEIGHT_GRID
                                            cross_fitted_depth_quantiles, cross_fitted_depth_scores,
                                            fit_parallax_weight)
 from stochastic_fields.constants import PARALLAX_MIN_SIN
-from stochastic_fields.free_space import TrainingDepth
-from stochastic_fields.parallax import (SEE_TOLERANCE, parallax_angle, parallax_map, parallax_term, widest_cosine,
-                                       widest_cosine_loop)
+from stochastic_fields.free_space import TrainingDepth, free_space_violation, violation_map
+from stochastic_fields.parallax import (SEE_TOLERANCE, parallax_angle, parallax_map, parallax_term, training_view_maps,
+                                       training_view_terms, widest_cosine, widest_cosine_loop)
 
 
 def _three_views() -> TrainingDepth:
@@ -98,6 +98,34 @@ def test_parallax_map_back_projects_each_pixel():
         X = np.array([(c + 0.5 - 20.0) / 20.0 * 3.0, (r + 0.5 - 20.0) / 20.0 * 3.0, 3.0])
         assert got[r, c] == pytest.approx(parallax_angle(X[None], ref)[0][0], rel=1e-5)
     assert got.dtype == np.float32 and (got[~mask] == 0).all()
+
+
+def test_one_pass_gives_the_violation_and_the_parallax_of_the_two_passes():
+    """training_view_terms and training_view_maps (one projection into each training view for both
+    terms) against free_space_violation / parallax_angle and violation_map / parallax_map: the same
+    values, to the last bit; None for a term not asked for."""
+    ref = _three_views()
+    ref.depth[1, :, 25:] = 5.0  # part of view 1's wall farther: some points lie in front of it
+    rng = np.random.default_rng(0)
+    X = np.column_stack([rng.uniform(-2, 2, 500), rng.uniform(-1, 1, 500), rng.uniform(1.0, 6.0, 500)])
+    violation, angle = training_view_terms(X, ref, free_space=True, parallax=True)
+    np.testing.assert_array_equal(violation, free_space_violation(X, ref))
+    np.testing.assert_array_equal(angle, parallax_angle(X, ref)[0])
+    assert (violation > 0).any() and (angle > 0).any()
+    assert training_view_terms(X, ref, free_space=False, parallax=True)[0] is None
+    np.testing.assert_array_equal(training_view_terms(X, ref, free_space=True, parallax=False)[0], violation)
+    assert training_view_terms(X, ref, free_space=True, parallax=False)[1] is None
+    K, w2c = ref.intrinsics[2], ref.world_to_camera[2]
+    depth = rng.uniform(2.0, 6.0, (40, 40))
+    mask = rng.random((40, 40)) > 0.3
+    e, theta = training_view_maps(depth, K, w2c, ref, free_space=True, parallax=True, mask=mask)
+    np.testing.assert_array_equal(e, violation_map(depth, K, w2c, ref, mask=mask))
+    np.testing.assert_array_equal(theta, parallax_map(depth, K, w2c, ref, mask=mask))
+    assert e.dtype == theta.dtype == np.float32 and (e[~mask] == 0).all() and (theta[mask] > 0).any()
+    assert training_view_maps(depth, K, w2c, ref, free_space=False, parallax=False) == (None, None)
+    e_only, none = training_view_maps(depth, K, w2c, ref, free_space=True, parallax=False, mask=mask)
+    assert none is None
+    np.testing.assert_array_equal(e_only, e)
 
 
 def test_parallax_term_by_hand():
@@ -193,6 +221,15 @@ def test_apply_calibration_writes_the_parallax_map_and_uses_it():
     with pytest.raises(ValueError, match="camera"):
         apply_calibration(products, cal)
     assert "depth_parallax" not in apply_calibration(products, RunCalibration(depth=_map(0.0, 0.0)))
+    # with the free-space check too (the default), both maps come from one pass and equal each map alone
+    both = _map(0.002, 0.0)
+    both.free_space, both.free_space_weight = True, 0.5
+    products["depth_mean"] = np.where(np.arange(40)[None, :] < 20, 3.0, 4.5).astype(np.float32) * np.ones((40, 1))
+    out = apply_calibration(products, RunCalibration(depth=both, training_depth=ref), camera=camera)
+    mask = opacity > 0.5
+    np.testing.assert_array_equal(out["depth_parallax"], parallax_map(products["depth_mean"], *camera, ref, mask=mask))
+    np.testing.assert_array_equal(out["depth_free_space"], violation_map(products["depth_mean"], *camera, ref, mask=mask))
+    assert (out["depth_free_space"] > 0).any()
 
 
 def test_calibrate_command_takes_the_parallax_term(capsys):
@@ -294,4 +331,5 @@ def test_parallax_speed_benchmark_writes_its_table(load_script, tmp_path):
     assert [r["views"] for r in rows] == [3, 12]
     assert rows[0]["max_diff_deg"] < 1e-10 and rows[1]["loop_s"] is None
     assert 0 < rows[1]["mean_views_seeing"] <= 12
+    assert all(r["one_pass_equal"] and r["one_pass_s"] > 0 and r["two_pass_s"] > 0 for r in rows)
     assert "| 12 |" in (tmp_path / "README.md").read_text()

@@ -364,3 +364,26 @@ def test_ensemble_ranking_analysis_means_and_outcome_by_hand(load_script):
     if (out / "results.json").is_file():
         data = script.with_int_seeds(json.loads((out / "results.json").read_text()))
         assert (out / "README.md").read_text() == script.full_report(data)
+
+
+def test_study_43_judges_s_nerf_alone_with_the_ranking_check(load_script):
+    """Study 43: study 37's factor on fresh seeds, S-NeRF rows only (the deterministic NeRF's check is
+    study 37's), with the sharpness checks and the depth ranking at most 0.02 lower on each scene."""
+    study = load_script("benchmarks/studies/tables_steps_study.py")
+    s43 = study.STUDIES[43]
+    assert s43.seeds == (18, 19, 20) and s43.methods == ("snerf_default",) and s43.sharper and s43.ranking
+    assert list(s43.rows.values()) == ["today", "wide"] and s43.scenes == ("fern", "flower")
+    assert not set(s43.seeds) & set(study.STUDIES[37].seeds + study.STUDIES[29].seeds + study.STUDIES[28].seeds)
+    today, cand = s43.rows
+
+    def scene(gain: float, **snerf) -> dict:
+        return {"snerf_default": {**_row(20.0 + gain), "spearman": 0.70, **snerf}}
+
+    base = {"fern": scene(0.0), "flower": scene(0.0)}
+    assert study.verdict({today: base, cand: {"fern": scene(0.3), "flower": scene(0.5, spearman=0.681)}}, s43) == (True, [])
+    taken, failed = study.verdict({today: base, cand: {"fern": scene(0.3), "flower": scene(0.5, spearman=0.67)}}, s43)
+    assert not taken and failed == ["flower: S-NeRF depth Spearman 0.670 against 0.700"]
+    # a level today's holds and the candidate misses fails it, as in study 37
+    low = {**_row(20.3)["coverage"], "68": 0.62}
+    taken, failed = study.verdict({today: base, cand: {"fern": scene(0.3, coverage=low), "flower": scene(0.5)}}, s43)
+    assert not taken and failed == ["fern: 68% coverage 62.0"]

@@ -1,7 +1,7 @@
-"""Studies 27, 28, 29, 31, 37, 39, 40 and 41: one training factor of the tables at the paper split (27 and
+"""Studies 27, 28, 29, 31, 37, 39, 40, 41 and 43: one training factor of the tables at the paper split (27 and
 28: the steps; 29: the occlusion regulariser; 31: the unseen-view depth smoothness; 37: the colour branch's
-capacity; 39: 31's and 37's candidates together; 40: the sparse-depth weight; 41: its heavy tail), judged
-by their rules.
+capacity; 39: 31's and 37's candidates together; 40: the sparse-depth weight; 41: its heavy tail; 43: 37's
+candidate again with the parallax term in the depth map), judged by their rules.
 
 **Study 27** (twice the steps, 1000 against 2000). The rows are ``benchmarks/eval_tables.py`` runs
 (S-NeRF (default) and the deterministic NeRF, paper split, one thread), seeds 1, 2 and 3, today's steps
@@ -89,6 +89,16 @@ ARM ``outlier5``::
     python benchmarks/studies/tables_steps_study.py --study 41 --runs runs/depth_weight_paper \
         --out benchmarks/results/depth_outlier_paper_study
 
+**Study 43** (``--study 43``: study 37's candidate on fresh seeds 18, 19 and 20 with today's depth map, which
+holds the parallax term since study 42; S-NeRF only). ARM ``today`` runs the command as is and ``wide`` adds
+``--set field.grid_decoder_width=64 --set field.grid_feature_dim=16``; each run is scored on its validation
+views right after its training (``score_run``, the same cache this script reads)::
+
+    OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes SCENE --methods snerf_default \
+        --seed SEED --no-timing --quiet --out runs/wide_parallax_paper/sSEED/ARM
+    python benchmarks/studies/tables_steps_study.py --study 43 --runs runs/wide_parallax_paper \
+        --out benchmarks/results/wide_parallax_paper_study
+
 The tables' own test-view scores (each run's metrics.json) are not read.
 """
 
@@ -124,6 +134,7 @@ class Study(NamedTuple):
     # ``rows``, every method) and for the candidate's rows of the methods not in ``trained_methods``
     reference: tuple[Path, str] | None = None
     trained_methods: tuple[str, ...] = METHODS  # methods the factor reaches (trained for the candidate's row)
+    methods: tuple[str, ...] = METHODS  # methods with rows (study 43: S-NeRF only; the deterministic NeRF's are study 37's)
 
 
 #: Study 37's committed scores: the today rows (and the deterministic NeRF's) of studies 40 and 41.
@@ -210,6 +221,19 @@ STUDIES = {
               "the tables' CPU budget (fern 1000 steps, flower 1750), `field.grid_decoder_width` / "
               "`field.grid_feature_dim` / `loss.lambda_smoothness` 32 / 8 / 0 and 64 / 16 / 60",
               row_name="decoder / features / smoothness", sharper=True),
+    43: Study(43, "the wider colour branch under the parallax term",
+              {"32 / 8 (today)": "today", "64 / 16 (candidate)": "wide"}, (18, 19, 20), SCENES,
+              "How this was run: the row commands of the script's docstring (`--study 43`) in two shell chains side by "
+              "side (`OMP_NUM_THREADS=1`; one chain the `today` rows of seeds 18, 19 and 20, the other the `wide` "
+              "rows), each run scored on its validation views right after its training. The deterministic NeRF is "
+              "not a row: nothing it is judged by changed since study 37, whose seeds 12-14 give it +0.26 / +0.08 dB "
+              "with the wider branch (inside the rule), so its check is study 37's. Then `python "
+              "benchmarks/studies/tables_steps_study.py --study 43 --runs runs/wide_parallax_paper --out "
+              "benchmarks/results/wide_parallax_paper_study`. The decision and what it shows: docs/studies.md, "
+              "study 43.",
+              "the tables' CPU budget (fern 1000 steps, flower 1750), S-NeRF with today's depth map (the parallax "
+              "term), `field.grid_decoder_width` / `field.grid_feature_dim` 32 / 8 and 64 / 16",
+              row_name="decoder width / features", sharper=True, ranking=True, methods=("snerf_default",)),
     40: depth_likelihood_study(40, "three times the sparse-depth weight at the paper split", "depth3",
                                "`loss.lambda_depth` 1 and 3", "depth weight", "1 (today)", "3 (candidate)",
                                "depth_weight_paper_study"),
@@ -308,14 +332,14 @@ def report(rows: dict, means: dict, taken: bool, failed: list[str], views: dict,
              "Means over the seeds:", "",
              *table_head(study.row_name)]
     for scene in study.scenes:
-        for m in METHODS:
+        for m in study.methods:
             for label in study.rows:
                 lines.append(table_row(scene, m, label, means[label][scene][m]))
     lines += ["", "Each seed (PSNR dB / depth abs-rel / train s):", "",
               f"| scene | method | {study.row_name} | " + " | ".join(f"seed {s}" for s in study.seeds) + " |",
               "|---|---|---|" + "---|" * len(study.seeds)]
     for scene in study.scenes:
-        for m in METHODS:
+        for m in study.methods:
             for label in study.rows:
                 cells = [f"{r['psnr']:.2f} / {fmt(r['abs_rel'], '{:.4f}')} / {r['train_s']:.0f}"
                          for r in rows[label][scene][m]]
@@ -337,7 +361,8 @@ def main() -> None:
     seed1_runs = args.seed1_runs or study.seed1_runs
     views = {scene: validation_views(scene) for scene in study.scenes}
 
-    rows, means = scored_rows(args.runs, study.rows, study.seeds, views, seed1_runs=seed1_runs, study=study)
+    rows, means = scored_rows(args.runs, study.rows, study.seeds, views, methods=study.methods, seed1_runs=seed1_runs,
+                              study=study)
     taken, failed = verdict(means, study)
     write_study(args.out, {"study": study.number, "rows": rows, "means": means, "seeds": list(study.seeds),
                            "validation_views": views, "taken": taken, "failed": failed},

@@ -93,8 +93,8 @@ from .defaults import (CALIBRATION_FILE, CALIBRATION_PAIR_POINTS, CALIBRATION_PO
                        DEPTH_PARALLAX_TERM, DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR)  # (defaults the command line shows)
 from .depth_edges import edge_range_at_points, edge_range_map
 from .free_space import (TRAINING_DEPTH_FILE, checked_std, free_space_violation, load_training_depth,
-                         render_training_depth, rendered_points, save_training_depth, violation_map)
-from .parallax import parallax_angle, parallax_map, parallax_term
+                         render_training_depth, rendered_points, save_training_depth)
+from .parallax import parallax_angle, parallax_term, training_view_maps, training_view_terms
 from .pose_check import check_photo_fit, load_training_fit, photo_names, save_training_fit
 
 #: Central level of +-1 standard deviation: Phi(1) - Phi(-1).
@@ -835,8 +835,13 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     views = [v for v, sd in sparse.items() if len(sd)]  # the order of render_at_points' rays
     index = np.concatenate([sparse[v].point_index for v in views] or [np.zeros(0, np.int64)])
     at = np.where(keep, r["depth_mean"], r["gt"])  # where each kept ray's render put its point
+    angle = None
     if free_space is not None and len(std):
-        violation = violation_at_points(cams, sparse, capture.xyz, r["gt"], at, free_space)
+        if parallax is free_space:  # one projection into each training view serves both terms
+            violation, angle = training_view_terms(rendered_points_of(cams, sparse, capture.xyz, r["gt"], at),
+                                                   free_space, free_space=True, parallax=True)
+        else:
+            violation = violation_at_points(cams, sparse, capture.xyz, r["gt"], at, free_space)
         std = checked_std(sigma, violation)
         source += CHECKED_SOURCE
     err = r["gt"][keep] - r["depth_mean"][keep]
@@ -848,7 +853,8 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     if edges:
         out["edge"] = edge_at_points(model, cams, near, far, sparse, r["depth_mean"], seed=seed, options=options)[keep]
     if parallax is not None:
-        out["parallax"] = parallax_at_points(cams, sparse, capture.xyz, r["gt"], at, parallax)[keep]
+        out["parallax"] = (angle if angle is not None
+                           else parallax_at_points(cams, sparse, capture.xyz, r["gt"], at, parallax))[keep]
     return out
 
 
@@ -1149,12 +1155,13 @@ def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibrati
     calibrated where the run has their maps (``QuantileCalibration.calibrated_std``, in float64,
     stored in the raw one's dtype), the raw ones kept as ``depth_std_raw`` and ``colour_std_raw``.
     A ``free_space`` depth map also adds ``depth_free_space`` [H, W], each pixel's free-space
-    violation (``free_space.violation_map`` at pixels with opacity above ``OPACITY_MASK``), which
+    violation (as ``free_space.violation_map`` at pixels with opacity above ``OPACITY_MASK``), which
     needs the view's ``camera`` (intrinsics [3, 3], OpenCV world-to-camera [4, 4]); a depth map with
     an occlusion-edge term adds ``depth_edge`` [H, W], each pixel's edge size
     (``depth_edges.edge_range_map`` of ``depth_mean``); a depth map with a parallax term adds
-    ``depth_parallax`` [H, W], each pixel's parallax angle in degrees (``parallax.parallax_map`` at
-    pixels with opacity above ``OPACITY_MASK``; the view's ``camera`` too). Returns a new dict (unchanged entries where a
+    ``depth_parallax`` [H, W], each pixel's parallax angle in degrees (as ``parallax.parallax_map`` at
+    pixels with opacity above ``OPACITY_MASK``; the view's ``camera`` too); both from one projection of
+    the pixels into each training view (``parallax.training_view_maps``). Returns a new dict (unchanged entries where a
     map is missing)."""
     out = dict(products)
     if calibration is None:
@@ -1165,14 +1172,15 @@ def apply_calibration(products: dict[str, np.ndarray], calibration: RunCalibrati
             raise ValueError("the depth map checks free space or has a parallax term: applying it needs the view's "
                              "camera and the run's training-view depths (load the calibration with "
                              "load_run_calibration)")
-    if calibration.depth is not None and calibration.depth.parallax_weight > 0.0 and "depth_std" in products:
-        parallax = parallax_map(products["depth_mean"], camera[0], camera[1], calibration.training_depth,
-                                mask=products["opacity"] > OPACITY_MASK)
-        out["depth_parallax"] = parallax
-    if calibration.depth is not None and calibration.depth.free_space and "depth_std" in products:
-        violation = violation_map(products["depth_mean"], camera[0], camera[1], calibration.training_depth,
-                                  mask=products["opacity"] > OPACITY_MASK)
-        out["depth_free_space"] = violation
+        # one projection of the pixels into each training view serves both terms
+        violation, parallax = training_view_maps(products["depth_mean"], camera[0], camera[1],
+                                                 calibration.training_depth, free_space=calibration.depth.free_space,
+                                                 parallax=calibration.depth.parallax_weight > 0.0,
+                                                 mask=products["opacity"] > OPACITY_MASK)
+        if parallax is not None:
+            out["depth_parallax"] = parallax
+        if violation is not None:
+            out["depth_free_space"] = violation
     edge = None
     if calibration.depth is not None and calibration.depth.edge_weight > 0.0 and "depth_std" in products:
         edge = np.nan_to_num(edge_range_map(products["depth_mean"]), nan=0.0).astype(products["depth_std"].dtype)

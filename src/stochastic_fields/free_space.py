@@ -194,9 +194,14 @@ def free_space_violation(points: np.ndarray, ref: TrainingDepth, *, exclude: Seq
     for t in range(len(ref.views)):
         if int(ref.views[t]) in exclude:
             continue
-        z, checked, surface = opaque_surface(X, ref, t)
-        out = np.maximum(out, np.where(checked, np.maximum(surface - z, 0.0), 0.0))
+        out = np.maximum(out, violation_in_view(*opaque_surface(X, ref, t)))
     return out
+
+
+def violation_in_view(z: np.ndarray, opaque: np.ndarray, surface: np.ndarray) -> np.ndarray:
+    """max(0, D_j(u) - z_j(X)) [N] where the point is on an opaque pixel of view j, else 0: one view's
+    share of the violation, of ``opaque_surface``'s camera z ``z``, mask ``opaque`` and ``surface`` [N]."""
+    return np.where(opaque, np.maximum(surface - z, 0.0), 0.0)
 
 
 def agreeing_views(points: np.ndarray, ref: TrainingDepth, *, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
@@ -241,6 +246,13 @@ def map_at_pixels(depth: np.ndarray, intrinsics: np.ndarray, world_to_camera: np
     """[H, W] (float32) ``value`` (world points [N, 3] -> [N]) of each pixel centre of a rendered
     camera-z ``depth`` map [H, W], back-projected to its depth with the camera ``intrinsics`` [3, 3],
     ``world_to_camera`` [4, 4]; 0 where ``mask`` [H, W] is False (default: every pixel)."""
+    return maps_at_pixels(depth, intrinsics, world_to_camera, lambda X: (value(X),), mask=mask)[0]
+
+
+def maps_at_pixels(depth: np.ndarray, intrinsics: np.ndarray, world_to_camera: np.ndarray, values,
+                   *, mask: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+    """``map_at_pixels`` of several quantities from one back-projection: ``values`` maps world points
+    [N, 3] to a tuple of [N] arrays; returns a tuple of [H, W] float32 maps, 0 where ``mask`` is False."""
     depth = torch.as_tensor(np.asarray(depth, dtype=np.float64))
     H, W = depth.shape
     rows, cols = torch.nonzero(torch.ones(H, W, dtype=torch.bool) if mask is None
@@ -248,9 +260,12 @@ def map_at_pixels(depth: np.ndarray, intrinsics: np.ndarray, world_to_camera: np
     world = backproject_pixels(torch.as_tensor(np.asarray(intrinsics, np.float64)),
                                invert_rigid(torch.as_tensor(np.asarray(world_to_camera, np.float64))),
                                rows, cols, depth[rows, cols])
-    out = np.zeros((H, W), np.float32)
-    out[rows.numpy(), cols.numpy()] = value(world.numpy())
-    return out
+    maps = []
+    for v in values(world.numpy()):
+        out = np.zeros((H, W), np.float32)
+        out[rows.numpy(), cols.numpy()] = v
+        maps.append(out)
+    return tuple(maps)
 
 
 def checked_std(std: np.ndarray, violation: np.ndarray) -> np.ndarray:

@@ -34,7 +34,7 @@ except ImportError:  # pragma: no cover - exercised only on machines without num
     numba = None
 
 from .constants import PARALLAX_MIN_SIN
-from .free_space import TrainingDepth, map_at_pixels, opaque_surface
+from .free_space import TrainingDepth, map_at_pixels, maps_at_pixels, opaque_surface, violation_in_view
 
 #: A training view sees a point X unless the surface it rendered at X's pixel lies nearer than
 #: (1 - SEE_TOLERANCE) of X's camera z (a point behind that surface is hidden from it).
@@ -57,9 +57,53 @@ def views_seeing(points: np.ndarray, ref: TrainingDepth, *, tolerance: float = S
     X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     sees = np.zeros((len(ref.views), len(X)), bool)
     for t in range(len(ref.views)):
-        z, opaque, surface = opaque_surface(X, ref, t)
-        sees[t] = opaque & (surface >= z * (1.0 - tolerance))
+        sees[t] = sees_in_view(*opaque_surface(X, ref, t), tolerance=tolerance)
     return np.ascontiguousarray(sees.T)
+
+
+def sees_in_view(z: np.ndarray, opaque: np.ndarray, surface: np.ndarray, *, tolerance: float = SEE_TOLERANCE
+                 ) -> np.ndarray:
+    """[N] bool: whether one training view sees each point (module doc), of ``opaque_surface``'s camera
+    z ``z``, mask ``opaque`` and rendered ``surface`` [N]."""
+    return opaque & (surface >= z * (1.0 - tolerance))
+
+
+def training_view_terms(points: np.ndarray, ref: TrainingDepth, *, free_space: bool, parallax: bool,
+                        tolerance: float = SEE_TOLERANCE) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The free-space violation e [N] (``free_space.free_space_violation``; None unless ``free_space``)
+    and the parallax angle theta_max [N] in degrees (``parallax_angle``; None unless ``parallax``) of
+    world ``points`` [N, 3], from one projection of the points into each training view of ``ref``
+    (the two terms read the same rendered surface there)."""
+    X = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    violation = np.zeros(len(X)) if free_space else None
+    sees = np.zeros((len(ref.views), len(X)), bool) if parallax else None
+    if free_space or parallax:
+        for t in range(len(ref.views)):
+            surface = opaque_surface(X, ref, t)
+            if free_space:
+                violation = np.maximum(violation, violation_in_view(*surface))
+            if parallax:
+                sees[t] = sees_in_view(*surface, tolerance=tolerance)
+    angle = angle_of_cosine(widest_cosine(X, ref.centres, np.ascontiguousarray(sees.T))) if parallax else None
+    return violation, angle
+
+
+def training_view_maps(depth: np.ndarray, intrinsics: np.ndarray, world_to_camera: np.ndarray, ref: TrainingDepth,
+                       *, free_space: bool, parallax: bool, mask: np.ndarray | None = None
+                       ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The free-space violation map e [H, W] (``free_space.violation_map``; None unless ``free_space``)
+    and the parallax map theta_max [H, W] (``parallax_map``; None unless ``parallax``), float32, of a
+    rendered camera-z ``depth`` map [H, W] of the camera ``intrinsics`` [3, 3], ``world_to_camera``
+    [4, 4]: one back-projection of the pixels and one projection into each training view for both
+    (``training_view_terms``); 0 where ``mask`` [H, W] is False (default: every pixel)."""
+    if not (free_space or parallax):
+        return None, None
+    wanted = [free_space, parallax]
+    maps = iter(maps_at_pixels(
+        depth, intrinsics, world_to_camera,
+        lambda X: tuple(v for v in training_view_terms(X, ref, free_space=free_space, parallax=parallax) if v is not None),
+        mask=mask))
+    return tuple(next(maps) if w else None for w in wanted)
 
 
 def angle_of_cosine(cos_min: np.ndarray) -> np.ndarray:
