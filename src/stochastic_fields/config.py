@@ -72,10 +72,10 @@ class FieldConfig:
     """How the finest level's cells per axis follow the training views (before the grid_max_cells cap): 'parallax' (default since study 24): along each axis, grid_pixels_per_voxel pixels of motion in the view that sees a step along that axis move most (on a forward-facing capture the depth axis gets the cells its baselines resolve, the image axes the rest; docs/design.md); 'footprint' (before): a voxel spans grid_pixels_per_voxel pixel footprints along every axis."""
     grid_max_cells: int = 2_000_000
     """Cap on cells of the finest level. Range: an integer >= 8 and <= 2147483648."""
-    grid_feature_dim: int = 8
-    """Colour feature channels per cell. Range: an integer >= 1 and <= 1024."""
-    grid_decoder_width: int = 32
-    """Hidden width of the colour decoder (0: colours stored directly, view-independent). Range: an integer >= 0 and <= 8192."""
+    grid_feature_dim: int = 16
+    """Colour feature channels per cell (16 since study 43; 8 before). Range: an integer >= 1 and <= 1024."""
+    grid_decoder_width: int = 64
+    """Hidden width of the colour decoder (0: colours stored directly, view-independent; 64 since study 43, 32 before). Range: an integer >= 0 and <= 8192."""
     grid_init_density_loc: float = -1.0
     """Initial mean of the pre-ReLU density everywhere. Range: a finite number."""
     density_per: Literal["unit", "cell"] = "unit"
