@@ -831,17 +831,20 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
               f"between neighbouring training views{'' if pair_points == 'both' else ' (points either view of the pair observed)'}"
               f" (opacity > {mask})")
     std = sigma = r["depth_std"]
-    violation = None
+    violation = angle = None
     views = [v for v, sd in sparse.items() if len(sd)]  # the order of render_at_points' rays
     index = np.concatenate([sparse[v].point_index for v in views] or [np.zeros(0, np.int64)])
     at = np.where(keep, r["depth_mean"], r["gt"])  # where each kept ray's render put its point
-    angle = None
-    if free_space is not None and len(std):
-        if parallax is free_space:  # one projection into each training view serves both terms
-            violation, angle = training_view_terms(rendered_points_of(cams, sparse, capture.xyz, r["gt"], at),
-                                                   free_space, free_space=True, parallax=True)
-        else:
-            violation = violation_at_points(cams, sparse, capture.xyz, r["gt"], at, free_space)
+    if free_space is not None or parallax is not None:
+        X = rendered_points_of(cams, sparse, capture.xyz, r["gt"], at)
+        check = free_space is not None and len(std) > 0
+        if free_space is None or parallax is None or parallax is free_space:  # one projection serves both terms
+            violation, angle = training_view_terms(X, parallax if free_space is None else free_space,
+                                                   free_space=check, parallax=parallax is not None)
+        else:  # two different training-view references: each its own pass
+            violation = training_view_terms(X, free_space, free_space=check, parallax=False)[0]
+            angle = training_view_terms(X, parallax, free_space=False, parallax=True)[1]
+    if violation is not None:
         std = checked_std(sigma, violation)
         source += CHECKED_SOURCE
     err = r["gt"][keep] - r["depth_mean"][keep]
@@ -852,9 +855,8 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
         out.update({"std_raw": sigma[keep], "violation": violation[keep]})
     if edges:
         out["edge"] = edge_at_points(model, cams, near, far, sparse, r["depth_mean"], seed=seed, options=options)[keep]
-    if parallax is not None:
-        out["parallax"] = (angle if angle is not None
-                           else parallax_at_points(cams, sparse, capture.xyz, r["gt"], at, parallax))[keep]
+    if angle is not None:
+        out["parallax"] = angle[keep]
     return out
 
 

@@ -252,7 +252,8 @@ def map_at_pixels(depth: np.ndarray, intrinsics: np.ndarray, world_to_camera: np
 def maps_at_pixels(depth: np.ndarray, intrinsics: np.ndarray, world_to_camera: np.ndarray, values,
                    *, mask: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
     """``map_at_pixels`` of several quantities from one back-projection: ``values`` maps world points
-    [N, 3] to a tuple of [N] arrays; returns a tuple of [H, W] float32 maps, 0 where ``mask`` is False."""
+    [N, 3] to a tuple of [N] arrays (or None); returns a tuple of [H, W] float32 maps, 0 where ``mask``
+    is False (None where ``values`` gave None)."""
     depth = torch.as_tensor(np.asarray(depth, dtype=np.float64))
     H, W = depth.shape
     rows, cols = torch.nonzero(torch.ones(H, W, dtype=torch.bool) if mask is None
@@ -260,12 +261,14 @@ def maps_at_pixels(depth: np.ndarray, intrinsics: np.ndarray, world_to_camera: n
     world = backproject_pixels(torch.as_tensor(np.asarray(intrinsics, np.float64)),
                                invert_rigid(torch.as_tensor(np.asarray(world_to_camera, np.float64))),
                                rows, cols, depth[rows, cols])
-    maps = []
-    for v in values(world.numpy()):
+    at = (rows.numpy(), cols.numpy())
+
+    def fill(v: np.ndarray) -> np.ndarray:
         out = np.zeros((H, W), np.float32)
-        out[rows.numpy(), cols.numpy()] = v
-        maps.append(out)
-    return tuple(maps)
+        out[at] = v
+        return out
+
+    return tuple(None if v is None else fill(v) for v in values(world.numpy()))
 
 
 def checked_std(std: np.ndarray, violation: np.ndarray) -> np.ndarray:

@@ -98,12 +98,8 @@ def training_view_maps(depth: np.ndarray, intrinsics: np.ndarray, world_to_camer
     (``training_view_terms``); 0 where ``mask`` [H, W] is False (default: every pixel)."""
     if not (free_space or parallax):
         return None, None
-    wanted = [free_space, parallax]
-    maps = iter(maps_at_pixels(
-        depth, intrinsics, world_to_camera,
-        lambda X: tuple(v for v in training_view_terms(X, ref, free_space=free_space, parallax=parallax) if v is not None),
-        mask=mask))
-    return tuple(next(maps) if w else None for w in wanted)
+    return maps_at_pixels(depth, intrinsics, world_to_camera,
+                          lambda X: training_view_terms(X, ref, free_space=free_space, parallax=parallax), mask=mask)
 
 
 def angle_of_cosine(cos_min: np.ndarray) -> np.ndarray:
