@@ -46,8 +46,8 @@ import numpy as np
 import torch
 
 from stochastic_fields import metrics as M
-from stochastic_fields.calibration import (edge_at_points, load_run_calibration, parallax_at_points, render_at_points,
-                                           violation_at_points)
+from stochastic_fields.calibration import (edge_at_points, load_run_calibration, render_at_points,
+                                           training_view_terms_at_points)
 from stochastic_fields.capture_points import SCORE, load_capture_points, rays_through_points
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.plots import plot_event_reliability
@@ -85,17 +85,15 @@ def measure(run_dir: Path, *, margins, limit: int, seed: int) -> dict:
     z = rays.z_scale.double().reshape(-1).numpy()
     mean, raw = r["depth_mean"], r["depth_std"]
     keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(mean) & (raw > 0)
-    violation = None
-    if depth_map is not None and depth_map.free_space:  # each pixel's violation, as export computes it
-        violation = violation_at_points(dataset.cameras, sparse, capture.xyz, r["gt"], np.where(keep, mean, r["gt"]),
-                                        calibration.training_depth)
+    violation = parallax = None
+    if depth_map is not None:  # each pixel's violation and parallax angle, as export computes them (one pass)
+        violation, parallax = training_view_terms_at_points(dataset.cameras, sparse, capture.xyz, r["gt"],
+                                                            np.where(keep, mean, r["gt"]), calibration.training_depth,
+                                                            free_space=depth_map.free_space,
+                                                            parallax=depth_map.parallax_weight > 0.0)
     edge = None
     if depth_map is not None and depth_map.edge_weight > 0.0:  # each pixel's edge size, as export computes it
         edge = edge_at_points(model, dataset.cameras, dataset.near, dataset.far, sparse, mean, seed=seed)
-    parallax = None
-    if depth_map is not None and depth_map.parallax_weight > 0.0:  # each pixel's parallax angle, as export computes it
-        parallax = parallax_at_points(dataset.cameras, sparse, capture.xyz, r["gt"], np.where(keep, mean, r["gt"]),
-                                      calibration.training_depth)
     std = raw if depth_map is None else depth_map.calibrated_std(raw, violation, depth=mean, edge=edge,
                                                                  parallax=parallax)
     multiplier = None if depth_map is None else (lambda level: float(depth_map.relative_scale(level)))

@@ -128,6 +128,41 @@ def test_one_pass_gives_the_violation_and_the_parallax_of_the_two_passes():
     np.testing.assert_array_equal(e_only, e)
 
 
+def test_terms_at_rendered_capture_points_come_from_one_pass():
+    """calibration.training_view_terms_at_points: on each view's ray through its capture point, the
+    point at the rendered depth (rendered_points_of) gives the violation and the parallax angle of the
+    two passes (free_space_violation, parallax_angle) to the last bit; None for a term not asked for;
+    depth_calibration_renders refuses two different training-view references."""
+    import torch
+
+    from stochastic_fields.calibration import depth_calibration_renders, rendered_points_of, training_view_terms_at_points
+    from stochastic_fields.cameras import make_cameras
+    from stochastic_fields.sparse_depth import SparseDepth
+
+    ref = _three_views()
+    ref.depth[1, :, 25:] = 5.0
+    cams = make_cameras(torch.from_numpy(ref.intrinsics[:2]), torch.from_numpy(ref.world_to_camera[:2]), 40, 40)
+    rng = np.random.default_rng(1)
+    xyz = np.column_stack([rng.uniform(-1, 1, 60), rng.uniform(-1, 1, 60), rng.uniform(2.5, 5.5, 60)])
+    sparse = {v: SparseDepth(v, np.zeros(30, np.int64), np.zeros(30, np.int64), np.zeros((30, 2)),
+                             xyz[30 * v:30 * v + 30, 2] - (v == 1), np.arange(30 * v, 30 * v + 30), "tracks", 30)
+              for v in (0, 1)}
+    gt = np.concatenate([sparse[v].depth for v in (0, 1)])
+    depth = gt * rng.uniform(0.7, 1.3, len(gt))
+    X = rendered_points_of(cams, sparse, xyz, gt, depth)
+    violation, angle = training_view_terms_at_points(cams, sparse, xyz, gt, depth, ref, free_space=True, parallax=True)
+    np.testing.assert_array_equal(violation, free_space_violation(X, ref))
+    np.testing.assert_array_equal(angle, parallax_angle(X, ref)[0])
+    assert (violation > 0).any() and (angle > 0).any()
+    only = training_view_terms_at_points(cams, sparse, xyz, gt, depth, ref, free_space=False, parallax=True)
+    assert only[0] is None
+    np.testing.assert_array_equal(only[1], angle)
+    assert training_view_terms_at_points(cams, sparse, xyz, gt, depth, ref, free_space=False,
+                                         parallax=False) == (None, None)
+    with pytest.raises(ValueError, match="same free_space.TrainingDepth"):
+        depth_calibration_renders(None, None, free_space=ref, parallax=_three_views())
+
+
 def test_parallax_term_by_hand():
     np.testing.assert_allclose(parallax_term(np.array([90.0, 30.0, 0.0]), np.array([2.0, 2.0, 3.0])),
                                [2.0, 4.0, 3.0 / PARALLAX_MIN_SIN], rtol=1e-12)

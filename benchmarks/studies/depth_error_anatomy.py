@@ -194,7 +194,7 @@ def anatomy_of_run(folder: Path, *, radius: float = NEIGHBOUR_RADIUS_PX, seed: i
     import torch
 
     from stochastic_fields.calibration import cross_fitted_depth_quantiles, depth_calibration_renders, \
-        load_run_calibration, parallax_at_points, render_at_points, violation_at_points
+        load_run_calibration, render_at_points, training_view_terms_at_points
     from stochastic_fields.capture_points import block_keys, load_capture_points, score_sparse_depth
     from stochastic_fields.view_maps import OPACITY_MASK
     from stochastic_fields.trainer import load_trained_model
@@ -228,14 +228,11 @@ def anatomy_of_run(folder: Path, *, radius: float = NEIGHBOUR_RADIUS_PX, seed: i
     capture = load_capture_points(dataset)
     index = np.concatenate([sd.point_index for sd in sparse.values()])
     maps, folds = calibration.depth, calibration.depth_folds
-    violation = parallax = None
     rendered = np.where(np.isfinite(centre["depth_mean"]), centre["depth_mean"], centre["gt"])
-    if maps.free_space:
-        violation = violation_at_points(dataset.cameras, sparse, capture.xyz, centre["gt"], rendered,
-                                        calibration.training_depth)
-    if maps.parallax_weight > 0.0:  # the map's parallax term, at the same rendered points (the product's std)
-        parallax = parallax_at_points(dataset.cameras, sparse, capture.xyz, centre["gt"], rendered,
-                                      calibration.training_depth)
+    # the map's free-space and parallax terms at the same rendered points (the product's std), in one pass
+    violation, parallax = training_view_terms_at_points(dataset.cameras, sparse, capture.xyz, centre["gt"], rendered,
+                                                        calibration.training_depth, free_space=maps.free_space,
+                                                        parallax=maps.parallax_weight > 0.0)
     keep = (centre["opacity"] > OPACITY_MASK) & np.isfinite(centre["depth_mean"]) & np.isfinite(delta) \
         & (centre["depth_std"] > 0)
     gt, pred, raw, delta = centre["gt"][keep], centre["depth_mean"][keep], centre["depth_std"][keep], delta[keep]

@@ -37,8 +37,8 @@ REPO_ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO_ROOT / "benchmarks" / "studies"))
 
 from stochastic_fields import metrics as M  # noqa: E402
-from stochastic_fields.calibration import (load_run_calibration, parallax_at_points, render_at_points,  # noqa: E402
-                                           violation_at_points)
+from stochastic_fields.calibration import (load_run_calibration, render_at_points,  # noqa: E402
+                                           training_view_terms_at_points)
 from stochastic_fields.cameras import camera_centres  # noqa: E402
 from stochastic_fields.capture_points import load_capture_points, score_sparse_depth  # noqa: E402
 from stochastic_fields.data.colmap import read_cameras_binary  # noqa: E402
@@ -86,13 +86,11 @@ def analyse_run(run: Path, scene: str) -> dict:
                          generator=torch.Generator().manual_seed(0))
     keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(r["depth_mean"]) & (r["depth_std"] > 0)
     m = calibration.depth
-    violation = parallax = None
     rendered = np.where(keep, r["depth_mean"], r["gt"])
-    if m.free_space:
-        violation = violation_at_points(dataset.cameras, sparse, capture.xyz, r["gt"], rendered,
-                                        calibration.training_depth)
-    if m.parallax_weight > 0.0:  # the map's parallax term at the same rendered points
-        parallax = parallax_at_points(dataset.cameras, sparse, capture.xyz, r["gt"], rendered, calibration.training_depth)
+    # the map's free-space and parallax terms at the same rendered points, in one pass
+    violation, parallax = training_view_terms_at_points(dataset.cameras, sparse, capture.xyz, r["gt"], rendered,
+                                                        calibration.training_depth, free_space=m.free_space,
+                                                        parallax=m.parallax_weight > 0.0)
     std = m.calibrated_std(r["depth_std"], violation, r["depth_mean"], parallax=parallax)
     index = np.concatenate([sparse[v].point_index for v in sparse if len(sparse[v])])
     gt, pred, std, e_rel = r["gt"][keep], r["depth_mean"][keep], std[keep], noise[index][keep]

@@ -215,7 +215,7 @@ def todays_std_on_photos(run: Path, scene: str) -> dict:
     (opacity > mask, finite depth, std > 0), "depth" [N] (rendered, the point's where not kept),
     "view" and "point" [N] (each ray's photo and capture point) and today's std "c" [N]."""
     from stochastic_fields.calibration import (_fit_depth_map, depth_calibration_renders,
-                                               violation_at_points)
+                                               training_view_terms_at_points)
     from stochastic_fields.capture_points import load_capture_points, score_sparse_depth
     from stochastic_fields.free_space import load_training_depth, render_training_depth
     from stochastic_fields.trainer import load_trained_model
@@ -235,7 +235,8 @@ def todays_std_on_photos(run: Path, scene: str) -> dict:
     keep = (r["opacity"] > OPACITY_MASK) & np.isfinite(r["depth_mean"]) & (r["depth_std"] > 0)
     depth = np.where(keep, r["depth_mean"], r["gt"])
     beta = today.free_space_weight if today.free_space else 0.0
-    violation = violation_at_points(dataset.cameras, sparse, capture.xyz, r["gt"], depth, reference)
+    violation = training_view_terms_at_points(dataset.cameras, sparse, capture.xyz, r["gt"], depth, reference,
+                                              free_space=True, parallax=False)[0]
     views_held = [v for v in sparse if len(sparse[v])]
     return {"model": model, "dataset": dataset, "capture": capture, "reference": reference, "renders": renders,
             "today": today, "c_cal": np.hypot(std_fit, today.relative_floor * renders["depth"]),

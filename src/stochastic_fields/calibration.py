@@ -92,9 +92,9 @@ from .defaults import (CALIBRATION_FILE, CALIBRATION_PAIR_POINTS, CALIBRATION_PO
                        DEFAULT_CALIBRATION_PAIR_POINTS, DEFAULT_CALIBRATION_POINTS, DEPTH_EDGE_TERM, DEPTH_FREE_SPACE,
                        DEPTH_PARALLAX_TERM, DEPTH_RELATIVE_FLOOR, DEPTH_STD_FLOOR)  # (defaults the command line shows)
 from .depth_edges import edge_range_at_points, edge_range_map
-from .free_space import (TRAINING_DEPTH_FILE, checked_std, free_space_violation, load_training_depth,
+from .free_space import (TRAINING_DEPTH_FILE, checked_std, load_training_depth,
                          render_training_depth, rendered_points, save_training_depth)
-from .parallax import parallax_angle, parallax_term, training_view_maps, training_view_terms
+from .parallax import parallax_term, training_view_maps, training_view_terms
 from .pose_check import check_photo_fit, load_training_fit, photo_names, save_training_fit
 
 #: Central level of +-1 standard deviation: Phi(1) - Phi(-1).
@@ -761,22 +761,21 @@ def calibration_view_points(dataset, capture, *, points: str = "calibrate", boun
     return cams, near, far, pairs, sparse
 
 
-def violation_at_points(cameras, sparse: dict, xyz: np.ndarray, gt: np.ndarray, depth: np.ndarray,
-                        reference) -> np.ndarray:
-    """The free-space violation e [N] (``free_space.free_space_violation`` against the training views'
-    depths ``reference``, a ``free_space.TrainingDepth``) of the points ``render_at_points`` rendered
-    for ``sparse`` ({view: SparseDepth} of ``cameras``, in its ray order): on each view's ray through
-    capture point ``xyz[point_index]`` [P, 3], whose camera z is ``gt`` [N], the point at the rendered
-    camera z ``depth`` [N] (finite; ``free_space.rendered_points``)."""
-    return free_space_violation(rendered_points_of(cameras, sparse, xyz, gt, depth), reference)
-
-
-def parallax_at_points(cameras, sparse: dict, xyz: np.ndarray, gt: np.ndarray, depth: np.ndarray,
-                       reference) -> np.ndarray:
-    """The parallax angle theta_max [N] (degrees, ``parallax.parallax_angle`` over the training views of
-    ``reference``, a ``free_space.TrainingDepth``) of the points ``render_at_points`` rendered for
-    ``sparse`` (as ``violation_at_points``)."""
-    return parallax_angle(rendered_points_of(cameras, sparse, xyz, gt, depth), reference)[0]
+def training_view_terms_at_points(cameras, sparse: dict, xyz: np.ndarray, gt: np.ndarray, depth: np.ndarray,
+                                  reference, *, free_space: bool, parallax: bool
+                                  ) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The free-space violation e [N] (``free_space.free_space_violation``; None unless ``free_space``)
+    and the parallax angle theta_max [N] in degrees (``parallax.parallax_angle``; None unless
+    ``parallax``) against the training views of ``reference`` (a ``free_space.TrainingDepth``) of the
+    points ``render_at_points`` rendered for ``sparse`` ({view: SparseDepth} of ``cameras``, in its
+    ray order): on each view's ray through capture point ``xyz[point_index]`` [P, 3], whose camera z is
+    ``gt`` [N], the point at the rendered camera z ``depth`` [N] (finite;
+    ``free_space.rendered_points``). One projection into each training view serves both terms
+    (``parallax.training_view_terms``)."""
+    if not (free_space or parallax):
+        return None, None
+    return training_view_terms(rendered_points_of(cameras, sparse, xyz, gt, depth), reference,
+                               free_space=free_space, parallax=parallax)
 
 
 def rendered_points_of(cameras, sparse: dict, xyz: np.ndarray, gt: np.ndarray, depth: np.ndarray) -> np.ndarray:
@@ -812,10 +811,15 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     (``free_space.checked_std``), "std_raw" the raw sigma and "violation" e [N]; with ``edges``,
     "edge" [N] holds each point's occlusion-edge size (``edge_at_points``: 8 more renders); with
     ``parallax`` (``free_space.TrainingDepth``), "parallax" [N] each rendered point's parallax angle
-    (``parallax_at_points``, degrees).
-    ValueError when the scene has no capture points, or for an unknown ``points``."""
+    (``training_view_terms_at_points``, degrees; one projection into each training view serves both
+    terms, so when both are asked they must be the same reference).
+    ValueError when the scene has no capture points, for an unknown ``points``, or for two different
+    training-view references."""
     if points not in CALIBRATION_POINTS:
         raise ValueError(f"calibration points must be one of {CALIBRATION_POINTS}, got {points!r}")
+    if free_space is not None and parallax is not None and parallax is not free_space:
+        raise ValueError("the free-space check and the parallax term read one training-view reference: pass the "
+                         "same free_space.TrainingDepth as both (got two different ones)")
     mask = OPACITY_MASK if opacity_mask is None else opacity_mask
     capture = load_capture_points(dataset)
     if capture is None:
@@ -836,14 +840,10 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     index = np.concatenate([sparse[v].point_index for v in views] or [np.zeros(0, np.int64)])
     at = np.where(keep, r["depth_mean"], r["gt"])  # where each kept ray's render put its point
     if free_space is not None or parallax is not None:
-        X = rendered_points_of(cams, sparse, capture.xyz, r["gt"], at)
-        check = free_space is not None and len(std) > 0
-        if free_space is None or parallax is None or parallax is free_space:  # one projection serves both terms
-            violation, angle = training_view_terms(X, parallax if free_space is None else free_space,
-                                                   free_space=check, parallax=parallax is not None)
-        else:  # two different training-view references: each its own pass
-            violation = training_view_terms(X, free_space, free_space=check, parallax=False)[0]
-            angle = training_view_terms(X, parallax, free_space=False, parallax=True)[1]
+        violation, angle = training_view_terms_at_points(cams, sparse, capture.xyz, r["gt"], at,
+                                                         parallax if free_space is None else free_space,
+                                                         free_space=free_space is not None and len(std) > 0,
+                                                         parallax=parallax is not None)
     if violation is not None:
         std = checked_std(sigma, violation)
         source += CHECKED_SOURCE
