@@ -839,9 +839,9 @@ def depth_calibration_renders(model, dataset, *, seed: int = 0, opacity_mask: fl
     views = [v for v, sd in sparse.items() if len(sd)]  # the order of render_at_points' rays
     index = np.concatenate([sparse[v].point_index for v in views] or [np.zeros(0, np.int64)])
     at = np.where(keep, r["depth_mean"], r["gt"])  # where each kept ray's render put its point
-    if free_space is not None or parallax is not None:
-        violation, angle = training_view_terms_at_points(cams, sparse, capture.xyz, r["gt"], at,
-                                                         parallax if free_space is None else free_space,
+    reference = free_space if free_space is not None else parallax  # one, when both are asked (checked above)
+    if reference is not None:
+        violation, angle = training_view_terms_at_points(cams, sparse, capture.xyz, r["gt"], at, reference,
                                                          free_space=free_space is not None and len(std) > 0,
                                                          parallax=parallax is not None)
     if violation is not None:
