@@ -90,7 +90,8 @@ SYNTHETIC_PIXELS = 2000
 
 
 #: The perturbation grid and prior of a run's fit (``--resolution``, ``--prior``; the module's defaults).
-GRID = {"resolution": LAPLACE_RESOLUTION, "prior_precision": LAPLACE_PRIOR_PRECISION, "pair_points": "both"}
+GRID = {"resolution": LAPLACE_RESOLUTION, "prior_precision": LAPLACE_PRIOR_PRECISION, "pair_points": "both",
+        "parallax": False, "runs": "runs/mondrian"}
 
 
 def laplace_for(model, dataset):
@@ -152,7 +153,7 @@ def analyse(run: Path, evals: Path, views: list[int]) -> dict:
         m, rays_through_points(cams, near, far, sparse)[0]).numpy()
     try:  # the calibration renders, with the Laplace std of their rays in the edge slot
         renders = depth_calibration_renders(model, dataset, points="held-out", free_space=ref, pair_points=GRID["pair_points"],
-                                            edges=True)
+                                            edges=True, parallax=ref if GRID["parallax"] else None)
     finally:
         calibration.edge_at_points = original
     factor = float(np.median(renders["std_raw"]) / np.median(renders["edge"]))
@@ -227,10 +228,11 @@ def markdown(results: dict, extra: dict, synthetic: dict, seeds: list[int]) -> s
                   f"{GRID['prior_precision']:g}; calibration points seen by {GRID['pair_points']} view(s) of a pair; the "
                   "``--extra`` runs only. Decides nothing."]
         return _extra_markdown(lines, extra, synthetic)
-    lines += [f"Study 37's today runs (paper split, seeds {', '.join(map(str, seeds))}), scored on their validation "
-             "photos as eval scores them (cross-fitted); each arm's map fitted on the same calibration renders. Means "
-             f"over the seeds. Perturbation grid {' x '.join(map(str, GRID['resolution']))} cells, prior precision "
-             f"{GRID['prior_precision']:g}. Decides nothing.", "",
+    maps = "with the parallax term (today's map)" if GRID["parallax"] else "without the parallax term"
+    lines += [f"The `today` runs of `{GRID['runs']}` (paper split, seeds {', '.join(map(str, seeds))}), scored on their "
+             "validation photos as eval scores them (cross-fitted); each arm's map fitted on the same calibration renders, "
+             f"{maps}. Means over the seeds. Perturbation grid {' x '.join(map(str, GRID['resolution']))} cells, prior "
+             f"precision {GRID['prior_precision']:g}. Decides nothing.", "",
              "| scene | arm | cov 50 / 68 / 90 / 95 / 99 | median 95% half-width | IS95 / depth | CRPS / depth | "
              "depth Spearman pooled / per view |", "|---|---|---|---|---|---|---|"]
     for scene, arms in results.items():
@@ -286,11 +288,14 @@ def main() -> None:
     ap.add_argument("--prior", type=float, default=LAPLACE_PRIOR_PRECISION, help="prior precision lambda")
     ap.add_argument("--pair-points", choices=("both", "either"), default="both",
                     help="the calibration renders' points: seen by both views of a pair (calibrate's default) or either")
+    ap.add_argument("--parallax-term", action="store_true",
+                    help="every arm's map holds the parallax term (the default since study 42; the runs before it: without)")
     ap.add_argument("--work", type=Path, default=Path("runs/laplace/analysis"), help="per-run results (resumable)")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/laplace_term_analysis"))
     args = ap.parse_args()
     torch.set_num_threads(1)
-    GRID.update(resolution=tuple(args.resolution), prior_precision=args.prior, pair_points=args.pair_points)
+    GRID.update(resolution=tuple(args.resolution), prior_precision=args.prior, pair_points=args.pair_points,
+                parallax=args.parallax_term, runs=str(args.runs))
     args.extra = [(label, Path(run), Path(evals)) for label, run, evals in args.extra]
     cost_keys = ("factor", "fit_s", "view_laplace_s", "view_render_s")
     views_of = functools.cache(validation_views)  # a scene's photos, loaded once and only for a run not yet cached
