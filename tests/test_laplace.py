@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from stochastic_fields.fields.base import FieldParams
-from stochastic_fields.laplace import (LaplaceDensity, cell_index, cell_runs, expected_depth_derivatives, fit_laplace_density,
+from stochastic_fields.laplace import (LaplaceDensity, cell_index, cell_runs, depth_variance_packed, fit_laplace_density,
                                        ray_derivatives)
 from stochastic_fields.rays import RayBundle
 from stochastic_fields.scene_region import SceneRegion
@@ -45,22 +45,58 @@ def test_ray_derivatives_match_autograd():
         assert torch.allclose(grad[..., c], auto, atol=1e-12)
 
 
-def test_expected_depth_derivatives_match_autograd_including_empty_and_opaque_rays():
+def _packed(tau):
+    R, S = tau.shape
+    return torch.arange(R).repeat_interleave(S)
+
+
+def test_depth_variance_matches_autograd_including_empty_and_opaque_rays():
+    """One cell per sample: V_r = sum_i (tau_i dD_r / d tau_i)^2 / P_i, dD / d tau by autograd."""
     g = torch.Generator().manual_seed(1)
     tau = torch.rand(4, 9, generator=g) * 3
-    tau[1] = 0.0  # empty ray: no opacity
+    tau[1] = 0.0  # empty ray: no opacity, no variance
     tau[2, 3] = 80.0  # opaque: nothing behind sample 3 matters
     t = torch.sort(torch.rand(4, 9, generator=g) * 5 + 1, dim=1).values
+    precision = torch.rand(36, generator=g) + 0.5
+    cells = torch.arange(36).reshape(4, 9)
     tau_g = tau.clone().requires_grad_()
     trans = torch.exp(-torch.cumsum(torch.cat([torch.zeros(4, 1), tau_g], 1), 1))
     w = trans[:, :-1] * (1 - torch.exp(-tau_g))
     depth_ref = (w * t).sum(1) / w.sum(1).clamp_min(1e-6)
-    depth, grad = expected_depth_derivatives(tau, t)
-    assert torch.allclose(depth[[0, 2, 3]], depth_ref.detach()[[0, 2, 3]], atol=1e-10)
-    auto, = torch.autograd.grad(depth_ref[[0, 2, 3]].sum(), tau_g)
-    assert torch.allclose(grad[[0, 2, 3]], auto[[0, 2, 3]], atol=1e-9)
-    assert torch.isfinite(grad).all() and depth[1] == 0.0
-    assert torch.allclose(grad[2, 4:], torch.zeros(5), atol=1e-12)
+    ref = torch.zeros(4)
+    for r in (0, 2, 3):
+        grad, = torch.autograd.grad(depth_ref[r], tau_g, retain_graph=True)
+        ref[r] = ((tau[r] * grad[r]) ** 2 / precision[cells[r]]).sum()
+    var = depth_variance_packed(tau.reshape(-1), t.reshape(-1), _packed(tau), 4, cells.reshape(-1), precision)
+    assert torch.allclose(var, ref, rtol=1e-9, atol=1e-14)
+    assert var[1] == 0.0 and torch.isfinite(var).all()
+
+
+def test_depth_variance_sums_runs_and_ignores_skipped_empty_samples():
+    """Samples of one cell add their J before squaring; dropping samples with tau = 0 (empty-space
+    skipping) or outside every cell (cell -1 adds no J but still attenuates) changes nothing / what it should."""
+    g = torch.Generator().manual_seed(2)
+    tau = torch.rand(3, 8, generator=g) * 2
+    tau[:, [1, 5]] = 0.0
+    t = torch.sort(torch.rand(3, 8, generator=g) * 4 + 1, dim=1).values
+    cells = torch.tensor([[0, 0, 1, 1, 1, 2, -1, 3]] * 3)
+    precision = torch.tensor([1.0, 2.0, 0.5, 4.0])
+    dense = depth_variance_packed(tau.reshape(-1), t.reshape(-1), _packed(tau), 3, cells.reshape(-1), precision)
+    keep = (tau > 0).reshape(-1)
+    skipped = depth_variance_packed(tau.reshape(-1)[keep], t.reshape(-1)[keep], _packed(tau)[keep], 3,
+                                    cells.reshape(-1)[keep], precision)
+    assert torch.allclose(skipped, dense, rtol=1e-12)
+    one_cell = depth_variance_packed(tau.reshape(-1), t.reshape(-1), _packed(tau), 3, torch.zeros(24, dtype=torch.long),
+                                     precision[:1])
+    tau_g = tau.clone().requires_grad_()
+    trans = torch.exp(-torch.cumsum(torch.cat([torch.zeros(3, 1), tau_g], 1), 1))
+    w = trans[:, :-1] * (1 - torch.exp(-tau_g))
+    depth = (w * t).sum(1) / w.sum(1)
+    for r in range(3):  # one cell over the whole ray: J = sum_i tau_i dD / d tau_i
+        grad, = torch.autograd.grad(depth[r], tau_g, retain_graph=True)
+        assert one_cell[r] == pytest.approx(float((tau[r] * grad[r]).sum()) ** 2, rel=1e-9)
+    assert depth_variance_packed(torch.zeros(0), torch.zeros(0), torch.zeros(0, dtype=torch.long), 2,
+                                 torch.zeros(0, dtype=torch.long), precision).tolist() == [0.0, 0.0]
 
 
 def test_cell_runs_by_hand():

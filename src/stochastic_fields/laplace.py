@@ -52,7 +52,7 @@ from .distributions import RectifiedNormal
 from .io_utils import atomic_write
 from .rays import RayBundle
 from .samplers import sample_along_rays
-from .volume_rendering import weights_alpha_from_optical_depth
+from .volume_rendering import exclusive_cumsum_packed, weights_alpha_from_optical_depth
 
 #: Cells per axis of the perturbation grid (x, y, z of the field's unit cube).
 LAPLACE_RESOLUTION: tuple[int, int, int] = (32, 32, 32)
@@ -80,15 +80,35 @@ def ray_derivatives(tau: Tensor, values: Tensor, background: Tensor | None = Non
     return composited, grad
 
 
-def expected_depth_derivatives(tau: Tensor, t_mids: Tensor) -> tuple[Tensor, Tensor]:
-    """(D [R], dD / d tau_i [R, S]) of the opacity-normalised expected depth D = sum w_i t_i / O of
-    rays with optical depths ``tau`` and sample distances ``t_mids`` [R, S] (module doc)."""
-    numerator, d_num = ray_derivatives(tau, t_mids[..., None])
-    opacity = -torch.expm1(-tau.sum(1))  # [R]
-    final = 1.0 - opacity
-    o = opacity.clamp_min(OPACITY_EPS)
-    depth = numerator[:, 0] / o
-    return depth, (d_num[..., 0] - depth[:, None] * final[:, None]) / o[:, None]
+def depth_variance_packed(tau: Tensor, t_mids: Tensor, ray_indices: Tensor, num_rays: int, cells: Tensor,
+                          precision: Tensor) -> Tensor:
+    """V_r = sum_c J_rc^2 / P_c [R] of the opacity-normalised expected depth (ray-distance units, module doc)
+    from packed samples: optical depths ``tau`` [N], distances ``t_mids`` [N], ``ray_indices`` [N] (sorted,
+    each ray's samples in order of t), ``cells`` [N] (``cell_index``; -1: no cell) and the cells' precisions
+    ``precision`` [C]; computed in float64.
+
+    ``J_rc = sum_{i in c} tau_i dD_r / d tau_i`` with ``dD / d tau_i = (T_{i+1} t_i - sum_{j>i} w_j t_j - D
+    T_{S+1}) / O``. A ray crosses a (convex) cell in one run of consecutive samples, so (ray, cell) pairs are
+    runs of the packed order. Samples left out of the packing with tau = 0 change nothing: an
+    empty-space-skipping render gives the variance of its dense samples."""
+    R, C = int(num_rays), precision.shape[0]
+    tau, t = tau.double(), t_mids.double()
+    if tau.numel() == 0:
+        return torch.zeros(R, dtype=torch.float64, device=tau.device)
+    before = torch.exp(-exclusive_cumsum_packed(tau, ray_indices, R))  # T_i
+    after = before * torch.exp(-tau)  # T_{i+1}
+    wt = before * -torch.expm1(-tau) * t
+    numerator = torch.zeros(R, dtype=torch.float64, device=tau.device).index_add_(0, ray_indices, wt)
+    total = torch.zeros_like(numerator).index_add_(0, ray_indices, tau)
+    final, o = torch.exp(-total), (-torch.expm1(-total)).clamp_min(OPACITY_EPS)
+    depth = numerator / o
+    later = numerator[ray_indices] - exclusive_cumsum_packed(wt, ray_indices, R) - wt  # sum_{j>i} w_j t_j
+    per_sample = tau * (after * t - later - (depth * final)[ray_indices]) / o[ray_indices]
+    seen = cells >= 0
+    keys, run = torch.unique_consecutive(ray_indices[seen] * C + cells[seen], return_inverse=True)
+    J = torch.zeros(keys.shape[0], dtype=torch.float64, device=tau.device).index_add_(0, run, per_sample[seen])
+    var = J ** 2 / precision.to(tau.device, torch.float64)[keys % C]
+    return torch.zeros_like(numerator).index_add_(0, keys // C, var)
 
 
 def cell_runs(cells: Tensor, per_sample: Tensor) -> tuple[Tensor, Tensor]:
@@ -131,11 +151,11 @@ class LaplaceDensity:
         for start in range(0, rays.origins.shape[0], chunk):
             r = rays[start:start + chunk]
             tau, _, t_mids, cells = _linearisation(model, r, self.resolution, colour=False)
-            _, d_depth = expected_depth_derivatives(tau, t_mids)
-            run_cell, J = cell_runs(cells, (tau * d_depth)[..., None])
-            seen = run_cell >= 0
-            var = torch.where(seen, J[..., 0] ** 2 / precision[run_cell.clamp_min(0)], torch.zeros_like(J[..., 0]))
-            out.append(var.sum(1).sqrt() * r.z_scale)
+            n, S = tau.shape
+            ray_indices = torch.arange(n, device=tau.device).repeat_interleave(S)
+            var = depth_variance_packed(tau.reshape(-1), t_mids.reshape(-1), ray_indices, n, cells.reshape(-1),
+                                        precision)
+            out.append(var.sqrt() * r.z_scale)
         return torch.cat(out) if out else torch.zeros(0, device=rays.origins.device)
 
     def save(self, path: Path) -> None:
