@@ -49,6 +49,12 @@ are study 39's ensemble analysis's; VALIDATION as there)::
     OMP_NUM_THREADS=1 python benchmarks/studies/laplace_term_analysis.py --seeds --scenes \
         --extra wide_smooth_SCENE_sSEED RUN EVALS ... (every SCENE and SEED) \
         --work runs/laplace/analysis_fresh --out benchmarks/results/laplace_term_analysis/fresh_seeds
+    # today's default (wider colour branch, parallax term in every map): study 43's `wide` rows re-trained
+    # (tables_steps_study.py's docstring, --study 43, --out runs/lap44/sSEED/today) and evaluated
+    # (--out runs/lap44/validation/sSEED/today/SCENE/snerf_default), SEED 18-20; the synthetic runs as above
+    OMP_NUM_THREADS=1 python benchmarks/studies/laplace_term_analysis.py --runs runs/lap44 --seeds 18 19 20 \
+        --parallax-term --synthetic runs/synth/run1 runs/synth/run2 --work runs/lap44/analysis \
+        --out benchmarks/results/laplace_term_analysis/today_default
 """
 
 from __future__ import annotations
