@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import pytest
 import torch
 
+from stochastic_fields.distributions import RectifiedNormal
 from stochastic_fields.fields.base import FieldParams
 from stochastic_fields.laplace import (LaplaceDensity, cell_index, cell_runs, depth_variance_packed, fit_laplace_density,
                                        ray_derivatives)
@@ -178,6 +179,29 @@ def test_fit_and_depth_std_match_the_brute_force_jacobian(background):
     var = torch.stack([(torch.autograd.grad(depth[r], delta, retain_graph=True)[0] ** 2 / fitted.precision).sum()
                        for r in range(6)])
     assert torch.allclose(fitted.depth_std(model, test, chunk=4), var.sqrt(), rtol=1e-8, atol=1e-12)
+
+
+def test_std_from_a_renders_own_samples_matches_the_dense_pass():
+    """The render's dense samples give depth_std's values; packed samples without those of zero density
+    (what empty-space skipping drops when the density there is 0) give the same."""
+    from stochastic_fields.renderer import pack_samples
+    from stochastic_fields.samplers import sample_along_rays
+    model, res = _model(), (3, 2, 4)
+    fitted = fit_laplace_density(model, _rays(30, 6), resolution=res, prior_precision=0.5)
+    rays = _rays(7, 7)
+    s = sample_along_rays(rays, model.render_settings.num_samples, spacing="linear", stratified=False)
+    loc, scale = model.field.density_params(s.positions)
+    reference = fitted.depth_std(model, rays)
+    assert torch.allclose(fitted.depth_std_of_samples(s, loc, scale, model.field.region), reference, rtol=1e-10)
+    loc = torch.where(s.t_mids > 3.5, torch.full_like(loc, -50.0), loc)  # no density past t = 3.5: relu mean 0
+    scale = torch.where(s.t_mids > 3.5, torch.full_like(scale, 1e-3), scale)
+    zero = RectifiedNormal(loc, scale).mean == 0
+    assert zero.any() and not zero.all()
+    dense = fitted.depth_std_of_samples(s, loc, scale, model.field.region)
+    packed = pack_samples(s, ~zero)
+    keep = torch.nonzero(~zero, as_tuple=True)
+    assert torch.allclose(fitted.depth_std_of_samples(packed, loc[keep], scale[keep], model.field.region), dense,
+                          rtol=1e-12)
 
 
 def test_unseen_cells_keep_the_prior_and_round_trip(tmp_path):

@@ -50,7 +50,7 @@ from tqdm.auto import tqdm
 from .constants import OPACITY_EPS
 from .distributions import RectifiedNormal
 from .io_utils import atomic_write
-from .rays import RayBundle
+from .rays import PackedRaySamples, RayBundle, RaySamples
 from .samplers import sample_along_rays
 from .volume_rendering import exclusive_cumsum_packed, weights_alpha_from_optical_depth
 
@@ -157,6 +157,26 @@ class LaplaceDensity:
                                         precision)
             out.append(var.sqrt() * r.z_scale)
         return torch.cat(out) if out else torch.zeros(0, device=rays.origins.device)
+
+    def depth_std_of_samples(self, samples: RaySamples | PackedRaySamples, density_loc: Tensor, density_scale: Tensor,
+                             region) -> Tensor:
+        """sqrt(V_r) [R] in camera-z units from a render's own samples (dense [R, S] or packed [N]) and the
+        density parameters the render evaluated there (same layout): the mean density E[relu(Y)] linearised
+        on those samples, as ``depth_std`` does on dense ones (equal when the render skipped nothing, and
+        for skipped samples of zero density); ``region``: the field's ``SceneRegion``. Costs no field
+        evaluation."""
+        if isinstance(samples, PackedRaySamples):
+            ray_indices, n = samples.ray_indices, samples.num_rays
+        else:
+            n, S = samples.t_starts.shape
+            ray_indices = torch.arange(n, device=samples.t_starts.device).repeat_interleave(S)
+        density = RectifiedNormal(density_loc.double(), density_scale.double()).mean.reshape(-1)
+        tau = density * (samples.t_ends - samples.t_starts).double().reshape(-1)
+        positions = samples.positions.reshape(-1, 3)
+        cells = cell_index(region.to_unit(positions), self.resolution)
+        var = depth_variance_packed(tau, samples.t_mids.reshape(-1), ray_indices, n, cells,
+                                    self.precision.to(tau.device))
+        return var.sqrt() * samples.rays.z_scale.double()
 
     def save(self, path: Path) -> None:
         def write(tmp: Path) -> None:
