@@ -87,6 +87,9 @@ def test_depth_variance_sums_runs_and_ignores_skipped_empty_samples():
     skipped = depth_variance_packed(tau.reshape(-1)[keep], t.reshape(-1)[keep], _packed(tau)[keep], 3,
                                     cells.reshape(-1)[keep], precision)
     assert torch.allclose(skipped, dense, rtol=1e-12)
+    rows = depth_variance_packed(tau.reshape(-1), t.reshape(-1), _packed(tau), 3, cells.reshape(-1), precision,
+                                 samples_per_ray=8)
+    assert torch.allclose(rows, dense, rtol=1e-12)  # the dense layout's plain cumulative sums
     one_cell = depth_variance_packed(tau.reshape(-1), t.reshape(-1), _packed(tau), 3, torch.zeros(24, dtype=torch.long),
                                      precision[:1])
     tau_g = tau.clone().requires_grad_()

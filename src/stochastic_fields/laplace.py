@@ -81,7 +81,7 @@ def ray_derivatives(tau: Tensor, values: Tensor, background: Tensor | None = Non
 
 
 def depth_variance_packed(tau: Tensor, t_mids: Tensor, ray_indices: Tensor, num_rays: int, cells: Tensor,
-                          precision: Tensor) -> Tensor:
+                          precision: Tensor, *, samples_per_ray: int | None = None) -> Tensor:
     """V_r = sum_c J_rc^2 / P_c [R] of the opacity-normalised expected depth (ray-distance units, module doc)
     from packed samples: optical depths ``tau`` [N], distances ``t_mids`` [N], ``ray_indices`` [N] (sorted,
     each ray's samples in order of t), ``cells`` [N] (``cell_index``; -1: no cell) and the cells' precisions
@@ -90,19 +90,26 @@ def depth_variance_packed(tau: Tensor, t_mids: Tensor, ray_indices: Tensor, num_
     ``J_rc = sum_{i in c} tau_i dD_r / d tau_i`` with ``dD / d tau_i = (T_{i+1} t_i - sum_{j>i} w_j t_j - D
     T_{S+1}) / O``. A ray crosses a (convex) cell in one run of consecutive samples, so (ray, cell) pairs are
     runs of the packed order. Samples left out of the packing with tau = 0 change nothing: an
-    empty-space-skipping render gives the variance of its dense samples."""
+    empty-space-skipping render gives the variance of its dense samples. ``samples_per_ray``: every ray
+    has that many samples (the dense layout flattened), whose per-ray sums are then plain cumulative sums."""
     R, C = int(num_rays), precision.shape[0]
     tau, t = tau.double(), t_mids.double()
     if tau.numel() == 0:
         return torch.zeros(R, dtype=torch.float64, device=tau.device)
-    before = torch.exp(-exclusive_cumsum_packed(tau, ray_indices, R))  # T_i
+    def exclusive(x: Tensor) -> Tensor:  # sum_{j<i, same ray} x_j
+        if samples_per_ray is None:
+            return exclusive_cumsum_packed(x, ray_indices, R)
+        rows = x.reshape(R, samples_per_ray)
+        return (torch.cumsum(rows, dim=1) - rows).reshape(-1)
+
+    before = torch.exp(-exclusive(tau))  # T_i
     after = before * torch.exp(-tau)  # T_{i+1}
     wt = before * -torch.expm1(-tau) * t
     numerator = torch.zeros(R, dtype=torch.float64, device=tau.device).index_add_(0, ray_indices, wt)
     total = torch.zeros_like(numerator).index_add_(0, ray_indices, tau)
     final, o = torch.exp(-total), (-torch.expm1(-total)).clamp_min(OPACITY_EPS)
     depth = numerator / o
-    later = numerator[ray_indices] - exclusive_cumsum_packed(wt, ray_indices, R) - wt  # sum_{j>i} w_j t_j
+    later = numerator[ray_indices] - exclusive(wt) - wt  # sum_{j>i} w_j t_j
     per_sample = tau * (after * t - later - (depth * final)[ray_indices]) / o[ray_indices]
     seen = cells >= 0
     keys, run = torch.unique_consecutive(ray_indices[seen] * C + cells[seen], return_inverse=True)
@@ -154,7 +161,7 @@ class LaplaceDensity:
             n, S = tau.shape
             ray_indices = torch.arange(n, device=tau.device).repeat_interleave(S)
             var = depth_variance_packed(tau.reshape(-1), t_mids.reshape(-1), ray_indices, n, cells.reshape(-1),
-                                        precision)
+                                        precision, samples_per_ray=S)
             out.append(var.sqrt() * r.z_scale)
         return torch.cat(out) if out else torch.zeros(0, device=rays.origins.device)
 
@@ -166,16 +173,17 @@ class LaplaceDensity:
         for skipped samples of zero density); ``region``: the field's ``SceneRegion``. Costs no field
         evaluation."""
         if isinstance(samples, PackedRaySamples):
-            ray_indices, n = samples.ray_indices, samples.num_rays
+            ray_indices, n, S = samples.ray_indices, samples.num_rays, None
         else:
             n, S = samples.t_starts.shape
             ray_indices = torch.arange(n, device=samples.t_starts.device).repeat_interleave(S)
-        density = RectifiedNormal(density_loc.double(), density_scale.double()).mean.reshape(-1)
+        # the linearisation point in the parameters' own precision (what the render used), the derivatives in float64
+        density = RectifiedNormal(density_loc, density_scale).mean.double().reshape(-1)
         tau = density * (samples.t_ends - samples.t_starts).double().reshape(-1)
         positions = samples.positions.reshape(-1, 3)
         cells = cell_index(region.to_unit(positions), self.resolution)
         var = depth_variance_packed(tau, samples.t_mids.reshape(-1), ray_indices, n, cells,
-                                    self.precision.to(tau.device))
+                                    self.precision.to(tau.device), samples_per_ray=S)
         return var.sqrt() * samples.rays.z_scale.double()
 
     def save(self, path: Path) -> None:
