@@ -97,7 +97,7 @@ SYNTHETIC_PIXELS = 2000
 
 #: The perturbation grid and prior of a run's fit (``--resolution``, ``--prior``; the module's defaults).
 GRID = {"resolution": LAPLACE_RESOLUTION, "prior_precision": LAPLACE_PRIOR_PRECISION, "pair_points": "both",
-        "parallax": False, "runs": "runs/mondrian"}
+        "parallax": False}
 
 
 def laplace_for(model, dataset):
@@ -227,7 +227,7 @@ def seed_groups(extra: dict) -> dict[str, list[str]]:
     return {group: labels for group, labels in groups.items() if len(labels) > 1}
 
 
-def markdown(results: dict, extra: dict, synthetic: dict, seeds: list[int]) -> str:
+def markdown(results: dict, extra: dict, synthetic: dict, seeds: list[int], runs: Path) -> str:
     lines = ["# A Laplace depth std from coarse cells of the trained density", ""]
     if not results:
         lines += [f"Perturbation grid {' x '.join(map(str, GRID['resolution']))} cells, prior precision "
@@ -235,7 +235,7 @@ def markdown(results: dict, extra: dict, synthetic: dict, seeds: list[int]) -> s
                   "``--extra`` runs only. Decides nothing."]
         return _extra_markdown(lines, extra, synthetic)
     maps = "with the parallax term (today's map)" if GRID["parallax"] else "without the parallax term"
-    lines += [f"The `today` runs of `{GRID['runs']}` (paper split, seeds {', '.join(map(str, seeds))}), scored on their "
+    lines += [f"The `today` runs of `{runs}` (paper split, seeds {', '.join(map(str, seeds))}), scored on their "
              "validation photos as eval scores them (cross-fitted); each arm's map fitted on the same calibration renders, "
              f"{maps}. Means over the seeds. Perturbation grid {' x '.join(map(str, GRID['resolution']))} cells, prior "
              f"precision {GRID['prior_precision']:g}. Decides nothing.", "",
@@ -301,7 +301,7 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     GRID.update(resolution=tuple(args.resolution), prior_precision=args.prior, pair_points=args.pair_points,
-                parallax=args.parallax_term, runs=str(args.runs))
+                parallax=args.parallax_term)
     args.extra = [(label, Path(run), Path(evals)) for label, run, evals in args.extra]
     cost_keys = ("factor", "fit_s", "view_laplace_s", "view_render_s")
     views_of = functools.cache(validation_views)  # a scene's photos, loaded once and only for a run not yet cached
@@ -324,7 +324,7 @@ def main() -> None:
     synthetic = {run.name: cached(args.work / "synthetic" / f"{run.name}.json", lambda: analyse_synthetic(run))
                  for run in args.synthetic}
     write_study(args.out, {"results": results, "extra": extra, "synthetic": synthetic, "costs": costs,
-                           "seeds": args.seeds, "grid": dict(GRID)}, markdown(results, extra, synthetic, args.seeds))
+                           "seeds": args.seeds, "grid": dict(GRID)}, markdown(results, extra, synthetic, args.seeds, args.runs))
 
 if __name__ == "__main__":
     main()

@@ -96,6 +96,7 @@ def depth_variance_packed(tau: Tensor, t_mids: Tensor, ray_indices: Tensor, num_
     tau, t = tau.double(), t_mids.double()
     if tau.numel() == 0:
         return torch.zeros(R, dtype=torch.float64, device=tau.device)
+
     def exclusive(x: Tensor) -> Tensor:  # sum_{j<i, same ray} x_j
         if samples_per_ray is None:
             return exclusive_cumsum_packed(x, ray_indices, R)
@@ -153,37 +154,33 @@ class LaplaceDensity:
 
     def depth_std(self, model, rays: RayBundle, *, chunk: int = LAPLACE_CHUNK) -> Tensor:
         """sqrt(V_r) [R] of flat ``rays`` [R] in camera-z units (module doc)."""
-        precision = self.precision.to(rays.origins.device)
-        out = []
+        settings, out = model.render_settings, []
         for start in range(0, rays.origins.shape[0], chunk):
-            r = rays[start:start + chunk]
-            tau, _, t_mids, cells = _linearisation(model, r, self.resolution, colour=False)
-            n, S = tau.shape
-            ray_indices = torch.arange(n, device=tau.device).repeat_interleave(S)
-            var = depth_variance_packed(tau.reshape(-1), t_mids.reshape(-1), ray_indices, n, cells.reshape(-1),
-                                        precision, samples_per_ray=S)
-            out.append(var.sqrt() * r.z_scale)
+            samples = sample_along_rays(rays[start:start + chunk], settings.num_samples, spacing=settings.spacing,
+                                        stratified=False)
+            with torch.no_grad():
+                loc, scale = model.field.density_params(samples.positions)
+            out.append(self.depth_std_of_samples(samples, loc.double(), scale.double(), model.field.region))
         return torch.cat(out) if out else torch.zeros(0, device=rays.origins.device)
 
     def depth_std_of_samples(self, samples: RaySamples | PackedRaySamples, density_loc: Tensor, density_scale: Tensor,
                              region) -> Tensor:
         """sqrt(V_r) [R] in camera-z units from a render's own samples (dense [R, S] or packed [N]) and the
-        density parameters the render evaluated there (same layout): the mean density E[relu(Y)] linearised
-        on those samples, as ``depth_std`` does on dense ones (equal when the render skipped nothing, and
-        for skipped samples of zero density); ``region``: the field's ``SceneRegion``. Costs no field
-        evaluation."""
+        density parameters the render evaluated there (same layout; the linearisation point E[relu(Y)] is
+        computed in their precision, the derivatives in float64): ``depth_std`` on dense samples, equal to it
+        when the render skipped nothing or only samples of zero density; ``region``: the field's
+        ``SceneRegion``. Costs no field evaluation."""
         if isinstance(samples, PackedRaySamples):
             ray_indices, n, S = samples.ray_indices, samples.num_rays, None
         else:
             n, S = samples.t_starts.shape
             ray_indices = torch.arange(n, device=samples.t_starts.device).repeat_interleave(S)
-        # the linearisation point in the parameters' own precision (what the render used), the derivatives in float64
         density = RectifiedNormal(density_loc, density_scale).mean.double().reshape(-1)
         tau = density * (samples.t_ends - samples.t_starts).double().reshape(-1)
         positions = samples.positions.reshape(-1, 3)
         cells = cell_index(region.to_unit(positions), self.resolution)
-        var = depth_variance_packed(tau, samples.t_mids.reshape(-1), ray_indices, n, cells,
-                                    self.precision.to(tau.device), samples_per_ray=S)
+        var = depth_variance_packed(tau, samples.t_mids.reshape(-1), ray_indices, n, cells, self.precision,
+                                    samples_per_ray=S)
         return var.sqrt() * samples.rays.z_scale.double()
 
     def save(self, path: Path) -> None:
@@ -209,26 +206,19 @@ class LaplaceDensity:
         return LaplaceDensity(res, precision, prior, used)
 
 
-def _linearisation(model, rays: RayBundle, resolution: tuple[int, int, int], *, colour: bool
-                   ) -> tuple[Tensor, Tensor | None, Tensor, Tensor]:
-    """(tau [R, S], colours [R, S, 3] or None, t_mids [R, S], cells [R, S]) of the mean field on
-    dense samples of ``rays`` (module doc), in float64."""
+def _linearisation(model, rays: RayBundle, resolution: tuple[int, int, int]) -> tuple[Tensor, Tensor, Tensor]:
+    """(tau [R, S], colours [R, S, 3], cells [R, S]) of the mean field on dense samples of ``rays``
+    (module doc), in float64: what the fit's colour derivatives need."""
     settings = model.render_settings
     samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing, stratified=False)
     positions = samples.positions
     field = model.field
     with torch.no_grad():
-        if colour:
-            params = field(positions, rays.directions[:, None, :].expand_as(positions))
-            loc, scale = params.density_loc, params.density_scale
-            rgb = torch.sigmoid(params.rgb_loc).double()
-        else:
-            loc, scale = field.density_params(positions)
-            rgb = None
-        density = RectifiedNormal(loc.double(), scale.double()).mean
+        params = field(positions, rays.directions[:, None, :].expand_as(positions))
+        density = RectifiedNormal(params.density_loc.double(), params.density_scale.double()).mean
         unit = field.region.to_unit(positions.reshape(-1, 3)).reshape(positions.shape)
     tau = density * (samples.t_ends - samples.t_starts).double()
-    return tau, rgb, samples.t_mids.double(), cell_index(unit, resolution)
+    return tau, torch.sigmoid(params.rgb_loc).double(), cell_index(unit, resolution)
 
 
 def fit_laplace_density(model, rays: RayBundle, *, resolution: tuple[int, int, int] = LAPLACE_RESOLUTION,
@@ -254,7 +244,7 @@ def fit_laplace_density(model, rays: RayBundle, *, resolution: tuple[int, int, i
     fisher = torch.zeros(resolution[0] * resolution[1] * resolution[2], dtype=torch.float64, device=device)
     for start in tqdm(range(0, m, chunk), desc="laplace: training rays", disable=not progress, leave=False):
         r = rays[pick[start:start + chunk]]
-        tau, rgb, _, cells = _linearisation(model, r, resolution, colour=True)
+        tau, rgb, cells = _linearisation(model, r, resolution)
         _, d_colour = ray_derivatives(tau, rgb, bg)
         run_cell, J = cell_runs(cells, tau[..., None] * d_colour)
         seen = run_cell >= 0
