@@ -184,6 +184,19 @@ def analyse(run: Path, evals: Path, views: list[int]) -> dict:
     return out
 
 
+def synthetic_test_pixels(run: Path, dataset):
+    """For each test view v of a synthetic run: (v, its eval products, rows [P], cols [P], exact depth
+    [H, W]) at ``SYNTHETIC_PIXELS`` opaque pixels of finite exact depth, drawn with one generator seeded 0."""
+    rng = np.random.default_rng(0)
+    for v in dataset.test_indices:
+        with np.load(run / "eval" / "views" / f"view_{v:03d}.npz") as f:
+            p = {k: f[k] for k in f.files}
+        truth = np.asarray(dataset.depths[v])
+        r, c = np.nonzero(np.isfinite(truth) & (truth > 0) & (p["opacity"] > OPACITY_MASK))
+        pick = rng.choice(len(r), size=min(SYNTHETIC_PIXELS, len(r)), replace=False)
+        yield v, p, r[pick], c[pick], truth
+
+
 def analyse_synthetic(run: Path) -> dict:
     """Per test view of a synthetic run: Spearman of |error| against the calibrated std, the Laplace std and
     their sum (the run's map's scale, sigma's units by the median factor of each view's pixels)."""
@@ -191,15 +204,8 @@ def analyse_synthetic(run: Path) -> dict:
         warnings.simplefilter("ignore")
         _, model, dataset = load_trained_model(run, device="cpu")
     laplace, fit_s = laplace_for(model, dataset)
-    rng = np.random.default_rng(0)
     rows = []
-    for v in dataset.test_indices:
-        with np.load(run / "eval" / "views" / f"view_{v:03d}.npz") as f:
-            p = {k: f[k] for k in f.files}
-        truth = np.asarray(dataset.depths[v])
-        r, c = np.nonzero(np.isfinite(truth) & (truth > 0) & (p["opacity"] > OPACITY_MASK))
-        pick = rng.choice(len(r), size=min(SYNTHETIC_PIXELS, len(r)), replace=False)
-        r, c = r[pick], c[pick]
+    for v, p, r, c, truth in synthetic_test_pixels(run, dataset):
         rays = generate_rays_for_view(dataset.cameras, v, dataset.near, dataset.far)[torch.as_tensor(r), torch.as_tensor(c)]
         lap = laplace.depth_std(model, rays).numpy()
         err = np.abs(p["depth_mean"][r, c] - truth[r, c])

@@ -73,7 +73,6 @@ SCENES = ("fern", "flower")
 ARMS = ("today", "term")
 #: Side of the box filter over the training photos (pixels).
 BLUR: int = 3
-SYNTHETIC_PIXELS = 2000
 
 
 def blurred_photos(dataset, ref) -> np.ndarray:
@@ -98,15 +97,21 @@ def colour_spread(X: np.ndarray, ref, photos: np.ndarray) -> tuple[np.ndarray, n
     return np.where(n >= 2, np.sqrt(var), 0.0), n
 
 
-def analyse(run: Path, evals: Path, views: list[int]) -> dict:
-    """Both arms' scores of one run at ``views`` (rendered in ``evals/views``)."""
+def loaded(run: Path):
+    """(model, dataset, training-view depths, ``blurred_photos``) of a trained run (its stored training
+    depths, rendered when it kept none)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         _, model, dataset = load_trained_model(run, device="cpu")
     ref = load_training_depth(run)
     if ref is None:
         ref = render_training_depth(model, dataset, progress=False)
-    photos = blurred_photos(dataset, ref)
+    return model, dataset, ref, blurred_photos(dataset, ref)
+
+
+def analyse(run: Path, evals: Path, views: list[int]) -> dict:
+    """Both arms' scores of one run at ``views`` (rendered in ``evals/views``)."""
+    model, dataset, ref, photos = loaded(run)
     capture = load_capture_points(dataset)
 
     def term_at(cams, sparse: dict, depth: np.ndarray) -> np.ndarray:
@@ -151,22 +156,9 @@ def analyse(run: Path, evals: Path, views: list[int]) -> dict:
 def analyse_synthetic(run: Path) -> dict:
     """Per test view of a synthetic run (exact depth): Spearman of |error| against the calibrated std,
     the photo term and their sum (module doc)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        _, model, dataset = load_trained_model(run, device="cpu")
-    ref = load_training_depth(run)
-    if ref is None:
-        ref = render_training_depth(model, dataset, progress=False)
-    photos = blurred_photos(dataset, ref)
-    rng = np.random.default_rng(0)
+    model, dataset, ref, photos = loaded(run)
     rows = []
-    for v in dataset.test_indices:
-        with np.load(run / "eval" / "views" / f"view_{v:03d}.npz") as f:
-            p = {k: f[k] for k in f.files}
-        truth = np.asarray(dataset.depths[v])
-        r, c = np.nonzero(np.isfinite(truth) & (truth > 0) & (p["opacity"] > OPACITY_MASK))
-        pick = rng.choice(len(r), size=min(SYNTHETIC_PIXELS, len(r)), replace=False)
-        r, c = r[pick], c[pick]
+    for v, p, r, c, truth in lta.synthetic_test_pixels(run, dataset):
         d = p["depth_mean"][r, c].astype(np.float64)
         K = np.asarray(dataset.cameras.intrinsics[v, :3, :3], np.float64)
         c2w = camera_to_world(dataset.cameras).double()[v].numpy()
