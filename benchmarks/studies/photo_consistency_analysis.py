@@ -156,7 +156,7 @@ def analyse(run: Path, evals: Path, views: list[int]) -> dict:
 def analyse_synthetic(run: Path) -> dict:
     """Per test view of a synthetic run (exact depth): Spearman of |error| against the calibrated std,
     the photo term and their sum (module doc)."""
-    model, dataset, ref, photos = loaded(run)
+    _, dataset, ref, photos = loaded(run)
     rows = []
     for v, p, r, c, truth in lta.synthetic_test_pixels(run, dataset):
         d = p["depth_mean"][r, c].astype(np.float64)
