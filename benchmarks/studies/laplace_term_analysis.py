@@ -287,6 +287,16 @@ def _extra_markdown(lines: list[str], extra: dict, synthetic: dict) -> str:
     return "\n".join(lines) + "\n\nCommand: the module docstring of `benchmarks/studies/laplace_term_analysis.py`.\n"
 
 
+def seed_results(runs: Path, work: Path, seeds: list[int], scene: str, analyse, views_of) -> list[dict]:
+    """Per seed, ``analyse(run, evals, views)`` of ``runs/sSEED/today/SCENE/snerf_default`` at the validation
+    photos its eval rendered (``runs/validation/sSEED/today/SCENE/snerf_default``, the photos
+    ``views_of(scene)``), cached in ``work/sSEED/SCENE.json``."""
+    def one(seed: int) -> dict:
+        return analyse(runs / f"s{seed}" / "today" / scene / "snerf_default",
+                       runs / "validation" / f"s{seed}" / "today" / scene / "snerf_default", views_of(scene))
+    return [cached(work / f"s{seed}" / f"{scene}.json", functools.partial(one, seed)) for seed in seeds]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--runs", type=Path, default=Path("runs/mondrian"))
@@ -314,11 +324,7 @@ def main() -> None:
     results: dict = {}
     costs: dict = {}
     for scene in args.scenes:
-        per_seed = [cached(args.work / f"s{seed}" / f"{scene}.json",
-                           lambda: analyse(args.runs / f"s{seed}" / "today" / scene / "snerf_default",
-                                           args.runs / "validation" / f"s{seed}" / "today" / scene / "snerf_default",
-                                           views_of(scene)))
-                    for seed in args.seeds]
+        per_seed = seed_results(args.runs, args.work, args.seeds, scene, analyse, views_of)
         results[scene] = {arm: [s["arms"][arm] for s in per_seed] for arm in ARMS}
         costs[scene] = [{k: s[k] for k in cost_keys} for s in per_seed]
     extra: dict = {}

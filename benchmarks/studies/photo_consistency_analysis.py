@@ -212,11 +212,7 @@ def main() -> None:
     views_of = functools.cache(validation_views)
     results: dict = {}
     for scene in args.scenes:
-        per_seed = [cached(args.work / f"s{seed}" / f"{scene}.json",
-                           lambda: analyse(args.runs / f"s{seed}" / "today" / scene / "snerf_default",
-                                           args.runs / "validation" / f"s{seed}" / "today" / scene / "snerf_default",
-                                           views_of(scene)))
-                    for seed in args.seeds]
+        per_seed = lta.seed_results(args.runs, args.work, args.seeds, scene, analyse, views_of)
         results[scene] = {"arms": {arm: [s["arms"][arm] for s in per_seed] for arm in ARMS},
                           "extra": [{k: v for k, v in s.items() if k != "arms"} for s in per_seed]}
     synthetic = {run.name: cached(args.work / "synthetic" / f"{run.name}.json", lambda: analyse_synthetic(run))
