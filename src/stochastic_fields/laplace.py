@@ -175,12 +175,9 @@ class LaplaceDensity:
         else:
             n, S = samples.t_starts.shape
             ray_indices = torch.arange(n, device=samples.t_starts.device).repeat_interleave(S)
-        density = RectifiedNormal(density_loc, density_scale).mean.double().reshape(-1)
-        tau = density * (samples.t_ends - samples.t_starts).double().reshape(-1)
-        positions = samples.positions.reshape(-1, 3)
-        cells = cell_index(region.to_unit(positions), self.resolution)
-        var = depth_variance_packed(tau, samples.t_mids.reshape(-1), ray_indices, n, cells, self.precision,
-                                    samples_per_ray=S)
+        tau, cells = _optical_depth_and_cells(samples, density_loc, density_scale, region, self.resolution)
+        var = depth_variance_packed(tau.reshape(-1), samples.t_mids.reshape(-1), ray_indices, n, cells.reshape(-1),
+                                    self.precision, samples_per_ray=S)
         return var.sqrt() * samples.rays.z_scale.double()
 
     def save(self, path: Path) -> None:
@@ -212,13 +209,22 @@ def _linearisation(model, rays: RayBundle, resolution: tuple[int, int, int]) -> 
     settings = model.render_settings
     samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing, stratified=False)
     positions = samples.positions
-    field = model.field
     with torch.no_grad():
-        params = field(positions, rays.directions[:, None, :].expand_as(positions))
-        density = RectifiedNormal(params.density_loc.double(), params.density_scale.double()).mean
-        unit = field.region.to_unit(positions.reshape(-1, 3)).reshape(positions.shape)
+        params = model.field(positions, rays.directions[:, None, :].expand_as(positions))
+    tau, cells = _optical_depth_and_cells(samples, params.density_loc.double(), params.density_scale.double(),
+                                          model.field.region, resolution)
+    return tau, torch.sigmoid(params.rgb_loc).double(), cells
+
+
+def _optical_depth_and_cells(samples: RaySamples | PackedRaySamples, density_loc: Tensor, density_scale: Tensor,
+                             region, resolution: tuple[int, int, int]) -> tuple[Tensor, Tensor]:
+    """(tau, cells), each in ``samples``' layout ([R, S] or [N]): the optical depth E[relu(Y)] dt (float64;
+    the mean computed in the parameters' precision) and the perturbation cell of each sample (module doc)."""
+    density = RectifiedNormal(density_loc, density_scale).mean.double()
     tau = density * (samples.t_ends - samples.t_starts).double()
-    return tau, torch.sigmoid(params.rgb_loc).double(), cell_index(unit, resolution)
+    positions = samples.positions
+    unit = region.to_unit(positions.reshape(-1, 3)).reshape(positions.shape)
+    return tau, cell_index(unit, resolution)
 
 
 def fit_laplace_density(model, rays: RayBundle, *, resolution: tuple[int, int, int] = LAPLACE_RESOLUTION,
