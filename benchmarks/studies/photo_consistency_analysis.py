@@ -114,11 +114,13 @@ def analyse(run: Path, evals: Path, views: list[int]) -> dict:
     model, dataset, ref, photos = loaded(run)
     capture = load_capture_points(dataset)
 
-    def term_at(cams, sparse: dict, depth: np.ndarray) -> np.ndarray:
+    def centres_of(cams) -> np.ndarray:
+        return camera_to_world(cams).double()[:, :3, 3].numpy()
+
+    def term_at(centres: np.ndarray, sparse: dict, depth: np.ndarray) -> np.ndarray:
         held = [v for v, sd in sparse.items() if len(sd)]
         if not held:
             return np.zeros(0)
-        centres = camera_to_world(cams).double()[:, :3, 3].numpy()
         view = np.concatenate([np.full(len(sparse[v]), v) for v in held])
         point = np.concatenate([sparse[v].point_index for v in held])
         gt = np.concatenate([sparse[v].depth for v in held])
@@ -126,7 +128,7 @@ def analyse(run: Path, evals: Path, views: list[int]) -> dict:
         return np.asarray(depth, np.float64) * colour_spread(X, ref, photos)[0]
 
     original = calibration.edge_at_points
-    calibration.edge_at_points = lambda m, cams, near, far, sparse, depth, **_: term_at(cams, sparse, depth)
+    calibration.edge_at_points = lambda m, cams, near, far, sparse, depth, **_: term_at(centres_of(cams), sparse, depth)
     try:  # the calibration renders, with the photo term of their points in the edge slot
         renders = depth_calibration_renders(model, dataset, points="held-out", free_space=ref, edges=True,
                                             parallax=ref)
@@ -134,19 +136,18 @@ def analyse(run: Path, evals: Path, views: list[int]) -> dict:
         calibration.edge_at_points = original
     positive = renders["edge"] > 0
     factor = float(np.median(renders["std_raw"]) / np.median(renders["edge"][positive]))
-    val = []
-    alone = []
+    val, alone = [], []
+    centres = centres_of(dataset.cameras)
     for v, sd in score_sparse_depth(dataset, views).items():
         with np.load(evals / "views" / f"view_{v:03d}.npz") as f:
             products = {k: f[k] for k in f.files}
         rendered = products["depth_mean"][sd.rows, sd.cols].astype(np.float64)
         ok = np.isfinite(rendered) & (rendered > 0)
-        term = term_at(dataset.cameras, {v: sd}, np.where(ok, rendered, sd.depth))  # unrendered points: not scored
+        term = term_at(centres, {v: sd}, np.where(ok, rendered, sd.depth))  # unrendered points: not scored
         val.append((sd, products, factor * term, block_keys(capture.xyz[sd.point_index], capture.xyz)))
         keep = ok & (products["opacity"][sd.rows, sd.cols] > OPACITY_MASK)
         if keep.sum() > 10:
             alone.append(spearmanr(np.abs(rendered[keep] - sd.depth[keep]), term[keep]).correlation)
-    lta.GRID["parallax"] = True
     arms = {arm: lta.arm_scores(arm, renders, factor * renders["edge"], val, capture, ref, str(run)) for arm in ARMS}
     return {"arms": arms, "factor": factor, "term_alone_spearman_per_view": float(np.nanmean(alone)),
             "calibration_share_seen_by_two": float(np.mean(positive)),
@@ -209,6 +210,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/photo_consistency_analysis"))
     args = ap.parse_args()
     torch.set_num_threads(1)
+    lta.GRID["parallax"] = True  # today's map: every arm with the parallax term
     views_of = functools.cache(validation_views)
     results: dict = {}
     for scene in args.scenes:
