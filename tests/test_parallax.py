@@ -368,3 +368,41 @@ def test_parallax_speed_benchmark_writes_its_table(load_script, tmp_path):
     assert 0 < rows[1]["mean_views_seeing"] <= 12
     assert all(r["one_pass_equal"] and r["one_pass_s"] > 0 and r["two_pass_s"] > 0 for r in rows)
     assert "| 12 |" in (tmp_path / "README.md").read_text()
+
+
+def test_edge_beside_parallax_study_rule_by_hand(load_script):
+    """Study 44's verdict on hand-made group means: each condition fails alone where it should, a level
+    today's map already misses may stay out if it comes no farther, and the study shares study 42's
+    protocol (one implementation of the two arms)."""
+    study = load_script("benchmarks/studies/edge_term_parallax_study.py")
+    parallax = load_script("benchmarks/studies/parallax_term_study.py")
+    assert study.group_means is parallax.group_means
+
+    def arm(is95=1.0, crps=0.08, rho=0.6, band=0.16, cov=(0.5, 0.683, 0.9, 0.95)):
+        return {"interval_score_95": is95, "crps": crps, "spearman": rho, "halfwidth_median_95": band,
+                **{f"coverage_{n}": c for n, c in zip(("50", "68", "90", "95"), cov)}}
+
+    today = arm()
+    good = {"paper flower": {"today": today, "edge term": arm(rho=0.611, band=0.1649)},
+            "paper fern": {"today": today, "edge term": arm(rho=0.596, band=0.164, crps=0.0808)},
+            "capture fern": {"today": today, "edge term": arm(band=0.16)}}
+    assert study.verdict(good) == (True, [])
+    for group, change, words in (("paper flower", {"rho": 0.609}, "rise by 0.01"),
+                                 ("paper fern", {"rho": 0.594}, "at most -0.005"),
+                                 ("paper fern", {"is95": 1.001}, "IS95"),
+                                 ("paper fern", {"crps": 0.0809}, "CRPS"),
+                                 ("paper fern", {"cov": (0.5, 0.683, 0.849, 0.95)}, "90%"),
+                                 ("paper fern", {"band": 0.1651}, "band"),
+                                 ("capture fern", {"band": 0.1601}, "band")):
+        means = {g: dict(a) for g, a in good.items()}
+        means[group] = {"today": today, "edge term": arm(**{"rho": 0.611 if group == "paper flower" else 0.6,
+                                                             **change})}
+        taken, failed = study.verdict(means)
+        assert not taken and len(failed) == 1 and group in failed[0] and words in failed[0], failed
+    # fern's 90% level 5.7 points under today may stay out where the term brings it no farther
+    short = arm(cov=(0.5, 0.683, 0.843, 0.95))
+    means = {**good, "paper fern": {"today": short, "edge term": arm(cov=(0.5, 0.683, 0.845, 0.95))}}
+    assert study.verdict(means) == (True, [])
+    means["paper fern"]["edge term"] = arm(cov=(0.5, 0.683, 0.842, 0.95))
+    assert not study.verdict(means)[0]
+    assert study.verdict({"paper fern": good["paper fern"]}) == (False, ["paper flower: no runs"])
