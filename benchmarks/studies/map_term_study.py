@@ -156,6 +156,23 @@ def level_failures(group: str, candidate: dict, today: dict | None = None) -> li
     return failed
 
 
+def proper_score_failures(group: str, today: dict, candidate: dict, *, max_crps_rise: float,
+                          paper_band_growth: float) -> list[str]:
+    """The checks both rules share: the CRPS / depth rises by at most ``max_crps_rise`` (relative),
+    the median 95% half-width / depth grows by at most ``paper_band_growth`` at the paper split and
+    not at all on a capture."""
+    failed = []
+    if candidate["crps"] > today["crps"] * (1.0 + max_crps_rise):
+        failed.append(f"{group}: CRPS {today['crps']:.4f} -> {candidate['crps']:.4f} "
+                      f"(at most +{100 * max_crps_rise:.0f}%)")
+    growth = candidate["halfwidth_median_95"] - today["halfwidth_median_95"]
+    limit = paper_band_growth if group.startswith("paper") else 0.0
+    if growth > limit:
+        failed.append(f"{group}: median 95% band {100 * today['halfwidth_median_95']:.1f} -> "
+                      f"{100 * candidate['halfwidth_median_95']:.1f}% (at most +{100 * limit:.1f} points)")
+    return failed
+
+
 def _row(name: str, arm: str, m: dict, term: MapTerm) -> str:
     cov = " / ".join(f"{100 * m[f'coverage_{n}']:.1f}" for n in (*LEVELS, "99"))
     weight = "-" if arm == TODAY else f"{m[term.symbol]:.3g}"
