@@ -406,20 +406,3 @@ def test_edge_beside_parallax_study_rule_by_hand(load_script):
     means["paper fern"]["edge term"] = arm(cov=(0.5, 0.683, 0.842, 0.95))
     assert not study.verdict(means)[0]
     assert study.verdict({"paper fern": good["paper fern"]}) == (False, ["paper flower: no runs"])
-
-
-def test_map_term_report_on_the_tables_views_is_a_measurement(load_script):
-    """``--tables-views`` pages give the tables' per-view ranking and no verdict; the study's page a verdict."""
-    study = load_script("benchmarks/studies/edge_term_parallax_study.py")
-
-    def arm(rho):
-        return {"interval_score_95": 1.0, "crps": 0.08, "spearman": rho, "spearman_per_view": rho - 0.01,
-                "halfwidth_median_95": 0.16, "coverage_68_narrowest_third": 0.7, "abs_rel": 0.1, "gamma": 0.3,
-                **{f"coverage_{n}": c for n, c in zip(("50", "68", "90", "95", "99"), (0.5, 0.683, 0.9, 0.95, 0.99))}}
-
-    results = {f"flower:{s}": {"protocol": "paper", "views": [1], "today": arm(0.60), "edge term": arm(0.64)}
-               for s in (31, 32)}
-    page = study.report("T", results, "cmd", study.TERM, study.verdict, tables=True)
-    assert "- paper flower: 0.590 -> 0.630" in page and "Verdict" not in page and "tables score" in page
-    page = study.report("T", results, "cmd", study.TERM, study.verdict)
-    assert "Taken: the term becomes the default." in page and "| paper flower | edge term | 0.3 |" in page

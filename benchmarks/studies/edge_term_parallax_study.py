@@ -41,7 +41,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the map-term studies' shared protocol
 
-from map_term_study import (TODAY, MapTerm, group_means, level_failures, report,  # noqa: E402,F401
+from map_term_study import (TODAY, MapTerm, group_means, level_failures,  # noqa: E402,F401
                             main as term_main, proper_score_failures)
 
 TERM = MapTerm(arm="edge term", flags=("--edge-term",), weight_key="edge_weight", symbol="gamma")

@@ -60,14 +60,14 @@ def protocol(run: Path) -> str:
     return "paper" if load_config(run / "config.json").data.split == "paper" else "capture"
 
 
-def scored_views(run: Path, scene: str, tables: bool = False) -> list[int] | None:
-    """Paper split: the held-out views the tables do not score (``tables``: the four they score);
-    otherwise None (eval's default: the run's held-out photos)."""
+def scored_views(run: Path, scene: str) -> list[int] | None:
+    """Paper split: the held-out views the tables do not score; otherwise None (eval's default: the
+    run's held-out photos)."""
     if protocol(run) != "paper":
         return None
-    from tables_cap_study import tables_views, validation_views  # deferred: reads the scene
+    from tables_cap_study import validation_views  # deferred: reads the scene
 
-    return (tables_views if tables else validation_views)(scene)
+    return validation_views(scene)
 
 
 def _cli(*args: str) -> None:
@@ -91,25 +91,21 @@ def _save(run: Path, files: Path) -> None:
 
 def scores(metrics_path: Path, calibration_path: Path, term: MapTerm) -> dict:
     """What the rules read from an ``eval`` metrics.json, with the map's fitted weights."""
-    metrics = json.loads(metrics_path.read_text())
-    pooled = metrics["pooled"]
+    pooled = json.loads(metrics_path.read_text())["pooled"]
     iv, depth = pooled["depth_intervals"], pooled["depth"]
     depth_map = json.loads(calibration_path.read_text())["depth"]
     return {**{f"coverage_{n}": iv[f"coverage_{n}"] for n in (*LEVELS, "99")},
             "halfwidth_median_95": iv["halfwidth_median_95"], "interval_score_95": iv["interval_score_95"],
             "crps": iv["crps"], "coverage_68_narrowest_third": iv["coverage_68_narrowest_third"],
-            "spearman": depth["spearman"], "spearman_per_view": metrics["summary"]["depth/spearman"]["mean"],
-            "abs_rel": depth["abs_rel"], "points": depth["num_used"],
+            "spearman": depth["spearman"], "abs_rel": depth["abs_rel"], "points": depth["num_used"],
             term.symbol: depth_map.get(term.weight_key, 0.0), "rho": depth_map.get("relative_floor", 0.0),
             "beta": depth_map.get("free_space_weight", 0.0) if depth_map.get("free_space") else 0.0}
 
 
-def analyse_run(label: str, run: Path, work: Path, term: MapTerm, tables: bool = False) -> dict:
-    """Both arms of one run, {"protocol", "views", "today": scores, term.arm: scores}; ``tables``: a
-    paper-split run scored on the tables' views instead of the validation views (the same two maps,
-    under ``work``/tables_views)."""
+def analyse_run(label: str, run: Path, work: Path, term: MapTerm) -> dict:
+    """Both arms of one run, {"protocol", "views", "today": scores, term.arm: scores}."""
     scene = label.split(":")[0]
-    views = scored_views(run, scene, tables)
+    views = scored_views(run, scene)
     view_args = [] if views is None else ["--views", ",".join(map(str, views))]
     original = work / "original"
     if not (original / "calibration.json").is_file():
@@ -126,11 +122,10 @@ def analyse_run(label: str, run: Path, work: Path, term: MapTerm, tables: bool =
                     _put(original, run)
                     _cli("calibrate", "--run", str(run), *term.flags, "--no-free-path")
                     _save(run, files)
-            scored = work / "tables_views" / folder.name if tables else folder
-            if not (scored / "metrics.json").is_file():
+            if not (folder / "metrics.json").is_file():
                 _put(files, run)
-                _cli("eval", "--run", str(run), *view_args, "--no-products", "--quiet", "--out", str(scored))
-            out[arm] = scores(scored / "metrics.json", files / "calibration.json", term)
+                _cli("eval", "--run", str(run), *view_args, "--no-products", "--quiet", "--out", str(folder))
+            out[arm] = scores(folder / "metrics.json", files / "calibration.json", term)
     finally:
         _put(original, run)  # the run as train left it
     return out
@@ -187,29 +182,20 @@ def _row(name: str, arm: str, m: dict, term: MapTerm) -> str:
 
 
 def report(title: str, results: dict, command: str, term: MapTerm,
-           verdict: Callable[[dict], tuple[bool, list[str]]], tables: bool = False) -> str:
-    """The study's page: group means, the verdict (``tables``: none, a measurement on the tables' views
-    with the per-view depth ranking the tables report), every run."""
+           verdict: Callable[[dict], tuple[bool, list[str]]]) -> str:
     head = [f"| run | map | {term.symbol} | cov 50 / 68 / 90 / 95 / 99 | narrowest third, cov 68 | median 95% "
             "half-width | IS95 / depth | CRPS / depth | Spearman |err|-std | abs-rel |",
             "|---|---|---|---|---|---|---|---|---|---|"]
-    where = ("the four held-out views the tables score (a measurement: the rule reads the validation views)"
-             if tables else "the held-out views the tables do not score")
     lines = [f"# {title}", "", f"Command: {command}", "",
-             f"Scored by `stochastic-fields eval` (cross-fitted fold maps judge the intervals); paper split: {where}; "
-             "capture split: the run's held-out photos.", "", "## Group means", ""] + head
+             "Scored by `stochastic-fields eval` (cross-fitted fold maps judge the intervals); paper split: the "
+             "held-out views the tables do not score; capture split: the run's held-out photos.", "",
+             "## Group means", ""] + head
     means = group_means(results)
     for g, arms in means.items():
         lines += [_row(g, arm, arms[arm], term) for arm in (TODAY, term.arm)]
-    if tables:
-        lines += ["", "Depth Spearman |err|-std as the tables report it (mean over the views), today -> with the "
-                  "term:", ""] + [f"- {g}: {arms[TODAY]['spearman_per_view']:.3f} -> "
-                                  f"{arms[term.arm]['spearman_per_view']:.3f}" for g, arms in means.items()]
-    else:
-        taken, failed = verdict(means)
-        lines += ["", "## Verdict", "", "Taken: the term becomes the default." if taken else
-                  "Not taken; failed conditions:", *[f"- {f}" for f in failed]]
-    lines += ["", "## Runs", ""] + head
+    taken, failed = verdict(means)
+    lines += ["", "## Verdict", "", "Taken: the term becomes the default." if taken else
+              "Not taken; failed conditions:", *[f"- {f}" for f in failed], "", "## Runs", ""] + head
     for label, res in results.items():
         lines += [_row(f"{res['protocol']} {label}", arm, res[arm], term) for arm in (TODAY, term.arm)]
     return "\n".join(lines) + "\n"
@@ -223,8 +209,6 @@ def main(argv: list[str] | None, *, doc: str, script: str, title: str, term: Map
     p.add_argument("--run", action="append", required=True, metavar="SCENE:SEED=RUN")
     p.add_argument("--work", type=Path, required=True, help="Evals and calibrations of each arm (large).")
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--tables-views", action="store_true",
-                   help="Score paper-split runs on the tables' four views instead (a measurement, no verdict).")
     args = p.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
     saved = args.out / "results.json"
@@ -234,13 +218,11 @@ def main(argv: list[str] | None, *, doc: str, script: str, title: str, term: Map
         if not sep or ":" not in label or not path:
             p.error(f"--run {item!r}: expected SCENE:SEED=RUN")
         if label not in results:
-            results[label] = analyse_run(label, Path(path), args.work / label.replace(":", "_"), term,
-                                         args.tables_views)
+            results[label] = analyse_run(label, Path(path), args.work / label.replace(":", "_"), term)
             save_results(args.out, results)
         r = results[label]
         print(f"{label}: IS95 {r[TODAY]['interval_score_95']:.3f} -> {r[term.arm]['interval_score_95']:.3f}, "
               f"band {100 * r[TODAY]['halfwidth_median_95']:.1f} -> {100 * r[term.arm]['halfwidth_median_95']:.1f}%, "
               f"Spearman {r[TODAY]['spearman']:.3f} -> {r[term.arm]['spearman']:.3f}")
-    atomic_write_text(args.out / "study.md", report(title, results, study_command(script, argv), term, verdict,
-                                                           args.tables_views))
+    atomic_write_text(args.out / "study.md", report(title, results, study_command(script, argv), term, verdict))
     return 0

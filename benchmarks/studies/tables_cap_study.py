@@ -48,11 +48,6 @@ MAX_BASELINE_PSNR_LOSS_DB = 0.1
 MAX_TRAIN_RATIO = 2.0
 
 
-def tables_views(scene: str) -> list[int]:
-    """The paper split's held-out views the tables (CPU budget) score."""
-    return list(scene_inputs(scene, BenchmarkSettings(), DATA_ROOT, log=lambda _: None)[2])
-
-
 def validation_views(scene: str) -> list[int]:
     """The paper split's held-out views the tables (CPU budget) do not score."""
     _, dataset, scored, _ = scene_inputs(scene, BenchmarkSettings(), DATA_ROOT, log=lambda _: None)
