@@ -116,6 +116,39 @@ def test_occlusion_study_also_asks_for_sharper_intervals(load_script):
     assert study.verdict(wider, study.STUDIES[27]) == (True, [])
 
 
+def test_draws_study_asks_for_flowers_ranking_and_nothing_worse(load_script):
+    """Study 45: flower's depth Spearman +0.01; on both scenes the Spearman at most 0.005 lower, PSNR at most
+    0.1 dB lower, abs-rel at most 0.002 higher, IS95 not higher, CRPS at most 1% higher, every level within
+    5 points (or no farther than today's), the median band at most 0.5 points wider. No gain is asked."""
+    study = load_script("benchmarks/studies/tables_steps_study.py")
+    draws = study.STUDIES[45]
+    assert draws.rule == "ranking" and draws.seeds == (31, 32, 33) and draws.methods == ("snerf_default",)
+    today, cand = draws.rows
+
+    def row(**kw) -> dict:
+        r = _row(20.0)
+        r["coverage"] = {**r["coverage"], "90": 0.832}  # fern's 90% level today: 6.8 points short
+        return {"snerf_default": {**r, **kw}}
+
+    base = {"fern": row(), "flower": row()}
+    ok = {"fern": row(spearman=0.596, psnr=19.91, abs_rel=0.1219, crps=0.1009, halfwidth_median_95=0.2049),
+          "flower": row(spearman=0.61)}
+    assert study.verdict({today: base, cand: ok}, draws) == (True, [])
+    # the same scores without flower's gain: not taken, and study 26's gain is not what is asked
+    taken, failed = study.verdict({today: base, cand: {**ok, "flower": row(spearman=0.609)}}, draws)
+    assert not taken and failed == ["flower: depth Spearman 0.600 -> 0.609 (must rise by 0.01)"]
+    worse = {"fern": row(spearman=0.594, psnr=19.89, abs_rel=0.1221, interval_score_95=1.51, crps=0.1011,
+                         halfwidth_median_95=0.2051, coverage={**row()["snerf_default"]["coverage"], "90": 0.831,
+                                                               "50": 0.449}),
+             "flower": row(spearman=0.61)}
+    taken, failed = study.verdict({today: base, cand: worse}, draws)
+    assert not taken and failed == [
+        "fern: depth Spearman 0.600 -> 0.594 (at most -0.005)", "fern: PSNR -0.11 dB", "fern: abs-rel +0.0021",
+        "fern: IS95 1.500 -> 1.510 (must not rise)", "fern: CRPS 0.1000 -> 0.1011 (at most +1%)",
+        "fern: 50% coverage 44.9 (within 5.0 points)", "fern: 90% coverage 83.1 (within 6.8 points)",
+        "fern: median 95% band 20.0 -> 20.5% (at most +0.5 points)"]
+
+
 def test_committed_decisions_recomputed(load_script):
     for script, folder in (("tables_cap_study", "tables_cap_study"), ("tables_steps_study", "tables_steps_study"),
                            ("tables_steps_study", "tables_passes_study"), ("tables_steps_study", "occlusion_study"),

@@ -1,7 +1,8 @@
-"""Studies 27, 28, 29, 31, 37, 39, 40, 41 and 43: one training factor of the tables at the paper split (27 and
-28: the steps; 29: the occlusion regulariser; 31: the unseen-view depth smoothness; 37: the colour branch's
-capacity; 39: 31's and 37's candidates together; 40: the sparse-depth weight; 41: its heavy tail; 43: 37's
-candidate again with the parallax term in the depth map), judged by their rules.
+"""Studies 27, 28, 29, 31, 37, 39, 40, 41, 43 and 45: one training factor of the tables at the paper split (27
+and 28: the steps; 29: the occlusion regulariser; 31: the unseen-view depth smoothness; 37: the colour
+branch's capacity; 39: 31's and 37's candidates together; 40: the sparse-depth weight; 41: its heavy tail;
+43: 37's candidate again with the parallax term in the depth map; 45: the training trajectories per step),
+judged by their rules.
 
 **Study 27** (twice the steps, 1000 against 2000). The rows are ``benchmarks/eval_tables.py`` runs
 (S-NeRF (default) and the deterministic NeRF, paper split, one thread), seeds 1, 2 and 3, today's steps
@@ -99,6 +100,21 @@ views right after its training (``score_run``, the same cache this script reads)
     python benchmarks/studies/tables_steps_study.py --study 43 --runs runs/wide_parallax_paper \
         --out benchmarks/results/wide_parallax_paper_study
 
+**Study 45** (``--study 45``: ``train.train_draws`` 8 against 16, S-NeRF only) on seeds 31, 32 and 33.
+The ``today`` rows of fern seeds 31-32 and flower seeds 31-33 are study 44's fresh runs (the same command
+and code, linked: ``runs/draws_paper/sSEED/today`` -> ``runs/s44/paper_SEED``); fern's seed-33 ``today`` row is
+trained here. ARM ``draws16`` adds ``--set train.train_draws=16``; every run is scored on its validation
+views (``score_run``) only after the rule was committed::
+
+    OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes SCENE --methods snerf_default \
+        --seed SEED --no-timing --quiet --set train.train_draws=16 --out runs/draws_paper/sSEED/draws16
+    python benchmarks/studies/tables_steps_study.py --study 45 --runs runs/draws_paper \
+        --out benchmarks/results/draws_paper_study
+
+Study 45's rule is not study 26's (no PSNR or abs-rel gain is asked: K changes the variance of the
+objective's Monte-Carlo estimate, not the objective); it is study 44's, for a training factor
+(``ranking_verdict``).
+
 The tables' own test-view scores (each run's metrics.json) are not read.
 """
 
@@ -115,6 +131,8 @@ from typing import NamedTuple
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared rules and scoring
 from tables_cap_study import (METHODS, SCENES, fmt, scene_checks, score_run, table_head, table_row,  # noqa: E402
                               validation_views, verdict_lines, write_study)
+from relative_floor_study import COVERAGE_TOLERANCE, RULE_LEVELS  # noqa: E402  (issue 36's levels and tolerance)
+from stochastic_fields import metrics as M  # noqa: E402
 
 
 
@@ -135,6 +153,7 @@ class Study(NamedTuple):
     reference: tuple[Path, str] | None = None
     trained_methods: tuple[str, ...] = METHODS  # methods the factor reaches (trained for the candidate's row)
     methods: tuple[str, ...] = METHODS  # methods with rows (study 43: S-NeRF only; the deterministic NeRF's are study 37's)
+    rule: str = "gain"  # "gain": study 26's checks (a PSNR or abs-rel gain asked); "ranking": study 45's (ranking_verdict)
 
 
 #: Study 37's committed scores: the today rows (and the deterministic NeRF's) of studies 40 and 41.
@@ -240,6 +259,17 @@ STUDIES = {
     41: depth_likelihood_study(41, "a heavy-tailed sparse-depth likelihood at the paper split", "outlier5",
                                "`loss.depth_outlier_share` 0 and 0.05", "outlier share", "0 (today)",
                                "0.05 (candidate)", "depth_outlier_paper_study"),
+    45: Study(45, "sixteen training trajectories a step at the paper split", {"8 (today)": "today", "16 (candidate)": "draws16"},
+              (31, 32, 33), SCENES,
+              "How this was run: the `draws16` row commands of the script's docstring (`--study 45`) and fern's "
+              "seed-33 `today` row in two shell chains side by side (`OMP_NUM_THREADS=1`); the other `today` rows are "
+              "study 44's runs of seeds 31-33 (the same command and code, linked). Every run was scored on its "
+              "validation views after the rule was committed. Then `python benchmarks/studies/tables_steps_study.py "
+              "--study 45 --runs runs/draws_paper --out benchmarks/results/draws_paper_study`. The decision and what "
+              "it shows: docs/studies.md, study 45.",
+              "the tables' CPU budget (fern 1000 steps, flower 1750), S-NeRF default, `train.train_draws` 8 and 16",
+              row_name="trajectories a step", methods=("snerf_default",), trained_methods=("snerf_default",),
+              rule="ranking"),
 }
 #: Study 40's ranking check: S-NeRF's depth Spearman (|error| against the std) may fall at most this much.
 MAX_SPEARMAN_LOSS = 0.02
@@ -303,10 +333,63 @@ def seed_mean(per_seed: list[dict]) -> dict:
 SHARPNESS_KEYS = (("halfwidth_median_95", "median 95% half-width"), ("interval_score_95", "95% interval score"))
 
 
+#: Study 45's rule (``ranking_verdict``, docs/studies.md): the scene whose depth ranking the factor is for
+#: (issue 36's open ranking target) and the gain asked there; the limits on everything else.
+RANKING_TARGET_SCENE = "flower"
+MIN_TARGET_SPEARMAN_GAIN = 0.01
+MAX_RANKING_SPEARMAN_FALL = 0.005
+MAX_RANKING_PSNR_LOSS_DB = 0.1
+MAX_RANKING_ABS_REL_LOSS = 0.002
+MAX_RANKING_CRPS_RISE = 0.01  # relative
+MAX_RANKING_BAND_GROWTH = 0.005  # of the depth
+
+
+def ranking_verdict(means: dict, study: Study) -> tuple[bool, list[str]]:
+    """Study 45's rule on S-NeRF's seed means (docs/studies.md): (a) flower's depth Spearman |error|-std
+    rises by at least MIN_TARGET_SPEARMAN_GAIN; on every scene (b) it falls by at most
+    MAX_RANKING_SPEARMAN_FALL, (c) PSNR falls by at most MAX_RANKING_PSNR_LOSS_DB and abs-rel rises by at
+    most MAX_RANKING_ABS_REL_LOSS, (d) the 95% interval score / depth does not rise and the CRPS / depth
+    rises by at most MAX_RANKING_CRPS_RISE (relative), (e) every level stays within the tolerance of
+    nominal (a level today's misses may stay out, no farther from nominal), (f) the median 95%
+    half-width / depth grows by at most MAX_RANKING_BAND_GROWTH."""
+    today, cand = study.rows
+    failed = []
+    for scene in study.scenes:
+        t, c = means[today][scene]["snerf_default"], means[cand][scene]["snerf_default"]
+        gain = c["spearman"] - t["spearman"]
+        if scene == RANKING_TARGET_SCENE and gain < MIN_TARGET_SPEARMAN_GAIN:
+            failed.append(f"{scene}: depth Spearman {t['spearman']:.3f} -> {c['spearman']:.3f} "
+                          f"(must rise by {MIN_TARGET_SPEARMAN_GAIN})")
+        if gain < -MAX_RANKING_SPEARMAN_FALL:
+            failed.append(f"{scene}: depth Spearman {t['spearman']:.3f} -> {c['spearman']:.3f} "
+                          f"(at most -{MAX_RANKING_SPEARMAN_FALL})")
+        if c["psnr"] - t["psnr"] < -MAX_RANKING_PSNR_LOSS_DB:
+            failed.append(f"{scene}: PSNR {c['psnr'] - t['psnr']:+.2f} dB")
+        if c["abs_rel"] - t["abs_rel"] > MAX_RANKING_ABS_REL_LOSS:
+            failed.append(f"{scene}: abs-rel {c['abs_rel'] - t['abs_rel']:+.4f}")
+        if c["interval_score_95"] > t["interval_score_95"]:
+            failed.append(f"{scene}: IS95 {t['interval_score_95']:.3f} -> {c['interval_score_95']:.3f} (must not rise)")
+        if c["crps"] > t["crps"] * (1.0 + MAX_RANKING_CRPS_RISE):
+            failed.append(f"{scene}: CRPS {t['crps']:.4f} -> {c['crps']:.4f} (at most +{100 * MAX_RANKING_CRPS_RISE:.0f}%)")
+        for p in RULE_LEVELS:
+            name = M.level_name(p)
+            gap_t, gap_c = abs(t["coverage"][name] - p), abs(c["coverage"][name] - p)
+            if gap_c > max(COVERAGE_TOLERANCE, gap_t):
+                failed.append(f"{scene}: {name}% coverage {100 * c['coverage'][name]:.1f} (within "
+                              f"{100 * max(COVERAGE_TOLERANCE, gap_t):.1f} points)")
+        if c["halfwidth_median_95"] - t["halfwidth_median_95"] > MAX_RANKING_BAND_GROWTH:
+            failed.append(f"{scene}: median 95% band {100 * t['halfwidth_median_95']:.1f} -> "
+                          f"{100 * c['halfwidth_median_95']:.1f}% (at most +{100 * MAX_RANKING_BAND_GROWTH:.1f} points)")
+    return not failed, failed
+
+
 def verdict(means: dict, study: Study = STUDIES[27]) -> tuple[bool, list[str]]:
     """The rule on the seed means: study 26's checks on every scene the candidate changes (docs/studies.md,
     studies 27-29), with ``study.sharper`` S-NeRF's median 95% half-width and 95% interval score no
-    larger than today's, and with ``study.ranking`` its depth Spearman at most ``MAX_SPEARMAN_LOSS`` lower."""
+    larger than today's, and with ``study.ranking`` its depth Spearman at most ``MAX_SPEARMAN_LOSS`` lower;
+    ``study.rule`` "ranking": ``ranking_verdict``."""
+    if study.rule == "ranking":
+        return ranking_verdict(means, study)
     today, cand = study.rows
     failed = [f for scene in study.scenes for f in scene_checks(scene, means[today][scene], means[cand][scene])]
     if study.sharper:
