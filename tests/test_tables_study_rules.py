@@ -154,7 +154,8 @@ def test_committed_decisions_recomputed(load_script):
                            ("tables_steps_study", "tables_passes_study"), ("tables_steps_study", "occlusion_study"),
                            ("tables_steps_study", "smoothness_study"),
                            ("tables_steps_study", "colour_capacity_paper_study"),
-                           ("tables_steps_study", "wide_smooth_paper_study")):
+                           ("tables_steps_study", "wide_smooth_paper_study"),
+                           ("tables_steps_study", "draws_paper_study")):
         study = load_script(f"benchmarks/studies/{script}.py")
         data = json.loads((REPO_ROOT / "benchmarks" / "results" / folder / "results.json").read_text())
         rows = data["means"] if "means" in data else data["rows"]
