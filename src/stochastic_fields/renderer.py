@@ -48,9 +48,10 @@ from .rays import PackedRaySamples, RayBundle, RaySamples
 from .samplers import sample_along_rays
 from .settings import COLOUR_ESTIMATORS, RENDER_CHECKS, RenderSettings, Spacing  # noqa: F401  (re-exported)
 from .validation import Checker, boolean, check_fields
-from .volume_rendering import (LogitNormalColourDraws, TrajectoryStatistics, concatenate_draws, observation_noise,
-                               observation_noise_packed, render_weights, render_weights_packed, trajectory_statistics,
-                               trajectory_statistics_packed, weights_alpha_from_optical_depth)
+from .volume_rendering import (LogitNormalColourDraws, TrajectoryStatistics, concatenate_draws,
+                               exclusive_cumsum_packed, observation_noise, observation_noise_packed, render_weights,
+                               render_weights_packed, trajectory_statistics, trajectory_statistics_packed,
+                               transmittance_alpha, weights_alpha_from_optical_depth)
 
 #: ``occupied(positions [R, S, 3]) -> [R, S] bool``: which dense samples to keep (empty-space skipping).
 OccupiedFn = Callable[[Tensor], Tensor]
@@ -369,6 +370,96 @@ def skip_empty(samples: RaySamples, occupied: OccupiedFn | None) -> RaySamples |
     return pack_samples(samples, keep)
 
 
+#: ``colour_where(density_loc [P], density_scale [P]) -> [P] bool``: which of a field evaluation's
+#: points need their colour decoded (``StochasticField.forward_colour_where``).
+ColourWhereFn = Callable[[Tensor, Tensor], Tensor]
+
+
+def render_noise(samples: RaySamples | PackedRaySamples, num_draws: int, settings: RenderSettings, *,
+                 colour: bool, generator: torch.Generator | None = None) -> tuple[Tensor, Tensor | None]:
+    """All K draws' eps of a render of ``samples`` at once, as ``render_any_samples(noise=...)`` takes them:
+    dense (eps_a [R, K, S'], eps_c [R, K, S', 3]; S' = 1 with ``settings.shared_noise``), packed
+    (eps_a [K, N], eps_c [K, N, 3]; shared noise drawn dense per ray and gathered per sample). The
+    colour eps only with ``colour`` (drawn colours); else None (Rao-Blackwellised colours draw none)."""
+    dev, dt = samples.t_starts.device, samples.t_starts.dtype
+    if isinstance(samples, PackedRaySamples):
+        R, N = samples.num_rays, samples.ray_indices.shape[0]
+        if settings.shared_noise:
+            eps_a, eps_c = gather_shared_noise(dense_noise(R, num_draws, 1, shared_noise=True, generator=generator,
+                                                           device=dev, dtype=dt), samples.ray_indices)
+        else:
+            eps_a = torch.randn(num_draws, N, generator=generator, device=dev, dtype=dt)
+            eps_c = torch.randn(num_draws, N, 3, generator=generator, device=dev, dtype=dt) if colour else None
+        return eps_a, (eps_c if colour else None)
+    R, S = samples.t_starts.shape
+    s_axis = 1 if settings.shared_noise else S
+    eps_a = torch.randn(R, num_draws, s_axis, generator=generator, device=dev, dtype=dt)
+    eps_c = torch.randn(R, num_draws, s_axis, 3, generator=generator, device=dev, dtype=dt) if colour else None
+    return eps_a, eps_c
+
+
+@torch.no_grad()
+def colour_reaching(density_loc: Tensor, density_scale: Tensor, samples: RaySamples | PackedRaySamples,
+                    eps_a: Tensor | None, min_transmittance: float) -> Tensor:
+    """Which samples' colours reach a pixel: some trajectory has density there and reaches it with
+    transmittance at least ``min_transmittance`` (alpha compositing). [R, S] dense (density
+    params [R, S], eps_a [R, K, S'] or None for the mean field), [N] packed (params [N], eps_a
+    [K, N] or None).
+
+        a_ik = relu(mu_a,i + s_a,i eps_ik),  T_ik = exp(-sum_{j<i} a_jk delta_j)
+        kept: some k with a_ik > 0 and T_ik >= tau
+
+    A sample without density in a trajectory has weight exactly 0 there, and its density's
+    gradient through the ReLU is 0: its colour changes neither the colour nor a gradient. T falls
+    along a ray, so the samples a trajectory leaves out for T < tau follow its first such sample
+    i0, and their weights sum to at most T_i0k < tau: a colour composited without them (any values
+    in [0, 1] in their place) is within tau of the full sum, per trajectory and channel, and the
+    gradients change by as little (d C_k / d a_ik carries the factor T_ik)."""
+    if isinstance(samples, PackedRaySamples):
+        eps = torch.zeros_like(density_loc)[None] if eps_a is None else eps_a  # [K, N]
+        density = torch.relu(density_loc[None] + density_scale[None] * eps)
+        tau = density * (samples.t_ends - samples.t_starts)[None]
+        transmittance = torch.exp(-exclusive_cumsum_packed(tau, samples.ray_indices, samples.num_rays))
+        return ((density > 0) & (transmittance >= min_transmittance)).any(dim=0)
+    eps = torch.zeros_like(density_loc)[:, None] if eps_a is None else eps_a  # [R, K, S']
+    density = torch.relu(density_loc[:, None, :] + density_scale[:, None, :] * eps)
+    transmittance = transmittance_alpha(density, (samples.t_ends - samples.t_starts)[:, None, :])
+    return ((density > 0) & (transmittance >= min_transmittance)).any(dim=1)
+
+
+@dataclass
+class ColourPlan:
+    """The draws of a render fixed before its field evaluation, so the field decodes colours only
+    at the samples some trajectory reaches (``settings.colour_min_transmittance``). ``noise``:
+    what to pass to ``render_any_samples`` (None: deterministic); ``where``: the field's
+    ``colour_where`` over the samples' flat points."""
+
+    noise: tuple[Tensor, Tensor | None] | None
+    where: ColourWhereFn
+
+
+def colour_plan(samples: RaySamples | PackedRaySamples, settings: RenderSettings, num_draws: int, *,
+                deterministic: bool = False, colour_estimator: str | None = None,
+                generator: torch.Generator | None = None) -> ColourPlan | None:
+    """A ``ColourPlan`` for a render of ``samples`` with these draws, or None when every colour is
+    decoded (``colour_min_transmittance`` 0, or the trapezoid quadrature, whose weights are not
+    bounded by a transmittance). The draws are ``render_noise``'s, all K at once."""
+    tau = settings.colour_min_transmittance
+    if tau <= 0.0 or settings.quadrature != "alpha":
+        return None
+    noise = None if deterministic else render_noise(
+        samples, num_draws, settings, colour=not _use_rao_blackwell(settings, colour_estimator, deterministic),
+        generator=generator)
+    shape = samples.t_starts.shape
+
+    def where(density_loc: Tensor, density_scale: Tensor) -> Tensor:
+        reach = colour_reaching(density_loc.reshape(shape), density_scale.reshape(shape), samples,
+                                None if noise is None else noise[0], tau)
+        return reach.reshape(-1)
+
+    return ColourPlan(noise=noise, where=where)
+
+
 def render_any_samples(params: FieldParams, samples: RaySamples | PackedRaySamples, settings: RenderSettings, *,
                        num_draws: int, deterministic: bool = False, generator: torch.Generator | None = None,
                        noise: tuple[Tensor, Tensor] | None = None, colour_estimator: str | None = None,
@@ -390,8 +481,13 @@ def render_rays(field: StochasticField, rays: RayBundle, settings: RenderSetting
     samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing,
                                 stratified=stratified, generator=generator)
     samples = skip_empty(samples, occupied)
-    params = field(samples.positions, samples.directions)
-    return render_any_samples(params, samples, settings, num_draws=K, deterministic=deterministic, generator=generator)
+    plan = colour_plan(samples, settings, K, deterministic=deterministic, generator=generator)
+    if plan is None:
+        params = field(samples.positions, samples.directions)
+    else:
+        params = field.forward_colour_where(samples.positions, samples.directions, plan.where)
+    return render_any_samples(params, samples, settings, num_draws=K, deterministic=deterministic, generator=generator,
+                              noise=None if plan is None else plan.noise)
 
 
 MAP_NAMES = ("colour_mean", "colour_var", "depth_mean", "depth_var_epistemic", "depth_var_spread",

@@ -108,6 +108,13 @@ class StochasticField(nn.Module, abc.ABC):
         without a device sync); priors on the density scale with it."""
         return 1.0
 
+    def forward_colour_where(self, positions: Tensor, directions: Tensor, colour_where) -> FieldParams:
+        """``forward``, with the colour parameters needed only where ``colour_where(density_loc [P],
+        density_scale [P]) -> [P] bool`` (flat over the batch, detached) is True; elsewhere they may
+        be placeholders (``renderer.colour_plan``: colours no trajectory reaches). Backends whose
+        colour costs more than their density override it; by default every colour is computed."""
+        return self.forward(positions, directions)
+
     def density_params(self, positions: Tensor) -> tuple[Tensor, Tensor]:
         """(density_loc, density_scale) at ``positions`` [*B, 3]; used by occupancy updates.
 

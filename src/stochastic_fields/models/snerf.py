@@ -32,7 +32,7 @@ from ..losses import (LossConfig, Priors, decoupled_likelihood_nll, field_kl_mea
                       depth_weight, termination_depth_nll)
 from ..occupancy import OccupancyGrid, density_threshold, density_upper_estimate
 from ..rays import PackedRaySamples, RayBundle, RaySamples
-from ..renderer import (ChunkGenerators, ChunkRender, RayRender, RenderOptions, RenderSettings,
+from ..renderer import (ChunkGenerators, ChunkRender, RayRender, RenderOptions, RenderSettings, colour_plan,
                         observation_noise_per_draw, render_any_samples, render_chunked, render_rays, skip_empty,
                         trajectory_weights)
 from ..samplers import sample_along_rays
@@ -176,19 +176,36 @@ class SNeRF(RadianceModel):
                 self._record_interval_scale(rays)
             samples = skip_empty(samples, self.occupied)
         positions, directions = samples.positions.reshape(-1, 3), samples.directions.reshape(-1, 3)
+        n_ray = samples.t_starts.numel()
+        # colours decoded only where a trajectory reaches (render.colour_min_transmittance): the draws
+        # are fixed first, and the observed-ray KL's points picked first, so their colours are decoded
+        plan = colour_plan(samples, settings, self.train_draws, colour_estimator=cfg.likelihood_estimator,
+                           generator=generator)
+        observed_pick = None
+        if plan is not None and cfg.kl == "full" and 0 < cfg.observed_kl_samples < n_ray:
+            observed_pick = torch.randperm(n_ray, generator=generator, device=positions.device)[:cfg.observed_kl_samples]
         use_random_kl = cfg.kl in ("fixed_prior", "full")
         if use_random_kl:
             # one field evaluation for ray samples and random KL points: one gradient pass over the grid
             pts = self.region.sample_stratified(cfg.random_points_per_axis, generator=generator)
             dirs = random_unit_directions(len(pts), generator=generator, device=pts.device)
             positions, directions = torch.cat([positions, pts]), torch.cat([directions, dirs])
-        params_all = self.field(positions, directions)
-        n_ray = samples.t_starts.numel()
+        if plan is None:
+            params_all = self.field(positions, directions)
+        else:
+            def colour_where(loc: Tensor, scale: Tensor) -> Tensor:  # [P] -> [P]: reached, picked or random
+                need = plan.where(loc[:n_ray], scale[:n_ray])
+                if observed_pick is not None:
+                    need = need.index_fill(0, observed_pick, True)
+                return torch.cat([need, need.new_ones(loc.shape[0] - n_ray)])
+
+            params_all = self.field.forward_colour_where(positions, directions, colour_where)
         params = params_all.map(lambda t: t[:n_ray]).reshape(*samples.t_starts.shape)
         # drawn colours, or (Rao-Blackwellised) each draw's colour mean and variance given its density
         rao_blackwell = cfg.likelihood_estimator == "rao_blackwell"
         out = render_any_samples(params, samples, settings, num_draws=self.train_draws, generator=generator,
-                                 colour_estimator=cfg.likelihood_estimator, observation_noise=False)
+                                 colour_estimator=cfg.likelihood_estimator, observation_noise=False,
+                                 noise=None if plan is None else plan.noise)
         colour_var = out.stats.colour_noise_var_draws if rao_blackwell else None  # [R, K, 3] sum_i w_ik^2 Var[r_i]
         sigma_n = self.likelihood_std()
         noise_var = None
@@ -212,7 +229,9 @@ class SNeRF(RadianceModel):
         if cfg.kl == "full":
             obs = out.params.map(lambda t: t.reshape(-1, *t.shape[out.params.density_loc.dim():]))
             n_obs = cfg.observed_kl_samples
-            if 0 < n_obs < obs.density_loc.shape[0]:
+            if observed_pick is not None:
+                obs = obs.map(lambda t: t[observed_pick])
+            elif 0 < n_obs < obs.density_loc.shape[0]:
                 pick = torch.randperm(obs.density_loc.shape[0], generator=generator, device=obs.density_loc.device)[:n_obs]
                 obs = obs.map(lambda t: t[pick])
             kl_parts.append(("kl_observed", cfg.lambda_observed, obs, self.priors.observed(unit)))
