@@ -149,29 +149,13 @@ class GridField(StochasticField):
         The cells' gradients go to each level's ``RowGradient`` (rows of the touched corners, only
         the asked-for ``channels``: a density-only read, as the depth likelihood's, back-propagates
         2 of the C channels)."""
-        return self._read(self._corners(unit), channels)
-
-    def _corners(self, unit: Tensor) -> list[tuple[int, Tensor, Tensor]]:
-        """(level, corner rows [P, 8], weights [P, 8]) of every level read at unit points [P, 3]
-        (``trilinear_corners``; the weights times a_l; a level of weight 0 is not read)."""
+        total = None
         weights = self.level_weights or [1.0] * len(self.levels)
-        out = []
-        for level, (shape, a) in enumerate(zip(self.level_shapes, weights)):
+        for table, shape, a in zip(self.levels, self.level_shapes, weights):
             if a == 0.0:
                 continue  # a level not yet faded in (coarse to fine) is not read
             idx, w = trilinear_corners(unit, shape)  # [P, 8], [P, 8]
-            out.append((level, idx, w if a == 1.0 else w * a))
-        return out
-
-    def _read(self, corners: list[tuple[int, Tensor, Tensor]], channels: slice | None = None,
-              rows: Tensor | None = None) -> Tensor:
-        """The summed values [P, c] (plus offsets) of ``corners`` (``_corners``), at the points
-        ``rows`` [p] of them only when given ([p, c])."""
-        total = None
-        for level, idx, w in corners:
-            if rows is not None:
-                idx, w = idx[rows], w[rows]
-            v = gather_rows(self.levels[level], idx, w, channels=channels)  # [P, C] or [P, c]
+            v = gather_rows(table, idx, w if a == 1.0 else w * a, channels=channels)  # [P, C] or [P, c]
             total = v if total is None else total + v
         off = self.offset if channels is None else self.offset[channels]
         return total + off.to(total)
@@ -200,27 +184,26 @@ class GridField(StochasticField):
         return self.decode(self._interpolate(unit), unit, directions, positions.shape[:-1])
 
     def forward_colour_where(self, positions: Tensor, directions: Tensor, colour_where) -> FieldParams:
-        """``forward`` with the colour features read and decoded only at the points ``colour_where``
-        keeps (the decoder and the colour channels' gradients are most of a training step); the
-        others get rgb_loc 0 and the scale of a raw 0 (``StochasticField.forward_colour_where``).
-        Every point's density (and noise head) is read as ``forward`` reads it."""
+        """``forward`` with the colour decoder run only at the points ``colour_where`` keeps (at a
+        capture's end of training a fifth of them or fewer); the others get rgb_loc 0 and the scale
+        of a raw 0 (``StochasticField.forward_colour_where``). Every channel is still read at every
+        point in one gather: reading the colour channels apart at the kept points cost more in
+        gathers than it saved in the rows' gradients (their cost is per row touched, not per channel)."""
         if self.decoder_width == 0:  # colours are grid channels: nothing to save
             return self.forward(positions, directions)
         batch = positions.shape[:-1]
         unit = self.region.to_unit(positions.reshape(-1, 3))
-        corners = self._corners(unit)
-        density_loc, density_scale = self._density(self._read(corners, slice(0, 2)), unit)
+        values = self._interpolate(unit)  # [P, C]
+        density_loc, density_scale = self._density(values, unit)
         keep = colour_where(density_loc.detach(), density_scale.detach()).nonzero().squeeze(1)  # [p]
-        features = self._read(corners, self.colour_channels, rows=keep)  # [p, F]
-        col = self._decode_colour(features, directions.reshape(-1, 3)[keep])
+        col = self._decode_colour(values[keep][:, self.colour_channels], directions.reshape(-1, 3)[keep])
         col = col.new_zeros(unit.shape[0], 6).index_copy(0, keep, col)
-        noise = self._read(corners, slice(self.num_channels - 1, None))[:, 0] if self.noise_head else None
         return FieldParams(
             density_loc=density_loc.reshape(batch),
             density_scale=density_scale.reshape(batch),
             rgb_loc=col[:, :3].reshape(*batch, 3),
             rgb_scale=positive_scale(col[:, 3:]).reshape(*batch, 3),
-            noise_scale=None if noise is None else F.softplus(noise).reshape(batch),
+            noise_scale=F.softplus(values[:, -1]).reshape(batch) if self.noise_head else None,
         )
 
     def _density(self, values: Tensor, unit: Tensor) -> tuple[Tensor, Tensor]:
