@@ -45,7 +45,9 @@ def _rays(n: int = 48, seed: int = 1) -> RayBundle:
 
 
 def _settings(**changes) -> RenderSettings:
-    return dataclasses.replace(RenderSettings(num_samples=24, colour_estimator="draws"), **changes)
+    """Every colour decoded unless ``changes`` set ``colour_min_transmittance``."""
+    base = RenderSettings(num_samples=24, colour_estimator="draws", colour_min_transmittance=0.0)
+    return dataclasses.replace(base, **changes)
 
 
 def _reaching_loop(loc, scale, t_starts, t_ends, eps, tau):
@@ -159,6 +161,7 @@ def test_hard_cases_opaque_first_sample_and_no_density():
 
 
 def test_off_or_trapezoid_decodes_every_colour():
+    assert RenderSettings().colour_min_transmittance == 1e-4  # the default since study 46
     samples = sample_along_rays(_rays(4), 8, stratified=False)
     assert colour_plan(samples, _settings(), 4) is None
     assert colour_plan(samples, _settings(colour_min_transmittance=TAU, quadrature="trapezoid"), 4) is None

@@ -366,7 +366,7 @@ def save_config(cfg: ExperimentConfig, path: Path) -> None:
 #: ``stochastic_fields_bench.runner._FINGERPRINT_REFERENCE`` names the value stored runs left out).
 LEGACY_VALUES: dict[str, Any] = {"loss.per_point_noise": False, "loss.noise_head_decoupled": False,
                                  "loss.lambda_depth": 0.0, "data.split": "paper",
-                                 "field.grid_resolution_rule": "footprint"}
+                                 "field.grid_resolution_rule": "footprint", "render.colour_min_transmittance": 0.0}
 
 
 def saved_config(data: dict) -> ExperimentConfig:

@@ -87,6 +87,11 @@ LOGISTIC_TAIL_CUTOFF: float = 40.0
 #: a typical 64-128 sample render the loss stays below 40 * 1e-4 = 4e-3, about one 8-bit step.
 OCCUPANCY_ALPHA_THRESHOLD: float = 1e-4
 
+#: ``render.colour_min_transmittance``'s default: a sample's colour is decoded only where some
+#: trajectory has density there and reaches it with at least this transmittance, so every
+#: trajectory's colour is within it of the full sum (a fortieth of an 8-bit level; study 46).
+COLOUR_MIN_TRANSMITTANCE: float = 1e-4
+
 #: Density upper estimate for occupancy updates: relu(mu_a + n * s_a) with n = 3 standard
 #: deviations, exceeded by a draw with probability 1 - Phi(3) = 0.13%.
 OCCUPANCY_UPPER_NUM_STD: float = 3.0

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from .constants import OCCUPANCY_ALPHA_THRESHOLD, OCCUPANCY_UPPER_NUM_STD
+from .constants import COLOUR_MIN_TRANSMITTANCE, OCCUPANCY_ALPHA_THRESHOLD, OCCUPANCY_UPPER_NUM_STD
 from .validation import Checker, boolean, check_fields, choice, colour_or_none, integer, real
 
 Spacing = Literal["linear", "disparity"]
@@ -160,8 +160,8 @@ class RenderSettings:
     """Adaptive K: tolerance of adaptive_rule ('precision': predicted relative change of the mean precision 1/var between the current K and the cap; 'change': relative L1 change of the per-pixel colour and depth variances from one batch to the next). Measured (benchmarks/results): with colour_estimator='rao_blackwell', precision at 0.01 ends within 2% of the cap's NLL in about 0.7x its time. Range: a finite number > 0."""
     colour_estimator: Literal["draws", "rao_blackwell"] = "rao_blackwell"
     """Rendering colour statistics: 'rao_blackwell' (default since study 7) draws only densities and integrates each trajectory's colour noise exactly given its weights (E[C_k|w_k] = sum_i w_ik E[r_i], Var[C_k|w_k] = sum_i w_ik^2 Var[r_i], tabulated logistic-normal moments), estimating the same mean and variance as drawn colours with less Monte-Carlo noise and no colour draws; 'draws' samples every colour (docs/definitions.md §3: C_k = sum_i w_ik r_ik, variance over k; per-draw colour maps are then samples, not conditional means). Training always draws colours."""
-    colour_min_transmittance: float = 0.0
-    """Decode a sample's colour only where some trajectory still reaches it with transmittance at least this (alpha quadrature; training and rendering, every method alike). Every trajectory's colour then differs from the full sum by at most this (the weights of the samples left out sum to at most the transmittance at the first of them); densities, depths and opacities are unchanged. 0: every sample's colour is decoded. Range: a finite number >= 0 and < 1."""
+    colour_min_transmittance: float = COLOUR_MIN_TRANSMITTANCE
+    """Decode a sample's colour only where some trajectory has density there and reaches it with transmittance at least this (alpha quadrature; training and rendering, every method alike). Every trajectory's colour then differs from the full sum by less than this (a sample without density weighs exactly 0; the weights of the samples reached with less sum to less than it); densities, weights, depths and opacities are exact. 1e-4 since study 46 (docs/studies.md): a capture's training steps 1.5-1.8x as many in ten CPU-minutes, +0.2 / +0.6 dB. 0: every sample's colour is decoded (runs saved before the option). Range: a finite number >= 0 and < 1."""
     adaptive_rule: Literal["precision", "change"] = "precision"
     """Adaptive K stopping rule: 'precision' stops when the small-K bias of 1/var left before the cap, predicted from the draws' kurtosis, is below adaptive_rtol (aims at the NLL of K = adaptive_max_draws); 'change' when the variances change by less than adaptive_rtol between batches (stops earlier, NLL measured 4% above K = 128's at rtol 0.05). See stochastic_fields.adaptive."""
 
