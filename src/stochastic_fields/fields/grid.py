@@ -187,24 +187,10 @@ class GridField(StochasticField):
         """``forward`` with the colour decoder run only at the points ``colour_where`` keeps (at a
         capture's end of training a fifth of them or fewer); the others get rgb_loc 0 and the scale
         of a raw 0 (``StochasticField.forward_colour_where``). Every channel is still read at every
-        point in one gather: reading the colour channels apart at the kept points cost more in
-        gathers than it saved in the rows' gradients (their cost is per row touched, not per channel)."""
-        if self.decoder_width == 0:  # colours are grid channels: nothing to save
-            return self.forward(positions, directions)
-        batch = positions.shape[:-1]
+        point in one gather: reading the colour channels apart at the kept points saved less (the
+        extra gathers cost about what the rows' gradients saved: their cost is per row touched)."""
         unit = self.region.to_unit(positions.reshape(-1, 3))
-        values = self._interpolate(unit)  # [P, C]
-        density_loc, density_scale = self._density(values, unit)
-        keep = colour_where(density_loc.detach(), density_scale.detach()).nonzero().squeeze(1)  # [p]
-        col = self._decode_colour(values[keep][:, self.colour_channels], directions.reshape(-1, 3)[keep])
-        col = col.new_zeros(unit.shape[0], 6).index_copy(0, keep, col)
-        return FieldParams(
-            density_loc=density_loc.reshape(batch),
-            density_scale=density_scale.reshape(batch),
-            rgb_loc=col[:, :3].reshape(*batch, 3),
-            rgb_scale=positive_scale(col[:, 3:]).reshape(*batch, 3),
-            noise_scale=F.softplus(values[:, -1]).reshape(batch) if self.noise_head else None,
-        )
+        return self.decode(self._interpolate(unit), unit, directions, positions.shape[:-1], colour_where=colour_where)
 
     def _density(self, values: Tensor, unit: Tensor) -> tuple[Tensor, Tensor]:
         """Grid values [P, >= 2] at unit points [P, 3] -> (density loc, density scale) [P]: k g_0
@@ -223,14 +209,22 @@ class GridField(StochasticField):
         return self.decoder[-1](hidden)
 
     def decode(self, values: Tensor, unit: Tensor, directions: Tensor, batch: torch.Size,
-               hidden_transform=None) -> FieldParams:
+               hidden_transform=None, colour_where=None) -> FieldParams:
         """Grid values [P, C] at unit coordinates [P, 3] -> FieldParams [*batch].
 
-        ``hidden_transform`` (e.g. dropout) is applied to the decoder's hidden layer."""
+        ``hidden_transform`` (e.g. dropout) is applied to the decoder's hidden layer; with
+        ``colour_where`` (``forward_colour_where``) the decoder runs only at the points it keeps
+        (the others: rgb_loc 0, the scale of a raw 0)."""
         density_loc, density_scale = self._density(values, unit)
         if self.decoder_width > 0:
-            col = self._decode_colour(values[:, self.colour_channels], directions.reshape(-1, 3), hidden_transform)
-        else:
+            features, dirs = values[:, self.colour_channels], directions.reshape(-1, 3)
+            if colour_where is None:
+                col = self._decode_colour(features, dirs, hidden_transform)
+            else:
+                keep = colour_where(density_loc.detach(), density_scale.detach()).nonzero().squeeze(1)  # [p]
+                col = self._decode_colour(features[keep], dirs[keep], hidden_transform)
+                col = col.new_zeros(values.shape[0], 6).index_copy(0, keep, col)
+        else:  # colours are grid channels: nothing to save
             col = values[:, 2:8]
         return FieldParams(
             density_loc=density_loc.reshape(batch),
