@@ -11,6 +11,7 @@ import math
 import pytest
 import torch
 
+from stochastic_fields.constants import COLOUR_PLAN_MAX_PAIRS
 from stochastic_fields.fields.grid import GridField
 from stochastic_fields.fields.row_gather import row_gradient
 from stochastic_fields.rays import RayBundle
@@ -167,6 +168,10 @@ def test_off_or_trapezoid_decodes_every_colour():
     assert colour_plan(samples, _settings(colour_min_transmittance=TAU, quadrature="trapezoid"), 4) is None
     plan = colour_plan(samples, _settings(colour_min_transmittance=TAU), 4, deterministic=True)
     assert plan.noise is None  # the mean field: nothing drawn
+    # too many (sample, draw) pairs to draw at once: every colour decoded, the draw blocks bound memory
+    K = COLOUR_PLAN_MAX_PAIRS // samples.t_starts.numel() + 1
+    assert colour_plan(samples, _settings(colour_min_transmittance=TAU), K) is None
+    assert colour_plan(samples, _settings(colour_min_transmittance=TAU), K - 1) is not None
 
 
 def test_render_noise_shapes():

@@ -127,6 +127,13 @@ ADAM_EPS: float = 1e-15
 #: equal samples, so packing pays only once it removes more than about a quarter of them.
 PACK_MIN_SKIPPED_FRACTION: float = 0.25
 
+#: ``renderer.colour_plan`` draws all K trajectories' eps at once (to know which colours a
+#: trajectory reaches before the field is read), so above this many (sample, draw) pairs it plans
+#: nothing and every colour is decoded: the blocks below then bound the memory as before. A
+#: training step (4096 rays, 64 samples, K = 8: 2.1M pairs) and a render chunk (2048 x 64 x 8: 1M)
+#: plan; K = 128 at render does not.
+COLOUR_PLAN_MAX_PAIRS: int = 2 ** 22
+
 #: Trajectories are drawn and composited in blocks of draws holding at most this many
 #: (sample, draw) pairs (renderer.draw_blocks), so a render's [R, k, S, 3] temporaries stay tens
 #: of MB however large K is. Measured on fern (grid field, 2048-ray chunks of 64 samples, 2 CPU

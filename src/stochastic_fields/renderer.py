@@ -41,7 +41,7 @@ from torch import Tensor
 from tqdm.auto import tqdm
 import numpy as np
 
-from .constants import DRAW_BLOCK_ELEMENTS, PACK_MIN_SKIPPED_FRACTION
+from .constants import COLOUR_PLAN_MAX_PAIRS, DRAW_BLOCK_ELEMENTS, PACK_MIN_SKIPPED_FRACTION
 from .fields.base import FieldParams, StochasticField
 from .logistic_normal_table import logistic_normal_moments_tabulated
 from .rays import PackedRaySamples, RayBundle, RaySamples
@@ -442,10 +442,11 @@ def colour_plan(samples: RaySamples | PackedRaySamples, settings: RenderSettings
                 deterministic: bool = False, colour_estimator: str | None = None,
                 generator: torch.Generator | None = None) -> ColourPlan | None:
     """A ``ColourPlan`` for a render of ``samples`` with these draws, or None when every colour is
-    decoded (``colour_min_transmittance`` 0, or the trapezoid quadrature, whose weights are not
-    bounded by a transmittance). The draws are ``render_noise``'s, all K at once."""
+    decoded (``colour_min_transmittance`` 0; the trapezoid quadrature, whose weights are not
+    bounded by a transmittance; more than ``COLOUR_PLAN_MAX_PAIRS`` (sample, draw) pairs, whose
+    noise drawn at once would outgrow the draw blocks). The draws are ``render_noise``'s, all K at once."""
     tau = settings.colour_min_transmittance
-    if tau <= 0.0 or settings.quadrature != "alpha":
+    if tau <= 0.0 or settings.quadrature != "alpha" or num_draws * samples.t_starts.numel() > COLOUR_PLAN_MAX_PAIRS:
         return None
     noise = None if deterministic else render_noise(
         samples, num_draws, settings, colour=not _use_rao_blackwell(settings, colour_estimator, deterministic),
