@@ -59,18 +59,21 @@ OccupiedFn = Callable[[Tensor], Tensor]
 
 def dense_noise(num_rays: int, num_draws: int, num_samples: int, *, shared_noise: bool = False,
                 generator: torch.Generator | None = None, device=None,
-                dtype: torch.dtype = torch.float32) -> tuple[Tensor, Tensor]:
-    """Standard-normal eps for the dense layout: ([R, K, S'], [R, K, S', 3]), S' = 1 when shared."""
+                dtype: torch.dtype = torch.float32, colour: bool = True) -> tuple[Tensor, Tensor | None]:
+    """Standard-normal eps for the dense layout: ([R, K, S'], [R, K, S', 3]), S' = 1 when shared;
+    the colour eps None without ``colour`` (Rao-Blackwellised colours draw none)."""
     s_axis = 1 if shared_noise else num_samples
     eps_a = torch.randn(num_rays, num_draws, s_axis, generator=generator, device=device, dtype=dtype)
-    eps_c = torch.randn(num_rays, num_draws, s_axis, 3, generator=generator, device=device, dtype=dtype)
+    eps_c = torch.randn(num_rays, num_draws, s_axis, 3, generator=generator, device=device, dtype=dtype) \
+        if colour else None
     return eps_a, eps_c
 
 
-def gather_shared_noise(noise: tuple[Tensor, Tensor], ray_indices: Tensor) -> tuple[Tensor, Tensor]:
-    """Dense shared eps ([R, K, 1], [R, K, 1, 3]) -> packed eps ([K, N], [K, N, 3]) of the samples' rays."""
+def gather_shared_noise(noise: tuple[Tensor, Tensor | None], ray_indices: Tensor) -> tuple[Tensor, Tensor | None]:
+    """Dense shared eps ([R, K, 1], [R, K, 1, 3] or None) -> packed eps ([K, N], [K, N, 3] or None)
+    of the samples' rays."""
     eps_a, eps_c = noise
-    return eps_a[ray_indices, :, 0].T, eps_c[ray_indices, :, 0].transpose(0, 1)
+    return eps_a[ray_indices, :, 0].T, None if eps_c is None else eps_c[ray_indices, :, 0].transpose(0, 1)
 
 
 def draw_blocks(num_draws: int, pairs_per_draw: int) -> list[tuple[int, int]]:
@@ -382,20 +385,16 @@ def render_noise(samples: RaySamples | PackedRaySamples, num_draws: int, setting
     (eps_a [K, N], eps_c [K, N, 3]; shared noise drawn dense per ray and gathered per sample). The
     colour eps only with ``colour`` (drawn colours); else None (Rao-Blackwellised colours draw none)."""
     dev, dt = samples.t_starts.device, samples.t_starts.dtype
-    if isinstance(samples, PackedRaySamples):
-        R, N = samples.num_rays, samples.ray_indices.shape[0]
-        if settings.shared_noise:
-            eps_a, eps_c = gather_shared_noise(dense_noise(R, num_draws, 1, shared_noise=True, generator=generator,
-                                                           device=dev, dtype=dt), samples.ray_indices)
-        else:
-            eps_a = torch.randn(num_draws, N, generator=generator, device=dev, dtype=dt)
-            eps_c = torch.randn(num_draws, N, 3, generator=generator, device=dev, dtype=dt) if colour else None
-        return eps_a, (eps_c if colour else None)
-    R, S = samples.t_starts.shape
-    s_axis = 1 if settings.shared_noise else S
-    eps_a = torch.randn(R, num_draws, s_axis, generator=generator, device=dev, dtype=dt)
-    eps_c = torch.randn(R, num_draws, s_axis, 3, generator=generator, device=dev, dtype=dt) if colour else None
-    return eps_a, eps_c
+    if not isinstance(samples, PackedRaySamples):
+        R, S = samples.t_starts.shape
+        return dense_noise(R, num_draws, S, shared_noise=settings.shared_noise, generator=generator, device=dev,
+                           dtype=dt, colour=colour)
+    if settings.shared_noise:  # one eps per ray and draw, as the dense layout draws it
+        return gather_shared_noise(dense_noise(samples.num_rays, num_draws, 1, shared_noise=True, generator=generator,
+                                               device=dev, dtype=dt, colour=colour), samples.ray_indices)
+    N = samples.ray_indices.shape[0]
+    eps_a = torch.randn(num_draws, N, generator=generator, device=dev, dtype=dt)
+    return eps_a, torch.randn(num_draws, N, 3, generator=generator, device=dev, dtype=dt) if colour else None
 
 
 @torch.no_grad()
@@ -418,12 +417,12 @@ def colour_reaching(density_loc: Tensor, density_scale: Tensor, samples: RaySamp
     if isinstance(samples, PackedRaySamples):
         eps = torch.zeros_like(density_loc)[None] if eps_a is None else eps_a  # [K, N]
         density = torch.relu(density_loc[None] + density_scale[None] * eps)
-        tau = density * (samples.t_ends - samples.t_starts)[None]
+        tau = density * samples.deltas[None]
         transmittance = torch.exp(-exclusive_cumsum_packed(tau, samples.ray_indices, samples.num_rays))
         return ((density > 0) & (transmittance >= min_transmittance)).any(dim=0)
     eps = torch.zeros_like(density_loc)[:, None] if eps_a is None else eps_a  # [R, K, S']
     density = torch.relu(density_loc[:, None, :] + density_scale[:, None, :] * eps)
-    transmittance = transmittance_alpha(density, (samples.t_ends - samples.t_starts)[:, None, :])
+    transmittance = transmittance_alpha(density, samples.deltas[:, None, :])
     return ((density > 0) & (transmittance >= min_transmittance)).any(dim=1)
 
 
