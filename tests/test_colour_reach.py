@@ -121,6 +121,28 @@ def test_composited_colours_within_tau_of_the_full_decode(layout, estimator):
     torch.testing.assert_close(lazy.stats.depth_draws, full.stats.depth_draws, rtol=0, atol=0)
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA")
+def test_on_cuda_composited_colours_within_tau_of_the_full_decode():
+    """The plan on the GPU: its draws from a CUDA generator, the kept samples decoded there, the
+    composited colours within tau of the full decode and the depths and weights unchanged."""
+    cuda = torch.device("cuda")
+    field = _field().to(cuda)
+    settings = _settings(colour_min_transmittance=TAU)
+    rays = _rays()
+    rays = RayBundle(*(t.to(cuda) for t in (rays.origins, rays.directions, rays.near, rays.far, rays.z_scale)))
+    samples = sample_along_rays(rays, settings.num_samples, stratified=False)
+    plan = colour_plan(samples, settings, 6, generator=torch.Generator(device=cuda).manual_seed(6))
+    assert plan is not None and plan.noise[0].device.type == "cuda"
+    lazy_params = field.forward_colour_where(samples.positions, samples.directions, plan.where)
+    full_params = field(samples.positions, samples.directions)
+    lazy = render_any_samples(lazy_params, samples, settings, num_draws=6, noise=plan.noise)
+    full = render_any_samples(full_params, samples, settings, num_draws=6, noise=plan.noise)
+    kept = plan.where(full_params.density_loc.reshape(-1), full_params.density_scale.reshape(-1))
+    assert 0.05 < float(kept.double().mean()) < 0.95
+    assert float((lazy.stats.colour_draws - full.stats.colour_draws).detach().abs().max()) <= TAU
+    torch.testing.assert_close(lazy.stats.depth_draws, full.stats.depth_draws, rtol=0, atol=0)
+
+
 def test_gradients_within_the_bound_of_the_full_decode():
     """d (sum of colours) / d grid and decoder: the left-out samples' colours move the composited
     colour by less than tau, so every gradient changes by at most about tau times its scale."""
