@@ -107,14 +107,15 @@ def test_gather_rows_weight_gradient_gradcheck():
     assert torch.autograd.gradcheck(lambda ww: gather_rows(table, idx, ww), (w,))
 
 
+@pytest.mark.parametrize("beta2", [0.999, 0.99])
 @pytest.mark.parametrize("steps", [1, 5])
-def test_row_sparse_adam_matches_torch_sparse_adam(steps):
+def test_row_sparse_adam_matches_torch_sparse_adam(steps, beta2):
     torch.manual_seed(0)
     N, C = 30, 3
     ours = torch.nn.Parameter(torch.randn(N, C, dtype=torch.float64))
     ref = torch.nn.Parameter(ours.detach().clone())
-    opt = RowSparseAdam([ours], lr=0.05, eps=1e-15)
-    ref_opt = torch.optim.SparseAdam([ref], lr=0.05, eps=1e-15)
+    opt = RowSparseAdam([ours], lr=0.05, betas=(0.9, beta2), eps=1e-15)
+    ref_opt = torch.optim.SparseAdam([ref], lr=0.05, betas=(0.9, beta2), eps=1e-15)
     for s in range(steps):
         idx = torch.randint(0, N // 2, (20,)) + s  # duplicates; untouched rows exist
         coeff = torch.randn(20, C, dtype=torch.float64)
@@ -132,7 +133,10 @@ def test_field_optimizer_schedule_and_state_round_trip():
     field = GridField(_cube_region(), (8, 8, 8), num_levels=2, decoder_width=8)
     groups = [{"params": list(field.levels.parameters()), "lr": 0.1, "sparse": True},
               {"params": list(field.decoder.parameters()), "lr": 0.01}]
+    assert [g["betas"] for g in FieldOptimizer(groups, total_steps=10, final_factor=0.1, beta2=0.99).param_groups] \
+        == [(0.9, 0.99)] * 2  # train.adam_beta2 reaches the dense Adam and the grid's lazy Adam
     opt = FieldOptimizer(groups, total_steps=10, final_factor=0.1)
+    assert [g["betas"] for g in opt.param_groups] == [(0.9, 0.999)] * 2
     opt.set_step(5)
     assert [g["lr"] for g in opt.param_groups] == pytest.approx([0.01 * 0.1 ** 0.5, 0.1 * 0.1 ** 0.5])
     pts = torch.rand(64, 3) * 2 - 1

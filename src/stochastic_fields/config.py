@@ -103,6 +103,8 @@ class TrainConfig:
     """Adam learning rate (grid cells use 10x). Range: a finite number > 0."""
     lr_final_factor: float = 0.1
     """Learning rate at the end, as a fraction of lr (exponential decay). Range: a finite number > 0 and <= 1."""
+    adam_beta2: float = 0.999
+    """Adam's second-moment decay for every parameter (the grid's lazy Adam too): 0.999 is Adam's own; 0.99 is Instant-NGP's for hash grids, its step size adapting within about a hundred steps. Range: a finite number > 0 and < 1."""
     tv_weight: float = 1e-3
     """Total-variation weight on grid cells (grid backend). Range: a finite number >= 0."""
     holdout_fraction: float = 0.0
@@ -188,6 +190,7 @@ TRAIN_CHECKS: dict[str, V.Checker] = {
     "train_draws": V.integer(1, 4096),
     "lr": V.real(0.0, lo_open=True),
     "lr_final_factor": V.real(0.0, 1.0, lo_open=True),
+    "adam_beta2": V.real(0.0, 1.0, lo_open=True, hi_open=True),
     "tv_weight": V.real(0.0),
     "holdout_fraction": V.real(0.0, 0.5),
     "holdout_block": V.integer(1, 4096),

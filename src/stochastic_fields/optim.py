@@ -25,7 +25,7 @@ from . import row_kernels
 class FieldOptimizer:
     """Adam for dense groups, SparseAdam for groups marked ``{"sparse": True}``."""
 
-    def __init__(self, param_groups: list[dict], *, total_steps: int, final_factor: float):
+    def __init__(self, param_groups: list[dict], *, total_steps: int, final_factor: float, beta2: float = 0.999):
         dense = [dict(g) for g in param_groups if not g.get("sparse") and g["params"]]
         sparse = [dict(g) for g in param_groups if g.get("sparse") and g["params"]]
         for g in dense + sparse:
@@ -33,9 +33,9 @@ class FieldOptimizer:
             g["initial_lr"] = g["lr"]
         self.optimizers: list[torch.optim.Optimizer] = []
         if dense:
-            self.optimizers.append(torch.optim.Adam(dense, eps=ADAM_EPS))
+            self.optimizers.append(torch.optim.Adam(dense, betas=(0.9, beta2), eps=ADAM_EPS))
         if sparse:
-            self.optimizers.append(RowSparseAdam(sparse, eps=ADAM_EPS))
+            self.optimizers.append(RowSparseAdam(sparse, betas=(0.9, beta2), eps=ADAM_EPS))
         self.total_steps = max(1, int(total_steps))
         self.final_factor = float(final_factor)
 
