@@ -32,10 +32,11 @@ class FieldOptimizer:
             g.pop("sparse", None)
             g["initial_lr"] = g["lr"]
         self.optimizers: list[torch.optim.Optimizer] = []
+        betas = (0.9, beta2)  # train.adam_beta2; the first moment's decay is Adam's own
         if dense:
-            self.optimizers.append(torch.optim.Adam(dense, betas=(0.9, beta2), eps=ADAM_EPS))
+            self.optimizers.append(torch.optim.Adam(dense, betas=betas, eps=ADAM_EPS))
         if sparse:
-            self.optimizers.append(RowSparseAdam(sparse, betas=(0.9, beta2), eps=ADAM_EPS))
+            self.optimizers.append(RowSparseAdam(sparse, betas=betas, eps=ADAM_EPS))
         self.total_steps = max(1, int(total_steps))
         self.final_factor = float(final_factor)
 
