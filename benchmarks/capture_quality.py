@@ -72,6 +72,17 @@ def parse_setting(text: str) -> tuple[str, object]:
         return key, raw
 
 
+def positive_int(text: str) -> int:
+    """``--steps``: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expects an integer >= 1, got {text!r}")
+    return value
+
+
 def config_for(scene: str, method: str, iterations: int, seed: int, settings: tuple = (),
                llff_root: Path = LLFF_ROOT):
     """The benchmark's config of ``method`` on ``scene`` (a folder of ``llff_root``); ``settings``:
@@ -102,9 +113,11 @@ def scores_of(result: dict) -> dict:
 
 
 def run_config(scene: str, method: str, args):
-    """The config a row of this command trains (``config_for`` with the minutes budget)."""
-    cfg = config_for(scene, method, STEP_CAP, args.seed, args.set, args.llff_root)
-    cfg.train.minutes = args.minutes
+    """The config a row of this command trains: ``config_for`` with the minutes budget, or with
+    ``--steps`` a schedule of that many steps and no clock (the same steps on any machine and load)."""
+    cfg = config_for(scene, method, STEP_CAP if args.steps is None else args.steps, args.seed, args.set,
+                     args.llff_root)
+    cfg.train.minutes = 0.0 if args.steps is not None else args.minutes
     return cfg
 
 
@@ -113,12 +126,13 @@ def recorded_options(cfg, args) -> dict:
     seed, settings and minutes and every option of the run's config (but the scene's path, which
     the row's folder names), so a row made before a default changed is not taken for today's."""
     config = {key: value for key, value in flatten(to_dict(cfg)).items() if key != "data.path"}
+    budget = {"minutes": args.minutes} if args.steps is None else {"steps_budget": args.steps}
     return json.loads(json.dumps({"seed": args.seed, "settings": [[key, value] for key, value in args.set],
-                                  "minutes": args.minutes, "config": config}))
+                                  **budget, "config": config}))
 
 
 #: The command's options a record keeps beside its config.
-RECORD_KEYS = ("seed", "settings", "minutes")
+RECORD_KEYS = ("seed", "settings", "minutes", "steps_budget")
 
 
 def comparable(record: dict) -> dict:
@@ -165,9 +179,12 @@ def run_one(scene: str, method: str, args) -> dict:
     budget_s = 60.0 * args.minutes
     marks = sorted({min(max(f, 0.0), 1.0) for f in args.marks} | {1.0})
     curve, calibrated = [], None
-    print(f"{scene} {method}: {describe_split(dataset, cfg)}; {args.minutes:g} minutes of training", flush=True)
+    print(f"{scene} {method}: {describe_split(dataset, cfg)}; {budget_text(args)} of training", flush=True)
     for mark in marks:
-        model = trainer.train(progress=not args.quiet, max_elapsed_s=mark * budget_s)
+        if args.steps is None:
+            model = trainer.train(progress=not args.quiet, max_elapsed_s=mark * budget_s)
+        else:
+            model = trainer.train(progress=not args.quiet, max_steps=max(round(mark * args.steps) - trainer.step, 0))
         t0 = time.perf_counter()
         final = mark == marks[-1]
         # the last mark is scored once, with the recalibration train fits (colour and depth means do not change)
@@ -189,6 +206,11 @@ def run_one(scene: str, method: str, args) -> dict:
            **asked}
     atomic_write_text(record, json.dumps(out, indent=2))
     return out
+
+
+def budget_text(args) -> str:
+    """The training budget of a row, as the report and the log name it."""
+    return f"{args.minutes:g} minutes" if args.steps is None else f"{args.steps} steps"
 
 
 def device_name(device: torch.device) -> str:
@@ -299,7 +321,7 @@ def command_options(args) -> str:
     """The options that reproduce this run: ``--out`` and every option that differs from its default."""
     defaults = vars(build_parser().parse_args([]))
     parts = [f"--out {args.out}"]
-    for name in ("work", "scenes", "methods", "minutes", "marks", "seed", "threads", "reference"):
+    for name in ("work", "scenes", "methods", "minutes", "steps", "marks", "seed", "threads", "reference"):
         value = getattr(args, name)
         if value != defaults[name]:
             shown = " ".join(f"{v:g}" if isinstance(v, float) else str(v) for v in
@@ -345,7 +367,7 @@ def write_report(records: list[dict], args, reference: list[dict] = ()) -> None:
     v = verdict(records)
     reach = time_to_reference(records, reference)
     atomic_write_text(args.out / "results.json", json.dumps({"records": records, "targets": v, "minutes": args.minutes,
-                                                             "time_to_reference": reach}, indent=2))
+                                                             "steps": args.steps, "time_to_reference": reach}, indent=2))
     plot(records, args.out / "capture_quality.png", reference)
     lines = ["# Quality per training minute on a capture (capture split: every 8th photo validates)", "",
              f"Command: `OMP_NUM_THREADS={args.threads} .venv/bin/python benchmarks/capture_quality.py "
@@ -361,14 +383,16 @@ def write_report(records: list[dict], args, reference: list[dict] = ()) -> None:
                      f"| {r['steps']} ({r['steps_per_s']:.2f}) | {last['minutes']:.1f} | {last['psnr']:.2f} "
                      f"| {last['ssim']:.3f} | {last['depth_abs_rel']:.4f} ({last['depth_points']}) | {cov} | {width} |")
     lines += ["", "Minutes are training wall-clock only (the validation renders at each mark are not counted). "
-              "Each run trains to its minutes budget (`train.minutes`): the schedule follows the training "
-              "clock, so the machine's speed on the day (other work on the host moves it by tens of percent) "
-              "sets the steps, not the minutes. "
+              + ("Each run trains to its minutes budget (`train.minutes`): the schedule follows the training "
+                 "clock, so the machine's speed on the day (other work on the host moves it by tens of percent) "
+                 "sets the steps, not the minutes. " if args.steps is None else
+                 f"Each run trains a schedule of {args.steps} steps (`--steps`; no minutes budget), so the host's "
+                 "speed sets the minutes, not the steps: rows compare at equal steps. ") +
               "Depth abs-rel is scored at the validation photos' SfM points of the SCORE role (the points no "
               "step fitted), as `stochastic-fields eval` scores them; the interval columns use the map `train` "
               "fits (every held-out capture point, cross-fitted).",
               "", *reference_lines(reach),
-              f"Targets after {args.minutes:g} minutes:", "```", json.dumps(v, indent=1), "```", "",
+              f"Targets (set for 10 minutes) after {budget_text(args)}:", "```", json.dumps(v, indent=1), "```", "",
               "![curves](capture_quality.png)", ""]
     atomic_write_text(args.out / "README.md", "\n".join(lines))
 
@@ -378,6 +402,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--scenes", nargs="+", default=["fern", "flower"])
     ap.add_argument("--methods", nargs="+", default=["snerf", "deterministic"])
     ap.add_argument("--minutes", type=float, default=10.0, help="Training budget in wall-clock minutes.")
+    ap.add_argument("--steps", type=positive_int, default=None,
+                    help="Train a schedule of this many steps instead of a minutes budget (rows compare at equal "
+                         "steps whatever the host's speed; for studies of options that do not change a step's cost).")
     ap.add_argument("--marks", nargs="+", type=float, default=[0.1, 0.25, 0.5, 0.75, 1.0],
                     help="Fractions of the schedule at which the validation photos are scored.")
     ap.add_argument("--seed", type=int, default=0)

@@ -47,6 +47,29 @@ def test_command_reproduces_the_options(bench):
     assert bench.command_options(args_of(bench, [])) == "--out benchmarks/results/capture_quality"
 
 
+def test_steps_fix_the_schedule_instead_of_the_clock(bench, tmp_path):
+    """``--steps N``: a schedule of N steps with no minutes budget (rows of a study compare at equal
+    steps whatever the host's speed); the record keeps the steps, so a minutes row is not resumed for it."""
+    args = args_of(bench, ["--steps", "3300", "--work", str(tmp_path)])
+    cfg = bench.run_config("fern", "snerf", args)
+    assert cfg.train.iterations == 3300 and cfg.train.minutes == 0.0
+    assert bench.run_config("fern", "snerf", args_of(bench, [])).train.minutes == 10.0
+    asked = bench.recorded_options(cfg, args)
+    assert asked["steps_budget"] == 3300 and "minutes" not in asked
+    assert bench.budget_text(args) == "3300 steps" and bench.budget_text(args_of(bench, [])) == "10 minutes"
+    assert "--steps 3300" in bench.command_options(args)
+    for bad in ("0", "-3", "1.5", "many"):
+        with pytest.raises(argparse.ArgumentTypeError, match="integer >= 1"):
+            bench.positive_int(bad)
+    record = tmp_path / "fern" / "snerf" / "record.json"
+    record.parent.mkdir(parents=True)
+    minutes_row = args_of(bench, ["--work", str(tmp_path)])
+    record.write_text(json.dumps({"scene": "fern", "method": "snerf", "curve": [],
+                                  **bench.recorded_options(bench.run_config("fern", "snerf", minutes_row), minutes_row)}))
+    with pytest.raises(SystemExit, match=r"steps_budget None \(asked 3300\)"):
+        bench.run_one("fern", "snerf", args)
+
+
 def test_a_finished_row_of_other_options_is_not_resumed(bench, tmp_path):
     """A record is read back only when the command's seed, settings, minutes and the run's whole
     config match: a row trained before a default changed is refused, naming the option."""
