@@ -161,6 +161,56 @@ def test_capture_grid_study_checks_the_paper_split_where_its_rule_asks(load_scri
         script.paper_scores(tmp_path / "c.json")
 
 
+def test_adam_beta2_study_rules_on_the_means_of_its_seeds(load_script, tmp_path):
+    """Study 47: a row is two seeds' runs and the rule reads their means; the PSNR gain is asked of the
+    mean over the scenes (each scene may lose at most 0.05 dB), every level 50/68/90/95 within 5 points
+    or no farther than today's, the 95% band at most 1 point wider; the minutes are not ruled."""
+    script = load_script("benchmarks/studies/capture_grid_study.py")
+    study = script.STUDIES["adam_beta2"]
+
+    def write(folder, seed_rows):  # scene -> (psnr, abs_rel, coverages 50/68/90/95, half-width 95)
+        records = []
+        for scene, (psnr, abs_rel, cov, hw) in seed_rows.items():
+            levels = {f"coverage_{p}": c for p, c in zip((50, 68, 90, 95), cov)}
+            records.append({"scene": scene, "steps": 3300, "steps_per_s": 5.0,
+                            "curve": [{"minutes": 10.0 + len(records), "psnr": psnr, "ssim": 0.8, "depth_abs_rel": abs_rel}],
+                            "calibrated": {"coverage_68": levels["coverage_68"], "coverage_95": levels["coverage_95"],
+                                           "halfwidth_median_95": hw, "depth_intervals": levels}})
+        folder.mkdir(parents=True)
+        (folder / "results.json").write_text(json.dumps({"records": records}))
+
+    held = (0.50, 0.68, 0.90, 0.95)
+    write(tmp_path / "a3", {"fern": (24.0, 0.055, held, 0.045), "flower": (25.4, 0.040, held, 0.090)})
+    write(tmp_path / "a4", {"fern": (24.2, 0.057, held, 0.047), "flower": (25.6, 0.042, held, 0.094)})
+    write(tmp_path / "b3", {"fern": (24.1, 0.056, held, 0.050), "flower": (25.7, 0.039, held, 0.085)})
+    write(tmp_path / "b4", {"fern": (24.05, 0.058, (0.44, 0.64, 0.88, 0.93), 0.050), "flower": (25.8, 0.041, held, 0.087)})
+    today = script.row_scores((tmp_path / "a3", tmp_path / "a4"))
+    candidate = script.row_scores((tmp_path / "b3", tmp_path / "b4"))
+    assert today["fern"]["psnr"] == pytest.approx(24.1) and today["flower"]["halfwidth_95"] == pytest.approx(0.092)
+    assert candidate["fern"]["coverage_50"] == pytest.approx(0.47) and candidate["fern"]["seeds"] == 2
+    assert candidate["fern"]["minutes"] == pytest.approx(10.0) and candidate["flower"]["minutes"] == pytest.approx(11.0)
+    v = script.verdict(study, today, candidate)
+    # fern -0.025 dB (within 0.05), flower +0.25: the mean +0.1125 >= 0.1; fern's band +0.4 points
+    assert v["mean_psnr_gain_db"] == pytest.approx(0.1125) and v["taken"]
+    assert "minutes" not in v["scenes"]["fern"]["checks"] and "gain" not in v["scenes"]["fern"]["checks"]
+    flat = {**candidate, "flower": {**candidate["flower"], "psnr": 25.55}}  # mean gain +0.0375
+    assert not script.verdict(study, today, flat)["taken"]
+    fern_loses = {**candidate, "fern": {**candidate["fern"], "psnr": 24.0}}  # -0.1 on fern, +0.25 on flower
+    assert not script.verdict(study, today, fern_loses)["scenes"]["fern"]["checks"]["psnr_kept"]
+    wider = {**candidate, "flower": {**candidate["flower"], "halfwidth_95": 0.1025}}  # +1.05 points
+    assert not script.verdict(study, today, wider)["scenes"]["flower"]["checks"]["halfwidth"]
+    off = {**candidate, "fern": {**candidate["fern"], "coverage_90": 0.84}}  # 6 points under, today's 0 under
+    assert not script.verdict(study, today, off)["scenes"]["fern"]["checks"]["coverage"]
+    # a level today's misses by 7 points may be missed by as much
+    assert script.level_held({"coverage_90": 0.83}, {"coverage_90": 0.835}, 90, 5.0)
+    assert not script.level_held({"coverage_90": 0.83}, {"coverage_90": 0.825}, 90, 5.0)
+    text = script.rule_text(study)
+    assert "on the means of the seeds" in text and "averaged over the two scenes is at least 0.1 dB" in text
+    assert "50, 68, 90, 95%" in text and "minutes" not in text and "At the paper split" in text
+    with pytest.raises(SystemExit, match="no results.json"):
+        script.row_scores((tmp_path / "a3", tmp_path / "missing"))
+
+
 def test_time_to_reference_reads_the_first_mark_past_the_reference(bench, tmp_path):
     """The report's minutes to another run's final quality: the first mark at or past its PSNR (higher
     is better) and its depth abs-rel (lower is better); none when the curve never gets there."""

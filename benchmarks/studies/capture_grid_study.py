@@ -1,5 +1,5 @@
-"""Studies 23 to 25 and 36: the grid's finest level, the samples along a ray and the colour's capacity on a
-capture, each judged by its rule.
+"""Studies 23 to 25, 36 and 47: the grid's finest level, the samples along a ray, the colour's capacity and
+Adam's second-moment decay on a capture, each judged by its rule.
 
 Each study's rows are runs of the capture benchmark (``benchmarks/capture_quality.py``, S-NeRF,
 seed 1, the ten-minute schedule), today's setting and the candidate's (the commands are in
@@ -11,6 +11,9 @@ the table and the rule's verdict (docs/studies.md; each rule fixed before its ro
     python benchmarks/studies/capture_grid_study.py --study resolution_rule
     python benchmarks/studies/capture_grid_study.py --study samples
     python benchmarks/studies/capture_grid_study.py --study colour_capacity
+    python benchmarks/studies/capture_grid_study.py --study adam_beta2
+
+A row may be several runs (seeds): the rule then reads their means.
 
 A study with ``paper_tables`` also checks the paper split: the candidate's S-NeRF (default) row of
 ``benchmarks/eval_tables.py`` (seed 0, the same ``--set``) against today's committed row.
@@ -33,14 +36,22 @@ class Study(NamedTuple):
     it gains ``min_psnr_gain_db`` of PSNR (or, where ``min_abs_rel_gain`` is set, lowers the depth
     abs-rel by that much instead), loses at most ``max_psnr_loss_db`` of PSNR (where set) and
     ``max_abs_rel_loss`` of abs-rel, keeps its recalibrated 68% and 95% coverage within
-    ``coverage_points`` of nominal and trains at most ``max_minutes``; where ``paper_tables`` names
-    (today's, the candidate's) ``tables.json``, its S-NeRF (default) row at the paper split also loses at
-    most ``max_paper_psnr_loss_db`` of PSNR and ``max_paper_abs_rel_loss`` of abs-rel on each scene."""
+    ``coverage_points`` of nominal and trains at most ``max_minutes`` (None: the steps are fixed, the
+    minutes not ruled); where ``paper_tables`` names (today's, the candidate's) ``tables.json``, its
+    S-NeRF (default) row at the paper split also loses at most ``max_paper_psnr_loss_db`` of PSNR and
+    ``max_paper_abs_rel_loss`` of abs-rel on each scene.
+
+    ``gain_on_mean``: the PSNR gain is asked of the mean over the scenes, not of each (each scene then
+    loses at most ``max_psnr_loss_db``); ``levels``: the central levels (%) held within
+    ``coverage_points`` of nominal (or, with ``level_as_far_as_today``, no farther than today's row
+    misses them); where
+    ``max_halfwidth_growth_points`` is set, the median 95% half-width / depth grows by at most that
+    many points."""
 
     number: str
     title: str
     out: str
-    rows: dict[str, str]  # label -> row folder under out (today's first)
+    rows: dict[str, str | tuple[str, ...]]  # label -> row folder(s) under out, one per seed (today's first)
     commands: tuple[str, ...]
     protocol: str
     min_psnr_gain_db: float = 0.2
@@ -48,10 +59,18 @@ class Study(NamedTuple):
     max_psnr_loss_db: float | None = None
     max_abs_rel_loss: float = 0.002
     coverage_points: float = 5.0
-    max_minutes: float = 11.0
+    max_minutes: float | None = 11.0
     paper_tables: tuple[str, str] | None = None
     max_paper_psnr_loss_db: float = 0.2
     max_paper_abs_rel_loss: float = 0.005
+    gain_on_mean: bool = False
+    levels: tuple[int, ...] = (68, 95)
+    level_as_far_as_today: bool = False
+    max_halfwidth_growth_points: float | None = None
+
+
+#: Nominal coverage (%) of each central level a study may rule on.
+NOMINAL = {50: 50.0, 68: 68.27, 90: 90.0, 95: 95.0}
 
 
 STUDIES = {
@@ -102,6 +121,24 @@ STUDIES = {
         "two threads, one row at a time on the otherwise idle machine, the two rows of a scene one after the other",
         paper_tables=("benchmarks/results/eval_tables_35/tables.json",
                       "benchmarks/results/colour_capacity_study/tables/tables.json")),
+    "adam_beta2": Study(
+        "47", "Adam's second-moment decay on a capture", "benchmarks/results/adam_beta2_study",
+        {"today (0.999)": ("beta2_0.999/seed_3", "beta2_0.999/seed_4"),
+         "candidate (0.99)": ("beta2_0.99/seed_3", "beta2_0.99/seed_4")},
+        ("OMP_NUM_THREADS=2 python benchmarks/capture_quality.py --methods snerf --steps 3300 --marks 1 --threads 2 "
+         "--quiet --seed S --out benchmarks/results/adam_beta2_study/beta2_0.999/seed_S "
+         "--work runs/s47/beta2_0.999/seed_S (S = 3, 4)",
+         "the same with --set train.adam_beta2=0.99 into beta2_0.99",
+         "OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes SCENE --methods snerf_default --seed 0 "
+         "--no-timing --quiet --out runs/s47/tables_B [--set train.adam_beta2=0.99] (fern and flower side by side), "
+         "then both scenes in one invocation, its tables.json and tables.md copied to "
+         "benchmarks/results/adam_beta2_study/tables_B (B = 0.999, 0.99)"),
+        "S-NeRF default, capture split, seeds 3 and 4 (no study's), a schedule of 3300 steps (`--steps`) on two "
+        "threads, one row at a time, a seed's two rows one after the other; the table's rows are the seeds' means",
+        min_psnr_gain_db=0.1, max_psnr_loss_db=0.05, max_minutes=None, gain_on_mean=True,
+        levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0,
+        paper_tables=("benchmarks/results/adam_beta2_study/tables_0.999/tables.json",
+                      "benchmarks/results/adam_beta2_study/tables_0.99/tables.json")),
 }
 
 
@@ -110,19 +147,37 @@ def last_scores(results: dict) -> dict[str, dict]:
     out = {}
     for record in results["records"]:
         last, cal = record["curve"][-1], record.get("calibrated") or {}
+        levels = cal.get("depth_intervals") or {}
         # study 23's rows were made when the benchmark probed its speed and fixed the steps
         out[record["scene"]] = {"steps": record.get("steps", record.get("iterations")),
                                 "steps_per_s": record.get("steps_per_s", record.get("steps_per_s_probe")),
                                 "minutes": last["minutes"], "psnr": last["psnr"], "ssim": last["ssim"],
                                 "abs_rel": last["depth_abs_rel"], "coverage_68": cal.get("coverage_68"),
                                 "coverage_95": cal.get("coverage_95"), "halfwidth_95": cal.get("halfwidth_median_95"),
+                                **{f"coverage_{p}": levels.get(f"coverage_{p}") for p in (50, 90)},
                                 "curve": [(c["minutes"], c["psnr"]) for c in record["curve"]]}
     return out
 
 
-def row_scores(folder: Path) -> dict[str, dict]:
+def mean_scores(runs: list[dict[str, dict]]) -> dict[str, dict]:
+    """Per scene: the mean of several runs' ``last_scores`` (seeds) over the runs that have the scene,
+    where every one of them has it (a scene some seed lacks is left out); the curve is the first run's."""
+    out = {}
+    for scene in set.intersection(*(set(r) for r in runs)):
+        rows = [r[scene] for r in runs]
+        out[scene] = {key: (None if any(row[key] is None for row in rows) else sum(row[key] for row in rows) / len(rows))
+                      for key in rows[0] if key != "curve"}
+        out[scene]["curve"] = rows[0]["curve"] if len(rows) == 1 else [(out[scene]["minutes"], out[scene]["psnr"])]
+        out[scene]["seeds"] = len(rows)
+    return out
+
+
+def row_scores(folder: Path | tuple[Path, ...]) -> dict[str, dict]:
     """``last_scores`` of a row's ``results.json``, or merged over its per-scene sub-folders'
-    (a row whose setting differs per scene writes one capture-benchmark output per scene)."""
+    (a row whose setting differs per scene writes one capture-benchmark output per scene); for several
+    folders (a row's seeds) their ``mean_scores``."""
+    if isinstance(folder, tuple):
+        return mean_scores([row_scores(f) for f in folder])
     files = [folder / "results.json"] if (folder / "results.json").is_file() else sorted(folder.glob("*/results.json"))
     if not files:
         raise SystemExit(f"{folder}: no results.json (run the row's command first)")
@@ -149,15 +204,18 @@ def verdict(study: Study, today: dict, candidate: dict,
         psnr_gain, abs_rel_change = b["psnr"] - a["psnr"], b["abs_rel"] - a["abs_rel"]
         gains = psnr_gain >= study.min_psnr_gain_db or (
             study.min_abs_rel_gain is not None and -abs_rel_change >= study.min_abs_rel_gain)
-        checks = {
-            "gain": gains,
+        checks = {} if study.gain_on_mean else {"gain": gains}
+        checks.update({
             "psnr_kept": study.max_psnr_loss_db is None or psnr_gain >= -study.max_psnr_loss_db,
             "abs_rel": abs_rel_change <= study.max_abs_rel_loss,
-            "coverage": (b["coverage_68"] is not None
-                         and abs(100 * b["coverage_68"] - 68.27) <= study.coverage_points
-                         and abs(100 * b["coverage_95"] - 95.0) <= study.coverage_points),
-            "minutes": b["minutes"] <= study.max_minutes,
-        }
+            "coverage": all(level_held(a if study.level_as_far_as_today else {}, b, p, study.coverage_points)
+                            for p in study.levels),
+        })
+        if study.max_minutes is not None:
+            checks["minutes"] = b["minutes"] <= study.max_minutes
+        if study.max_halfwidth_growth_points is not None:
+            checks["halfwidth"] = (a["halfwidth_95"] is not None and b["halfwidth_95"] is not None and
+                                   100 * (b["halfwidth_95"] - a["halfwidth_95"]) <= study.max_halfwidth_growth_points)
         if paper is not None:
             p_today, p_cand = paper[0].get(scene), paper[1].get(scene)
             checks["paper_split"] = (p_today is not None and p_cand is not None
@@ -165,22 +223,69 @@ def verdict(study: Study, today: dict, candidate: dict,
                                      and p_cand["abs_rel"] - p_today["abs_rel"] <= study.max_paper_abs_rel_loss)
         scenes[scene] = {"psnr_gain_db": psnr_gain, "abs_rel_change": abs_rel_change,
                          "checks": checks, "passes": all(checks.values())}
-    return {"scenes": scenes, "taken": {"fern", "flower"} <= set(scenes) and all(s["passes"] for s in scenes.values())}
+    both = {"fern", "flower"} <= set(scenes)
+    out = {"scenes": scenes, "taken": both and all(s["passes"] for s in scenes.values())}
+    if study.gain_on_mean:
+        mean_gain = sum(s["psnr_gain_db"] for s in scenes.values()) / max(len(scenes), 1)
+        out["mean_psnr_gain_db"] = mean_gain
+        out["taken"] = out["taken"] and mean_gain >= study.min_psnr_gain_db
+    return out
+
+
+def level_held(today: dict, candidate: dict, percent: int, points: float) -> bool:
+    """The candidate's coverage at a central level within ``points`` of nominal, or no farther from it
+    than today's (a level today's misses, the candidate may miss by as much)."""
+    b, a = candidate.get(f"coverage_{percent}"), today.get(f"coverage_{percent}")
+    if b is None:
+        return False
+    miss = abs(100 * b - NOMINAL[percent])
+    return miss <= points or (a is not None and miss <= abs(100 * a - NOMINAL[percent]))
 
 
 def rule_text(study: Study) -> str:
-    gain = f"its PSNR is at least {study.min_psnr_gain_db} dB above today's"
-    if study.min_abs_rel_gain is not None:
-        gain += f" or its depth abs-rel at least {study.min_abs_rel_gain} below"
-    if study.max_psnr_loss_db is not None:
-        gain += f", its PSNR at most {study.max_psnr_loss_db} dB below"
+    if study.gain_on_mean:
+        lead = (f"its PSNR gain averaged over the two scenes is at least {study.min_psnr_gain_db} dB and on each "
+                f"scene its PSNR at most {study.max_psnr_loss_db} dB below today's")
+    else:
+        lead = f"on both scenes its PSNR is at least {study.min_psnr_gain_db} dB above today's"
+        if study.min_abs_rel_gain is not None:
+            lead += f" or its depth abs-rel at least {study.min_abs_rel_gain} below"
+        if study.max_psnr_loss_db is not None:
+            lead += f", its PSNR at most {study.max_psnr_loss_db} dB below"
+    levels = (f"recalibrated 68% and 95% coverage within {study.coverage_points:g} points of nominal"
+              if study.levels == (68, 95) else
+              f"recalibrated coverage at {', '.join(str(p) for p in study.levels)}% within {study.coverage_points:g} "
+              f"points of nominal" + (" (a level today's misses, no farther)" if study.level_as_far_as_today else ""))
+    width = (f", its median 95% half-width / depth at most {study.max_halfwidth_growth_points:g} point wider"
+             if study.max_halfwidth_growth_points is not None else "")
+    minutes = (f" and its training at most {study.max_minutes:g} minutes" if study.max_minutes is not None else "")
     paper = (f" At the paper split (the tables' S-NeRF default row, seed 0) its PSNR is at most "
              f"{study.max_paper_psnr_loss_db} dB and its depth abs-rel at most {study.max_paper_abs_rel_loss} "
              f"worse than today's on each scene." if study.paper_tables else "")
-    return (f"Rule (fixed before the rows): the candidate is taken if on both scenes {gain}, "
-            f"its depth abs-rel at most {study.max_abs_rel_loss} above, its "
-            f"recalibrated 68% and 95% coverage within {study.coverage_points:g} points of nominal and its "
-            f"training at most {study.max_minutes:g} minutes.{paper}")
+    seeds = " (on the means of the seeds)" if any(isinstance(f, tuple) for f in study.rows.values()) else ""
+    return (f"Rule (fixed before the rows){seeds}: the candidate is taken if {lead}, "
+            f"its depth abs-rel at most {study.max_abs_rel_loss} above, its {levels}{width}{minutes}.{paper}")
+
+
+def score_table(study: Study, rows: dict[str, dict], caption: str | None) -> list[str]:
+    """The markdown table of ``rows`` (label -> ``row_scores``), scene by scene, with every level the study rules."""
+    levels = " / ".join(str(p) for p in study.levels)
+    lines = [f"Rows: {caption}.", ""] if caption else []
+    lines += [f"| scene | row | steps (steps/s) | minutes | PSNR dB (at half the schedule) | SSIM | depth abs-rel | "
+              f"cov {levels} | median 95% half-width |", "|" + "---|" * 9]
+    for scene in sorted({scene for scores in rows.values() for scene in scores}):
+        for label, scores in rows.items():
+            s = scores.get(scene)
+            if s is None:
+                continue
+            half = s["curve"][0] if len(s["curve"]) > 1 else None
+            half_text = f" ({half[1]:.2f} at {half[0]:.1f} min)" if half else ""
+            cov = (" / ".join(f"{100 * s[f'coverage_{p}']:.1f}" for p in study.levels)
+                   if all(s.get(f"coverage_{p}") is not None for p in study.levels) else "-")
+            width = f"{100 * s['halfwidth_95']:.1f}%" if s["halfwidth_95"] is not None else "-"
+            lines.append(f"| {scene} | {label} | {s['steps']:.0f} ({s['steps_per_s']:.2f}) | {s['minutes']:.1f} | "
+                         f"{s['psnr']:.2f}{half_text} | {s['ssim']:.3f} | {s['abs_rel']:.4f} | {cov} | {width} |")
+    return lines
 
 
 def main() -> None:
@@ -190,7 +295,10 @@ def main() -> None:
     args = ap.parse_args()
     study = STUDIES[args.study]
     out = args.out or Path(study.out)
-    rows = {label: row_scores(out / folder) for label, folder in study.rows.items()}
+    def folders(folder):
+        return tuple(out / f for f in folder) if isinstance(folder, tuple) else out / folder
+
+    rows = {label: row_scores(folders(folder)) for label, folder in study.rows.items()}
     (today_label, today), (cand_label, candidate) = rows.items()
     paper = tuple(paper_scores(Path(path)) for path in study.paper_tables) if study.paper_tables else None
     v = verdict(study, today, candidate, paper)
@@ -198,20 +306,13 @@ def main() -> None:
     lines = [f"# Study {study.number}: {study.title}", "",
              f"Rows: `benchmarks/capture_quality.py` ({study.protocol}); each row's own README in its folder:", ""]
     lines += [f"    {command}" for command in study.commands]
-    lines += ["", f"Verdict: `python benchmarks/studies/capture_grid_study.py --study {args.study}`.", "",
-              "| scene | row | steps (steps/s) | minutes | PSNR dB (at half the schedule) | SSIM | depth abs-rel | "
-              "cov 68 / 95 | median 95% half-width |", "|" + "---|" * 9]
-    for scene in sorted(today):
-        for label, scores in rows.items():
-            s = scores.get(scene)
-            if s is None:
-                continue
-            half = s["curve"][0] if len(s["curve"]) > 1 else None
-            half_text = f" ({half[1]:.2f} at {half[0]:.1f} min)" if half else ""
-            cov = (f"{100 * s['coverage_68']:.1f} / {100 * s['coverage_95']:.1f}" if s["coverage_68"] is not None else "-")
-            width = f"{100 * s['halfwidth_95']:.1f}%" if s["halfwidth_95"] is not None else "-"
-            lines.append(f"| {scene} | {label} | {s['steps']} ({s['steps_per_s']:.2f}) | {s['minutes']:.1f} | "
-                         f"{s['psnr']:.2f}{half_text} | {s['ssim']:.3f} | {s['abs_rel']:.4f} | {cov} | {width} |")
+    lines += ["", f"Verdict: `python benchmarks/studies/capture_grid_study.py --study {args.study}`.", ""]
+    lines += score_table(study, rows, "the means of the seeds" if any(isinstance(f, tuple) for f in study.rows.values())
+                         else None)
+    for label, folder in study.rows.items():
+        if isinstance(folder, tuple):  # each seed's row beside the means
+            per_seed = {f"{label}, {Path(f).name}": row_scores(out / f) for f in folder}
+            lines += ["", *score_table(study, per_seed, f"{label}, each seed")]
     if paper is not None:
         lines += ["", "Paper split (the tables' S-NeRF default row, seed 0, its four test views):", "",
                   "| scene | row | PSNR dB | depth abs-rel |", "|---|---|---|---|"]
@@ -224,6 +325,9 @@ def main() -> None:
         failed = [k for k, ok in s["checks"].items() if not ok]
         lines.append(f"- {scene}: PSNR {s['psnr_gain_db']:+.2f} dB, abs-rel {s['abs_rel_change']:+.4f}: "
                      + ("passes" if s["passes"] else "fails " + ", ".join(failed)))
+    if "mean_psnr_gain_db" in v:
+        lines.append(f"- PSNR gain averaged over the scenes: {v['mean_psnr_gain_db']:+.2f} dB "
+                     f"(at least {study.min_psnr_gain_db} asked)")
     for scene in sorted({"fern", "flower"} - set(v["scenes"])):
         lines.append(f"- {scene}: no row of both settings (the rule needs it on every scene)")
     lines += ["", f"**{'Taken' if v['taken'] else 'Not taken'}.**", ""]
