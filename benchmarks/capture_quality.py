@@ -25,6 +25,10 @@ adds the minutes each row takes to reach the CPU run's final PSNR and depth abs-
 CPU's curves beside this run's); ``--llff-root`` names the scenes' folder where ``../shared`` is not
 beside the repository (``benchmarks/results/capture_quality_gpu/``).
 
+For a study of an option that does not change a step's cost, ``--steps N`` trains a schedule of N
+steps instead (``train.iterations``, no minutes budget): rows then compare at equal steps whatever the
+host's speed that hour (it moved the steps in ten minutes by 20-25% within one session here).
+
 Resumes: a finished (scene, method) is read from ``--work``; ``results.json``, ``README.md`` and
 ``capture_quality.png`` are rewritten in ``--out`` after each.
 """
