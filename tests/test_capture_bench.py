@@ -209,6 +209,12 @@ def test_adam_beta2_study_rules_on_the_means_of_its_seeds(load_script, tmp_path)
     assert "50, 68, 90, 95%" in text and "minutes" not in text and "At the paper split" in text
     with pytest.raises(SystemExit, match="no results.json"):
         script.row_scores((tmp_path / "a3", tmp_path / "missing"))
+    # the seeds' plot: one PNG with a panel per scene and metric; a study of single rows has none
+    seeds = study._replace(rows={"today": ("a3", "a4"), "candidate": ("b3", "b4")})
+    assert script.plot_seed_pairs(seeds, tmp_path, tmp_path / "seeds.png")
+    assert (tmp_path / "seeds.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not script.plot_seed_pairs(script.STUDIES["cells"], tmp_path, tmp_path / "none.png")
+    assert not (tmp_path / "none.png").exists()
 
 
 def test_time_to_reference_reads_the_first_mark_past_the_reference(bench, tmp_path):

@@ -288,6 +288,37 @@ def score_table(study: Study, rows: dict[str, dict], caption: str | None) -> lis
     return lines
 
 
+def plot_seed_pairs(study: Study, out: Path, path: Path) -> bool:
+    """Per scene, each seed's PSNR, depth abs-rel and median 95% half-width under today's setting and the
+    candidate's, a seed's two rows joined (a study whose rows are seeds; False where they are not)."""
+    (today_label, today_folders), (cand_label, cand_folders) = study.rows.items()
+    if not (isinstance(today_folders, tuple) and isinstance(cand_folders, tuple)):
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    pairs = [(Path(a).name, row_scores(out / a), row_scores(out / b)) for a, b in zip(today_folders, cand_folders)]
+    scenes = sorted(set.intersection(*(set(t) & set(c) for _, t, c in pairs)))
+    metrics = (("psnr", "PSNR dB", 1.0), ("abs_rel", "depth abs-rel", 1.0), ("halfwidth_95", "median 95% half-width / depth, %", 100.0))
+    fig, axes = plt.subplots(len(scenes), len(metrics), figsize=(4 * len(metrics), 3.2 * len(scenes)), squeeze=False)
+    for row, scene in zip(axes, scenes):
+        for ax, (key, name, factor) in zip(row, metrics):
+            for seed, t, c in pairs:
+                if t[scene][key] is not None and c[scene][key] is not None:
+                    ax.plot([0, 1], [factor * t[scene][key], factor * c[scene][key]], "o-", label=seed)
+            ax.set_xticks([0, 1], [today_label, cand_label])
+            ax.set_xlim(-0.4, 1.4)
+            ax.set(title=f"{scene}: {name}")
+            ax.grid(alpha=0.3)
+        row[0].legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return True
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--study", choices=sorted(STUDIES), required=True)
@@ -331,6 +362,8 @@ def main() -> None:
     for scene in sorted({"fern", "flower"} - set(v["scenes"])):
         lines.append(f"- {scene}: no row of both settings (the rule needs it on every scene)")
     lines += ["", f"**{'Taken' if v['taken'] else 'Not taken'}.**", ""]
+    if plot_seed_pairs(study, out, out / "seeds.png"):
+        lines += ["![each seed, both settings](seeds.png)", ""]
     (out / "README.md").write_text("\n".join(lines))
     print("\n".join(lines))
 
