@@ -130,9 +130,9 @@ STUDIES = {
          "--work runs/s47/beta2_0.999/seed_S (S = 3, 4)",
          "the same with --set train.adam_beta2=0.99 into beta2_0.99",
          "OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes SCENE --methods snerf_default --seed 0 "
-         "--no-timing --quiet --out runs/s47/tables_B [--set train.adam_beta2=0.99] (fern and flower side by side), "
-         "then both scenes in one invocation, its tables.json and tables.md copied to "
-         "benchmarks/results/adam_beta2_study/tables_B (B = 0.999, 0.99)"),
+         "--no-timing --quiet --out runs/s47/tables_B [--set train.adam_beta2=0.99] (B = 0.999 on both scenes side by "
+         "side, fern's 0.99 after fern's 0.999, flower's 0.99 last on two threads), then both scenes in one invocation, "
+         "its tables.json and tables.md copied to benchmarks/results/adam_beta2_study/tables_B"),
         "S-NeRF default, capture split, seeds 3 and 4 (no study's), a schedule of 3300 steps (`--steps`) on two "
         "threads, one row at a time, a seed's two rows one after the other; the table's rows are the seeds' means",
         min_psnr_gain_db=0.1, max_psnr_loss_db=0.05, max_minutes=None, gain_on_mean=True,
