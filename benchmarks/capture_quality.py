@@ -405,8 +405,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=["fern", "flower"])
     ap.add_argument("--methods", nargs="+", default=["snerf", "deterministic"])
-    ap.add_argument("--minutes", type=float, default=10.0, help="Training budget in wall-clock minutes.")
-    ap.add_argument("--steps", type=positive_int, default=None,
+    budget = ap.add_mutually_exclusive_group()  # one budget: a command naming both is refused
+    budget.add_argument("--minutes", type=float, default=10.0, help="Training budget in wall-clock minutes.")
+    budget.add_argument("--steps", type=positive_int, default=None,
                     help="Train a schedule of this many steps instead of a minutes budget (rows compare at equal "
                          "steps whatever the host's speed; for studies of options that do not change a step's cost).")
     ap.add_argument("--marks", nargs="+", type=float, default=[0.1, 0.25, 0.5, 0.75, 1.0],

@@ -184,8 +184,11 @@ def test_adam_beta2_study_rules_on_the_means_of_its_seeds(load_script, tmp_path)
     write(tmp_path / "a4", {"fern": (24.2, 0.057, held, 0.047), "flower": (25.6, 0.042, held, 0.094)})
     write(tmp_path / "b3", {"fern": (24.1, 0.056, held, 0.050), "flower": (25.7, 0.039, held, 0.085)})
     write(tmp_path / "b4", {"fern": (24.05, 0.058, (0.44, 0.64, 0.88, 0.93), 0.050), "flower": (25.8, 0.041, held, 0.087)})
-    today = script.row_scores((tmp_path / "a3", tmp_path / "a4"))
-    candidate = script.row_scores((tmp_path / "b3", tmp_path / "b4"))
+    seeds_study = study._replace(rows={"today": ("a3", "a4"), "candidate": ("b3", "b4")})
+    rows, seeds = script.read_rows(seeds_study, tmp_path)
+    today, candidate = rows["today"], rows["candidate"]
+    assert seeds["candidate"]["b4"]["fern"]["coverage_50"] == 0.44  # each seed's own scores, read once
+    assert script.has_seeds(seeds_study) and not script.has_seeds(script.STUDIES["cells"])
     assert today["fern"]["psnr"] == pytest.approx(24.1) and today["flower"]["halfwidth_95"] == pytest.approx(0.092)
     assert candidate["fern"]["coverage_50"] == pytest.approx(0.47) and candidate["fern"]["seeds"] == 2
     assert candidate["fern"]["minutes"] == pytest.approx(10.0) and candidate["flower"]["minutes"] == pytest.approx(11.0)
@@ -202,19 +205,20 @@ def test_adam_beta2_study_rules_on_the_means_of_its_seeds(load_script, tmp_path)
     off = {**candidate, "fern": {**candidate["fern"], "coverage_90": 0.84}}  # 6 points under, today's 0 under
     assert not script.verdict(study, today, off)["scenes"]["fern"]["checks"]["coverage"]
     # a level today's misses by 7 points may be missed by as much
-    assert script.level_held({"coverage_90": 0.83}, {"coverage_90": 0.835}, 90, 5.0)
-    assert not script.level_held({"coverage_90": 0.83}, {"coverage_90": 0.825}, 90, 5.0)
+    def level_90(today_90, candidate_90):
+        return script.coverage_held(study, {**today["fern"], "coverage_90": today_90},
+                                    {**candidate["fern"], "coverage_90": candidate_90})
+
+    assert level_90(0.83, 0.835)
+    assert not level_90(0.83, 0.825)
     text = script.rule_text(study)
     assert "on the means of the seeds" in text and "averaged over the two scenes is at least 0.1 dB" in text
     assert "50, 68, 90, 95%" in text and "minutes" not in text and "At the paper split" in text
     with pytest.raises(SystemExit, match="no results.json"):
-        script.row_scores((tmp_path / "a3", tmp_path / "missing"))
-    # the seeds' plot: one PNG with a panel per scene and metric; a study of single rows has none
-    seeds = study._replace(rows={"today": ("a3", "a4"), "candidate": ("b3", "b4")})
-    assert script.plot_seed_pairs(seeds, tmp_path, tmp_path / "seeds.png")
+        script.read_rows(study._replace(rows={"today": ("a3", "missing"), "candidate": ("b3", "b4")}), tmp_path)
+    # the seeds' plot: one PNG with a panel per scene and metric
+    script.plot_seed_pairs(seeds, tmp_path / "seeds.png")
     assert (tmp_path / "seeds.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert not script.plot_seed_pairs(script.STUDIES["cells"], tmp_path, tmp_path / "none.png")
-    assert not (tmp_path / "none.png").exists()
 
 
 def test_time_to_reference_reads_the_first_mark_past_the_reference(bench, tmp_path):

@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
-from study_helpers import read_tables_method  # noqa: E402
+from study_helpers import coverage_failures, read_tables_method, seed_means  # noqa: E402
 
 
 class Study(NamedTuple):
@@ -160,24 +160,19 @@ def last_scores(results: dict) -> dict[str, dict]:
 
 
 def mean_scores(runs: list[dict[str, dict]]) -> dict[str, dict]:
-    """Per scene: the mean of several runs' ``last_scores`` (seeds) over the runs that have the scene,
-    where every one of them has it (a scene some seed lacks is left out); the curve is the first run's."""
+    """Per scene: the mean of several runs' ``last_scores`` (seeds; ``study_helpers.seed_means``) for the
+    scenes every run has; a score no seed has stays None, the curve is the end of the schedule's mean."""
     out = {}
-    for scene in set.intersection(*(set(r) for r in runs)):
+    for scene in sorted(set.intersection(*(set(r) for r in runs))):
         rows = [r[scene] for r in runs]
-        out[scene] = {key: (None if any(row[key] is None for row in rows) else sum(row[key] for row in rows) / len(rows))
-                      for key in rows[0] if key != "curve"}
-        out[scene]["curve"] = rows[0]["curve"] if len(rows) == 1 else [(out[scene]["minutes"], out[scene]["psnr"])]
-        out[scene]["seeds"] = len(rows)
+        mean = {key: None for key in rows[0] if key != "curve"} | seed_means(rows)
+        out[scene] = {**mean, "curve": [(mean["minutes"], mean["psnr"])], "seeds": len(rows)}
     return out
 
 
-def row_scores(folder: Path | tuple[Path, ...]) -> dict[str, dict]:
+def row_scores(folder: Path) -> dict[str, dict]:
     """``last_scores`` of a row's ``results.json``, or merged over its per-scene sub-folders'
-    (a row whose setting differs per scene writes one capture-benchmark output per scene); for several
-    folders (a row's seeds) their ``mean_scores``."""
-    if isinstance(folder, tuple):
-        return mean_scores([row_scores(f) for f in folder])
+    (a row whose setting differs per scene writes one capture-benchmark output per scene)."""
     files = [folder / "results.json"] if (folder / "results.json").is_file() else sorted(folder.glob("*/results.json"))
     if not files:
         raise SystemExit(f"{folder}: no results.json (run the row's command first)")
@@ -185,6 +180,24 @@ def row_scores(folder: Path | tuple[Path, ...]) -> dict[str, dict]:
     for path in files:
         scores.update(last_scores(json.loads(path.read_text())))
     return scores
+
+
+def has_seeds(study: Study) -> bool:
+    """Whether the study's rows are several seeds' runs (the rule then reads their means)."""
+    return any(isinstance(folder, tuple) for folder in study.rows.values())
+
+
+def read_rows(study: Study, out: Path) -> tuple[dict[str, dict], dict[str, dict[str, dict]]]:
+    """Each row's scores (``row_scores``; the ``mean_scores`` of its seeds where it is several runs) and,
+    per row of seeds, each seed folder's own scores (name -> ``row_scores``), every file read once."""
+    rows, seeds = {}, {}
+    for label, folder in study.rows.items():
+        if isinstance(folder, tuple):
+            seeds[label] = {Path(f).name: row_scores(out / f) for f in folder}
+            rows[label] = mean_scores(list(seeds[label].values()))
+        else:
+            rows[label] = row_scores(out / folder)
+    return rows, seeds
 
 
 def paper_scores(path: Path) -> dict[str, dict]:
@@ -208,8 +221,7 @@ def verdict(study: Study, today: dict, candidate: dict,
         checks.update({
             "psnr_kept": study.max_psnr_loss_db is None or psnr_gain >= -study.max_psnr_loss_db,
             "abs_rel": abs_rel_change <= study.max_abs_rel_loss,
-            "coverage": all(level_held(a if study.level_as_far_as_today else {}, b, p, study.coverage_points)
-                            for p in study.levels),
+            "coverage": coverage_held(study, a, b),
         })
         if study.max_minutes is not None:
             checks["minutes"] = b["minutes"] <= study.max_minutes
@@ -232,14 +244,17 @@ def verdict(study: Study, today: dict, candidate: dict,
     return out
 
 
-def level_held(today: dict, candidate: dict, percent: int, points: float) -> bool:
-    """The candidate's coverage at a central level within ``points`` of nominal, or no farther from it
-    than today's (a level today's misses, the candidate may miss by as much)."""
-    b, a = candidate.get(f"coverage_{percent}"), today.get(f"coverage_{percent}")
-    if b is None:
+def coverage_held(study: Study, today: dict, candidate: dict) -> bool:
+    """The candidate's recalibrated coverage at each of the study's levels within ``coverage_points`` of
+    nominal (``study_helpers.coverage_failures``) or, with ``level_as_far_as_today``, no farther from it
+    than today's; a row without coverage fails."""
+    keys = [f"coverage_{p}" for p in study.levels]
+    if any(candidate.get(key) is None for key in keys):
         return False
-    miss = abs(100 * b - NOMINAL[percent])
-    return miss <= points or (a is not None and miss <= abs(100 * a - NOMINAL[percent]))
+    nominal = {key: NOMINAL[p] / 100.0 for key, p in zip(keys, study.levels)}
+    reference = {key: today.get(key) if today.get(key) is not None else nominal[key] for key in keys} \
+        if study.level_as_far_as_today else nominal
+    return not coverage_failures(reference, candidate, tuple(nominal.values()), study.coverage_points / 100.0)
 
 
 def rule_text(study: Study) -> str:
@@ -262,7 +277,7 @@ def rule_text(study: Study) -> str:
     paper = (f" At the paper split (the tables' S-NeRF default row, seed 0) its PSNR is at most "
              f"{study.max_paper_psnr_loss_db} dB and its depth abs-rel at most {study.max_paper_abs_rel_loss} "
              f"worse than today's on each scene." if study.paper_tables else "")
-    seeds = " (on the means of the seeds)" if any(isinstance(f, tuple) for f in study.rows.values()) else ""
+    seeds = " (on the means of the seeds)" if has_seeds(study) else ""
     return (f"Rule (fixed before the rows){seeds}: the candidate is taken if {lead}, "
             f"its depth abs-rel at most {study.max_abs_rel_loss} above, its {levels}{width}{minutes}.{paper}")
 
@@ -288,18 +303,18 @@ def score_table(study: Study, rows: dict[str, dict], caption: str | None) -> lis
     return lines
 
 
-def plot_seed_pairs(study: Study, out: Path, path: Path) -> bool:
+def plot_seed_pairs(seeds: dict[str, dict[str, dict]], path: Path) -> None:
     """Per scene, each seed's PSNR, depth abs-rel and median 95% half-width under today's setting and the
-    candidate's, a seed's two rows joined (a study whose rows are seeds; False where they are not)."""
-    (today_label, today_folders), (cand_label, cand_folders) = study.rows.items()
-    if not (isinstance(today_folders, tuple) and isinstance(cand_folders, tuple)):
-        return False
+    candidate's (``read_rows``' seeds: the two rows' labels -> seed folder -> scores, the seeds in the
+    same order under both), a seed's two rows joined."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    pairs = [(Path(a).name, row_scores(out / a), row_scores(out / b)) for a, b in zip(today_folders, cand_folders)]
+    (today_label, today), (cand_label, candidate) = seeds.items()
+    # a row's seeds are listed in the same order under both settings (the study's folders)
+    pairs = [(name, t, c) for (name, t), c in zip(today.items(), candidate.values())]
     scenes = sorted(set.intersection(*(set(t) & set(c) for _, t, c in pairs)))
     metrics = (("psnr", "PSNR dB", 1.0), ("abs_rel", "depth abs-rel", 1.0), ("halfwidth_95", "median 95% half-width / depth, %", 100.0))
     fig, axes = plt.subplots(len(scenes), len(metrics), figsize=(4 * len(metrics), 3.2 * len(scenes)), squeeze=False)
@@ -316,7 +331,6 @@ def plot_seed_pairs(study: Study, out: Path, path: Path) -> bool:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
-    return True
 
 
 def main() -> None:
@@ -326,10 +340,7 @@ def main() -> None:
     args = ap.parse_args()
     study = STUDIES[args.study]
     out = args.out or Path(study.out)
-    def folders(folder):
-        return tuple(out / f for f in folder) if isinstance(folder, tuple) else out / folder
-
-    rows = {label: row_scores(folders(folder)) for label, folder in study.rows.items()}
+    rows, seeds = read_rows(study, out)
     (today_label, today), (cand_label, candidate) = rows.items()
     paper = tuple(paper_scores(Path(path)) for path in study.paper_tables) if study.paper_tables else None
     v = verdict(study, today, candidate, paper)
@@ -338,12 +349,10 @@ def main() -> None:
              f"Rows: `benchmarks/capture_quality.py` ({study.protocol}); each row's own README in its folder:", ""]
     lines += [f"    {command}" for command in study.commands]
     lines += ["", f"Verdict: `python benchmarks/studies/capture_grid_study.py --study {args.study}`.", ""]
-    lines += score_table(study, rows, "the means of the seeds" if any(isinstance(f, tuple) for f in study.rows.values())
-                         else None)
-    for label, folder in study.rows.items():
-        if isinstance(folder, tuple):  # each seed's row beside the means
-            per_seed = {f"{label}, {Path(f).name}": row_scores(out / f) for f in folder}
-            lines += ["", *score_table(study, per_seed, f"{label}, each seed")]
+    lines += score_table(study, rows, "the means of the seeds" if seeds else None)
+    for label, per_seed in seeds.items():  # each seed's row beside the means
+        lines += ["", *score_table(study, {f"{label}, {name}": scores for name, scores in per_seed.items()},
+                                   f"{label}, each seed")]
     if paper is not None:
         lines += ["", "Paper split (the tables' S-NeRF default row, seed 0, its four test views):", "",
                   "| scene | row | PSNR dB | depth abs-rel |", "|---|---|---|---|"]
@@ -362,7 +371,8 @@ def main() -> None:
     for scene in sorted({"fern", "flower"} - set(v["scenes"])):
         lines.append(f"- {scene}: no row of both settings (the rule needs it on every scene)")
     lines += ["", f"**{'Taken' if v['taken'] else 'Not taken'}.**", ""]
-    if plot_seed_pairs(study, out, out / "seeds.png"):
+    if len(seeds) == 2:
+        plot_seed_pairs(seeds, out / "seeds.png")
         lines += ["![each seed, both settings](seeds.png)", ""]
     (out / "README.md").write_text("\n".join(lines))
     print("\n".join(lines))
