@@ -12,6 +12,7 @@ the table and the rule's verdict (docs/studies.md; each rule fixed before its ro
     python benchmarks/studies/capture_grid_study.py --study samples
     python benchmarks/studies/capture_grid_study.py --study colour_capacity
     python benchmarks/studies/capture_grid_study.py --study adam_beta2
+    python benchmarks/studies/capture_grid_study.py --study adam_beta2_colour
 
 A row may be several runs (seeds): the rule then reads their means.
 
@@ -139,6 +140,18 @@ STUDIES = {
         levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0,
         paper_tables=("benchmarks/results/adam_beta2_study/tables_0.999/tables.json",
                       "benchmarks/results/adam_beta2_study/tables_0.99/tables.json")),
+    "adam_beta2_colour": Study(
+        "48", "Adam's faster second-moment decay for the colour only", "benchmarks/results/adam_beta2_colour_study",
+        {"today (0.999)": ("colour_0.999/seed_5", "colour_0.999/seed_6"),
+         "candidate (colour 0.99)": ("colour_0.99/seed_5", "colour_0.99/seed_6")},
+        ("OMP_NUM_THREADS=2 python benchmarks/capture_quality.py --methods snerf --steps 3300 --marks 1 --threads 2 "
+         "--quiet --seed S --out benchmarks/results/adam_beta2_colour_study/colour_0.999/seed_S "
+         "--work runs/s48/colour_0.999/seed_S (S = 5, 6; from the commit before the option existed)",
+         "the same with --set train.adam_beta2_colour=0.99 into colour_0.99"),
+        "S-NeRF default, capture split, seeds 5 and 6 (no study's), a schedule of 3300 steps (`--steps`) on two "
+        "threads, one row at a time, today's rows first; the table's rows are the seeds' means",
+        min_psnr_gain_db=0.1, max_psnr_loss_db=0.05, max_minutes=None, gain_on_mean=True,
+        levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0),
 }
 
 

@@ -104,7 +104,9 @@ class TrainConfig:
     lr_final_factor: float = 0.1
     """Learning rate at the end, as a fraction of lr (exponential decay). Range: a finite number > 0 and <= 1."""
     adam_beta2: float = 0.999
-    """Adam's second-moment decay for every parameter (the grid's lazy Adam too): 0.999 is Adam's own; 0.99 is Instant-NGP's for hash grids, its step size adapting within about a hundred steps. Range: a finite number > 0 and < 1."""
+    """Adam's second-moment decay for every parameter but the colour's (the grid's lazy Adam too): 0.999 is Adam's own; 0.99 is Instant-NGP's for hash grids, its step size adapting within about a hundred steps. Range: a finite number > 0 and < 1."""
+    adam_beta2_colour: float = 0.999
+    """Adam's second-moment decay for the colour's parameters: a grid's colour channels and its colour decoder (a field without a grid has none apart; its parameters all take adam_beta2). Range: a finite number > 0 and < 1."""
     tv_weight: float = 1e-3
     """Total-variation weight on grid cells (grid backend). Range: a finite number >= 0."""
     holdout_fraction: float = 0.0
@@ -191,6 +193,7 @@ TRAIN_CHECKS: dict[str, V.Checker] = {
     "lr": V.real(0.0, lo_open=True),
     "lr_final_factor": V.real(0.0, 1.0, lo_open=True),
     "adam_beta2": V.real(0.0, 1.0, lo_open=True, hi_open=True),
+    "adam_beta2_colour": V.real(0.0, 1.0, lo_open=True, hi_open=True),
     "tv_weight": V.real(0.0),
     "holdout_fraction": V.real(0.0, 0.5),
     "holdout_block": V.integer(1, 4096),
@@ -372,10 +375,27 @@ LEGACY_VALUES: dict[str, Any] = {"loss.per_point_noise": False, "loss.noise_head
                                  "field.grid_resolution_rule": "footprint", "render.colour_min_transmittance": 0.0}
 
 
+#: Options that a run saved before they existed computed with another option's value: the colour's
+#: second-moment decay was ``train.adam_beta2`` (every parameter's) until ``train.adam_beta2_colour``.
+LEGACY_SAME_AS: dict[str, str] = {"train.adam_beta2_colour": "train.adam_beta2"}
+
+
+def fill_legacy_same_as(flat: dict[str, Any]) -> dict[str, Any]:
+    """A flat saved config (dotted keys) with each ``LEGACY_SAME_AS`` key it lacks set to its source's value."""
+    missing = {k: flat[src] for k, src in LEGACY_SAME_AS.items() if k not in flat and src in flat}
+    return {**flat, **missing} if missing else flat
+
+
 def saved_config(data: dict) -> ExperimentConfig:
     """The config of a saved run (config.json, a checkpoint's copy): ``from_dict`` with each
-    ``LEGACY_VALUES`` key the run's file lacks set to its legacy value."""
+    ``LEGACY_VALUES`` key the run's file lacks set to its legacy value, each ``LEGACY_SAME_AS`` key
+    to its source's value."""
     data = copy.deepcopy(data)
+    for dotted, source in LEGACY_SAME_AS.items():
+        (group, name), (src_group, src_name) = dotted.split("."), source.split(".")
+        node, src_node = data.get(group), data.get(src_group)
+        if isinstance(node, dict) and isinstance(src_node, dict) and name not in node and src_name in src_node:
+            node[name] = src_node[src_name]
     for dotted, value in LEGACY_VALUES.items():
         *groups, name = dotted.split(".")
         node = data

@@ -9,6 +9,11 @@ update of a table is one compiled loop over its touched rows (``row_kernels``).
 Everything else (decoders, MLPs, priors) uses Adam. One object steps, zeroes, schedules and
 checkpoints both.
 
+Second-moment decay: ``beta2`` (``train.adam_beta2``) for every parameter but the colour's, which
+get ``colour_beta2`` (``train.adam_beta2_colour``): a grid's colour channels (its table's columns
+``colour_channels``) and its colour decoder, as ``RadianceModel.param_groups`` marks them. Where the
+two are equal the groups are the model's own (so older checkpoints load).
+
 Learning rate: exponential decay from ``lr`` to ``lr * final_factor`` over ``total_steps``,
 ``lr(step) = lr * final_factor ** (step / total_steps)``, set from the step number (so a
 resumed run has the same schedule without a scheduler state).
@@ -25,11 +30,27 @@ from . import row_kernels
 class FieldOptimizer:
     """Adam for dense groups, SparseAdam for groups marked ``{"sparse": True}``."""
 
-    def __init__(self, param_groups: list[dict], *, total_steps: int, final_factor: float, beta2: float = 0.999):
-        dense = [dict(g) for g in param_groups if not g.get("sparse") and g["params"]]
-        sparse = [dict(g) for g in param_groups if g.get("sparse") and g["params"]]
+    def __init__(self, param_groups: list[dict], *, total_steps: int, final_factor: float, beta2: float = 0.999,
+                 colour_beta2: float | None = None):
+        colour_beta2 = beta2 if colour_beta2 is None else float(colour_beta2)
+        dense, sparse = [], []
+        for group in param_groups:
+            g = dict(group)
+            colour_ids = {id(p) for p in g.pop("colour_params", ())}
+            colour_channels = g.pop("colour_channels", None)
+            if g.pop("sparse", False):
+                if colour_channels is not None and colour_beta2 != beta2:
+                    g["colour_channels"], g["colour_beta2"] = tuple(colour_channels), colour_beta2
+                sparse.append(g)
+            elif colour_ids and colour_beta2 != beta2:
+                dense.append({**g, "params": [p for p in g["params"] if id(p) not in colour_ids]})
+                dense.append({**g, "params": [p for p in g["params"] if id(p) in colour_ids],
+                              "betas": (0.9, colour_beta2)})
+            else:
+                dense.append(g)
+        dense = [g for g in dense if g["params"]]
+        sparse = [g for g in sparse if g["params"]]
         for g in dense + sparse:
-            g.pop("sparse", None)
             g["initial_lr"] = g["lr"]
         self.optimizers: list[torch.optim.Optimizer] = []
         betas = (0.9, beta2)  # train.adam_beta2; the first moment's decay is Adam's own
@@ -84,6 +105,9 @@ class RowSparseAdam(torch.optim.Optimizer):
         m_r <- b1 m_r + (1 - b1) g_r,   v_r <- b2 v_r + (1 - b2) g_r^2
         x_r <- x_r - lr * (m_r / (1 - b1^t)) / (sqrt(v_r / (1 - b2^t)) + eps)
 
+    A group with ``colour_channels`` (start, stop) and ``colour_beta2`` uses that second-moment
+    decay in those columns (b2 is then one per channel, elementwise above).
+
     Rows without gradient keep their values and moments (as ``torch.optim.SparseAdam``, whose
     updates this reproduces; tested). A table's gradient is read from its ``RowGradient``; a
     parameter with an ordinary ``.grad`` (dense or sparse) works too.
@@ -91,6 +115,17 @@ class RowSparseAdam(torch.optim.Optimizer):
 
     def __init__(self, params, lr: float = 1e-3, betas: tuple[float, float] = (0.9, 0.999), eps: float = ADAM_EPS):
         super().__init__(params, dict(lr=lr, betas=betas, eps=eps))
+
+    @staticmethod
+    def channel_beta2(p: torch.Tensor, group: dict) -> float | tuple[float, ...]:
+        """The second-moment decay of table p [N, C]: the group's b2, or C of them where the group
+        gives its colour channels their own (``colour_channels``, ``colour_beta2``)."""
+        b2 = group["betas"][1]
+        channels = group.get("colour_channels")  # absent from checkpoints saved before the option
+        if channels is None:
+            return b2
+        start, stop = channels
+        return tuple(group["colour_beta2"] if start <= c < stop else b2 for c in range(p.shape[1]))
 
     @staticmethod
     def _gradient_rows(p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
@@ -134,7 +169,8 @@ class RowSparseAdam(torch.optim.Optimizer):
             return False
         state["step"] += 1
         row_kernels.adam_touched_rows(p.data, state["exp_avg"], state["exp_avg_sq"], *buffers, lr=group["lr"],
-                                      betas=group["betas"], eps=group["eps"], step=int(state["step"]))
+                                      betas=(group["betas"][0], self.channel_beta2(p, group)), eps=group["eps"],
+                                      step=int(state["step"]))
         acc.mark_reset()
         return True
 
@@ -150,7 +186,7 @@ class RowSparseAdam(torch.optim.Optimizer):
     def step(self, closure=None):
         loss = closure() if closure is not None else None
         for group in self.param_groups:
-            b1, b2 = group["betas"]
+            b1 = group["betas"][0]
             for p in group["params"]:
                 if self._step_in_place(p, group):
                     continue
@@ -161,11 +197,17 @@ class RowSparseAdam(torch.optim.Optimizer):
                 state = self._state(p)
                 state["step"] += 1
                 t = float(state["step"])
+                b2 = self.channel_beta2(p, group)
                 m = state["exp_avg"][rows].mul_(b1).add_(g, alpha=1 - b1)
-                v = state["exp_avg_sq"][rows].mul_(b2).addcmul_(g, g, value=1 - b2)
+                if isinstance(b2, tuple):  # one decay per channel [C]
+                    b2 = torch.tensor(b2, dtype=torch.float64).to(device=p.device, dtype=p.dtype)
+                    v = state["exp_avg_sq"][rows].mul_(b2).addcmul_(g, g * (1 - b2))
+                    denom = (v / (1 - b2.double() ** t).to(p.dtype)).sqrt_().add_(group["eps"])
+                else:
+                    v = state["exp_avg_sq"][rows].mul_(b2).addcmul_(g, g, value=1 - b2)
+                    denom = (v / (1 - b2 ** t)).sqrt_().add_(group["eps"])
                 state["exp_avg"].index_copy_(0, rows, m)
                 state["exp_avg_sq"].index_copy_(0, rows, v)
-                denom = (v / (1 - b2 ** t)).sqrt_().add_(group["eps"])
                 # rows are unique: a gather and an indexed copy (index_add_ is 2x slower on CPU)
                 p.index_copy_(0, rows, p[rows].sub_(m.div_(denom), alpha=group["lr"] / (1 - b1 ** t)))
         return loss

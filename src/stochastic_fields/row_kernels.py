@@ -9,11 +9,12 @@ passes over the touched rows, each pass a random access into a table of millions
       acc[idx[m, j], c0 + c] += w[m, j] g[m, c],     touched[idx[m, j]] = True
 
   torch forms the [M J, C] products (an einsum) and ``index_add_``s them (one pass each);
-* **Adam** (``optim.RowSparseAdam``'s lazy update), for every touched row r, with the scalars
-  ``step_size = lr / (1 - b1^t)`` and ``bias2 = 1 - b2^t`` of the table's step t:
+* **Adam** (``optim.RowSparseAdam``'s lazy update), for every touched row r and channel c, with
+  ``step_size = lr / (1 - b1^t)`` and ``bias2_c = 1 - b2_c^t`` of the table's step t (the second
+  moment's decay b2_c may differ per channel: ``train.adam_beta2_colour`` on the colour channels):
 
-      m_r <- b1 m_r + (1 - b1) acc_r,   v_r <- b2 v_r + (1 - b2) acc_r^2
-      x_r <- x_r - step_size m_r / (sqrt(v_r / bias2) + eps),   acc_r <- 0,   touched_r <- False
+      m_rc <- b1 m_rc + (1 - b1) acc_rc,   v_rc <- b2_c v_rc + (1 - b2_c) acc_rc^2
+      x_rc <- x_rc - step_size m_rc / (sqrt(v_rc / bias2_c) + eps),   acc_r <- 0,   touched_r <- False
 
   torch gathers the rows of the gradient, both moments and the table, and copies three back.
 
@@ -36,6 +37,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -85,10 +87,10 @@ if numba is not None:
                     g = acc[r, c]
                     acc[r, c] = 0.0
                     a = b1 * m1[r, c] + one_minus_b1 * g
-                    b = b2 * m2[r, c] + one_minus_b2 * g * g
+                    b = b2[c] * m2[r, c] + one_minus_b2[c] * g * g
                     m1[r, c] = a
                     m2[r, c] = b
-                    x[r, c] -= step_size * (a / (np.sqrt(b / bias2) + eps))
+                    x[r, c] -= step_size * (a / (np.sqrt(b / bias2[c]) + eps))
 
     @numba.njit(cache=True, nogil=True)
     def _scatter_weighted(acc, touched, idx, w, g, c0):  # pragma: no cover - compiled; tested through the wrappers
@@ -175,15 +177,18 @@ def scatter_weighted_rows(acc: Tensor, touched: Tensor, idx: Tensor, weights: Te
 
 
 def adam_touched_rows(table: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor, acc: Tensor, touched: Tensor, *,
-                      lr: float, betas: tuple[float, float], eps: float, step: int) -> None:
+                      lr: float, betas: tuple[float, float | Sequence[float]], eps: float, step: int) -> None:
     """The lazy Adam update (module doc) of every row of ``table`` [N, C] marked in ``touched`` [N],
     with the summed gradient ``acc`` [N, C], the moments ``exp_avg``, ``exp_avg_sq`` [N, C] and the
-    table's step count ``step`` (>= 1, this update included); zeroes ``acc`` and ``touched`` there."""
+    table's step count ``step`` (>= 1, this update included); zeroes ``acc`` and ``touched`` there.
+    ``betas[1]`` is one second-moment decay or C of them, one per channel."""
     b1, b2 = betas
     x = table.numpy()
+    channels = x.shape[1]
+    b2 = np.broadcast_to(np.asarray(b2, dtype=np.float64), (channels,))  # [C]
     cast = x.dtype.type  # the scalars in the table's dtype, as torch's ops compute
-    scalars = (cast(lr / (1.0 - b1 ** step)), cast(b1), cast(1.0 - b1), cast(b2), cast(1.0 - b2),
-               cast(1.0 - b2 ** step), cast(eps))
+    scalars = (cast(lr / (1.0 - b1 ** step)), cast(b1), cast(1.0 - b1), b2.astype(x.dtype), (1.0 - b2).astype(x.dtype),
+               (1.0 - b2 ** step).astype(x.dtype), cast(eps))
     blocks = row_blocks()
     if blocks > 1:
         _adam_touched_blocks(x, exp_avg.numpy(), exp_avg_sq.numpy(), acc.numpy(), touched.numpy(), *scalars, blocks)

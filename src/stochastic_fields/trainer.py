@@ -166,7 +166,8 @@ class TrainingDepth:
 
 def make_optimizer(model: RadianceModel, cfg: ExperimentConfig) -> FieldOptimizer:
     return FieldOptimizer(model.param_groups(cfg.train.lr), total_steps=cfg.train.iterations,
-                          final_factor=cfg.train.lr_final_factor, beta2=cfg.train.adam_beta2)
+                          final_factor=cfg.train.lr_final_factor, beta2=cfg.train.adam_beta2,
+                          colour_beta2=cfg.train.adam_beta2_colour)
 
 
 #: K of the progress signal's render (cheap; the report's own K comes from the run's settings).

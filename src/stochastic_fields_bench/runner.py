@@ -16,8 +16,8 @@ import torch
 
 from stochastic_fields.calibration import (CHECKED_SOURCE, CROSS_FIT_FOLDS, DEFAULT_CALIBRATION_POINTS, calibrate_run,
                                            describe, load_run_calibration)
-from stochastic_fields.config import (LEGACY_VALUES, ExperimentConfig, flatten, save_config, saved_config,
-                                     set_dotted, to_dict)
+from stochastic_fields.config import (LEGACY_VALUES, ExperimentConfig, fill_legacy_same_as, flatten, save_config,
+                                     saved_config, set_dotted, to_dict)
 from stochastic_fields.defaults import DEPTH_FREE_SPACE, DEPTH_PARALLAX_TERM
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.evaluation import evaluate, synchronize
@@ -92,6 +92,7 @@ def semantic_options(flat: dict[str, Any]) -> dict[str, Any]:
     For an option whose default changed the model (``config.LEGACY_VALUES``) the legacy value is
     the one left out: runs saved before it existed computed with it; for one whose default changed
     after runs were fingerprinted (``_FINGERPRINT_REFERENCE``), the value those runs left out."""
+    flat = fill_legacy_same_as(flat)  # a run saved before an option existed computed with its source's value
     reference = {**flatten(to_dict(ExperimentConfig())), **LEGACY_VALUES, **_FINGERPRINT_REFERENCE}
     ignored = set(_NON_SEMANTIC)
     if flat.get("method", "snerf") != "snerf":

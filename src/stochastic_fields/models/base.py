@@ -107,9 +107,17 @@ class RadianceModel(nn.Module, abc.ABC):
     def param_groups(self, lr: float) -> list[dict]:
         """Optimiser parameter groups: grid cells (of every GridField inside) at
         ``GRID_LR_FACTOR * lr`` (each cell sees few rays per step) and marked ``sparse`` (their
-        gradients are sparse, see ``optim.FieldOptimizer``), everything else at ``lr``."""
-        grid = [p for m in self.modules() if isinstance(m, GridField) for p in m.levels.parameters()]
+        gradients are sparse, see ``optim.FieldOptimizer``), everything else at ``lr``. The colour's
+        parameters are marked for ``train.adam_beta2_colour``: the grid group's ``colour_channels``
+        (start, stop) of its tables' columns (where every grid has the same) and the dense group's
+        ``colour_params`` (the grids' colour decoders)."""
+        grids = [m for m in self.modules() if isinstance(m, GridField)]
+        grid = [p for m in grids for p in m.levels.parameters()]
         ids = {id(p) for p in grid}
         rest = [p for p in self.parameters() if id(p) not in ids and p.requires_grad]
-        groups = [{"params": grid, "lr": lr * GRID_LR_FACTOR, "sparse": True}] if grid else []
-        return groups + [{"params": rest, "lr": lr}]
+        colour_params = [p for m in grids if m.decoder_width > 0 for p in m.decoder.parameters() if p.requires_grad]
+        layouts = {(m.colour_channels.start, m.colour_channels.stop, m.num_channels) for m in grids}
+        colour_channels = next(iter(layouts))[:2] if len(layouts) == 1 else None
+        groups = [{"params": grid, "lr": lr * GRID_LR_FACTOR, "sparse": True,
+                   "colour_channels": colour_channels}] if grid else []
+        return groups + [{"params": rest, "lr": lr, "colour_params": colour_params}]
