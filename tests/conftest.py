@@ -46,6 +46,18 @@ def load_script():
     return load
 
 
+def tiny_cpu_config(iterations: int):
+    """The tiny preset for a few CPU steps on ``tiny_scene``: 32 rays a step, an 8^3-cell grid."""
+    from stochastic_fields.config import preset
+
+    cfg = preset("tiny")
+    cfg.train.iterations = iterations
+    cfg.train.rays_per_batch = 32
+    cfg.train.device = "cpu"
+    cfg.field.grid_max_cells = 8 ** 3
+    return cfg
+
+
 def train_tiny_synthetic_run(run_dir: Path):
     """A tiny preset trained 200 steps in ``run_dir`` on a 20-view synthetic scene (every 5th view
     trains): (model, dataset). The slow calibration tests' shared run."""

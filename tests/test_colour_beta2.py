@@ -12,9 +12,9 @@ import contextlib
 
 import pytest
 import torch
+from conftest import tiny_cpu_config
 
 from stochastic_fields import row_kernels
-from stochastic_fields.config import preset
 from stochastic_fields.data import load_dataset
 from stochastic_fields.fields.grid import GridField
 from stochastic_fields.fields.row_gather import gather_rows
@@ -75,9 +75,8 @@ def test_row_kernel_refuses_a_decay_list_of_the_wrong_length():
 
 
 def _model(tiny_scene, method: str = "snerf"):
-    cfg = preset("tiny")
+    cfg = tiny_cpu_config(iterations=4)
     cfg.method = method
-    cfg.field.grid_max_cells = 8 ** 3
     return build_model(cfg, load_dataset(tiny_scene)), cfg
 
 
@@ -106,11 +105,7 @@ def test_the_colour_decoder_and_channels_and_nothing_else_take_the_colour_decay(
 
 
 def test_a_run_with_the_colour_decay_trains_and_resumes(tiny_scene, tmp_path):
-    cfg = preset("tiny")
-    cfg.train.iterations = 4
-    cfg.train.rays_per_batch = 32
-    cfg.train.device = "cpu"
-    cfg.field.grid_max_cells = 8 ** 3
+    cfg = tiny_cpu_config(iterations=4)
     cfg.train.adam_beta2_colour = 0.99
     dataset = load_dataset(tiny_scene)
     first = Trainer(cfg, tmp_path, dataset)

@@ -167,16 +167,12 @@ def test_grid_field_loads_channels_first_checkpoints():
 
 
 def test_trainer_resumes_a_checkpoint_with_an_old_optimiser_state(tiny_scene, tmp_path):
+    from conftest import tiny_cpu_config
     from stochastic_fields.checkpoint import load_checkpoint, save_checkpoint
-    from stochastic_fields.config import preset
     from stochastic_fields.data import load_dataset
     from stochastic_fields.trainer import Trainer
 
-    cfg = preset("tiny")
-    cfg.train.iterations = 4
-    cfg.train.rays_per_batch = 32
-    cfg.train.device = "cpu"
-    cfg.field.grid_max_cells = 8 ** 3
+    cfg = tiny_cpu_config(iterations=4)
     dataset = load_dataset(tiny_scene)
     Trainer(cfg, tmp_path, dataset).train(progress=False, max_steps=2)
     state = load_checkpoint(tmp_path / "checkpoint.pt")
