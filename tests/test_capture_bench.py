@@ -344,7 +344,8 @@ def test_method_seeds_compares_the_means_of_the_seeds_both_methods_have(load_scr
     script = load_script("benchmarks/studies/method_seeds.py")
 
     def method_row(psnr, depth_spearman, is95):
-        intervals = {"coverage_68": 0.68, "coverage_95": 0.95, "halfwidth_median_95": 0.2,
+        intervals = {"coverage_50": 0.5, "coverage_68": 0.68, "coverage_90": 0.9, "coverage_95": 0.95,
+                     "halfwidth_median_95": 0.2,
                      "interval_score_95": is95, "crps": 0.1}
         return {"psnr": psnr, "spearman_mse_var": 0.5, "ause_rmse_normalised": 0.3,
                 "depth": {"abs_rel": 0.1, "spearman": depth_spearman}, "pooled": {"depth_intervals": intervals}}
@@ -366,6 +367,7 @@ def test_method_seeds_compares_the_means_of_the_seeds_both_methods_have(load_scr
             + script.read_rows(seed1, 1, "snerf_default", ["flower"]) + script.read_rows(seed1, 1, "ensemble", ["flower"])
             + script.read_rows(seed2, 2, "snerf_default", ["flower"]))
     assert len(rows) == 5 and rows[0]["psnr"] == 21.0 and rows[0]["coverage_95"] == pytest.approx(95.0)
+    assert (rows[0]["coverage_50"], rows[0]["coverage_90"]) == (pytest.approx(50.0), pytest.approx(90.0))
     verdict = script.comparisons(rows, "flower")
     assert verdict["seeds"] == [0, 1]
     spearman = verdict["depth_spearman"]  # (0.65 + 0.70) / 2 against (0.66 + 0.64) / 2; seed 0 below

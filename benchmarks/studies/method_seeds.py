@@ -40,8 +40,8 @@ COLUMNS = (
     ("ause_rmse_normalised", "AUSE-RMSE norm.", lambda m: m["ause_rmse_normalised"], "{:.3f}", "lower"),
     ("depth_abs_rel", "depth abs-rel", lambda m: m["depth"]["abs_rel"], "{:.4f}", "lower"),
     ("depth_spearman", "depth Spearman", lambda m: m["depth"]["spearman"], "{:.3f}", "higher"),
-    ("coverage_68", "cov 68", lambda m: 100.0 * m["pooled"]["depth_intervals"]["coverage_68"], "{:.1f}", None),
-    ("coverage_95", "cov 95", lambda m: 100.0 * m["pooled"]["depth_intervals"]["coverage_95"], "{:.1f}", None),
+    *((f"coverage_{p}", f"cov {p}", lambda m, p=p: 100.0 * m["pooled"]["depth_intervals"][f"coverage_{p}"], "{:.1f}", None)
+      for p in (50, 68, 90, 95)),
     ("halfwidth_median_95", "median 95% hw",
      lambda m: 100.0 * m["pooled"]["depth_intervals"]["halfwidth_median_95"], "{:.1f}%", "lower"),
     ("interval_score_95", "IS95 / depth", lambda m: m["pooled"]["depth_intervals"]["interval_score_95"], "{:.3f}", "lower"),
