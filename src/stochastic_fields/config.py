@@ -380,10 +380,14 @@ LEGACY_VALUES: dict[str, Any] = {"loss.per_point_noise": False, "loss.noise_head
 LEGACY_SAME_AS: dict[str, str] = {"train.adam_beta2_colour": "train.adam_beta2"}
 
 
+def legacy_same_as_values(flat: dict[str, Any]) -> dict[str, Any]:
+    """Each ``LEGACY_SAME_AS`` key a flat saved config (dotted keys) lacks, with its source's value."""
+    return {k: flat[src] for k, src in LEGACY_SAME_AS.items() if k not in flat and src in flat}
+
+
 def fill_legacy_same_as(flat: dict[str, Any]) -> dict[str, Any]:
-    """A flat saved config (dotted keys) with each ``LEGACY_SAME_AS`` key it lacks set to its source's value."""
-    missing = {k: flat[src] for k, src in LEGACY_SAME_AS.items() if k not in flat and src in flat}
-    return {**flat, **missing} if missing else flat
+    """A flat saved config with each ``LEGACY_SAME_AS`` key it lacks set to its source's value."""
+    return {**flat, **legacy_same_as_values(flat)}
 
 
 def saved_config(data: dict) -> ExperimentConfig:
@@ -391,12 +395,7 @@ def saved_config(data: dict) -> ExperimentConfig:
     ``LEGACY_VALUES`` key the run's file lacks set to its legacy value, each ``LEGACY_SAME_AS`` key
     to its source's value."""
     data = copy.deepcopy(data)
-    for dotted, source in LEGACY_SAME_AS.items():
-        (group, name), (src_group, src_name) = dotted.split("."), source.split(".")
-        node, src_node = data.get(group), data.get(src_group)
-        if isinstance(node, dict) and isinstance(src_node, dict) and name not in node and src_name in src_node:
-            node[name] = src_node[src_name]
-    for dotted, value in LEGACY_VALUES.items():
+    for dotted, value in {**LEGACY_VALUES, **legacy_same_as_values(flatten(data))}.items():
         *groups, name = dotted.split(".")
         node = data
         for g in groups:

@@ -116,8 +116,8 @@ class RadianceModel(nn.Module, abc.ABC):
         ids = {id(p) for p in grid}
         rest = [p for p in self.parameters() if id(p) not in ids and p.requires_grad]
         colour_params = [p for m in grids if m.decoder_width > 0 for p in m.decoder.parameters() if p.requires_grad]
-        layouts = {(m.colour_channels.start, m.colour_channels.stop, m.num_channels) for m in grids}
-        colour_channels = next(iter(layouts))[:2] if len(layouts) == 1 else None
+        layouts = {(m.colour_channels.start, m.colour_channels.stop) for m in grids}
+        colour_channels = next(iter(layouts)) if len(layouts) == 1 else None
         groups = [{"params": grid, "lr": lr * GRID_LR_FACTOR, "sparse": True,
                    "colour_channels": colour_channels}] if grid else []
         return groups + [{"params": rest, "lr": lr, "colour_params": colour_params}]
