@@ -74,6 +74,8 @@ class FieldConfig:
     """Cap on cells of the finest level. Range: an integer >= 8 and <= 2147483648."""
     grid_feature_dim: int = 16
     """Colour feature channels per cell (16 since study 43; 8 before). Range: an integer >= 1 and <= 1024."""
+    grid_colour_levels: Literal["sum", "concat"] = "sum"
+    """How the colour decoder reads the levels' colour features: 'sum' (the trilinear values of every level summed, grid_feature_dim inputs) or 'concat' (each level's own, grid_levels x grid_feature_dim inputs, as instant-NGP concatenates its levels; needs grid_decoder_width > 0)."""
     grid_decoder_width: int = 64
     """Hidden width of the colour decoder (0: colours stored directly, view-independent; 64 since study 43, 32 before). Range: an integer >= 0 and <= 8192."""
     grid_init_density_loc: float = -1.0
@@ -181,6 +183,7 @@ FIELD_CHECKS: dict[str, V.Checker] = {
     "grid_max_cells": V.integer(8, 2**31),
     "grid_feature_dim": V.integer(1, 1024),
     "grid_decoder_width": V.integer(0, 8192),
+    "grid_colour_levels": V.choice("sum", "concat"),
     "grid_init_density_loc": V.real(),
     "density_per": V.choice("unit", "cell"),
     "grid_coarse_to_fine": V.real(0.0, 1.0),
@@ -234,6 +237,9 @@ def validate_experiment(cfg: "ExperimentConfig") -> None:
     if cfg.field.grid_coarse_to_fine > 0 and cfg.field.backend != "grid":
         raise V.ConfigError("field.grid_coarse_to_fine", "0 with field.backend='mlp' (it fades in grid levels)",
                             cfg.field.grid_coarse_to_fine)
+    if cfg.field.grid_colour_levels == "concat" and (cfg.field.backend != "grid" or cfg.field.grid_decoder_width == 0):
+        raise V.ConfigError("field.grid_colour_levels", "'sum' without a grid colour decoder (field.backend='grid' "
+                            "and field.grid_decoder_width > 0)", cfg.field.grid_colour_levels)
 
 
 #: Named presets as data: dotted option -> value, applied on top of the defaults (``--help``

@@ -9,6 +9,8 @@ trilinear interpolation of every level is summed:
     mu_a, raw_s_a = g_0(x), g_1(x)                           (density read straight from the grid)
     or, with a density unit k: mu_a = k g_0(x), s_a = k positive_scale(g_1(x))
     mu_c, raw_s_c = decoder([g_2..(x), PE(d)])               (view-dependent colour, 2-layer MLP)
+    or, with ``concat_colour_levels``: decoder([g_{0,2..}(x), ..., g_{L-1,2..}(x), PE(d)]), each
+    level's colour features its own inputs (instant-NGP's concatenation; the density stays summed)
     or, with ``decoder_width=0``: mu_c, raw_s_c = g_2..7(x)  (view-independent, no MLP)
     with ``noise_head``: beta(x) = softplus(g_last(x))      (observation-noise std, one more channel)
 
@@ -84,7 +86,8 @@ def level_resolutions(finest: tuple[int, int, int], num_levels: int) -> list[tup
 
 class GridField(StochasticField):
     def __init__(self, region: SceneRegion, resolution: tuple[int, int, int], *, num_levels: int = 3,
-                 feature_dim: int = 8, decoder_width: int = 32, direction_frequencies: int = 2,
+                 feature_dim: int = 8, decoder_width: int = 32, concat_colour_levels: bool = False,
+                 direction_frequencies: int = 2,
                  init_density_loc: float = -1.0, init_std: float = 1.0, noise_head: bool = False,
                  density_unit: float = 1.0):
         super().__init__()
@@ -100,6 +103,12 @@ class GridField(StochasticField):
         self.noise_head = bool(noise_head)
         self.num_channels = 2 + colour_channels + int(self.noise_head)
         self.level_shapes = level_resolutions(self.resolution, num_levels)  # (X, Y, Z) per level
+        if concat_colour_levels and decoder_width == 0:
+            raise ValueError("concat_colour_levels needs a colour decoder (decoder_width > 0)")
+        self.concat_colour_levels = bool(concat_colour_levels)
+        #: the decoder's colour inputs in the values ``_interpolate`` returns: [2, 2 + F) summed, or
+        #: [2, 2 + L F) with the levels' features side by side (the noise channel then last)
+        self.feature_slice = slice(2, 2 + colour_channels * (num_levels if self.concat_colour_levels else 1))
         self.levels = nn.ParameterList()
         for rx, ry, rz in self.level_shapes:
             g = torch.zeros(rz * ry * rx, self.num_channels)  # cell (x, y, z) is row (z * Y + y) * X + x
@@ -120,7 +129,7 @@ class GridField(StochasticField):
         if decoder_width > 0:
             self.dir_enc = PositionalEncoding(direction_frequencies)
             self.decoder = nn.Sequential(
-                nn.Linear(feature_dim + self.dir_enc.output_dim(3), decoder_width), nn.ReLU(),
+                nn.Linear(self.feature_slice.stop - 2 + self.dir_enc.output_dim(3), decoder_width), nn.ReLU(),
                 nn.Linear(decoder_width, 6),
             )
             with torch.no_grad():
@@ -143,22 +152,33 @@ class GridField(StochasticField):
         return sum(p.numel() for p in self.parameters())
 
     def _interpolate(self, unit: Tensor, channels: slice | None = None) -> Tensor:
-        """unit [P, 3] in [-1, 1] -> [P, C] summed trilinear values of every level (plus offsets).
+        """unit [P, 3] in [-1, 1] -> [P, C] summed trilinear values of every level (plus offsets);
+        with ``concat_colour_levels`` and every channel asked for, [P, 2 + L F + noise]: the density
+        (and noise) channels summed, each level's colour features side by side (``feature_slice``).
 
         Points outside the cube read the border cells (their density is replaced in ``decode``).
         The cells' gradients go to each level's ``RowGradient`` (rows of the touched corners, only
         the asked-for ``channels``: a density-only read, as the depth likelihood's, back-propagates
         2 of the C channels)."""
-        total = None
+        total, features = None, []
+        concat = self.concat_colour_levels and channels is None
         weights = self.level_weights or [1.0] * len(self.levels)
         for table, shape, a in zip(self.levels, self.level_shapes, weights):
-            if a == 0.0:
-                continue  # a level not yet faded in (coarse to fine) is not read
+            if a == 0.0:  # a level not yet faded in (coarse to fine) is not read: its features are 0
+                if concat:
+                    features.append(unit.new_zeros(unit.shape[0], self.colour_channels.stop - 2))
+                continue
             idx, w = trilinear_corners(unit, shape)  # [P, 8], [P, 8]
             v = gather_rows(table, idx, w if a == 1.0 else w * a, channels=channels)  # [P, C] or [P, c]
             total = v if total is None else total + v
+            if concat:
+                features.append(v[:, self.colour_channels])
         off = self.offset if channels is None else self.offset[channels]
-        return total + off.to(total)
+        total = total + off.to(total)
+        if not concat:
+            return total
+        rest = total[:, self.colour_channels.stop:]  # the noise channel, if any
+        return torch.cat([total[:, :2], *features, rest], dim=1)
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         # checkpoints from before the density unit counted density per unit of length
@@ -210,14 +230,14 @@ class GridField(StochasticField):
 
     def decode(self, values: Tensor, unit: Tensor, directions: Tensor, batch: torch.Size,
                hidden_transform=None, colour_where=None) -> FieldParams:
-        """Grid values [P, C] at unit coordinates [P, 3] -> FieldParams [*batch].
+        """Grid values [P, C] at unit coordinates [P, 3] (``_interpolate``'s layout) -> FieldParams [*batch].
 
         ``hidden_transform`` (e.g. dropout) is applied to the decoder's hidden layer; with
         ``colour_where`` (``forward_colour_where``) the decoder runs only at the points it keeps
         (the others: rgb_loc 0, the scale of a raw 0)."""
         density_loc, density_scale = self._density(values, unit)
         if self.decoder_width > 0:
-            features, dirs = values[:, self.colour_channels], directions.reshape(-1, 3)
+            features, dirs = values[:, self.feature_slice], directions.reshape(-1, 3)
             if colour_where is None:
                 col = self._decode_colour(features, dirs, hidden_transform)
             else:

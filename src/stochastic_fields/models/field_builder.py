@@ -59,6 +59,7 @@ def build_field(cfg: ExperimentConfig, region: SceneRegion, dataset, *, noise_he
         res = finest_grid_resolution(cfg, region, dataset) if grid_resolution is None else grid_resolution
         unit = 1.0 / region.cell_length(res) if f.density_per == "cell" else 1.0
         return GridField(region, res, num_levels=f.grid_levels, feature_dim=f.grid_feature_dim,
-                         decoder_width=f.grid_decoder_width, init_density_loc=f.grid_init_density_loc,
+                         decoder_width=f.grid_decoder_width,
+                         concat_colour_levels=f.grid_colour_levels == "concat", init_density_loc=f.grid_init_density_loc,
                          init_std=f.init_std, noise_head=noise_head, density_unit=unit)
     raise ValueError(f"field.backend must be 'grid' or 'mlp', got {f.backend!r}")
