@@ -51,23 +51,25 @@ def _points(n: int = 50) -> torch.Tensor:
 def test_concatenated_inputs_are_each_levels_own_read_and_the_density_is_summed():
     field, unit = _field(True), _points()
     reads = [_level_read(t.detach(), s, unit) for t, s in zip(field.levels, field.level_shapes)]  # L x [P, C]
-    summed = sum(reads) + field.offset
-    colour = field.colour_channels
-    expected = torch.cat([summed[:, :2], *[r[:, colour] for r in reads], summed[:, colour.stop:]], dim=1)
-    values = field._interpolate(unit)
-    assert values.shape == (unit.shape[0], 2 + LEVELS * FEATURES + 1)
-    assert field.feature_slice == slice(2, 2 + LEVELS * FEATURES)
+    values, levels = field._read(unit)
+    features = torch.cat(levels, dim=1)
+    assert features.shape == (unit.shape[0], LEVELS * FEATURES)
     assert field.decoder[0].in_features == LEVELS * FEATURES + field.dir_enc.output_dim(3)
-    torch.testing.assert_close(values, expected, rtol=1e-12, atol=1e-12)
-    # a density-only read is the summed one, as without the option
-    torch.testing.assert_close(field._interpolate(unit, slice(0, 2)), summed[:, :2], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(features, torch.cat([r[:, field.colour_channels] for r in reads], dim=1),
+                               rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(values, sum(reads) + field.offset, rtol=1e-12, atol=1e-12)  # density, noise summed
+    # a density-only read is the summed one, with no features
+    only, none = field._read(unit, slice(0, 2))
+    assert none is None
+    torch.testing.assert_close(only, values[:, :2], rtol=1e-12, atol=1e-12)
 
 
 def test_sum_is_todays_field():
     field, unit = _field(False), _points()
     reads = [_level_read(t.detach(), s, unit) for t, s in zip(field.levels, field.level_shapes)]
-    torch.testing.assert_close(field._interpolate(unit), sum(reads) + field.offset, rtol=1e-12, atol=1e-12)
-    assert field.feature_slice == field.colour_channels
+    values, features = field._read(unit)
+    assert features is None
+    torch.testing.assert_close(values, sum(reads) + field.offset, rtol=1e-12, atol=1e-12)
     assert field.decoder[0].in_features == FEATURES + field.dir_enc.output_dim(3)
 
 
@@ -79,10 +81,9 @@ def test_gradients_reach_each_level_as_dense_autograd_gives_them():
     loss.backward()
     dense = [t.detach().clone().requires_grad_(True) for t in field.levels]
     reads = [_level_read(t, s, unit) for t, s in zip(dense, field.level_shapes)]
-    summed = sum(reads) + field.offset
     colour = field.colour_channels
-    values = torch.cat([summed[:, :2], *[r[:, colour] for r in reads], summed[:, colour.stop:]], dim=1)
-    ref = field.decode(values, unit, dirs, torch.Size([40]))
+    ref = field.decode(sum(reads) + field.offset, unit, dirs, torch.Size([40]),
+                       features=tuple(r[:, colour] for r in reads))
     ((ref.rgb_loc ** 2).sum() + ref.density_loc.sum() + ref.noise_scale.sum()).backward()
     for table, reference in zip(field.levels, dense):
         got = table.row_gradient.dense(table) if table.grad is None else table.grad
@@ -97,9 +98,8 @@ def test_colour_gradcheck_through_the_concatenated_levels():
 
     def rgb(*levels):
         reads = [_level_read(t, s, unit) for t, s in zip(levels, field.level_shapes)]
-        summed = sum(reads) + field.offset
-        values = torch.cat([summed[:, :2], *[r[:, field.colour_channels] for r in reads]], dim=1)
-        return field.decode(values, unit, dirs, torch.Size([6])).rgb_loc
+        features = tuple(r[:, field.colour_channels] for r in reads)
+        return field.decode(sum(reads) + field.offset, unit, dirs, torch.Size([6]), features=features).rgb_loc
 
     assert torch.autograd.gradcheck(rgb, tuple(tables), eps=1e-6, atol=1e-7)
 
@@ -107,11 +107,11 @@ def test_colour_gradcheck_through_the_concatenated_levels():
 def test_a_level_not_yet_faded_in_reads_zero_features():
     field, unit = _field(True), _points()
     field.set_level_weights([1.0, 0.5, 0.0])
-    values = field._interpolate(unit)
-    last = slice(2 + 2 * FEATURES, 2 + 3 * FEATURES)
-    assert torch.equal(values[:, last], torch.zeros_like(values[:, last]))
+    features = torch.cat(field._read(unit)[1], dim=1)
+    last = features[:, 2 * FEATURES:]
+    assert torch.equal(last, torch.zeros_like(last))
     half = _level_read(field.levels[1].detach(), field.level_shapes[1], unit)[:, field.colour_channels] * 0.5
-    torch.testing.assert_close(values[:, 2 + FEATURES:2 + 2 * FEATURES], half, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(features[:, FEATURES:2 * FEATURES], half, rtol=1e-12, atol=1e-12)
 
 
 def test_concat_needs_a_colour_decoder():
@@ -138,3 +138,23 @@ def test_a_run_with_concatenated_levels_trains_and_resumes(tiny_scene, tmp_path)
     assert resumed.step == 4
     for a, b in zip(first.model.state_dict().values(), resumed.model.state_dict().values()):
         assert a.shape == b.shape
+
+
+def test_mc_dropout_drops_each_levels_features():
+    from stochastic_fields.models.baselines import GridDropoutField, dropout_control
+
+    field, unit = _field(True), _points(30)
+    dirs = F.normalize(torch.ones(30, 3, dtype=torch.float64), dim=-1)
+    wrapped = GridDropoutField(field, 0.5).double()
+    wrapped.eval()
+    mean = wrapped(unit, dirs)  # dropout off: the field itself
+    torch.testing.assert_close(mean.rgb_loc, field(unit, dirs).rgb_loc, rtol=1e-12, atol=1e-12)
+    seen = []
+    handle = field.decoder[0].register_forward_hook(lambda m, inp, out: seen.append(inp[0]))
+    with dropout_control(wrapped, torch.Generator().manual_seed(0), always_on=True):
+        wrapped(unit, dirs)
+    handle.remove()
+    features = seen[0][:, :LEVELS * FEATURES]
+    kept = features != 0
+    assert 0.3 < kept.double().mean() < 0.7  # about half of every level's features dropped
+    torch.testing.assert_close(features[kept], 2.0 * torch.cat(field._read(unit)[1], dim=1)[kept], rtol=1e-12, atol=1e-12)

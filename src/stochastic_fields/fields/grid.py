@@ -105,10 +105,9 @@ class GridField(StochasticField):
         self.level_shapes = level_resolutions(self.resolution, num_levels)  # (X, Y, Z) per level
         if concat_colour_levels and decoder_width == 0:
             raise ValueError("concat_colour_levels needs a colour decoder (decoder_width > 0)")
+        #: the decoder reads each level's colour features (L F inputs), not their sum (F)
         self.concat_colour_levels = bool(concat_colour_levels)
-        #: the decoder's colour inputs in the values ``_interpolate`` returns: [2, 2 + F) summed, or
-        #: [2, 2 + L F) with the levels' features side by side (the noise channel then last)
-        self.feature_slice = slice(2, 2 + colour_channels * (num_levels if self.concat_colour_levels else 1))
+        decoder_inputs = colour_channels * (num_levels if self.concat_colour_levels else 1)
         self.levels = nn.ParameterList()
         for rx, ry, rz in self.level_shapes:
             g = torch.zeros(rz * ry * rx, self.num_channels)  # cell (x, y, z) is row (z * Y + y) * X + x
@@ -129,7 +128,7 @@ class GridField(StochasticField):
         if decoder_width > 0:
             self.dir_enc = PositionalEncoding(direction_frequencies)
             self.decoder = nn.Sequential(
-                nn.Linear(self.feature_slice.stop - 2 + self.dir_enc.output_dim(3), decoder_width), nn.ReLU(),
+                nn.Linear(decoder_inputs + self.dir_enc.output_dim(3), decoder_width), nn.ReLU(),
                 nn.Linear(decoder_width, 6),
             )
             with torch.no_grad():
@@ -153,8 +152,13 @@ class GridField(StochasticField):
 
     def _interpolate(self, unit: Tensor, channels: slice | None = None) -> Tensor:
         """unit [P, 3] in [-1, 1] -> [P, C] summed trilinear values of every level (plus offsets);
-        with ``concat_colour_levels`` and every channel asked for, [P, 2 + L F + noise]: the density
-        (and noise) channels summed, each level's colour features side by side (``feature_slice``).
+        ``channels``: only those, [P, c] (``_read``)."""
+        return self._read(unit, channels)[0]
+
+    def _read(self, unit: Tensor, channels: slice | None = None) -> tuple[Tensor, tuple[Tensor, ...] | None]:
+        """unit [P, 3] in [-1, 1] -> (values [P, C]: the trilinear values of every level summed, plus
+        offsets, or [P, c] of ``channels``; features: with ``concat_colour_levels`` and every channel
+        read, each level's colour features, L x [P, F] (the decoder reads them side by side), else None).
 
         Points outside the cube read the border cells (their density is replaced in ``decode``).
         The cells' gradients go to each level's ``RowGradient`` (rows of the touched corners, only
@@ -174,11 +178,7 @@ class GridField(StochasticField):
             if concat:
                 features.append(v[:, self.colour_channels])
         off = self.offset if channels is None else self.offset[channels]
-        total = total + off.to(total)
-        if not concat:
-            return total
-        rest = total[:, self.colour_channels.stop:]  # the noise channel, if any
-        return torch.cat([total[:, :2], *features, rest], dim=1)
+        return total + off.to(total), tuple(features) if concat else None
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
         # checkpoints from before the density unit counted density per unit of length
@@ -201,7 +201,8 @@ class GridField(StochasticField):
 
     def forward(self, positions: Tensor, directions: Tensor) -> FieldParams:
         unit = self.region.to_unit(positions.reshape(-1, 3))
-        return self.decode(self._interpolate(unit), unit, directions, positions.shape[:-1])
+        values, features = self._read(unit)
+        return self.decode(values, unit, directions, positions.shape[:-1], features=features)
 
     def forward_colour_where(self, positions: Tensor, directions: Tensor, colour_where) -> FieldParams:
         """``forward`` with the colour decoder run only at the points ``colour_where`` keeps (at a
@@ -210,7 +211,8 @@ class GridField(StochasticField):
         point in one gather: reading the colour channels apart at the kept points saved less (the
         extra gathers cost about what the rows' gradients saved: their cost is per row touched)."""
         unit = self.region.to_unit(positions.reshape(-1, 3))
-        return self.decode(self._interpolate(unit), unit, directions, positions.shape[:-1], colour_where=colour_where)
+        values, features = self._read(unit)
+        return self.decode(values, unit, directions, positions.shape[:-1], colour_where=colour_where, features=features)
 
     def _density(self, values: Tensor, unit: Tensor) -> tuple[Tensor, Tensor]:
         """Grid values [P, >= 2] at unit points [P, 3] -> (density loc, density scale) [P]: k g_0
@@ -229,20 +231,23 @@ class GridField(StochasticField):
         return self.decoder[-1](hidden)
 
     def decode(self, values: Tensor, unit: Tensor, directions: Tensor, batch: torch.Size,
-               hidden_transform=None, colour_where=None) -> FieldParams:
-        """Grid values [P, C] at unit coordinates [P, 3] (``_interpolate``'s layout) -> FieldParams [*batch].
+               hidden_transform=None, colour_where=None, features: tuple[Tensor, ...] | None = None) -> FieldParams:
+        """Grid values [P, C] at unit coordinates [P, 3] -> FieldParams [*batch].
 
-        ``hidden_transform`` (e.g. dropout) is applied to the decoder's hidden layer; with
-        ``colour_where`` (``forward_colour_where``) the decoder runs only at the points it keeps
-        (the others: rgb_loc 0, the scale of a raw 0)."""
+        The decoder reads ``features`` (L x [P, F], ``_read``'s with ``concat_colour_levels``) side by
+        side where given, else the values' colour channels. ``hidden_transform`` (e.g. dropout) is applied to the
+        decoder's hidden layer; with ``colour_where`` (``forward_colour_where``) the decoder runs only
+        at the points it keeps (the others: rgb_loc 0, the scale of a raw 0)."""
         density_loc, density_scale = self._density(values, unit)
         if self.decoder_width > 0:
-            features, dirs = values[:, self.feature_slice], directions.reshape(-1, 3)
+            levels = (values[:, self.colour_channels],) if features is None else features
+            dirs = directions.reshape(-1, 3)
             if colour_where is None:
-                col = self._decode_colour(features, dirs, hidden_transform)
+                col = self._decode_colour(_side_by_side(levels), dirs, hidden_transform)
             else:
                 keep = colour_where(density_loc.detach(), density_scale.detach()).nonzero().squeeze(1)  # [p]
-                col = self._decode_colour(features[keep], dirs[keep], hidden_transform)
+                kept = _side_by_side([f[keep] for f in levels])  # the kept points' only: [p, L F]
+                col = self._decode_colour(kept, dirs[keep], hidden_transform)
                 col = col.new_zeros(values.shape[0], 6).index_copy(0, keep, col)
         else:  # colours are grid channels: nothing to save
             col = values[:, 2:8]
@@ -275,6 +280,11 @@ class GridField(StochasticField):
             c, nz, ny, nx = g.split(num_cells, dim=0)
             losses.append(((nz - c) ** 2 + (ny - c) ** 2 + (nx - c) ** 2).mean())
         return torch.stack(losses).sum()
+
+
+def _side_by_side(parts: tuple[Tensor, ...] | list[Tensor]) -> Tensor:
+    """L x [P, F] -> [P, L F]; one part is returned as it is (no copy)."""
+    return parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)
 
 
 #: [8, 3] (x, y, z) offsets of the 8 corners of a cell, corner j = x + 2 y + 4 z.

@@ -130,6 +130,8 @@ class GridDropoutField(StochasticField):
     decoder's hidden layer.
 
         v = dropout(g(x))                              all grid channels [P, 2 + F]
+                                                       (and each level's features, dropped alike,
+                                                       with ``concat_colour_levels``)
         mu_a = v_0 (outside the region: OUTSIDE_DENSITY_LOC)
         mu_c, raw_s_c = W_2 dropout(relu(W_1 [v_2.., PE(d)]))   (decoder_width > 0)
 
@@ -148,8 +150,10 @@ class GridDropoutField(StochasticField):
         g = self.grid
         batch = positions.shape[:-1]
         unit = g.region.to_unit(positions.reshape(-1, 3))
-        values = self.feature_dropout(g._interpolate(unit))  # [P, C]
-        return g.decode(values, unit, directions, batch, hidden_transform=self.hidden_dropout)
+        values, features = g._read(unit)  # [P, C], L x [P, F] or None
+        values = self.feature_dropout(values)
+        features = None if features is None else tuple(self.feature_dropout(f) for f in features)
+        return g.decode(values, unit, directions, batch, hidden_transform=self.hidden_dropout, features=features)
 
     def density_params(self, positions: Tensor) -> tuple[Tensor, Tensor]:
         """Without dropout (occupancy-style queries want the mean field)."""
