@@ -13,6 +13,7 @@ the table and the rule's verdict (docs/studies.md; each rule fixed before its ro
     python benchmarks/studies/capture_grid_study.py --study colour_capacity
     python benchmarks/studies/capture_grid_study.py --study adam_beta2
     python benchmarks/studies/capture_grid_study.py --study adam_beta2_colour
+    python benchmarks/studies/capture_grid_study.py --study colour_levels
 
 A row may be several runs (seeds): the rule then reads their means.
 
@@ -150,6 +151,19 @@ STUDIES = {
          "the same with --set train.adam_beta2_colour=0.99 into colour_0.99"),
         "S-NeRF default, capture split, seeds 5 and 6 (no study's), a schedule of 3300 steps (`--steps`) on two "
         "threads, one row at a time, today's rows first; the table's rows are the seeds' means",
+        min_psnr_gain_db=0.1, max_psnr_loss_db=0.05, max_minutes=None, gain_on_mean=True,
+        levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0),
+    "colour_levels": Study(
+        "49", "each grid level's colour features read apart", "benchmarks/results/colour_levels_study",
+        {"today (sum)": ("today/seed_6", "today/seed_7"),
+         "candidate (concat)": ("concat/seed_6", "concat/seed_7")},
+        ("OMP_NUM_THREADS=1 python benchmarks/capture_quality.py --methods snerf --steps 3300 --marks 1 --threads 1 "
+         "--quiet --seed S --set field.grid_colour_levels=concat --out benchmarks/results/colour_levels_study/concat/seed_S "
+         "--work runs/s70/concat/seed_S (S = 6, 7)",
+         "the same without --set into today/seed_7 (today/seed_6 is study 48's colour_0.999/seed_6, the same computation)"),
+        "S-NeRF default, capture split, seeds 6 and 7, a schedule of 3300 steps (`--steps`), two processes of one "
+        "thread side by side; the table's rows are the seeds' means; the step's cost ruled apart "
+        "(capture_step_cost.py)",
         min_psnr_gain_db=0.1, max_psnr_loss_db=0.05, max_minutes=None, gain_on_mean=True,
         levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0),
 }
