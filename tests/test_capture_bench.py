@@ -221,6 +221,30 @@ def test_adam_beta2_study_rules_on_the_means_of_its_seeds(load_script, tmp_path)
     assert (tmp_path / "seeds.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
+def test_colour_levels_study_rules_on_a_steps_cost(load_script, tmp_path):
+    """Study 49 also rules on a training step's cost: each scene's capture_step_cost.py ratio at most
+    1.05x today's; a scene without a measurement fails, and a missing file names itself."""
+    script = load_script("benchmarks/studies/capture_grid_study.py")
+    study = script.STUDIES["colour_levels"]
+    assert study.step_costs and study.max_step_cost == 1.05
+    for scene, ratio in (("fern", 1.02), ("flower", 1.07)):
+        (tmp_path / f"step_cost_{scene}.json").write_text(json.dumps({"scene": scene, "ratio": ratio}))
+    costs = script.step_cost_ratios(study, tmp_path)
+    assert costs == {"fern": 1.02, "flower": 1.07}
+    held = {"psnr": 25.0, "abs_rel": 0.05, "halfwidth_95": 0.1,
+            **{f"coverage_{p}": c for p, c in zip((50, 68, 90, 95), (0.5, 0.68, 0.9, 0.95))}}
+    today = {"fern": held, "flower": held}
+    better = {scene: {**held, "psnr": 25.2} for scene in today}
+    v = script.verdict(study, today, better, step_costs=costs)
+    assert v["scenes"]["fern"]["passes"] and not v["scenes"]["flower"]["checks"]["step_cost"] and not v["taken"]
+    assert script.verdict(study, today, better, step_costs={"fern": 1.0, "flower": 1.05})["taken"]
+    assert not script.verdict(study, today, better, step_costs={"fern": 1.0})["taken"]  # flower unmeasured
+    assert "1.05x today's" in script.rule_text(study)
+    (tmp_path / "step_cost_fern.json").unlink()
+    with pytest.raises(SystemExit, match="step_cost_fern.json"):
+        script.step_cost_ratios(study, tmp_path)
+
+
 def test_time_to_reference_reads_the_first_mark_past_the_reference(bench, tmp_path):
     """The report's minutes to another run's final quality: the first mark at or past its PSNR (higher
     is better) and its depth abs-rel (lower is better); none when the curve never gets there."""

@@ -41,7 +41,9 @@ class Study(NamedTuple):
     ``coverage_points`` of nominal and trains at most ``max_minutes`` (None: the steps are fixed, the
     minutes not ruled); where ``paper_tables`` names (today's, the candidate's) ``tables.json``, its
     S-NeRF (default) row at the paper split also loses at most ``max_paper_psnr_loss_db`` of PSNR and
-    ``max_paper_abs_rel_loss`` of abs-rel on each scene.
+    ``max_paper_abs_rel_loss`` of abs-rel on each scene; where ``step_costs`` names
+    ``capture_step_cost.py`` outputs (under ``out``, one per scene), a step costs at most
+    ``max_step_cost`` times today's on each scene.
 
     ``gain_on_mean``: the PSNR gain is asked of the mean over the scenes, not of each (each scene then
     loses at most ``max_psnr_loss_db``); ``levels``: the central levels (%) held within
@@ -69,6 +71,8 @@ class Study(NamedTuple):
     levels: tuple[int, ...] = (68, 95)
     level_as_far_as_today: bool = False
     max_halfwidth_growth_points: float | None = None
+    step_costs: tuple[str, ...] | None = None
+    max_step_cost: float = 1.05
 
 
 #: Nominal coverage (%) of each central level a study may rule on.
@@ -165,7 +169,8 @@ STUDIES = {
         "thread side by side; the table's rows are the seeds' means; the step's cost ruled apart "
         "(capture_step_cost.py)",
         min_psnr_gain_db=0.1, max_psnr_loss_db=0.05, max_minutes=None, gain_on_mean=True,
-        levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0),
+        levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0,
+        step_costs=("step_cost_fern.json", "step_cost_flower.json")),
 }
 
 
@@ -234,10 +239,25 @@ def paper_scores(path: Path) -> dict[str, dict]:
                               "S-NeRF (default) rows (run the study's tables command first)")
 
 
+def step_cost_ratios(study: Study, out: Path) -> dict[str, float] | None:
+    """Per scene: the candidate's step cost over today's in the study's ``capture_step_cost.py`` outputs."""
+    if not study.step_costs:
+        return None
+    ratios = {}
+    for name in study.step_costs:
+        path = out / name
+        if not path.is_file():
+            raise SystemExit(f"{path}: no step-cost measurement (run the study's capture_step_cost.py command first)")
+        result = json.loads(path.read_text())
+        ratios[result["scene"]] = float(result["ratio"])
+    return ratios
+
+
 def verdict(study: Study, today: dict, candidate: dict,
-            paper: tuple[dict, dict] | None = None) -> dict:
+            paper: tuple[dict, dict] | None = None, step_costs: dict[str, float] | None = None) -> dict:
     """Each scene's checks and whether the candidate passes on every scene; ``paper`` is (today's,
-    the candidate's) ``paper_scores`` where the study checks the paper split."""
+    the candidate's) ``paper_scores`` where the study checks the paper split, ``step_costs`` each
+    scene's ``step_cost_ratios`` where it rules on a step's cost (a scene without one fails)."""
     scenes = {}
     for scene in sorted(set(today) & set(candidate)):
         a, b = today[scene], candidate[scene]
@@ -255,6 +275,8 @@ def verdict(study: Study, today: dict, candidate: dict,
         if study.max_halfwidth_growth_points is not None:
             checks["halfwidth"] = (a["halfwidth_95"] is not None and b["halfwidth_95"] is not None and
                                    100 * (b["halfwidth_95"] - a["halfwidth_95"]) <= study.max_halfwidth_growth_points)
+        if step_costs is not None:
+            checks["step_cost"] = scene in step_costs and step_costs[scene] <= study.max_step_cost
         if paper is not None:
             p_today, p_cand = paper[0].get(scene), paper[1].get(scene)
             checks["paper_split"] = (p_today is not None and p_cand is not None
@@ -301,6 +323,7 @@ def rule_text(study: Study) -> str:
     width = (f", its median 95% half-width / depth at most {study.max_halfwidth_growth_points:g} point wider"
              if study.max_halfwidth_growth_points is not None else "")
     minutes = (f" and its training at most {study.max_minutes:g} minutes" if study.max_minutes is not None else "")
+    minutes += (f" and a training step at most {study.max_step_cost:g}x today's" if study.step_costs else "")
     paper = (f" At the paper split (the tables' S-NeRF default row, seed 0) its PSNR is at most "
              f"{study.max_paper_psnr_loss_db} dB and its depth abs-rel at most {study.max_paper_abs_rel_loss} "
              f"worse than today's on each scene." if study.paper_tables else "")
@@ -370,8 +393,10 @@ def main() -> None:
     rows, seeds = read_rows(study, out)
     (today_label, today), (cand_label, candidate) = rows.items()
     paper = tuple(paper_scores(Path(path)) for path in study.paper_tables) if study.paper_tables else None
-    v = verdict(study, today, candidate, paper)
-    (out / "verdict.json").write_text(json.dumps({"rows": rows, "paper_split": paper, "verdict": v}, indent=2) + "\n")
+    costs = step_cost_ratios(study, out)
+    v = verdict(study, today, candidate, paper, costs)
+    (out / "verdict.json").write_text(json.dumps({"rows": rows, "paper_split": paper, "step_cost": costs,
+                                                  "verdict": v}, indent=2) + "\n")
     lines = [f"# Study {study.number}: {study.title}", "",
              f"Rows: `benchmarks/capture_quality.py` ({study.protocol}); each row's own README in its folder:", ""]
     lines += [f"    {command}" for command in study.commands]
@@ -387,6 +412,9 @@ def main() -> None:
             for label, scores in zip(rows, paper):
                 if scene in scores:
                     lines.append(f"| {scene} | {label} | {scores[scene]['psnr']:.2f} | {scores[scene]['abs_rel']:.4f} |")
+    if costs is not None:
+        lines += ["", "A training step's cost, the candidate over today's (`benchmarks/studies/capture_step_cost.py`, "
+                  "interleaved in one process): " + ", ".join(f"{scene} {r:.3f}x" for scene, r in sorted(costs.items()))]
     lines += ["", rule_text(study), ""]
     for scene, s in v["scenes"].items():
         failed = [k for k, ok in s["checks"].items() if not ok]
