@@ -88,3 +88,14 @@ def rays_along_z(near, far):
     dirs[:, 2] = 1.0
     return RayBundle(origins=torch.zeros(R, 3, dtype=torch.float64), directions=dirs, near=near, far=far,
                      z_scale=torch.ones(R, dtype=torch.float64))
+
+
+def grid_sample_read(table, shape: tuple[int, int, int], unit):
+    """A grid level's trilinear values by torch's ``grid_sample`` (the reference of the gather): table
+    [X Y Z, C] with cell (x, y, z) at row (z Y + y) X + x, unit points [P, 3] -> [P, C], border cells outside."""
+    import torch.nn.functional as F
+
+    X, Y, Z = shape
+    vol = table.T.reshape(1, -1, Z, Y, X)
+    out = F.grid_sample(vol, unit.reshape(1, -1, 1, 1, 3), mode="bilinear", padding_mode="border", align_corners=True)
+    return out.reshape(table.shape[1], -1).T

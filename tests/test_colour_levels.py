@@ -12,7 +12,7 @@ from __future__ import annotations
 import pytest
 import torch
 import torch.nn.functional as F
-from conftest import tiny_cpu_config
+from conftest import grid_sample_read, tiny_cpu_config
 
 from stochastic_fields.config import validate_experiment
 from stochastic_fields.data import load_dataset
@@ -35,14 +35,6 @@ def _field(concat: bool, *, seed: int = 0, noise_head: bool = True) -> GridField
     return field
 
 
-def _level_read(table: torch.Tensor, shape: tuple[int, int, int], unit: torch.Tensor) -> torch.Tensor:
-    """One level's trilinear values at unit points [P, 3] -> [P, C], by grid_sample (border cells outside)."""
-    X, Y, Z = shape
-    vol = table.T.reshape(1, -1, Z, Y, X)
-    out = F.grid_sample(vol, unit.reshape(1, -1, 1, 1, 3), mode="bilinear", padding_mode="border", align_corners=True)
-    return out.reshape(table.shape[1], -1).T
-
-
 def _points(n: int = 50) -> torch.Tensor:
     g = torch.Generator().manual_seed(1)
     return torch.rand(n, 3, generator=g, dtype=torch.float64) * 2.2 - 1.1
@@ -50,7 +42,7 @@ def _points(n: int = 50) -> torch.Tensor:
 
 def test_concatenated_inputs_are_each_levels_own_read_and_the_density_is_summed():
     field, unit = _field(True), _points()
-    reads = [_level_read(t.detach(), s, unit) for t, s in zip(field.levels, field.level_shapes)]  # L x [P, C]
+    reads = [grid_sample_read(t.detach(), s, unit) for t, s in zip(field.levels, field.level_shapes)]  # L x [P, C]
     values, levels = field._read(unit)
     features = torch.cat(levels, dim=1)
     assert features.shape == (unit.shape[0], LEVELS * FEATURES)
@@ -66,7 +58,7 @@ def test_concatenated_inputs_are_each_levels_own_read_and_the_density_is_summed(
 
 def test_sum_is_todays_field():
     field, unit = _field(False), _points()
-    reads = [_level_read(t.detach(), s, unit) for t, s in zip(field.levels, field.level_shapes)]
+    reads = [grid_sample_read(t.detach(), s, unit) for t, s in zip(field.levels, field.level_shapes)]
     values, features = field._read(unit)
     assert features is None
     torch.testing.assert_close(values, sum(reads) + field.offset, rtol=1e-12, atol=1e-12)
@@ -80,7 +72,7 @@ def test_gradients_reach_each_level_as_dense_autograd_gives_them():
     loss = (out.rgb_loc ** 2).sum() + out.density_loc.sum() + out.noise_scale.sum()
     loss.backward()
     dense = [t.detach().clone().requires_grad_(True) for t in field.levels]
-    reads = [_level_read(t, s, unit) for t, s in zip(dense, field.level_shapes)]
+    reads = [grid_sample_read(t, s, unit) for t, s in zip(dense, field.level_shapes)]
     colour = field.colour_channels
     ref = field.decode(sum(reads) + field.offset, unit, dirs, torch.Size([40]),
                        features=tuple(r[:, colour] for r in reads))
@@ -97,7 +89,7 @@ def test_colour_gradcheck_through_the_concatenated_levels():
     tables = [t.detach().clone().requires_grad_(True) for t in field.levels]
 
     def rgb(*levels):
-        reads = [_level_read(t, s, unit) for t, s in zip(levels, field.level_shapes)]
+        reads = [grid_sample_read(t, s, unit) for t, s in zip(levels, field.level_shapes)]
         features = tuple(r[:, field.colour_channels] for r in reads)
         return field.decode(sum(reads) + field.offset, unit, dirs, torch.Size([6]), features=features).rgb_loc
 
@@ -110,7 +102,7 @@ def test_a_level_not_yet_faded_in_reads_zero_features():
     features = torch.cat(field._read(unit)[1], dim=1)
     last = features[:, 2 * FEATURES:]
     assert torch.equal(last, torch.zeros_like(last))
-    half = _level_read(field.levels[1].detach(), field.level_shapes[1], unit)[:, field.colour_channels] * 0.5
+    half = grid_sample_read(field.levels[1].detach(), field.level_shapes[1], unit)[:, field.colour_channels] * 0.5
     torch.testing.assert_close(features[:, FEATURES:2 * FEATURES], half, rtol=1e-12, atol=1e-12)
 
 

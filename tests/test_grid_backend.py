@@ -8,6 +8,7 @@ import contextlib
 import pytest
 import torch
 import torch.nn.functional as F
+from conftest import grid_sample_read
 
 from stochastic_fields.fields.grid import GridField, trilinear_corners
 from stochastic_fields import row_kernels
@@ -30,10 +31,7 @@ def _unit_points(n: int, seed: int = 0, dtype=torch.float64) -> torch.Tensor:
 
 
 def _grid_sample_reference(table: torch.Tensor, unit: torch.Tensor) -> torch.Tensor:
-    X, Y, Z = SHAPE
-    vol = table.T.reshape(1, -1, Z, Y, X)
-    out = F.grid_sample(vol, unit.reshape(1, -1, 1, 1, 3), mode="bilinear", padding_mode="border", align_corners=True)
-    return out.reshape(table.shape[1], -1).T
+    return grid_sample_read(table, SHAPE, unit)
 
 
 def test_trilinear_corners_match_grid_sample_values():

@@ -170,7 +170,8 @@ class GridField(StochasticField):
         for table, shape, a in zip(self.levels, self.level_shapes, weights):
             if a == 0.0:  # a level not yet faded in (coarse to fine) is not read: its features are 0
                 if concat:
-                    features.append(unit.new_zeros(unit.shape[0], self.colour_channels.stop - 2))
+                    width = self.colour_channels.stop - self.colour_channels.start
+                    features.append(unit.new_zeros(unit.shape[0], width))
                 continue
             idx, w = trilinear_corners(unit, shape)  # [P, 8], [P, 8]
             v = gather_rows(table, idx, w if a == 1.0 else w * a, channels=channels)  # [P, C] or [P, c]
