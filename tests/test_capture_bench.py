@@ -245,6 +245,47 @@ def test_colour_levels_study_rules_on_a_steps_cost(load_script, tmp_path):
         script.step_cost_ratios(study, tmp_path)
 
 
+def test_colour_levels_minutes_study_rules_on_the_paper_splits_seed_means_and_levels(load_script, tmp_path):
+    """Study 49b reads the paper split as the means of three seeds' tables on each side and rules its
+    levels as the capture's: within 5 points of nominal, or no farther than today's mean misses."""
+    script = load_script("benchmarks/studies/capture_grid_study.py")
+    study = script.STUDIES["colour_levels_minutes"]
+    assert study.paper_levels and len(study.paper_tables[0]) == len(study.paper_tables[1]) == 3
+    assert study.max_minutes is None and study.step_costs is None
+
+    def tables(name, **scenes):  # scene -> (psnr, abs_rel, coverage 50/68/90/95)
+        path = tmp_path / name
+        path.write_text(json.dumps({"per_scene": {scene: {"snerf_default": {
+            "psnr": psnr, "depth": {"abs_rel": abs_rel},
+            "pooled": {"depth_intervals": {f"coverage_{p}": c for p, c in zip((50, 68, 90, 95), cov)}}}}
+            for scene, (psnr, abs_rel, cov) in scenes.items()}}))
+        return str(path)
+
+    held = (0.50, 0.66, 0.86, 0.91)  # fern's 90% 4 points under, as today's paper split
+    today_paths = tuple(tables(f"t{i}.json", fern=(20.0 + 0.1 * i, 0.1, held), flower=(22.0, 0.09, held))
+                        for i in range(3))
+    means = script.paper_means(today_paths)
+    assert means["fern"]["psnr"] == pytest.approx(20.1) and means["flower"]["coverage_90"] == pytest.approx(0.86)
+    assert script.paper_means(today_paths[0])["fern"]["psnr"] == pytest.approx(20.0)  # one file: its own scores
+    # the candidate's fern 90% level: 0.845 on two seeds and 0.835 on one -> mean 0.8417, 5.8 points under
+    # nominal and farther than today's 4: fails; its PSNR and abs-rel within their margins
+    cand = (tables("c0.json", fern=(20.0, 0.104, (0.5, 0.66, 0.845, 0.91)), flower=(22.4, 0.08, held)),
+            tables("c1.json", fern=(20.1, 0.104, (0.5, 0.66, 0.845, 0.91)), flower=(22.4, 0.08, held)),
+            tables("c2.json", fern=(20.2, 0.104, (0.5, 0.66, 0.835, 0.91)), flower=(22.4, 0.08, held)))
+    capture = {"psnr": 25.0, "abs_rel": 0.05, "halfwidth_95": 0.1,
+               **{f"coverage_{p}": c for p, c in zip((50, 68, 90, 95), (0.5, 0.68, 0.9, 0.95))}}
+    today = {"fern": capture, "flower": capture}
+    better = {scene: {**capture, "psnr": 25.2} for scene in today}
+    v = script.verdict(study, today, better, (script.paper_means(today_paths), script.paper_means(cand)))
+    assert v["scenes"]["fern"]["checks"]["paper_split"] and not v["scenes"]["fern"]["checks"]["paper_levels"]
+    assert v["scenes"]["flower"]["passes"] and not v["taken"]
+    # the third seed at 0.87: the mean 0.8533, within 5 points
+    near = cand[:2] + (tables("c3.json", fern=(20.2, 0.104, (0.5, 0.66, 0.87, 0.91)), flower=(22.4, 0.08, held)),)
+    assert script.verdict(study, today, better, (script.paper_means(today_paths), script.paper_means(near)))["taken"]
+    text = script.rule_text(study)
+    assert "the means of seeds 0-2" in text and text.count("50, 68, 90, 95%") == 2
+
+
 def test_time_to_reference_reads_the_first_mark_past_the_reference(bench, tmp_path):
     """The report's minutes to another run's final quality: the first mark at or past its PSNR (higher
     is better) and its depth abs-rel (lower is better); none when the curve never gets there."""

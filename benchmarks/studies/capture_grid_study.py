@@ -14,11 +14,13 @@ the table and the rule's verdict (docs/studies.md; each rule fixed before its ro
     python benchmarks/studies/capture_grid_study.py --study adam_beta2
     python benchmarks/studies/capture_grid_study.py --study adam_beta2_colour
     python benchmarks/studies/capture_grid_study.py --study colour_levels
+    python benchmarks/studies/capture_grid_study.py --study colour_levels_minutes
 
 A row may be several runs (seeds): the rule then reads their means.
 
 A study with ``paper_tables`` also checks the paper split: the candidate's S-NeRF (default) row of
-``benchmarks/eval_tables.py`` (seed 0, the same ``--set``) against today's committed row.
+``benchmarks/eval_tables.py`` (seed 0, or the means of several seeds' tables, the same ``--set``) against
+today's committed rows.
 """
 
 from __future__ import annotations
@@ -41,7 +43,8 @@ class Study(NamedTuple):
     ``coverage_points`` of nominal and trains at most ``max_minutes`` (None: the steps are fixed, the
     minutes not ruled); where ``paper_tables`` names (today's, the candidate's) ``tables.json``, its
     S-NeRF (default) row at the paper split also loses at most ``max_paper_psnr_loss_db`` of PSNR and
-    ``max_paper_abs_rel_loss`` of abs-rel on each scene; where ``step_costs`` names
+    ``max_paper_abs_rel_loss`` of abs-rel on each scene (each side may be several seeds' ``tables.json``:
+    their means are ruled; with ``paper_levels`` the paper split's levels are ruled as the capture's); where ``step_costs`` names
     ``capture_step_cost.py`` outputs (under ``out``, one per scene), a step costs at most
     ``max_step_cost`` times today's on each scene.
 
@@ -64,9 +67,10 @@ class Study(NamedTuple):
     max_abs_rel_loss: float = 0.002
     coverage_points: float = 5.0
     max_minutes: float | None = 11.0
-    paper_tables: tuple[str, str] | None = None
+    paper_tables: tuple[str | tuple[str, ...], str | tuple[str, ...]] | None = None
     max_paper_psnr_loss_db: float = 0.2
     max_paper_abs_rel_loss: float = 0.005
+    paper_levels: bool = False
     gain_on_mean: bool = False
     levels: tuple[int, ...] = (68, 95)
     level_as_far_as_today: bool = False
@@ -171,6 +175,30 @@ STUDIES = {
         min_psnr_gain_db=0.1, max_psnr_loss_db=0.05, max_minutes=None, gain_on_mean=True,
         levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0,
         step_costs=("step_cost_fern.json", "step_cost_flower.json")),
+    "colour_levels_minutes": Study(
+        "49b", "each grid level's colour features read apart, judged at ten minutes",
+        "benchmarks/results/colour_levels_minutes_study",
+        {"today (sum)": ("today/seed_9", "today/seed_10"),
+         "candidate (concat)": ("concat/seed_9", "concat/seed_10")},
+        ("OMP_NUM_THREADS=1 python benchmarks/capture_quality.py --methods snerf --minutes 10 --marks 1 --threads 1 "
+         "--quiet --seed S [--set field.grid_colour_levels=concat] --out "
+         "benchmarks/results/colour_levels_minutes_study/{today,concat}/seed_S --work runs/s71/{today,concat}/seed_S "
+         "(S = 9, then 10; a seed's two rows side by side)",
+         "OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes fern flower --methods snerf_default --seed S "
+         "--no-timing --quiet --set field.grid_colour_levels=concat --out runs/s71/tables_concat_seedS (S = 1, 2 side "
+         "by side), its tables.json and tables.md copied to benchmarks/results/colour_levels_minutes_study/"
+         "tables_concat/seed_S (seed 0: study 49's tables_concat)"),
+        "S-NeRF default, capture split, seeds 9 and 10, ten minutes of training (train.minutes), a seed's two rows "
+        "side by side on one thread each; the table's rows are the seeds' means",
+        min_psnr_gain_db=0.1, max_psnr_loss_db=0.05, max_minutes=None, gain_on_mean=True,
+        levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0,
+        paper_tables=(("benchmarks/results/adam_beta2_study/tables_0.999/tables.json",
+                       "benchmarks/results/eval_tables_46b/seed_1/tables.json",
+                       "benchmarks/results/eval_tables_46b/seed_2/tables.json"),
+                      ("benchmarks/results/colour_levels_study/tables_concat/tables.json",
+                       "benchmarks/results/colour_levels_minutes_study/tables_concat/seed_1/tables.json",
+                       "benchmarks/results/colour_levels_minutes_study/tables_concat/seed_2/tables.json")),
+        paper_levels=True),
 }
 
 
@@ -233,10 +261,30 @@ def read_rows(study: Study, out: Path) -> tuple[dict[str, dict], dict[str, dict[
 
 
 def paper_scores(path: Path) -> dict[str, dict]:
-    """Per scene: S-NeRF (default)'s PSNR and depth abs-rel in an ``eval_tables.py`` ``tables.json``."""
-    return read_tables_method(path, "snerf_default",
-                              lambda m: {"psnr": float(m["psnr"]), "abs_rel": float(m["depth"]["abs_rel"])},
+    """Per scene: S-NeRF (default)'s PSNR and depth abs-rel in an ``eval_tables.py`` ``tables.json``, and
+    the recalibrated depth coverage at each level of ``NOMINAL`` its pooled intervals report."""
+
+    def read(m: dict) -> dict:
+        scores = {"psnr": float(m["psnr"]), "abs_rel": float(m["depth"]["abs_rel"])}
+        intervals = (m.get("pooled") or {}).get("depth_intervals") or {}
+        scores.update({f"coverage_{p}": float(intervals[f"coverage_{p}"]) for p in NOMINAL
+                       if intervals.get(f"coverage_{p}") is not None})
+        return scores
+
+    return read_tables_method(path, "snerf_default", read,
                               "S-NeRF (default) rows (run the study's tables command first)")
+
+
+def paper_means(paths: str | tuple[str, ...]) -> dict[str, dict]:
+    """``paper_scores`` of one ``tables.json`` or, per scene every file has, the means of several seeds'
+    (each score every seed reports)."""
+    per_seed = [paper_scores(Path(p)) for p in ((paths,) if isinstance(paths, str) else paths)]
+    scenes = set.intersection(*(set(s) for s in per_seed))
+    means = {}
+    for scene in sorted(scenes):
+        keys = set.intersection(*(set(s[scene]) for s in per_seed))
+        means[scene] = {k: sum(s[scene][k] for s in per_seed) / len(per_seed) for k in sorted(keys)}
+    return means
 
 
 def step_cost_ratios(study: Study, out: Path) -> dict[str, float] | None:
@@ -282,6 +330,9 @@ def verdict(study: Study, today: dict, candidate: dict,
             checks["paper_split"] = (p_today is not None and p_cand is not None
                                      and p_cand["psnr"] - p_today["psnr"] >= -study.max_paper_psnr_loss_db
                                      and p_cand["abs_rel"] - p_today["abs_rel"] <= study.max_paper_abs_rel_loss)
+            if study.paper_levels:
+                checks["paper_levels"] = (p_today is not None and p_cand is not None
+                                          and coverage_held(study, p_today, p_cand))
         scenes[scene] = {"psnr_gain_db": psnr_gain, "abs_rel_change": abs_rel_change,
                          "checks": checks, "passes": all(checks.values())}
     both = {"fern", "flower"} <= set(scenes)
@@ -324,12 +375,19 @@ def rule_text(study: Study) -> str:
              if study.max_halfwidth_growth_points is not None else "")
     minutes = (f" and its training at most {study.max_minutes:g} minutes" if study.max_minutes is not None else "")
     minutes += (f" and a training step at most {study.max_step_cost:g}x today's" if study.step_costs else "")
-    paper = (f" At the paper split (the tables' S-NeRF default row, seed 0) its PSNR is at most "
-             f"{study.max_paper_psnr_loss_db} dB and its depth abs-rel at most {study.max_paper_abs_rel_loss} "
-             f"worse than today's on each scene." if study.paper_tables else "")
+    paper = (f" At the paper split (the tables' S-NeRF default row, {paper_seeds_text(study)}) its PSNR is at "
+             f"most {study.max_paper_psnr_loss_db} dB and its depth abs-rel at most {study.max_paper_abs_rel_loss} "
+             f"worse than today's on each scene" + (f", its {levels}" if study.paper_levels else "") + "."
+             if study.paper_tables else "")
     seeds = " (on the means of the seeds)" if has_seeds(study) else ""
     return (f"Rule (fixed before the rows){seeds}: the candidate is taken if {lead}, "
             f"its depth abs-rel at most {study.max_abs_rel_loss} above, its {levels}{width}{minutes}.{paper}")
+
+
+def paper_seeds_text(study: Study) -> str:
+    """Which seeds the study's paper-split rows are: seed 0, or the means of several."""
+    count = len(study.paper_tables[1]) if study.paper_tables and not isinstance(study.paper_tables[1], str) else 1
+    return "seed 0" if count == 1 else f"the means of seeds 0-{count - 1}"
 
 
 def score_table(study: Study, rows: dict[str, dict], caption: str | None) -> list[str]:
@@ -392,7 +450,7 @@ def main() -> None:
     out = args.out or Path(study.out)
     rows, seeds = read_rows(study, out)
     (today_label, today), (cand_label, candidate) = rows.items()
-    paper = tuple(paper_scores(Path(path)) for path in study.paper_tables) if study.paper_tables else None
+    paper = tuple(paper_means(paths) for paths in study.paper_tables) if study.paper_tables else None
     costs = step_cost_ratios(study, out)
     v = verdict(study, today, candidate, paper, costs)
     (out / "verdict.json").write_text(json.dumps({"rows": rows, "paper_split": paper, "step_cost": costs,
@@ -406,12 +464,16 @@ def main() -> None:
         lines += ["", *score_table(study, {f"{label}, {name}": scores for name, scores in per_seed.items()},
                                    f"{label}, each seed")]
     if paper is not None:
-        lines += ["", "Paper split (the tables' S-NeRF default row, seed 0, its four test views):", "",
-                  "| scene | row | PSNR dB | depth abs-rel |", "|---|---|---|---|"]
+        levels = " / ".join(str(p) for p in NOMINAL)
+        lines += ["", f"Paper split (the tables' S-NeRF default row, {paper_seeds_text(study)}, its test views):", "",
+                  f"| scene | row | PSNR dB | depth abs-rel | cov {levels} |", "|---|---|---|---|---|"]
         for scene in sorted(paper[0]):
             for label, scores in zip(rows, paper):
                 if scene in scores:
-                    lines.append(f"| {scene} | {label} | {scores[scene]['psnr']:.2f} | {scores[scene]['abs_rel']:.4f} |")
+                    s = scores[scene]
+                    cov = (" / ".join(f"{100 * s[f'coverage_{p}']:.1f}" for p in NOMINAL)
+                           if all(f"coverage_{p}" in s for p in NOMINAL) else "-")
+                    lines.append(f"| {scene} | {label} | {s['psnr']:.2f} | {s['abs_rel']:.4f} | {cov} |")
     if costs is not None:
         lines += ["", "A training step's cost, the candidate over today's (`benchmarks/studies/capture_step_cost.py`, "
                   "interleaved in one process): " + ", ".join(f"{scene} {r:.3f}x" for scene, r in sorted(costs.items()))]
