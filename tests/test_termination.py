@@ -3,6 +3,7 @@ central-interval recalibration (``predictive.CentralCalibration``) against hand 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tempfile
 
@@ -12,15 +13,18 @@ import scipy.optimize
 import scipy.stats
 import torch
 
-from stochastic_fields.config import preset
+from stochastic_fields.config import preset, validate_experiment
+from stochastic_fields.validation import ConfigError
 from stochastic_fields.data import load_dataset
 from stochastic_fields.data.synthetic import make_synthetic_scene
 from stochastic_fields.cameras import generate_rays_for_view
 from stochastic_fields.models.registry import build_model
 from stochastic_fields.predictive import CentralCalibration
 from stochastic_fields.rays import PackedRaySamples, RayBundle, RaySamples
-from stochastic_fields.termination import TerminationMixture, render_termination, termination_mixture
-from stochastic_fields.volume_rendering import render_weights
+from stochastic_fields.renderer import RayRender
+from stochastic_fields.termination import (TerminationMixture, median_depth, render_termination, termination_mixture,
+                                          with_depth_estimate)
+from stochastic_fields.volume_rendering import render_weights, statistics_from_draws
 
 #: Two slabs of constant density on one ray (ray distance): (start, end, density).
 SLABS = ((1.0, 2.0, 0.7), (3.0, 3.5, 2.5))
@@ -255,3 +259,52 @@ def test_study_22e_reads_seed_means_and_guards_single_seeds(load_script):
     for r in runs.values():  # 22f: the weighted map is today's; a copy of it gains nothing
         r[study.INTERP_WEIGHTED] = dict(r[study.WEIGHTED])
     assert "gains no check" in study.decide(runs, "22f")
+
+
+def test_median_depth_is_the_mixtures_half_quantile_in_ray_distance():
+    starts, ends, d1 = _slab_ray()
+    mids = 0.5 * (starts + ends)
+    d2 = torch.where((mids > 1.0) & (mids < 2.0), torch.full_like(mids, 3.0), torch.zeros_like(mids))
+    w = torch.stack([render_weights(d, starts, ends, "alpha") for d in (d1, d2)])  # [K, S]
+    rays = RayBundle(origins=torch.zeros(1, 3), directions=torch.tensor([[0.0, 0.0, 1.0]]),
+                     near=torch.tensor([0.5]), far=torch.tensor([FAR]), z_scale=torch.tensor([0.8]))
+    samples = RaySamples(rays, starts[None], ends[None])
+    near_slab = ((1.0, 2.0, 3.0),)
+    root = scipy.optimize.brentq(lambda t: 0.5 * (_slab_cdf(t) + _slab_cdf(t, near_slab)) - 0.5, 0.5, 4.5, xtol=1e-14)
+    median = median_depth(samples, w[None], rays)  # ray distance, not camera z
+    assert median.dtype == torch.float64 and float(median[0]) == pytest.approx(root, abs=1e-10)
+    # a render's stats take it as the depth map ("median"), or keep the mean ("mean")
+    stats = statistics_from_draws(torch.zeros(1, 2, 3), (w * mids).sum(-1)[None] / w.sum(-1)[None],
+                                  torch.zeros(1, 2), w.sum(-1)[None])
+    out = RayRender(stats=stats, params=None, samples=samples, extras={"weights": w[None]})
+    assert with_depth_estimate(out, rays, "mean") is out
+    moved = with_depth_estimate(out, rays, "median")
+    assert float(moved.stats.depth_mean[0]) == pytest.approx(root, abs=1e-10)
+    assert torch.equal(moved.stats.depth_var_total, stats.depth_var_total)  # the spread stays about the mean
+    with pytest.raises(ValueError, match="'mean' or 'median'"):
+        with_depth_estimate(out, rays, "mode")
+
+
+def test_the_median_option_reaches_every_render_and_refuses_adaptive_draws():
+    cfg = preset("tiny")
+    cfg.train.device, cfg.render.num_samples = "cpu", 16
+    cfg.field.grid_max_cells, cfg.field.grid_levels = 16 ** 3, 2
+    with tempfile.TemporaryDirectory() as tmp:
+        dataset = load_dataset(make_synthetic_scene(tmp, num_views=6, width=16, height=12, seed=0))
+        model = build_model(cfg, dataset).eval()
+        rays = generate_rays_for_view(dataset.cameras, 0, float(dataset.near[0]), float(dataset.far[0]))
+        options = model.render_options(num_draws=4, chunk_rays=50)
+        mean_maps = model.render_view(rays, options, generator=torch.Generator().manual_seed(0))
+        _, m = render_termination(model, rays.reshape(-1), options, generator=torch.Generator().manual_seed(0))
+        model.render_settings = dataclasses.replace(model.render_settings, depth_estimate="median")
+        maps = model.render_view(rays, options, generator=torch.Generator().manual_seed(0))
+        half = m.quantiles(torch.tensor([0.5], dtype=torch.float64))[:, 0]  # camera z
+        torch.testing.assert_close((maps["depth_mean"] * maps["z_scale"]).reshape(-1).double(), half,
+                                   atol=1e-4, rtol=1e-5)
+        torch.testing.assert_close(maps["depth_var_total"], mean_maps["depth_var_total"])
+        assert not torch.allclose(maps["depth_mean"], mean_maps["depth_mean"])
+        with pytest.raises(ValueError, match="fixed K"):
+            model.render_view(rays, model.render_options(adaptive_draws=True))
+    cfg.render.depth_estimate, cfg.render.adaptive_draws = "median", True
+    with pytest.raises(ConfigError, match="render.depth_estimate"):
+        validate_experiment(cfg)

@@ -231,6 +231,9 @@ def validate_experiment(cfg: "ExperimentConfig") -> None:
     if cfg.method == "snerf" and cfg.render.quadrature == "trapezoid" and cfg.render.skip_empty_space:
         raise V.ConfigError("render.skip_empty_space", "false with render.quadrature='trapezoid' (empty-space "
                             "skipping needs alpha compositing)", cfg.render.skip_empty_space)
+    if cfg.render.depth_estimate == "median" and cfg.render.adaptive_draws:
+        raise V.ConfigError("render.depth_estimate", "'mean' with render.adaptive_draws (the median reads every "
+                            "trajectory's weights; adaptive K renders its draws in batches)", cfg.render.depth_estimate)
     if cfg.field.density_per == "cell" and cfg.field.backend != "grid":
         raise V.ConfigError("field.density_per", "'unit' with field.backend='mlp' (an MLP has no cells)",
                             cfg.field.density_per)

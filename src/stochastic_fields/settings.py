@@ -164,6 +164,8 @@ class RenderSettings:
     """Decode a sample's colour only where some trajectory has density there and reaches it with transmittance at least this (alpha quadrature; training and rendering, every method alike). Every trajectory's colour then differs from the full sum by less than this (a sample without density weighs exactly 0; the weights of the samples reached with less sum to less than it); densities, weights, depths and opacities are exact. 1e-4 since study 46b (docs/studies.md): a capture's ten CPU-minutes make 1.4-1.8x the training steps, PSNR +0.2 to +0.6 dB (two seeds). 0: every sample's colour is decoded (runs saved before the option). Range: a finite number >= 0 and < 1."""
     adaptive_rule: Literal["precision", "change"] = "precision"
     """Adaptive K stopping rule: 'precision' stops when the small-K bias of 1/var left before the cap, predicted from the draws' kurtosis, is below adaptive_rtol (aims at the NLL of K = adaptive_max_draws); 'change' when the variances change by less than adaptive_rtol between batches (stops earlier, NLL measured 4% above K = 128's at rtol 0.05). See stochastic_fields.adaptive."""
+    depth_estimate: Literal["mean", "median"] = "mean"
+    """S-NeRF: the depth map's point estimate of each pixel's predictive depth distribution (the mixture over the K trajectories of each one's termination distribution along the ray, stochastic_fields.termination): 'mean' its mean, the mean over k of the expected termination depths D_k (the paper's); 'median' its median F^-1(1/2), which stays on a surface where a pixel's trajectories split their mass between a near and a far one (the mean lies between them). The depth std stays the mixture's total std (about its mean); the calibration's depth map is fitted on the errors of the estimate the run renders, so recalibrate after changing it. Not with adaptive_draws. See docs/uncertainty.md."""
 
     def __post_init__(self) -> None:
         check_fields(self, RENDER_CHECKS)
@@ -192,4 +194,5 @@ RENDER_CHECKS: dict[str, Checker] = {
     "colour_estimator": choice(*COLOUR_ESTIMATORS),
     "adaptive_rule": choice("precision", "change"),
     "colour_min_transmittance": real(0.0, 1.0, hi_open=True),
+    "depth_estimate": choice("mean", "median"),
 }

@@ -27,7 +27,7 @@ render's device. ``quantiles`` is exact up to a bisection on u inside one interv
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import torch
 from torch import Tensor
@@ -184,6 +184,31 @@ def termination_mixture(samples, weights: Tensor, rays: RayBundle) -> Terminatio
     w = torch.zeros(R, K, S, dtype=torch.float64, device=weights.device)
     w[ray, :, slot] = weights.double().T
     return TerminationMixture(ts, te, w, far, z)
+
+
+#: The level of the median depth estimate (``RenderSettings.depth_estimate`` "median").
+MEDIAN_LEVEL: float = 0.5
+
+
+def median_depth(samples, weights: Tensor, rays: RayBundle) -> Tensor:
+    """[R] ray distance: each ray's median termination distance F^-1(1/2) of the mixture of its K
+    trajectories (``termination_mixture`` of a render's samples and weights; ``far`` where at least
+    half the trajectories hit nothing, as the mean depth puts them), in the weights' dtype."""
+    mixture = termination_mixture(samples, weights, rays)
+    half = torch.full((mixture.num_rays, 1), MEDIAN_LEVEL, dtype=torch.float64, device=mixture.t_starts.device)
+    return (mixture.quantiles(half)[:, 0] / mixture.z_scale).to(weights.dtype)
+
+
+def with_depth_estimate(out, rays: RayBundle, estimate: str):
+    """The render ``out`` (``renderer.RayRender``) with its depth map the point estimate ``estimate``
+    (``RenderSettings.depth_estimate``): "mean" leaves it as rendered; "median" replaces
+    ``stats.depth_mean`` by ``median_depth`` of the same draws (the variances stay about the mean)."""
+    if estimate == "mean":
+        return out
+    if estimate != "median":
+        raise ValueError(f"depth estimate must be 'mean' or 'median', got {estimate!r}")
+    median = median_depth(out.samples, out.extras["weights"], rays).to(out.stats.depth_mean)
+    return replace(out, stats=replace(out.stats, depth_mean=median.reshape(out.stats.depth_mean.shape)))
 
 
 @torch.no_grad()

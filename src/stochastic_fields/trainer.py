@@ -42,7 +42,7 @@ from .virtual_views import PatchSampler
 #: other difference (model shape, data, losses, learning rate, seed...) is refused on resume.
 RESUMABLE_OPTIONS: tuple[str, ...] = ("train.iterations", "train.minutes", "train.eval_every", "train.checkpoint_every",
                                       "train.device", "render.chunk_rays", "render.num_draws",
-                                      "render.colour_estimator")
+                                      "render.colour_estimator", "render.depth_estimate")
 LOG_NAME = "train_log.jsonl"
 #: Added to the depth smoothness patches' seed so they draw apart from the batches of the same seed.
 SMOOTHNESS_SEED_OFFSET = 0x5A17

@@ -37,6 +37,7 @@ from ..renderer import (ChunkGenerators, ChunkRender, RayRender, RenderOptions, 
                         trajectory_weights)
 from ..samplers import sample_along_rays
 from ..scene_region import SceneRegion, random_unit_directions
+from ..termination import with_depth_estimate
 from .base import RadianceModel
 
 UNIT_CUBE = ((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
@@ -307,8 +308,9 @@ class SNeRF(RadianceModel):
         it (same samples, skipping and noise for the same generator): the notebook's pixel probe
         reads the samples, parameters and weights behind a pixel from it."""
         settings = options.settings_for(self.render_settings)
-        return render_rays(self.field, rays, settings, num_draws=options.num_draws, generator=generator,
-                           occupied=self._occupied_for(settings))
+        out = render_rays(self.field, rays, settings, num_draws=options.num_draws, generator=generator,
+                          occupied=self._occupied_for(settings))
+        return with_depth_estimate(out, rays, settings.depth_estimate)
 
     def render_view(self, rays: RayBundle, options: RenderOptions | None = None, *,
                     generator: "torch.Generator | ChunkGenerators | None" = None) -> dict[str, Tensor]:
@@ -320,6 +322,9 @@ class SNeRF(RadianceModel):
         options = options or self.default_render_options()
         settings = options.settings_for(self.render_settings)
         if options.adaptive_draws:
+            if settings.depth_estimate != "mean":
+                raise ValueError(f"render.depth_estimate {settings.depth_estimate!r} needs a fixed K: adaptive draws "
+                                 "render their trajectories in batches (render with adaptive_draws off)")
             maps = render_image_adaptive(self.field, rays, settings, generator=generator, keep_draws=options.keep_draws,
                                          progress=options.progress, occupied=self._occupied_for(settings))
         else:
