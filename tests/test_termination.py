@@ -128,13 +128,24 @@ def test_an_opaque_interval_and_an_empty_ray():
         TerminationMixture(starts[None], ends[None], w[0], torch.ones(1), torch.ones(1))
 
 
-def test_render_termination_holds_the_renders_draws():
+def _tiny_config():
+    """The tiny preset on a 16-sample grid of two levels, on the CPU."""
     cfg = preset("tiny")
     cfg.train.device, cfg.render.num_samples = "cpu", 16
     cfg.field.grid_max_cells, cfg.field.grid_levels = 16 ** 3, 2
+    return cfg
+
+
+def _untrained_model(cfg, tmp: str):
+    """(dataset, an untrained model of ``cfg``) on a 16 x 12 synthetic scene of six views in ``tmp``."""
+    dataset = load_dataset(make_synthetic_scene(tmp, num_views=6, width=16, height=12, seed=0))
+    return dataset, build_model(cfg, dataset).eval()
+
+
+def test_render_termination_holds_the_renders_draws():
+    cfg = _tiny_config()
     with tempfile.TemporaryDirectory() as tmp:
-        dataset = load_dataset(make_synthetic_scene(tmp, num_views=6, width=16, height=12, seed=0))
-        model = build_model(cfg, dataset).eval()
+        dataset, model = _untrained_model(cfg, tmp)
         rays = generate_rays_for_view(dataset.cameras, 0, float(dataset.near[0]), float(dataset.far[0])).reshape(-1)
         options = model.render_options(num_draws=4, chunk_rays=50)
         stats, m = render_termination(model, rays, options, generator=torch.Generator().manual_seed(0))
@@ -286,12 +297,9 @@ def test_median_depth_is_the_mixtures_half_quantile_in_ray_distance():
 
 
 def test_the_median_option_reaches_every_render_and_refuses_adaptive_draws():
-    cfg = preset("tiny")
-    cfg.train.device, cfg.render.num_samples = "cpu", 16
-    cfg.field.grid_max_cells, cfg.field.grid_levels = 16 ** 3, 2
+    cfg = _tiny_config()
     with tempfile.TemporaryDirectory() as tmp:
-        dataset = load_dataset(make_synthetic_scene(tmp, num_views=6, width=16, height=12, seed=0))
-        model = build_model(cfg, dataset).eval()
+        dataset, model = _untrained_model(cfg, tmp)
         rays = generate_rays_for_view(dataset.cameras, 0, float(dataset.near[0]), float(dataset.far[0]))
         options = model.render_options(num_draws=4, chunk_rays=50)
         mean_maps = model.render_view(rays, options, generator=torch.Generator().manual_seed(0))

@@ -73,18 +73,17 @@ from scipy.stats import spearmanr
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from study_helpers import cached, write_study  # noqa: E402
+from study_helpers import cached, pooled_map_scores, write_study  # noqa: E402
 from tables_cap_study import validation_views  # noqa: E402
 
 import stochastic_fields.calibration as calibration  # noqa: E402
-from stochastic_fields.calibration import RunCalibration, depth_calibration_renders, depth_map_and_folds  # noqa: E402
+from stochastic_fields.calibration import depth_calibration_renders, depth_map_and_folds  # noqa: E402
 from stochastic_fields.cameras import generate_rays_for_view  # noqa: E402
 from stochastic_fields.capture_points import (block_keys, load_capture_points, rays_through_points,  # noqa: E402
                                               score_sparse_depth)
-from stochastic_fields.evaluation import calibrated_depth_scores, depth_samples, pool_depth_samples  # noqa: E402
+from stochastic_fields.evaluation import depth_samples  # noqa: E402
 from stochastic_fields.free_space import checked_std, load_training_depth  # noqa: E402
 from stochastic_fields.laplace import LAPLACE_PRIOR_PRECISION, LAPLACE_RESOLUTION, fit_laplace_density  # noqa: E402
-from stochastic_fields import metrics as M  # noqa: E402
 from stochastic_fields.trainer import TrainingRays, load_trained_model  # noqa: E402
 from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
 
@@ -117,7 +116,6 @@ def arm_scores(arm: str, renders: dict, lap_cal: np.ndarray, val: list, capture,
         raw = lap_cal if arm == "replace" else np.hypot(renders["std_raw"], lap_cal)
         r.update(std_raw=raw, std=checked_std(raw, renders["violation"]))
     depth_map, folds = depth_map_and_folds(r, capture, relative_floor=True, where=where)
-    cal = RunCalibration(depth=depth_map, points="held-out", training_depth=ref, depth_folds=folds)
     pool = []
     for sd, products, lap, blocks in val:
         p = dict(products)
@@ -129,18 +127,7 @@ def arm_scores(arm: str, renders: dict, lap_cal: np.ndarray, val: list, capture,
             at = p["depth_std_raw"][sd.rows, sd.cols]
             p["depth_std_raw"][sd.rows, sd.cols] = lap if arm == "replace" else np.hypot(at, lap)
         pool.append(depth_samples(p, sparse=sd, blocks=blocks))
-    samples = pool_depth_samples(pool)
-    iv = calibrated_depth_scores(samples, cal)["intervals"]
-
-    def std_of(s):
-        return depth_map.calibrated_std(s.std_raw, s.violation, s.pred, s.edge, parallax=s.parallax)
-
-    per_view = [spearmanr(np.abs(s.pred - s.gt), std_of(s)).correlation for s in pool if s.gt.size > 10]
-    return {"coverage": {M.level_name(p): float(iv[f"coverage_{M.level_name(p)}"]) for p in M.INTERVAL_LEVELS},
-            "halfwidth_median_95": float(iv["halfwidth_median_95"]), "interval_score_95": float(iv["interval_score_95"]),
-            "crps": float(iv["crps"]), "points": int(samples.gt.size),
-            "spearman": float(spearmanr(np.abs(samples.pred - samples.gt), std_of(samples)).correlation),
-            "spearman_per_view": float(np.mean(per_view)),
+    return {**pooled_map_scores(depth_map, folds, ref, pool),
             "beta": depth_map.free_space_weight if depth_map.free_space else 0.0, "rho": depth_map.relative_floor,
             "gamma": depth_map.edge_weight}
 

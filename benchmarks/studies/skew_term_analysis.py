@@ -38,19 +38,16 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.stats import spearmanr
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from study_helpers import cached, write_study  # noqa: E402
+from study_helpers import cached, pooled_map_scores, write_study  # noqa: E402
 
 import stochastic_fields.calibration as calibration  # noqa: E402
-from stochastic_fields import metrics as M  # noqa: E402
-from stochastic_fields.calibration import (RunCalibration, depth_calibration_renders, depth_map_and_folds,  # noqa: E402
-                                           render_at_points)
+from stochastic_fields.calibration import depth_calibration_renders, depth_map_and_folds, render_at_points  # noqa: E402
 from stochastic_fields.cameras import generate_rays_for_view  # noqa: E402
 from stochastic_fields.capture_points import block_keys, load_capture_points, score_sparse_depth  # noqa: E402
-from stochastic_fields.evaluation import calibrated_depth_scores, depth_samples, pool_depth_samples  # noqa: E402
+from stochastic_fields.evaluation import depth_samples  # noqa: E402
 from stochastic_fields.free_space import checked_std, load_training_depth  # noqa: E402
 from stochastic_fields.renderer import seeded_chunks  # noqa: E402
 from stochastic_fields.trainer import load_trained_model  # noqa: E402
@@ -102,7 +99,6 @@ def arm_scores(arm: str, renders: dict, val: list, capture, ref, where: str) -> 
         raw = np.hypot(renders["std_raw"], renders["edge"])
         r.update(std_raw=raw, std=checked_std(raw, renders["violation"]))
     depth_map, folds = depth_map_and_folds(r, capture, relative_floor=True, where=where)
-    cal = RunCalibration(depth=depth_map, points="held-out", training_depth=ref, depth_folds=folds)
     pool = []
     for sd, products, skew, blocks in val:
         p = dict(products)
@@ -111,17 +107,7 @@ def arm_scores(arm: str, renders: dict, val: list, capture, ref, where: str) -> 
         elif arm == "sum":
             p["depth_std_raw"] = np.hypot(products["depth_std_raw"], skew)
         pool.append(depth_samples(p, sparse=sd, blocks=blocks))
-    samples = pool_depth_samples(pool)
-    iv = calibrated_depth_scores(samples, cal)["intervals"]
-
-    def std_of(s):
-        return depth_map.calibrated_std(s.std_raw, s.violation, s.pred, s.edge, parallax=s.parallax)
-
-    per_view = [spearmanr(np.abs(s.pred - s.gt), std_of(s)).correlation for s in pool if s.gt.size > 10]
-    return {"coverage": {M.level_name(p): float(iv[f"coverage_{M.level_name(p)}"]) for p in M.INTERVAL_LEVELS},
-            "halfwidth_median_95": float(iv["halfwidth_median_95"]), "interval_score_95": float(iv["interval_score_95"]),
-            "crps": float(iv["crps"]), "points": int(samples.gt.size),
-            "spearman_per_view": float(np.mean(per_view)),
+    return {**pooled_map_scores(depth_map, folds, ref, pool),
             "gamma": depth_map.edge_weight, "kappa": depth_map.parallax_weight, "rho": depth_map.relative_floor}
 
 

@@ -19,11 +19,13 @@ from pathlib import Path
 import numpy as np
 import torch
 from scipy.special import ndtri
+from scipy.stats import spearmanr
 
 from stochastic_fields import metrics as M
-from stochastic_fields.calibration import render_at_points
+from stochastic_fields.calibration import RunCalibration, render_at_points
 from stochastic_fields.cameras import camera_to_world, intrinsics_3x3
 from stochastic_fields.capture_points import SCORE, backproject_pixels, block_keys, depth_map_observes, restrict_sparse_depth
+from stochastic_fields.evaluation import calibrated_depth_scores, pool_depth_samples
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.sparse_depth import project_sparse_depth, sparse_depth_for_dataset
 from stochastic_fields.view_maps import OPACITY_MASK
@@ -377,3 +379,24 @@ def coverage_failures(today: dict, candidate: dict, levels: tuple[float, ...], t
             failed.append(f"{where}{round(100 * p)}% coverage {100 * candidate[key]:.1f}: more than "
                           f"{round(100 * tolerance)} points from nominal and further than today's")
     return failed
+
+
+def pooled_map_scores(depth_map, folds, ref, pool: list) -> dict:
+    """The scores of a depth map (``calibration.QuantileCalibration`` with its cross-fitted ``folds``
+    and training-view reference ``ref``) on a list of views' ``evaluation.DepthSamples``, as ``eval``
+    pools them: coverage per level, the median 95% half-width, the 95% interval score and CRPS (all /
+    depth), the point count, and the depth Spearman of |error| against the calibrated std pooled and
+    averaged over the views (those with more than 10 points)."""
+    cal = RunCalibration(depth=depth_map, points="held-out", training_depth=ref, depth_folds=folds)
+    samples = pool_depth_samples(pool)
+    iv = calibrated_depth_scores(samples, cal)["intervals"]
+
+    def std_of(s):
+        return depth_map.calibrated_std(s.std_raw, s.violation, s.pred, s.edge, parallax=s.parallax)
+
+    per_view = [spearmanr(np.abs(s.pred - s.gt), std_of(s)).correlation for s in pool if s.gt.size > 10]
+    return {"coverage": {M.level_name(p): float(iv[f"coverage_{M.level_name(p)}"]) for p in M.INTERVAL_LEVELS},
+            "halfwidth_median_95": float(iv["halfwidth_median_95"]), "interval_score_95": float(iv["interval_score_95"]),
+            "crps": float(iv["crps"]), "points": int(samples.gt.size),
+            "spearman": float(spearmanr(np.abs(samples.pred - samples.gt), std_of(samples)).correlation),
+            "spearman_per_view": float(np.mean(per_view))}
