@@ -79,16 +79,23 @@ class TerminationMixture:
         return self.t_starts.shape[0]
 
     def _parts(self) -> tuple[Tensor, Tensor, Tensor]:
-        """(C [R, K, S + 1]: each trajectory's mass before each interval and after the last;
-        alpha [R, K, S]; scale [R, K]: 1 / A_k for a trajectory that hits something, else 0, so a
-        trajectory that hits nothing keeps all its mass at far)."""
+        """(w [R, K, S]: the weights, negative ones as 0; C [R, K, S + 1]: each trajectory's mass before
+        each interval and after the last; scale [R, K]: 1 / A_k for a trajectory that hits something,
+        else 0, so a trajectory that hits nothing keeps all its mass at far)."""
         w = self.weights.clamp_min(0.0)
         C = torch.cat([torch.zeros_like(w[..., :1]), w.cumsum(-1)], dim=-1).clamp(max=1.0)
-        T = (1.0 - C[..., :-1]).clamp_min(0.0)
-        alpha = torch.where(T > 0, w / T.clamp_min(torch.finfo(w.dtype).tiny), torch.zeros_like(w)).clamp(0.0, 1.0)
         acc = C[..., -1]
         scale = torch.where(acc >= OPACITY_EPS, 1.0 / acc.clamp_min(OPACITY_EPS), torch.zeros_like(acc))
-        return C, alpha, scale
+        return w, C, scale
+
+    @staticmethod
+    def _alpha_at(w: Tensor, C: Tensor, index: Tensor) -> Tensor:
+        """alpha [R, K, Q] of the intervals ``index`` [R, K, Q] (< S): w_i / T_i with T_i = 1 - C_i, 0
+        where nothing is left to stop, clamped to [0, 1]. Only the intervals asked for: the CDF and
+        the quantiles read one interval per value, so the [R, K, S] opacities are never formed."""
+        T = (1.0 - C.gather(2, index)).clamp_min(0.0)
+        wi = w.gather(2, index)
+        return torch.where(T > 0, wi / T.clamp_min(torch.finfo(w.dtype).tiny), torch.zeros_like(wi)).clamp(0.0, 1.0)
 
     def select(self, index: Tensor) -> "TerminationMixture":
         """The mixtures of rays ``index`` (indices or a mask over R)."""
@@ -114,7 +121,7 @@ class TerminationMixture:
         flat = depth.ndim == 1
         d = (depth[:, None] if flat else depth).to(self.t_starts)
         t = d / self.z_scale[:, None]  # ray distance [R, Q]
-        C, alpha, scale = self._parts()
+        w, C, scale = self._parts()
         i = torch.searchsorted(self.t_ends.contiguous(), t.contiguous(), right=True)  # intervals ended by t [R, Q]
         S = self.t_starts.shape[1]
         ic = i.clamp(max=S - 1)
@@ -123,7 +130,7 @@ class TerminationMixture:
                         torch.zeros_like(t)).clamp(0.0, 1.0)  # [R, Q]
         K = C.shape[1]
         before = C.gather(2, i[:, None, :].expand(-1, K, -1))  # [R, K, Q]
-        a = alpha.gather(2, ic[:, None, :].expand(-1, K, -1))
+        a = self._alpha_at(w, C, ic[:, None, :].expand(-1, K, -1))
         T = 1.0 - C.gather(2, ic[:, None, :].expand(-1, K, -1))
         inside = _mass_inside(T, a, _log_clear(a), u[:, None, :])
         G = before + torch.where((i < S)[:, None, :], inside, torch.zeros_like(inside))
@@ -138,7 +145,7 @@ class TerminationMixture:
     def quantiles(self, levels: Tensor) -> Tensor:
         """F^-1(p) at ``levels`` [Q] (shared) or [R, Q] in (0, 1) -> camera-z depths [R, Q]: the
         smallest d with F(d) >= p; ``far`` where p exceeds the mass of the trajectories that hit something."""
-        C, alpha, scale = self._parts()
+        w, C, scale = self._parts()
         R, K, _ = C.shape
         S = self.t_starts.shape[1]
         p = levels.to(self.t_starts)
@@ -150,7 +157,7 @@ class TerminationMixture:
         beyond = i >= S
         ic = i.clamp(max=S - 1)
         Cb = C.gather(2, ic[:, None, :].expand(-1, K, -1))  # [R, K, Q]
-        a = alpha.gather(2, ic[:, None, :].expand(-1, K, -1))
+        a = self._alpha_at(w, C, ic[:, None, :].expand(-1, K, -1))
         T, log_clear = 1.0 - Cb, _log_clear(a)
         lo, hi = torch.zeros_like(p), torch.ones_like(p)
         for _ in range(TERMINATION_BISECTION_STEPS):
