@@ -91,8 +91,7 @@ def score_arm(work: Path, name: str, arm: str, run: Path) -> dict:
            "spearman": summary["depth/spearman"]["mean"],
            **{f"coverage_{p}": 100.0 * iv[f"coverage_{p}"] for p in LEVELS + ("99",)},
            "band_95": 100.0 * iv["halfwidth_median_95"], "is_95": iv["interval_score_95"], "crps": iv["crps"],
-           "render_s_per_view": float(np.mean(result["render_s_per_view"])) if isinstance(result["render_s_per_view"], list)
-           else result["render_s_per_view"], "calibrate_s": calibrate_s}
+           "render_s_per_view": result["render_s_per_view"], "calibrate_s": calibrate_s}
     atomic_write_text(record, json.dumps(out, indent=2))
     return out
 
@@ -107,7 +106,8 @@ def means(rows: dict) -> dict:
     groups: dict = {}
     for name, arms in rows.items():
         groups.setdefault(group_of(name), []).append(arms)
-    keys = [k for k in next(iter(rows.values()))["mean"] if isinstance(next(iter(rows.values()))["mean"][k], float)]
+    record = next(iter(rows.values()))["mean"]
+    keys = [k for k, v in record.items() if isinstance(v, float)]
     return {g: {arm: {k: float(np.mean([r[arm][k] for r in runs])) for k in keys} for arm in ARMS}
             for g, runs in groups.items()}
 

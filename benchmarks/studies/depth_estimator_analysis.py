@@ -38,6 +38,7 @@ from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.termination import TerminationMixture, render_termination
 from stochastic_fields.trainer import load_trained_model
 from stochastic_fields.view_maps import OPACITY_MASK
+from stochastic_fields.volume_rendering import expected_depth
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
 from study_helpers import photo_points  # noqa: E402
@@ -57,12 +58,10 @@ def trajectory_medians(mixture: TerminationMixture) -> np.ndarray:
 
 
 def trajectory_depths(mixture: TerminationMixture) -> np.ndarray:
-    """[N, K]: each trajectory's expected termination depth D_k (camera z; far where it hits nothing)."""
-    w = mixture.weights
+    """[N, K]: each trajectory's expected termination depth D_k (camera z; far where it hits nothing), as
+    the renderer computes it (``volume_rendering.expected_depth`` at the interval midpoints)."""
     t = 0.5 * (mixture.t_starts + mixture.t_ends)
-    acc = w.sum(-1)
-    d = (w * t[:, None, :]).sum(-1) / acc.clamp_min(1e-10)
-    d = torch.where(acc > 1e-10, d, mixture.far[:, None].expand_as(d))
+    d = expected_depth(mixture.weights, t[:, None, :], mixture.far[:, None])
     return (d * mixture.z_scale[:, None]).cpu().numpy()
 
 

@@ -89,11 +89,12 @@ class TerminationMixture:
         return w, C, scale
 
     @staticmethod
-    def _alpha_at(w: Tensor, C: Tensor, index: Tensor) -> Tensor:
-        """alpha [R, K, Q] of the intervals ``index`` [R, K, Q] (< S): w_i / T_i with T_i = 1 - C_i, 0
-        where nothing is left to stop, clamped to [0, 1]. Only the intervals asked for: the CDF and
-        the quantiles read one interval per value, so the [R, K, S] opacities are never formed."""
-        T = (1.0 - C.gather(2, index)).clamp_min(0.0)
+    def _alpha_at(w: Tensor, C_at: Tensor, index: Tensor) -> Tensor:
+        """alpha [R, K, Q] of the intervals ``index`` [R, K, Q] (< S), given ``C_at`` = C gathered there:
+        w_i / T_i with T_i = 1 - C_i, 0 where nothing is left to stop, clamped to [0, 1]. Only the
+        intervals asked for: the CDF and the quantiles read one interval per value, so the [R, K, S]
+        opacities are never formed."""
+        T = (1.0 - C_at).clamp_min(0.0)
         wi = w.gather(2, index)
         return torch.where(T > 0, wi / T.clamp_min(torch.finfo(w.dtype).tiny), torch.zeros_like(wi)).clamp(0.0, 1.0)
 
@@ -130,8 +131,10 @@ class TerminationMixture:
                         torch.zeros_like(t)).clamp(0.0, 1.0)  # [R, Q]
         K = C.shape[1]
         before = C.gather(2, i[:, None, :].expand(-1, K, -1))  # [R, K, Q]
-        a = self._alpha_at(w, C, ic[:, None, :].expand(-1, K, -1))
-        T = 1.0 - C.gather(2, ic[:, None, :].expand(-1, K, -1))
+        at = ic[:, None, :].expand(-1, K, -1)
+        C_at = C.gather(2, at)
+        a = self._alpha_at(w, C_at, at)
+        T = 1.0 - C_at
         inside = _mass_inside(T, a, _log_clear(a), u[:, None, :])
         G = before + torch.where((i < S)[:, None, :], inside, torch.zeros_like(inside))
         F = (scale[..., None] * G).mean(1)
@@ -156,8 +159,9 @@ class TerminationMixture:
         i = torch.searchsorted(F_edges[:, 1:].contiguous(), p.contiguous())  # first interval reaching p [R, Q]
         beyond = i >= S
         ic = i.clamp(max=S - 1)
-        Cb = C.gather(2, ic[:, None, :].expand(-1, K, -1))  # [R, K, Q]
-        a = self._alpha_at(w, C, ic[:, None, :].expand(-1, K, -1))
+        at = ic[:, None, :].expand(-1, K, -1)
+        Cb = C.gather(2, at)  # [R, K, Q]
+        a = self._alpha_at(w, Cb, at)
         T, log_clear = 1.0 - Cb, _log_clear(a)
         lo, hi = torch.zeros_like(p), torch.ones_like(p)
         for _ in range(TERMINATION_BISECTION_STEPS):
@@ -200,10 +204,10 @@ MEDIAN_LEVEL: float = 0.5
 def median_depth(samples, weights: Tensor, rays: RayBundle) -> Tensor:
     """[R] ray distance: each ray's median termination distance F^-1(1/2) of the mixture of its K
     trajectories (``termination_mixture`` of a render's samples and weights; ``far`` where at least
-    half the trajectories hit nothing, as the mean depth puts them), in the weights' dtype."""
+    half the trajectories hit nothing, as the mean depth puts them), float64."""
     mixture = termination_mixture(samples, weights, rays)
     half = torch.full((mixture.num_rays, 1), MEDIAN_LEVEL, dtype=torch.float64, device=mixture.t_starts.device)
-    return (mixture.quantiles(half)[:, 0] / mixture.z_scale).to(weights.dtype)
+    return mixture.quantiles(half)[:, 0] / mixture.z_scale
 
 
 def with_depth_estimate(out, rays: RayBundle, estimate: str):
