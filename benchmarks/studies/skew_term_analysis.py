@@ -111,8 +111,10 @@ def arm_scores(arm: str, renders: dict, val: list, capture, ref, where: str) -> 
             "gamma": depth_map.edge_weight, "kappa": depth_map.parallax_weight, "rho": depth_map.relative_floor}
 
 
-def analyse(run: Path, evals: Path) -> dict:
-    """Every arm's scores of one run at the photos ``evals/views`` holds, with the median renders' cost."""
+def analyse(run: Path, evals: Path, term_at_points=skew_at_points, term_map=skew_map) -> dict:
+    """Every arm's scores of one run at the photos ``evals/views`` holds, with the term's renders' cost.
+    The term k: ``term_at_points`` (as ``skew_at_points``) at the calibration renders' rays and
+    ``term_map`` (as ``skew_map``) over each validation photo; the skew |mean - median| by default."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         _, model, dataset = load_trained_model(run, device="cpu")
@@ -120,8 +122,8 @@ def analyse(run: Path, evals: Path) -> dict:
     capture = load_capture_points(dataset)
     views = sorted(int(f.stem.split("_")[1]) for f in (evals / "views").glob("view_*.npz"))
     original = calibration.edge_at_points
-    calibration.edge_at_points = skew_at_points
-    try:  # the calibration renders, with the skew of their rays in the edge slot
+    calibration.edge_at_points = term_at_points
+    try:  # the calibration renders, with the term at their rays in the edge slot
         renders = depth_calibration_renders(model, dataset, points="held-out", free_space=ref, edges=True,
                                             parallax=ref)
     finally:
@@ -130,11 +132,11 @@ def analyse(run: Path, evals: Path) -> dict:
     for v, sd in score_sparse_depth(dataset, views).items():
         with np.load(evals / "views" / f"view_{v:03d}.npz") as f:
             products = {k: f[k] for k in f.files}
-        val.append((sd, products, skew_map(model, dataset, v, products),
+        val.append((sd, products, term_map(model, dataset, v, products),
                     block_keys(capture.xyz[sd.point_index], capture.xyz)))
-    median_render_s = (time.perf_counter() - t0) / max(len(val), 1)
+    term_render_s = (time.perf_counter() - t0) / max(len(val), 1)
     return {"arms": {arm: arm_scores(arm, renders, val, capture, ref, str(run)) for arm in ARMS},
-            "median_render_s_per_view": median_render_s, "views": views,
+            "median_render_s_per_view": term_render_s, "views": views,
             "skew_median_over_std": float(np.median(renders["edge"] / renders["std_raw"]))}
 
 
@@ -145,10 +147,13 @@ def arm_row(label: str, arm: str, rows: list[dict]) -> str:
             f"{mean('crps'):.4f} | {mean('spearman_per_view'):.3f} |")
 
 
-def markdown(results: dict) -> str:
+def markdown(results: dict, *, title: str = "The distance between a pixel's mean and median depth as a depth std term",
+             script: str = "skew_term_analysis.py", render: str = "median") -> str:
+    """The study page: every run's arms, the seeds' means per group, each run's fitted weights and the cost
+    of the term's ``render`` (titled ``title``, its command in ``script``'s docstring)."""
     head = ("| runs | arm | cov 50 / 68 / 90 / 95 / 99 | median 95% half-width | IS95 / depth | CRPS / depth | "
             "depth Spearman per view |")
-    lines = ["# The distance between a pixel's mean and median depth as a depth std term", "",
+    lines = [f"# {title}", "",
              "Each arm's map fitted on the same calibration renders (today's: free-space check, depth-proportional "
              "and parallax terms, level map), scored on the validation photos' SCORE points, cross-fitted. "
              "Decides nothing.", "", head, "|---|---|---|---|---|---|---|"]
@@ -163,13 +168,13 @@ def markdown(results: dict) -> str:
             if len(labels) > 1:
                 lines += [arm_row(f"{group} ({len(labels)} seeds)", arm, [results[x]["arms"][arm] for x in labels])
                           for arm in ARMS]
-    lines += ["", "| run | gamma (term) | kappa today / term / sum | median render s / view | median k / sigma (calibration) |",
+    lines += ["", f"| run | gamma (term) | kappa today / term / sum | {render} render s / view | median k / sigma (calibration) |",
               "|---|---|---|---|---|"]
     for label, r in results.items():
         a = r["arms"]
         lines.append(f"| {label} | {a['term']['gamma']:.3g} | {a['today']['kappa']:.3g} / {a['term']['kappa']:.3g} / "
                      f"{a['sum']['kappa']:.3g} | {r['median_render_s_per_view']:.1f} | {r['skew_median_over_std']:.3f} |")
-    return "\n".join(lines) + "\n\nCommand: the module docstring of `benchmarks/studies/skew_term_analysis.py`.\n"
+    return "\n".join(lines) + f"\n\nCommand: the module docstring of `benchmarks/studies/{script}`.\n"
 
 
 def main() -> None:
