@@ -89,12 +89,12 @@ class TerminationMixture:
         return w, C, scale
 
     @staticmethod
-    def _alpha_at(w: Tensor, C_at: Tensor, index: Tensor) -> Tensor:
-        """alpha [R, K, Q] of the intervals ``index`` [R, K, Q] (< S), given ``C_at`` = C gathered there:
-        w_i / T_i with T_i = 1 - C_i, 0 where nothing is left to stop, clamped to [0, 1]. Only the
+    def _alpha_at(w: Tensor, T_at: Tensor, index: Tensor) -> Tensor:
+        """alpha [R, K, Q] of the intervals ``index`` [R, K, Q] (< S), given ``T_at`` = 1 - C there (the
+        mass left before each): w_i / T_i, 0 where nothing is left to stop, clamped to [0, 1]. Only the
         intervals asked for: the CDF and the quantiles read one interval per value, so the [R, K, S]
         opacities are never formed."""
-        T = (1.0 - C_at).clamp_min(0.0)
+        T = T_at.clamp_min(0.0)
         wi = w.gather(2, index)
         return torch.where(T > 0, wi / T.clamp_min(torch.finfo(w.dtype).tiny), torch.zeros_like(wi)).clamp(0.0, 1.0)
 
@@ -132,9 +132,8 @@ class TerminationMixture:
         K = C.shape[1]
         before = C.gather(2, i[:, None, :].expand(-1, K, -1))  # [R, K, Q]
         at = ic[:, None, :].expand(-1, K, -1)
-        C_at = C.gather(2, at)
-        a = self._alpha_at(w, C_at, at)
-        T = 1.0 - C_at
+        T = 1.0 - C.gather(2, at)
+        a = self._alpha_at(w, T, at)
         inside = _mass_inside(T, a, _log_clear(a), u[:, None, :])
         G = before + torch.where((i < S)[:, None, :], inside, torch.zeros_like(inside))
         F = (scale[..., None] * G).mean(1)
@@ -161,8 +160,9 @@ class TerminationMixture:
         ic = i.clamp(max=S - 1)
         at = ic[:, None, :].expand(-1, K, -1)
         Cb = C.gather(2, at)  # [R, K, Q]
-        a = self._alpha_at(w, Cb, at)
-        T, log_clear = 1.0 - Cb, _log_clear(a)
+        T = 1.0 - Cb
+        a = self._alpha_at(w, T, at)
+        log_clear = _log_clear(a)
         lo, hi = torch.zeros_like(p), torch.ones_like(p)
         for _ in range(TERMINATION_BISECTION_STEPS):
             mid = 0.5 * (lo + hi)  # > 0
