@@ -199,6 +199,25 @@ STUDIES = {
                        "benchmarks/results/colour_levels_minutes_study/tables_concat/seed_1/tables.json",
                        "benchmarks/results/colour_levels_minutes_study/tables_concat/seed_2/tables.json")),
         paper_levels=True),
+    "error_sampling": Study(
+        "50", "training rays drawn by their blocks' colour error", "benchmarks/results/error_sampling_study",
+        {"today (uniform)": ("today/seed_5", "today/seed_7"),
+         "candidate (error-guided)": ("error/seed_5", "error/seed_7")},
+        ("OMP_NUM_THREADS=1 python benchmarks/capture_quality.py --scenes SCENE --methods snerf --steps 3300 --marks 1 "
+         "--threads 1 --quiet --seed S --set train.ray_sampling=error --out runs/s74/error/seed_S/SCENE "
+         "--work runs/s74/work/seed_S/SCENE (S = 7, then 5; a seed's two scenes side by side), then both scenes' "
+         "work folders joined under one --work and the same command with --scenes fern flower (it reads the finished "
+         "runs) into benchmarks/results/error_sampling_study/error/seed_S",
+         "today/seed_5 is study 48's colour_0.999/seed_5, today/seed_7 study 49's today/seed_7: the same computation "
+         "(with train.ray_sampling uniform a run is bit for bit the one before the option)",
+         "OMP_NUM_THREADS=1 python benchmarks/studies/capture_step_cost.py --scene SCENE --set "
+         "train.ray_sampling=error --out benchmarks/results/error_sampling_study/step_cost_SCENE.json (idle machine)"),
+        "S-NeRF default, capture split, seeds 5 and 7, a schedule of 3300 steps (`--steps`), two processes of one "
+        "thread side by side; the table's rows are the seeds' means; the step's cost ruled apart "
+        "(capture_step_cost.py)",
+        min_psnr_gain_db=0.1, max_psnr_loss_db=0.05, max_minutes=None, gain_on_mean=True,
+        levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0,
+        step_costs=("step_cost_fern.json", "step_cost_flower.json")),
 }
 
 

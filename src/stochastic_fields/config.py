@@ -115,6 +115,14 @@ class TrainConfig:
     """Share of each training view's pixel blocks held out from training; the colour std is recalibrated on them after training (stochastic_fields.holdout; 0: none). Range: a finite number >= 0 and <= 0.5."""
     holdout_block: int = 16
     """Side of the held-out pixel blocks, in pixels. Range: an integer >= 1 and <= 4096."""
+    ray_sampling: Literal["uniform", "error"] = "uniform"
+    """How a step chooses its training rays: 'uniform' (every training pixel alike) or 'error' (blocks of error_sampling_block pixels drawn by the squared colour error their last rays had, mixed with a uniform share; stochastic_fields.ray_sampling; S-NeRF and the deterministic NeRF, one process)."""
+    error_sampling_block: int = 4
+    """Side in pixels of the error map's blocks (train.ray_sampling 'error'). Range: an integer >= 1 and <= 4096."""
+    error_sampling_uniform_share: float = 0.25
+    """Share of the error-guided draws spread uniformly over the training pixels, so every pixel stays reachable. Range: a finite number >= 0 and <= 1."""
+    error_sampling_correction: float = 0.5
+    """Power alpha of the likelihood weights (1 / (P q))^alpha of error-guided rays: 1 unbiased (importance sampling), 0 none (hard pixels count more). Range: a finite number >= 0 and <= 1."""
     seed: int = 0
     """Seed for initialisation, ray batches and draws. Range: an integer >= 0 and <= 9223372036854775807."""
     eval_every: int = 500
@@ -200,6 +208,10 @@ TRAIN_CHECKS: dict[str, V.Checker] = {
     "tv_weight": V.real(0.0),
     "holdout_fraction": V.real(0.0, 0.5),
     "holdout_block": V.integer(1, 4096),
+    "ray_sampling": V.choice("uniform", "error"),
+    "error_sampling_block": V.integer(1, 4096),
+    "error_sampling_uniform_share": V.real(0.0, 1.0),
+    "error_sampling_correction": V.real(0.0, 1.0),
     "seed": V.integer(0, 2**63 - 1),
     "eval_every": V.integer(0, 10**9),
     "checkpoint_every": V.integer(0, 10**9),

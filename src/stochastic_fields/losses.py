@@ -57,7 +57,8 @@ class Priors(nn.Module):
 
 
 def gaussian_likelihood_nll(colours: Tensor, target: Tensor, std: float | Tensor,
-                            extra_variance: Tensor | None = None, colour_variance: Tensor | None = None) -> Tensor:
+                            extra_variance: Tensor | None = None, colour_variance: Tensor | None = None,
+                            ray_weights: Tensor | None = None) -> Tensor:
     """Mean over rays and draws of -log N(target | C_k, diag(v_k)), per pixel (3 channels summed),
 
         v_kc = std_c^2 + extra_variance_kc
@@ -67,6 +68,9 @@ def gaussian_likelihood_nll(colours: Tensor, target: Tensor, std: float | Tensor
     and the term is its expectation over the colours (Rao-Blackwellised):
 
         E[-log N(target | C_k, v_k) | w_k] = ((m_k - target)^2 + W_k) / (2 v_k) + log(2 pi v_k) / 2
+
+    ``ray_weights`` [R] (None: all 1) weight each ray's term in the mean over rays (the error-guided
+    sampler's likelihood weights, stochastic_fields.ray_sampling).
 
     Shapes: colours [R, K, 3], target [R, 3], std a float or [3], extra_variance and
     colour_variance None or [R, K, 3] -> scalar.
@@ -78,7 +82,14 @@ def gaussian_likelihood_nll(colours: Tensor, target: Tensor, std: float | Tensor
     else:
         var = std ** 2 + extra_variance
         per_channel = 0.5 * sq / var + 0.5 * torch.log(var) + 0.5 * math.log(2 * math.pi)
-    return per_channel.sum(-1).mean()
+    return _ray_mean(per_channel.sum(-1), ray_weights)
+
+
+def _ray_mean(per_draw: Tensor, ray_weights: Tensor | None) -> Tensor:
+    """[R, K] -> scalar: the mean over draws and rays, each ray weighted by ``ray_weights`` [R] (None: 1)."""
+    if ray_weights is None:
+        return per_draw.mean()
+    return (per_draw.mean(-1) * ray_weights).mean()
 
 
 def _expected_square_error(colours: Tensor, target: Tensor, colour_variance: Tensor | None) -> Tensor:
@@ -88,7 +99,7 @@ def _expected_square_error(colours: Tensor, target: Tensor, colour_variance: Ten
 
 
 def decoupled_likelihood_nll(colours: Tensor, target: Tensor, std: Tensor, extra_variance: Tensor,
-                             colour_variance: Tensor | None = None) -> Tensor:
+                             colour_variance: Tensor | None = None, ray_weights: Tensor | None = None) -> Tensor:
     """``gaussian_likelihood_nll`` with ``extra_variance`` whose terms are weighted by the
     detached ratio ``v_kc / std_c^2`` (v = std^2 + extra): the same value scaled per term, and
     gradients
@@ -99,7 +110,7 @@ def decoupled_likelihood_nll(colours: Tensor, target: Tensor, std: Tensor, extra
     Pass ``extra_variance`` built from detached weights to keep the geometry's gradient that of
     the global-noise likelihood too (``loss.noise_head_decoupled``). ``colour_variance``: the
     Rao-Blackwellised form, as in ``gaussian_likelihood_nll`` (the weight depends on the draw's
-    density only, so the expectation over colours passes through it).
+    density only, so the expectation over colours passes through it); ``ray_weights`` as there.
 
     Shapes: colours [R, K, 3], target [R, 3], std [3], extra_variance and colour_variance [R, K, 3]
     (colour_variance optional) -> scalar.
@@ -108,7 +119,7 @@ def decoupled_likelihood_nll(colours: Tensor, target: Tensor, std: Tensor, extra
     var = std ** 2 + extra_variance
     sq = _expected_square_error(colours, target, colour_variance)
     per_channel = 0.5 * sq / var + 0.5 * torch.log(var) + 0.5 * math.log(2 * math.pi)
-    return ((var / std ** 2).detach() * per_channel).sum(-1).mean()
+    return _ray_mean(((var / std ** 2).detach() * per_channel).sum(-1), ray_weights)
 
 
 #: ``loss.depth_likelihood`` values: how ``termination_depth_nll`` combines a ray's trajectories.

@@ -30,6 +30,7 @@ from .models.base import RadianceModel
 from .models.field_builder import trained_grid_resolution
 from .models.registry import build_model, resolve_device
 from .optim import FieldOptimizer
+from .ray_sampling import ErrorMap, pixel_blocks
 from .rays import RayBundle
 from .capture_points import FIT, load_capture_points, rays_through_points, sparse_depth_for_role
 from .holdout import holdout_masks
@@ -114,19 +115,27 @@ class TrainingRays:
 
     rays: RayBundle
     colours: torch.Tensor
+    #: Each ray's pixel block of ``train.error_sampling_block`` pixels (stochastic_fields.ray_sampling):
+    #: [P] labels, or None where no error map is asked for.
+    blocks: torch.Tensor | None = None
 
     @staticmethod
     def from_dataset(dataset, device: torch.device, *, holdout_fraction: float = 0.0,
-                     holdout_block: int = 16) -> "TrainingRays":
+                     holdout_block: int = 16, error_block: int | None = None) -> "TrainingRays":
         idx = list(dataset.train_indices)
         cams = select_cameras(dataset.cameras, idx)
         rays = generate_rays(cams, dataset.near[idx], dataset.far[idx]).flatten()
         colours = dataset.images[idx].reshape(-1, 3)
+        blocks = None
+        if error_block is not None:
+            views, height, width = dataset.images[idx].shape[:3]
+            blocks = pixel_blocks(views, height, width, error_block)
         if holdout_fraction > 0:
             keep = torch.from_numpy(~holdout_masks(dataset, idx, fraction=holdout_fraction,
                                                    block=holdout_block).reshape(-1))
             rays, colours = rays[keep], colours[keep]
-        return TrainingRays(rays.to(device), colours.to(device))
+            blocks = None if blocks is None else blocks[keep]
+        return TrainingRays(rays.to(device), colours.to(device), blocks)
 
     def batch(self, n: int, generator: torch.Generator) -> tuple[RayBundle, torch.Tensor]:
         idx = torch.randint(0, len(self.colours), (n,), generator=generator).to(self.colours.device)
@@ -219,6 +228,16 @@ class Trainer:
         self.draw_generator = torch.Generator(device=self.device).manual_seed(draw_seed)
         self.reducer = (GradientReducer(self.model, self.model.param_groups(cfg.train.lr), distributed)
                         if distributed is not None else None)
+        if cfg.train.ray_sampling == "error":
+            if distributed is not None:
+                raise ValueError("train.ray_sampling = 'error' with data-parallel training: each rank would keep its "
+                                 "own error map; use 'uniform' or one process")
+            if not self.model.accepts_ray_weights:
+                raise ValueError(f"train.ray_sampling = 'error' needs a method whose likelihood takes ray weights "
+                                 f"(snerf, deterministic); method {cfg.method!r} does not")
+        #: The error-guided sampler's map (``train.ray_sampling`` 'error'), built with the training rays.
+        self.error_map: ErrorMap | None = None
+        self._error_map_state: dict | None = None  # a resumed checkpoint's map, loaded once it is built
         self.step = 0
         self.elapsed = 0.0
 
@@ -242,6 +261,7 @@ class Trainer:
             "draw_rng": self.draw_generator.get_state().cpu(),
             "config_json": json.dumps(to_dict(self.cfg)),
             **grid_resolution_state(self.model),
+            **({} if self.error_map is None else {"error_map": self.error_map.state_dict()}),
         }
 
     def save(self) -> None:
@@ -327,6 +347,7 @@ class Trainer:
                           "and Adam's moments restart from zero", stacklevel=2)
         self.step = int(state["step"])
         self.elapsed = float(state.get("elapsed_s", 0.0))
+        self._error_map_state = state.get("error_map")
         self._restore_rngs(state)
         return True
 
@@ -383,8 +404,19 @@ class Trainer:
             self._truncate_log()
         if self.dist is not None:  # identical starting point on every rank, whatever happened before
             self.dist.broadcast_tensors(list(self.model.state_dict().values()), what="parameters from rank 0")
-        data = TrainingRays.from_dataset(self.dataset, self.device, holdout_fraction=self.cfg.train.holdout_fraction,
-                                         holdout_block=self.cfg.train.holdout_block)
+        tc = self.cfg.train
+        guided = tc.ray_sampling == "error"
+        data = TrainingRays.from_dataset(self.dataset, self.device, holdout_fraction=tc.holdout_fraction,
+                                         holdout_block=tc.holdout_block,
+                                         error_block=tc.error_sampling_block if guided else None)
+        if guided:
+            self.error_map = ErrorMap(data.blocks, uniform_share=tc.error_sampling_uniform_share,
+                                      correction=tc.error_sampling_correction).to(self.device)
+            if self._error_map_state is not None:
+                self.error_map.load_state_dict(self._error_map_state)
+            elif resumed and main:
+                warnings.warn(f"{self.checkpoint_path} holds no error map: the error-guided sampler starts afresh",
+                              stacklevel=2)
         depth_data = None
         if self.cfg.loss.lambda_depth > 0 and getattr(self.model, "accepts_depth", False):
             depth_data = TrainingDepth.from_dataset(self.dataset, self.device)
@@ -478,16 +510,25 @@ class Trainer:
         A non-finite loss on any rank raises FloatingPointError on every rank."""
         cfg = self.cfg
         if self.dist is None:
-            rays, target = data.batch(cfg.train.rays_per_batch, self.generator)
+            picked = None
+            if self.error_map is None:
+                rays, target = data.batch(cfg.train.rays_per_batch, self.generator)
+            else:
+                picked, weights = self.error_map.sample(cfg.train.rays_per_batch, self.generator)
+                rays, target = data.rays[picked], data.colours[picked]
             extra = {}
             if depth_data is not None:
                 extra["depth"] = depth_data.batch(cfg.loss.depth_rays_per_batch, self.generator)
+            if picked is not None:
+                extra["ray_weights"] = weights
             loss, logs = self.model.training_loss(rays, target, step=self.step, generator=self.draw_generator, **extra)
             loss = self._add_smoothness(loss, logs, patch_sampler)
             if not torch.isfinite(loss):
                 raise FloatingPointError(f"loss is {float(loss)} at step {self.step}: {logs}")
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
+            if picked is not None:
+                self.error_map.update(picked, self.model.last_ray_errors)
             return loss.item(), logs
         rank, world, total = self.dist.rank, self.dist.world_size, cfg.train.rays_per_batch
         n = shard_size(total, rank, world)

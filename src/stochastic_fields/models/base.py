@@ -34,6 +34,11 @@ class RadianceModel(nn.Module, abc.ABC):
     #: Fraction of the training schedule done (steps or the minutes budget, set by the trainer
     #: before each step); terms whose weight follows the schedule read it. 0 outside training.
     training_progress: float = 0.0
+    #: Whether ``training_loss`` takes ``ray_weights`` [R] (each ray's weight in the colour
+    #: likelihood) and leaves each ray's squared colour error in ``last_ray_errors`` [R]: what the
+    #: error-guided ray sampler needs (``train.ray_sampling`` 'error', stochastic_fields.ray_sampling).
+    accepts_ray_weights: bool = False
+    last_ray_errors: Tensor | None = None
 
     @abc.abstractmethod
     def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,

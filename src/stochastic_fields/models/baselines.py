@@ -248,12 +248,15 @@ class _MeanFieldModel(RadianceModel):
                 return loss + self.tv_weight * tv
         return loss
 
-    def _likelihood_loss(self, out: RayRender, target: Tensor,
-                         generator: torch.Generator | None) -> tuple[Tensor, dict[str, float]]:
+    def _likelihood_loss(self, out: RayRender, target: Tensor, generator: torch.Generator | None,
+                         ray_weights: Tensor | None = None) -> tuple[Tensor, dict[str, float]]:
         """The Gaussian pixel likelihood (same sigma_n as S-NeRF) of the training render ``out``
-        plus the regularisers (``_regularise``)."""
+        (each ray weighted by ``ray_weights`` [R], None: 1) plus the regularisers (``_regularise``);
+        each ray's squared colour error is left in ``last_ray_errors``."""
         stats = out.stats
-        nll = gaussian_likelihood_nll(stats.colour_draws, target, self.loss_config.likelihood_std)
+        nll = gaussian_likelihood_nll(stats.colour_draws, target, self.loss_config.likelihood_std,
+                                      ray_weights=ray_weights)
+        self.last_ray_errors = ((stats.colour_mean.detach() - target) ** 2).sum(-1)
         logs = {"nll": float(nll.detach()), "mse": float(((stats.colour_mean.detach() - target) ** 2).mean())}
         return self._regularise(nll, logs, generator, [out]), logs
 
@@ -266,15 +269,18 @@ class _MeanFieldModel(RadianceModel):
 class DeterministicNeRF(_MeanFieldModel):
     """A deterministic NeRF on the configured backbone: K = 1, colour variance 0."""
 
+    accepts_ray_weights = True
+
     def __init__(self, field: StochasticField, render_settings: RenderSettings, loss: LossConfig, *,
                  tv_weight: float = 0.0):
         super().__init__(render_settings, loss, tv_weight=tv_weight)
         self.field = field
 
     def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
-                      generator: torch.Generator | None = None) -> tuple[Tensor, dict[str, float]]:
+                      generator: torch.Generator | None = None,
+                      ray_weights: Tensor | None = None) -> tuple[Tensor, dict[str, float]]:
         out = render_mean_field(self.field, rays, self.render_settings, stratified=True, generator=generator)
-        return self._likelihood_loss(out, target, generator)
+        return self._likelihood_loss(out, target, generator, ray_weights)
 
     def render_view(self, rays: RayBundle, options: RenderOptions | None = None, *,
                     generator: "torch.Generator | ChunkGenerators | None" = None) -> dict[str, Tensor]:

@@ -159,15 +159,19 @@ class SNeRF(RadianceModel):
 
     #: the trainer passes capture-point depth batches (``depth=``) to this model
     accepts_depth = True
+    accepts_ray_weights = True
     #: the density is a rectified normal; its regularisers read its mean
     mean_field_density = False
 
     def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
                       generator: torch.Generator | None = None,
-                      depth: tuple[RayBundle, Tensor] | None = None) -> tuple[Tensor, dict[str, float]]:
+                      depth: tuple[RayBundle, Tensor] | None = None,
+                      ray_weights: Tensor | None = None) -> tuple[Tensor, dict[str, float]]:
         """The variational loss (losses module doc) on a batch of rays [R] with colours [R, 3];
         ``depth``: capture-point rays [M] and their surface ray distances t* [M] for the
-        sparse-depth likelihood (weighted by ``loss.lambda_depth``)."""
+        sparse-depth likelihood (weighted by ``loss.lambda_depth``); ``ray_weights`` [R]: each ray's
+        weight in the colour likelihood (the error-guided sampler's, stochastic_fields.ray_sampling).
+        Leaves each ray's squared colour error in ``last_ray_errors`` [R]."""
         cfg = self.loss_config
         settings = self.render_settings
         samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing, stratified=True,
@@ -213,9 +217,10 @@ class SNeRF(RadianceModel):
         if self.noise_head:  # per-draw variance sigma_n^2 + sum_i w_ik beta_i^2 (§4.7)
             noise_var = observation_noise_per_draw(out, detach_weights=cfg.noise_head_decoupled)
         if noise_var is not None and cfg.noise_head_decoupled:
-            nll = decoupled_likelihood_nll(out.stats.colour_draws, target, sigma_n, noise_var, colour_var)
+            nll = decoupled_likelihood_nll(out.stats.colour_draws, target, sigma_n, noise_var, colour_var, ray_weights)
         else:
-            nll = gaussian_likelihood_nll(out.stats.colour_draws, target, sigma_n, noise_var, colour_var)
+            nll = gaussian_likelihood_nll(out.stats.colour_draws, target, sigma_n, noise_var, colour_var, ray_weights)
+        self.last_ray_errors = ((out.stats.colour_mean.detach() - target) ** 2).sum(-1)
         loss = nll
         logs = {"nll": nll.item(), "mse": ((out.stats.colour_mean.detach() - target) ** 2).mean().item(),
                 "field_evals_per_ray": n_ray / max(len(rays), 1)}
