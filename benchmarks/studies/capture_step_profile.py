@@ -9,7 +9,7 @@ compiled row loops appear as their autograd node ``_WeightedRowGatherBackward`` 
 ``capture_step_cost.py``.
 
     OMP_NUM_THREADS=2 python benchmarks/studies/capture_step_profile.py --scene fern --threads 2 \\
-        --out benchmarks/results/capture_step_profile/fern.md
+        --out benchmarks/results/capture_step_profile/capture_fern.md
 """
 
 from __future__ import annotations

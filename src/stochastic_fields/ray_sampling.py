@@ -64,6 +64,7 @@ class ErrorMap:
         self.order = torch.argsort(block, stable=True)  # [P] pixels grouped by block
         self.counts = torch.bincount(block, minlength=len(labels))  # [B] pixels per block
         self.starts = torch.cumsum(self.counts, 0) - self.counts  # [B] first slot of a block in `order`
+        self.pixel_share = self.counts / self.counts.sum()  # [B] n_b / P: the uniform part of p_b
         self.error = torch.full((len(labels),), UNVISITED_BLOCK_ERROR)  # [B]
         self.uniform_share = float(uniform_share)
         self.correction = float(correction)
@@ -73,19 +74,17 @@ class ErrorMap:
         return int(self.block.numel())
 
     def to(self, device: torch.device) -> "ErrorMap":
-        for name in ("block", "order", "counts", "starts", "error"):
+        for name in ("block", "order", "counts", "starts", "pixel_share", "error"):
             setattr(self, name, getattr(self, name).to(device))
         return self
 
     def block_probabilities(self) -> Tensor:
         """[B] p_b (module doc), summing to 1."""
-        counts = self.counts.to(self.error.dtype)
-        mined = self.error * counts
+        mined = self.error * self.pixel_share  # e_b n_b / P: the same shares as e_b n_b
         total = mined.sum()
-        uniform = counts / counts.sum()
         if not bool(total > 0):  # every block rendered exactly: nothing to mine
-            return uniform
-        return (1.0 - self.uniform_share) * mined / total + self.uniform_share * uniform
+            return self.pixel_share
+        return (1.0 - self.uniform_share) * mined / total + self.uniform_share * self.pixel_share
 
     def sample(self, n: int, generator: torch.Generator) -> tuple[Tensor, Tensor]:
         """``n`` pixel indices [n] drawn from q (module doc) and their likelihood weights w [n]
@@ -95,11 +94,11 @@ class ErrorMap:
         u = torch.rand(n, generator=generator, dtype=torch.float64).to(cdf.device) * cdf[-1]
         b = torch.searchsorted(cdf, u, right=True).clamp_(max=len(p) - 1)
         v = torch.rand(n, generator=generator).to(cdf.device)
-        within = torch.minimum((v * self.counts[b]).long(), self.counts[b] - 1)
-        idx = self.order[self.starts[b] + within]
+        count = self.counts[b]  # [n] pixels of each drawn block
+        idx = self.order[self.starts[b] + torch.minimum((v * count).long(), count - 1)]
         if self.correction == 0.0:
             return idx, torch.ones(n, device=idx.device)
-        q = p[b] / self.counts[b].to(p.dtype)  # [n] probability of each drawn pixel
+        q = p[b] / count.to(p.dtype)  # [n] probability of each drawn pixel
         w = (1.0 / (self.num_pixels * q)) ** self.correction
         return idx, (w / w.mean()).float()
 

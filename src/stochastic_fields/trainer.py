@@ -125,11 +125,9 @@ class TrainingRays:
         idx = list(dataset.train_indices)
         cams = select_cameras(dataset.cameras, idx)
         rays = generate_rays(cams, dataset.near[idx], dataset.far[idx]).flatten()
-        colours = dataset.images[idx].reshape(-1, 3)
-        blocks = None
-        if error_block is not None:
-            views, height, width = dataset.images[idx].shape[:3]
-            blocks = pixel_blocks(views, height, width, error_block)
+        images = dataset.images[idx]  # [V, H, W, 3]
+        colours = images.reshape(-1, 3)
+        blocks = None if error_block is None else pixel_blocks(*images.shape[:3], error_block)
         if holdout_fraction > 0:
             keep = torch.from_numpy(~holdout_masks(dataset, idx, fraction=holdout_fraction,
                                                    block=holdout_block).reshape(-1))
@@ -138,7 +136,12 @@ class TrainingRays:
         return TrainingRays(rays.to(device), colours.to(device), blocks)
 
     def batch(self, n: int, generator: torch.Generator) -> tuple[RayBundle, torch.Tensor]:
-        idx = torch.randint(0, len(self.colours), (n,), generator=generator).to(self.colours.device)
+        """``n`` rays drawn uniformly with replacement, and their colours."""
+        return self.at(torch.randint(0, len(self.colours), (n,), generator=generator))
+
+    def at(self, idx: torch.Tensor) -> tuple[RayBundle, torch.Tensor]:
+        """The rays [n] and colours [n, 3] of the pixels ``idx`` [n]."""
+        idx = idx.to(self.colours.device)
         return self.rays[idx], self.colours[idx]
 
 
@@ -515,7 +518,7 @@ class Trainer:
                 rays, target = data.batch(cfg.train.rays_per_batch, self.generator)
             else:
                 picked, weights = self.error_map.sample(cfg.train.rays_per_batch, self.generator)
-                rays, target = data.rays[picked], data.colours[picked]
+                rays, target = data.at(picked)
             extra = {}
             if depth_data is not None:
                 extra["depth"] = depth_data.batch(cfg.loss.depth_rays_per_batch, self.generator)

@@ -256,8 +256,9 @@ class _MeanFieldModel(RadianceModel):
         stats = out.stats
         nll = gaussian_likelihood_nll(stats.colour_draws, target, self.loss_config.likelihood_std,
                                       ray_weights=ray_weights)
-        self.last_ray_errors = ((stats.colour_mean.detach() - target) ** 2).sum(-1)
-        logs = {"nll": float(nll.detach()), "mse": float(((stats.colour_mean.detach() - target) ** 2).mean())}
+        square_error = (stats.colour_mean.detach() - target) ** 2  # [R, 3]
+        self.last_ray_errors = square_error.sum(-1)
+        logs = {"nll": float(nll.detach()), "mse": float(square_error.mean())}
         return self._regularise(nll, logs, generator, [out]), logs
 
 

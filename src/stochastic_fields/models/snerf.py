@@ -220,9 +220,10 @@ class SNeRF(RadianceModel):
             nll = decoupled_likelihood_nll(out.stats.colour_draws, target, sigma_n, noise_var, colour_var, ray_weights)
         else:
             nll = gaussian_likelihood_nll(out.stats.colour_draws, target, sigma_n, noise_var, colour_var, ray_weights)
-        self.last_ray_errors = ((out.stats.colour_mean.detach() - target) ** 2).sum(-1)
+        square_error = (out.stats.colour_mean.detach() - target) ** 2  # [R, 3]
+        self.last_ray_errors = square_error.sum(-1)
         loss = nll
-        logs = {"nll": nll.item(), "mse": ((out.stats.colour_mean.detach() - target) ** 2).mean().item(),
+        logs = {"nll": nll.item(), "mse": square_error.mean().item(),
                 "field_evals_per_ray": n_ray / max(len(rays), 1)}
         if cfg.learn_likelihood_std:
             logs["likelihood_std"] = sigma_n.mean().item()
