@@ -276,6 +276,45 @@ def test_row_blocks_equal_the_serial_loops_bit_for_bit(monkeypatch, dtype, block
 
 
 @pytest.mark.skipif(row_kernels.numba is None, reason="numba not installed")
+@pytest.mark.parametrize("blocks", [1, 3])
+@pytest.mark.parametrize("pattern", ["first", "last", "ends", "sparse", "dense", "block_edges"])
+def test_prefetch_hints_change_no_value(monkeypatch, blocks, pattern):
+    """The loops with their prefetch hints (rows asked for ahead: module doc of row_kernels) give the
+    loops' values without them bit for bit, and update exactly the touched rows, whatever the touched
+    rows' layout: only the first or the last row, both ends, isolated rows far apart, long runs, and
+    rows around the blocks' edges (the Adam loop's look-ahead stops at its block's end)."""
+    monkeypatch.setattr(row_kernels, "row_blocks", lambda: blocks)
+    N, C = 300, 5
+    g = torch.Generator().manual_seed(5)
+    rows = {"first": [0], "last": [N - 1], "ends": [0, 1, N - 2, N - 1], "sparse": list(range(7, N, 37)),
+            "dense": list(range(40, 260)),
+            "block_edges": [r + d for b in range(1, 3) for r in [N * b // 3] for d in (-2, -1, 0, 1)]}[pattern]
+    rows = torch.tensor(rows)
+    idx = rows[torch.randint(0, len(rows), (200, 8), generator=g)]
+    w = torch.rand(200, 8, generator=g)
+    grad = torch.randn(200, 3, generator=g)
+    x0, m1_0, m2_0 = torch.randn(N, C, generator=g), torch.randn(N, C, generator=g), torch.rand(N, C, generator=g)
+
+    def run():
+        acc, touched = torch.zeros(N, C), torch.zeros(N, dtype=torch.bool)
+        x, m1, m2 = x0.clone(), m1_0.clone(), m2_0.clone()
+        row_kernels.scatter_weighted_rows(acc, touched, idx, w, grad, first_channel=1)
+        summed, marked = acc.clone(), touched.clone()
+        row_kernels.adam_touched_rows(x, m1, m2, acc, touched, lr=0.03, betas=(0.9, 0.99), eps=1e-8, step=1)
+        assert not touched.any() and not acc.any()
+        return summed, marked, x, m1, m2
+
+    hinted = run()
+    with row_kernels.without_prefetch():
+        plain = run()
+    for a, b in zip(hinted, plain):
+        assert torch.equal(a, b)
+    marked, x = hinted[1], hinted[2]
+    assert torch.equal(marked.nonzero().squeeze(1), torch.unique(rows))
+    assert torch.equal(x[~marked], x0[~marked]) and (x[marked] != x0[marked]).any(dim=1).all()
+
+
+@pytest.mark.skipif(row_kernels.numba is None, reason="numba not installed")
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_compiled_adam_matches_torch_ops_and_is_used(monkeypatch, dtype):
     """Five steps of RowSparseAdam with the compiled loop against the same steps as torch ops: same
