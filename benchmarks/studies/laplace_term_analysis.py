@@ -212,6 +212,45 @@ def arm_row(label: str, arm: str, rows: list[dict]) -> str:
             f"{mean('crps'):.4f} | {mean('spearman'):.3f} / {mean('spearman_per_view'):.3f} |")
 
 
+#: The arms of an analysis that puts one more std term in the depth map's edge slot (``term_arm_results``).
+TERM_ARMS = ("today", "term")
+
+
+def term_arm_results(runs: Path, work: Path, seeds: list[int], scenes, analyse) -> dict:
+    """{scene: {"arms": {arm: per-seed scores}, "extra": per-seed rest}} of a ``TERM_ARMS`` analysis
+    (``seed_results`` over ``seeds``; every map with the parallax term, today's)."""
+    GRID["parallax"] = True
+    views_of = functools.cache(validation_views)
+    results: dict = {}
+    for scene in scenes:
+        per_seed = seed_results(runs, work, seeds, scene, analyse, views_of)
+        results[scene] = {"arms": {arm: [s["arms"][arm] for s in per_seed] for arm in TERM_ARMS},
+                          "extra": [{k: v for k, v in s.items() if k != "arms"} for s in per_seed]}
+    return results
+
+
+def term_arm_markdown(title: str, intro: str, results: dict, seeds: list[int], extra_columns: dict[str, object],
+                      extra_said: str) -> list[str]:
+    """The report's lines of a ``TERM_ARMS`` analysis: the seed means of both arms, then per seed the fitted
+    gamma, each arm's width, IS95 and per-view ranking, and ``extra_columns`` {heading: cell(the seed's
+    extra dict) -> str}, said in words by ``extra_said``."""
+    lines = [f"# {title}", "", intro, "",
+             "| scene | arm | cov 50 / 68 / 90 / 95 / 99 | median 95% half-width | IS95 / depth | CRPS / depth | "
+             "depth Spearman pooled / per view |", "|---|---|---|---|---|---|---|"]
+    for scene, res in results.items():
+        lines += [arm_row(scene, arm, res["arms"][arm]) for arm in TERM_ARMS]
+    lines += ["", "Per seed: the fitted weight gamma, the median 95% half-width, IS95 / depth and per-view Spearman of "
+              f"each arm, {extra_said}:", "",
+              f"| scene | seed | gamma | today | term | {' | '.join(extra_columns)} |",
+              "|---|---|---|---|---|" + "---|" * len(extra_columns)]
+    for scene, res in results.items():
+        for seed, extra, today, term in zip(seeds, res["extra"], res["arms"]["today"], res["arms"]["term"]):
+            cell = lambda r: f"{100 * r['halfwidth_median_95']:.1f}%, {r['interval_score_95']:.3f}, {r['spearman_per_view']:.3f}"  # noqa: E731
+            extras = " | ".join(fmt(extra) for fmt in extra_columns.values())
+            lines.append(f"| {scene} | {seed} | {term['gamma']:.3g} | {cell(today)} | {cell(term)} | {extras} |")
+    return lines
+
+
 def seed_groups(extra: dict) -> dict[str, list[str]]:
     """{label without its ``_sSEED`` suffix: the ``--extra`` labels of that group}, groups of two or more runs."""
     groups: dict[str, list[str]] = {}

@@ -44,7 +44,6 @@ the calibration renders see no use for it and the term is no lever as placed.
 from __future__ import annotations
 
 import argparse
-import functools
 import sys
 import warnings
 from pathlib import Path
@@ -58,7 +57,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import laplace_term_analysis as lta  # noqa: E402
 from study_helpers import cached, write_study  # noqa: E402
-from tables_cap_study import validation_views  # noqa: E402
 
 import stochastic_fields.calibration as calibration  # noqa: E402
 from stochastic_fields.calibration import depth_calibration_renders  # noqa: E402
@@ -70,7 +68,6 @@ from stochastic_fields.trainer import load_trained_model  # noqa: E402
 from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
 
 SCENES = ("fern", "flower")
-ARMS = ("today", "term")
 #: Side of the box filter over the training photos (pixels).
 BLUR: int = 3
 
@@ -148,7 +145,7 @@ def analyse(run: Path, evals: Path, views: list[int]) -> dict:
         keep = ok & (products["opacity"][sd.rows, sd.cols] > OPACITY_MASK)
         if keep.sum() > 10:
             alone.append(spearmanr(np.abs(rendered[keep] - sd.depth[keep]), term[keep]).correlation)
-    arms = {arm: lta.arm_scores(arm, renders, factor * renders["edge"], val, capture, ref, str(run)) for arm in ARMS}
+    arms = {arm: lta.arm_scores(arm, renders, factor * renders["edge"], val, capture, ref, str(run)) for arm in lta.TERM_ARMS}
     return {"arms": arms, "factor": factor, "term_alone_spearman_per_view": float(np.nanmean(alone)),
             "calibration_share_seen_by_two": float(np.mean(positive)),
             "calibration_points": int(renders["abs_err"].size)}
@@ -175,22 +172,14 @@ def analyse_synthetic(run: Path) -> dict:
 
 
 def markdown(results: dict, synthetic: dict, seeds: list[int], runs: Path) -> str:
-    lines = ["# A depth-std term from the training photos' colour disagreement", "",
-             f"The `today` runs of `{runs}` (paper split, seeds {', '.join(map(str, seeds))}), scored on their validation "
-             "photos as eval scores them (cross-fitted); both maps fitted on the same calibration renders, with the "
-             "parallax term (today's map). Means over the seeds. Decides nothing.", "",
-             "| scene | arm | cov 50 / 68 / 90 / 95 / 99 | median 95% half-width | IS95 / depth | CRPS / depth | "
-             "depth Spearman pooled / per view |", "|---|---|---|---|---|---|---|"]
-    for scene, res in results.items():
-        lines += [lta.arm_row(scene, arm, res["arms"][arm]) for arm in ARMS]
-    lines += ["", "Per seed: the fitted weight gamma, the median 95% half-width, IS95 / depth and per-view Spearman of "
-              "each arm, the term alone's per-view Spearman, the share of calibration points two or more training views see:", "",
-              "| scene | seed | gamma | today | term | term alone | seen by 2+ |", "|---|---|---|---|---|---|---|"]
-    for scene, res in results.items():
-        for seed, extra, today, term in zip(seeds, res["extra"], res["arms"]["today"], res["arms"]["term"]):
-            cell = lambda r: f"{100 * r['halfwidth_median_95']:.1f}%, {r['interval_score_95']:.3f}, {r['spearman_per_view']:.3f}"  # noqa: E731
-            lines.append(f"| {scene} | {seed} | {term['gamma']:.3g} | {cell(today)} | {cell(term)} | "
-                         f"{extra['term_alone_spearman_per_view']:.3f} | {100 * extra['calibration_share_seen_by_two']:.0f}% |")
+    lines = lta.term_arm_markdown(
+        "A depth-std term from the training photos' colour disagreement",
+        f"The `today` runs of `{runs}` (paper split, seeds {', '.join(map(str, seeds))}), scored on their validation "
+        "photos as eval scores them (cross-fitted); both maps fitted on the same calibration renders, with the "
+        "parallax term (today's map). Means over the seeds. Decides nothing.", results, seeds,
+        {"term alone": lambda e: f"{e['term_alone_spearman_per_view']:.3f}",
+         "seen by 2+": lambda e: f"{100 * e['calibration_share_seen_by_two']:.0f}%"},
+        "the term alone's per-view Spearman, the share of calibration points two or more training views see")
     if synthetic:
         lines += ["", "Synthetic validation scenes (demo preset, exact depth, 2,000 opaque pixels a test view): mean per-view "
                   "Spearman of |error| against each std.", "",
@@ -210,13 +199,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/photo_consistency_analysis"))
     args = ap.parse_args()
     torch.set_num_threads(1)
-    lta.GRID["parallax"] = True  # today's map: every arm with the parallax term
-    views_of = functools.cache(validation_views)
-    results: dict = {}
-    for scene in args.scenes:
-        per_seed = lta.seed_results(args.runs, args.work, args.seeds, scene, analyse, views_of)
-        results[scene] = {"arms": {arm: [s["arms"][arm] for s in per_seed] for arm in ARMS},
-                          "extra": [{k: v for k, v in s.items() if k != "arms"} for s in per_seed]}
+    results = lta.term_arm_results(args.runs, args.work, args.seeds, args.scenes, analyse)  # today's map: with the parallax term
     synthetic = {run.name: cached(args.work / "synthetic" / f"{run.name}.json", lambda: analyse_synthetic(run))
                  for run in args.synthetic}
     write_study(args.out, {"results": results, "synthetic": synthetic, "seeds": args.seeds},
