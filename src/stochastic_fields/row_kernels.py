@@ -23,8 +23,9 @@ tables' own dtype (the scalars are cast to it). With more than one torch thread 
 into as many contiguous blocks, one per thread (numba's ``prange``): every block reads all the
 samples and adds only into its own rows, so each row sums the same terms in the same order and
 the result is the serial loop's bit for bit. On two threads a capture's training step is then
-1.31-1.34x faster for the deterministic NeRF and 1.04-1.06x for S-NeRF, whose step the loops are a
-smaller part of (``benchmarks/results/row_kernels_threads/``). Profiled on one thread (an S-NeRF step on the flower
+1.35-1.42x faster for the deterministic NeRF and 1.25-1.27x for S-NeRF, whose step the loops are a
+smaller part of (with the prefetch hints below; before them 1.31-1.34x and 1.04-1.06x:
+``benchmarks/results/row_kernels_threads/`` and its history). Profiled on one thread (an S-NeRF step on the flower
 capture), the two torch versions were 58% of the step; with the loops a training step on a capture
 is 1.6-2.0x faster (S-NeRF and the deterministic NeRF, fern and flower, ``benchmarks/results/row_kernels/``).
 
