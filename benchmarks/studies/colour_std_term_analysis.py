@@ -46,7 +46,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -58,12 +57,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import laplace_term_analysis as lta  # noqa: E402
 from study_helpers import write_study  # noqa: E402
 
-import stochastic_fields.calibration as calibration  # noqa: E402
-from stochastic_fields.calibration import depth_calibration_renders  # noqa: E402
 from stochastic_fields.capture_points import (block_keys, load_capture_points, rays_through_points,  # noqa: E402
                                               score_sparse_depth)
-from stochastic_fields.free_space import load_training_depth, render_training_depth  # noqa: E402
-from stochastic_fields.trainer import load_trained_model  # noqa: E402
 from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
 
 SCENES = ("fern", "flower")
@@ -86,23 +81,11 @@ def colour_std_at_points(model, cameras, near, far, sparse: dict, *, seed: int =
 def analyse(run: Path, evals: Path, views: list[int]) -> dict:
     """Both arms' scores of one run at ``views`` (rendered in ``evals/views``), the factor, and the term
     alone's per-view Spearman."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        _, model, dataset = load_trained_model(run, device="cpu")
-    ref = load_training_depth(run)
-    if ref is None:
-        ref = render_training_depth(model, dataset, progress=False)
+    model, dataset, ref = lta.run_with_reference(run)
     capture = load_capture_points(dataset)
-    original = calibration.edge_at_points
-    calibration.edge_at_points = lambda m, cams, near, far, sparse, depth, seed=0, options=None: (
-        np.asarray(depth, np.float64) * colour_std_at_points(m, cams, near, far, sparse, seed=seed, options=options))
-    try:  # the calibration renders, with the colour term of their points in the edge slot
-        renders = depth_calibration_renders(model, dataset, points="held-out", free_space=ref, edges=True,
-                                            parallax=ref)
-    finally:
-        calibration.edge_at_points = original
-    positive = renders["edge"] > 0
-    factor = float(np.median(renders["std_raw"]) / np.median(renders["edge"][positive]))
+    renders, factor = lta.renders_with_term(  # the calibration renders, with the colour term in the edge slot
+        model, dataset, ref, lambda m, cams, near, far, sparse, depth, seed, options: (
+            np.asarray(depth, np.float64) * colour_std_at_points(m, cams, near, far, sparse, seed=seed, options=options)))
     val, alone = [], []
     for v, sd in score_sparse_depth(dataset, views).items():
         with np.load(evals / "views" / f"view_{v:03d}.npz") as f:

@@ -82,7 +82,7 @@ from stochastic_fields.cameras import generate_rays_for_view  # noqa: E402
 from stochastic_fields.capture_points import (block_keys, load_capture_points, rays_through_points,  # noqa: E402
                                               score_sparse_depth)
 from stochastic_fields.evaluation import depth_samples  # noqa: E402
-from stochastic_fields.free_space import checked_std, load_training_depth  # noqa: E402
+from stochastic_fields.free_space import checked_std, load_training_depth, render_training_depth  # noqa: E402
 from stochastic_fields.laplace import LAPLACE_PRIOR_PRECISION, LAPLACE_RESOLUTION, fit_laplace_density  # noqa: E402
 from stochastic_fields.trainer import TrainingRays, load_trained_model  # noqa: E402
 from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
@@ -214,6 +214,32 @@ def arm_row(label: str, arm: str, rows: list[dict]) -> str:
 
 #: The arms of an analysis that puts one more std term in the depth map's edge slot (``term_arm_results``).
 TERM_ARMS = ("today", "term")
+
+
+def run_with_reference(run: Path):
+    """(model, dataset, training-view depths) of a trained run on the CPU: its stored training depths
+    (``free_space.load_training_depth``), rendered when it kept none."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, model, dataset = load_trained_model(run, device="cpu")
+    ref = load_training_depth(run)
+    return model, dataset, ref if ref is not None else render_training_depth(model, dataset, progress=False)
+
+
+def renders_with_term(model, dataset, ref, term) -> tuple[dict, float]:
+    """The calibration renders of today's map (held-out points, free-space check and parallax term of the
+    training-view reference ``ref``) with ``term(model, cameras, near, far, sparse, depth, seed, options)``
+    -> [N] of their points in the occlusion-edge slot ("edge"), and the factor median(sigma) / median(term)
+    (over the points with a positive term) that puts the term in sigma's units."""
+    original = calibration.edge_at_points
+    calibration.edge_at_points = lambda m, cams, near, far, sparse, depth, seed=0, options=None: term(
+        m, cams, near, far, sparse, depth, seed, options)
+    try:
+        renders = depth_calibration_renders(model, dataset, points="held-out", free_space=ref, edges=True, parallax=ref)
+    finally:
+        calibration.edge_at_points = original
+    positive = renders["edge"] > 0
+    return renders, float(np.median(renders["std_raw"]) / np.median(renders["edge"][positive]))
 
 
 def term_arm_results(runs: Path, work: Path, seeds: list[int], scenes, analyse) -> dict:

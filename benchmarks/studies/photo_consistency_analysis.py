@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -58,13 +57,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import laplace_term_analysis as lta  # noqa: E402
 from study_helpers import cached, write_study  # noqa: E402
 
-import stochastic_fields.calibration as calibration  # noqa: E402
-from stochastic_fields.calibration import depth_calibration_renders  # noqa: E402
 from stochastic_fields.cameras import camera_to_world  # noqa: E402
 from stochastic_fields.capture_points import block_keys, load_capture_points, score_sparse_depth  # noqa: E402
-from stochastic_fields.free_space import load_training_depth, look_up, render_training_depth, rendered_points  # noqa: E402
+from stochastic_fields.free_space import look_up, rendered_points  # noqa: E402
 from stochastic_fields.parallax import views_seeing  # noqa: E402
-from stochastic_fields.trainer import load_trained_model  # noqa: E402
 from stochastic_fields.view_maps import OPACITY_MASK  # noqa: E402
 
 SCENES = ("fern", "flower")
@@ -97,12 +93,7 @@ def colour_spread(X: np.ndarray, ref, photos: np.ndarray) -> tuple[np.ndarray, n
 def loaded(run: Path):
     """(model, dataset, training-view depths, ``blurred_photos``) of a trained run (its stored training
     depths, rendered when it kept none)."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        _, model, dataset = load_trained_model(run, device="cpu")
-    ref = load_training_depth(run)
-    if ref is None:
-        ref = render_training_depth(model, dataset, progress=False)
+    model, dataset, ref = lta.run_with_reference(run)
     return model, dataset, ref, blurred_photos(dataset, ref)
 
 
@@ -124,15 +115,9 @@ def analyse(run: Path, evals: Path, views: list[int]) -> dict:
         X = rendered_points(centres[view], capture.xyz[point], gt, depth)
         return np.asarray(depth, np.float64) * colour_spread(X, ref, photos)[0]
 
-    original = calibration.edge_at_points
-    calibration.edge_at_points = lambda m, cams, near, far, sparse, depth, **_: term_at(centres_of(cams), sparse, depth)
-    try:  # the calibration renders, with the photo term of their points in the edge slot
-        renders = depth_calibration_renders(model, dataset, points="held-out", free_space=ref, edges=True,
-                                            parallax=ref)
-    finally:
-        calibration.edge_at_points = original
+    renders, factor = lta.renders_with_term(  # the calibration renders, with the photo term in the edge slot
+        model, dataset, ref, lambda m, cams, near, far, sparse, depth, *_: term_at(centres_of(cams), sparse, depth))
     positive = renders["edge"] > 0
-    factor = float(np.median(renders["std_raw"]) / np.median(renders["edge"][positive]))
     val, alone = [], []
     centres = centres_of(dataset.cameras)
     for v, sd in score_sparse_depth(dataset, views).items():
