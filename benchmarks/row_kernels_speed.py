@@ -50,7 +50,7 @@ def time_steps(trainer: Trainer, steps: int) -> float:
 def measure(scene: str, method: str, *, warmup: int, steps: int, rounds: int, work: Path,
             threads: int = 1, prefetch: bool = False) -> dict:
     """One row: the paths' seconds per step (medians over the rounds) and their ratios (module doc)."""
-    paths = 2 if prefetch else 3 if threads > 1 else 2  # compiled, torch ops or no hints (and serial loops)
+    paths = 3 if threads > 1 and not prefetch else 2  # compiled, torch ops or no hints (and serial loops)
     cfg = config_for(scene, method, warmup + paths * rounds * steps, seed=0)
     run_dir = work / f"{scene}_{method}"
     dataset = load_run_dataset(cfg, run_dir)

@@ -84,7 +84,7 @@ def analyse(run: Path, evals: Path, views: list[int]) -> dict:
     model, dataset, ref = lta.run_with_reference(run)
     capture = load_capture_points(dataset)
     renders, factor = lta.renders_with_term(  # the calibration renders, with the colour term in the edge slot
-        model, dataset, ref, lambda m, cams, near, far, sparse, depth, seed, options: (
+        model, dataset, ref, lambda m, cams, near, far, sparse, depth, seed=0, options=None: (
             np.asarray(depth, np.float64) * colour_std_at_points(m, cams, near, far, sparse, seed=seed, options=options)))
     val, alone = [], []
     for v, sd in score_sparse_depth(dataset, views).items():
@@ -123,7 +123,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/colour_std_term_analysis"))
     args = ap.parse_args()
     torch.set_num_threads(1)
-    results = lta.term_arm_results(args.runs, args.work, args.seeds, args.scenes, analyse)  # today's map: with the parallax term
+    results = lta.term_arm_results(args.runs, args.work, args.seeds, args.scenes, analyse)
     write_study(args.out, {"results": results, "seeds": args.seeds}, markdown(results, args.seeds, args.runs))
 
 

@@ -228,12 +228,11 @@ def run_with_reference(run: Path):
 
 def renders_with_term(model, dataset, ref, term) -> tuple[dict, float]:
     """The calibration renders of today's map (held-out points, free-space check and parallax term of the
-    training-view reference ``ref``) with ``term(model, cameras, near, far, sparse, depth, seed, options)``
-    -> [N] of their points in the occlusion-edge slot ("edge"), and the factor median(sigma) / median(term)
-    (over the points with a positive term) that puts the term in sigma's units."""
+    training-view reference ``ref``) with ``term`` [N] of their points in the occlusion-edge slot ("edge"; a
+    function called as ``calibration.edge_at_points`` is), and the factor median(sigma) / median(term) (over
+    the points with a positive term) that puts the term in sigma's units."""
     original = calibration.edge_at_points
-    calibration.edge_at_points = lambda m, cams, near, far, sparse, depth, seed=0, options=None: term(
-        m, cams, near, far, sparse, depth, seed, options)
+    calibration.edge_at_points = term
     try:
         renders = depth_calibration_renders(model, dataset, points="held-out", free_space=ref, edges=True, parallax=ref)
     finally:
@@ -244,8 +243,7 @@ def renders_with_term(model, dataset, ref, term) -> tuple[dict, float]:
 
 def term_arm_results(runs: Path, work: Path, seeds: list[int], scenes, analyse) -> dict:
     """{scene: {"arms": {arm: per-seed scores}, "extra": per-seed rest}} of a ``TERM_ARMS`` analysis
-    (``seed_results`` over ``seeds``; every map with the parallax term, today's)."""
-    GRID["parallax"] = True
+    (``seed_results`` over ``seeds``)."""
     views_of = functools.cache(validation_views)
     results: dict = {}
     for scene in scenes:

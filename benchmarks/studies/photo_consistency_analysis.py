@@ -116,7 +116,7 @@ def analyse(run: Path, evals: Path, views: list[int]) -> dict:
         return np.asarray(depth, np.float64) * colour_spread(X, ref, photos)[0]
 
     renders, factor = lta.renders_with_term(  # the calibration renders, with the photo term in the edge slot
-        model, dataset, ref, lambda m, cams, near, far, sparse, depth, *_: term_at(centres_of(cams), sparse, depth))
+        model, dataset, ref, lambda m, cams, near, far, sparse, depth, **_: term_at(centres_of(cams), sparse, depth))
     positive = renders["edge"] > 0
     val, alone = [], []
     centres = centres_of(dataset.cameras)
@@ -184,7 +184,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/photo_consistency_analysis"))
     args = ap.parse_args()
     torch.set_num_threads(1)
-    results = lta.term_arm_results(args.runs, args.work, args.seeds, args.scenes, analyse)  # today's map: with the parallax term
+    results = lta.term_arm_results(args.runs, args.work, args.seeds, args.scenes, analyse)
     synthetic = {run.name: cached(args.work / "synthetic" / f"{run.name}.json", lambda: analyse_synthetic(run))
                  for run in args.synthetic}
     write_study(args.out, {"results": results, "synthetic": synthetic, "seeds": args.seeds},

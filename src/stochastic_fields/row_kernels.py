@@ -200,27 +200,26 @@ def row_blocks() -> int:
 
 
 @contextlib.contextmanager
+def _switched_on(flag: str):
+    """Within it the module's switch ``flag`` (``_serial``, ``_no_prefetch``, ``_disabled``) is True."""
+    before = globals()[flag]
+    globals()[flag] = True
+    try:
+        yield
+    finally:
+        globals()[flag] = before
+
+
 def serial_loops():
     """Within it the compiled loops run on one thread (the loops before they were split over
     threads): to time the split (``benchmarks/row_kernels_speed.py --threads``)."""
-    global _serial
-    before, _serial = _serial, True
-    try:
-        yield
-    finally:
-        _serial = before
+    return _switched_on("_serial")
 
 
-@contextlib.contextmanager
 def without_prefetch():
     """Within it the compiled loops ask for no row ahead (the same values): to time the hints
     (``benchmarks/row_kernels_speed.py --prefetch``)."""
-    global _no_prefetch
-    before, _no_prefetch = _no_prefetch, True
-    try:
-        yield
-    finally:
-        _no_prefetch = before
+    return _switched_on("_no_prefetch")
 
 
 def available(*tensors: Tensor) -> bool:
@@ -233,16 +232,10 @@ def available(*tensors: Tensor) -> bool:
             and len(floats) == 1 and floats <= set(KERNEL_DTYPES))
 
 
-@contextlib.contextmanager
 def torch_ops_only():
     """Within it every row loop runs as torch ops (what CUDA tensors and a machine without numba
     get): to compare the two paths (tests, ``benchmarks/row_kernels_speed.py``)."""
-    global _disabled
-    before, _disabled = _disabled, True
-    try:
-        yield
-    finally:
-        _disabled = before
+    return _switched_on("_disabled")
 
 
 def scatter_weighted_rows(acc: Tensor, touched: Tensor, idx: Tensor, weights: Tensor, grad: Tensor,
