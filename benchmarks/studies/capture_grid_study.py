@@ -1,5 +1,6 @@
-"""Studies 23 to 25, 36 and 47: the grid's finest level, the samples along a ray, the colour's capacity and
-Adam's second-moment decay on a capture, each judged by its rule.
+"""Studies 23 to 25, 36, 47 to 50 and 51: the grid's finest level, the samples along a ray, the colour's
+capacity, Adam's second-moment decay, the colour levels, the rays' sampling and the grid's levels on a
+capture, each judged by its rule.
 
 Each study's rows are runs of the capture benchmark (``benchmarks/capture_quality.py``, S-NeRF,
 seed 1, the ten-minute schedule), today's setting and the candidate's (the commands are in
@@ -15,6 +16,8 @@ the table and the rule's verdict (docs/studies.md; each rule fixed before its ro
     python benchmarks/studies/capture_grid_study.py --study adam_beta2_colour
     python benchmarks/studies/capture_grid_study.py --study colour_levels
     python benchmarks/studies/capture_grid_study.py --study colour_levels_minutes
+    python benchmarks/studies/capture_grid_study.py --study error_sampling
+    python benchmarks/studies/capture_grid_study.py --study grid_levels
 
 A row may be several runs (seeds): the rule then reads their means.
 
@@ -198,6 +201,27 @@ STUDIES = {
                       ("benchmarks/results/colour_levels_study/tables_concat/tables.json",
                        "benchmarks/results/colour_levels_minutes_study/tables_concat/seed_1/tables.json",
                        "benchmarks/results/colour_levels_minutes_study/tables_concat/seed_2/tables.json")),
+        paper_levels=True),
+    "grid_levels": Study(
+        "51", "five grid levels instead of three, judged at ten minutes", "benchmarks/results/grid_levels_study",
+        {"today (3 levels)": ("today/seed_35", "today/seed_36"),
+         "candidate (5 levels)": ("levels_5/seed_35", "levels_5/seed_36")},
+        ("OMP_NUM_THREADS=1 python benchmarks/capture_quality.py --methods snerf --minutes 10 --marks 1 --threads 1 "
+         "--quiet --seed S [--set field.grid_levels=5] --out benchmarks/results/grid_levels_study/{today,levels_5}/seed_S "
+         "--work runs/s76/{today,levels_5}/seed_S (S = 35, then 36; a seed's two rows side by side)",
+         "OMP_NUM_THREADS=1 python benchmarks/eval_tables.py --scenes fern flower --methods snerf_default --seed S "
+         "--no-timing --quiet --set field.grid_levels=5 --out runs/s76/tables_levels_5_seedS (S = 0, 1, 2, two side "
+         "by side), its tables.json and tables.md copied to benchmarks/results/grid_levels_study/tables_levels_5/seed_S"),
+        "S-NeRF default, capture split, seeds 35 and 36 (no study's), ten minutes of training (train.minutes), a "
+        "seed's two rows side by side on one thread each; the table's rows are the seeds' means",
+        min_psnr_gain_db=0.1, max_psnr_loss_db=0.05, max_minutes=None, gain_on_mean=True,
+        levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0,
+        paper_tables=(("benchmarks/results/adam_beta2_study/tables_0.999/tables.json",
+                       "benchmarks/results/eval_tables_46b/seed_1/tables.json",
+                       "benchmarks/results/eval_tables_46b/seed_2/tables.json"),
+                      ("benchmarks/results/grid_levels_study/tables_levels_5/seed_0/tables.json",
+                       "benchmarks/results/grid_levels_study/tables_levels_5/seed_1/tables.json",
+                       "benchmarks/results/grid_levels_study/tables_levels_5/seed_2/tables.json")),
         paper_levels=True),
     "error_sampling": Study(
         "50", "training rays drawn by their blocks' colour error", "benchmarks/results/error_sampling_study",
