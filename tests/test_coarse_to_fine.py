@@ -131,6 +131,7 @@ def test_trainer_fades_levels_in_and_the_trained_model_reads_all(tiny_scene, tmp
     cfg.train.tv_weight = 0.0  # the TV term touches every level; without it only read levels move
     cfg.field.grid_max_cells = 8 ** 3
     cfg.field.grid_coarse_to_fine = 1.0
+    cfg.field.grid_levels = 3  # the weights asserted below are three levels'
     cfg.loss.lambda_random = 0.0  # the priors read the field too; keep to the pixels' reads
     cfg.loss.lambda_observed = 0.0
     trainer = Trainer(cfg, tmp_path, load_dataset(tiny_scene))

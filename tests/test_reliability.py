@@ -50,7 +50,7 @@ def run(tmp_path_factory, tiny_scene) -> Path:
 
 # --------------------------------------------------------------------------- resume
 @pytest.mark.parametrize("extra,named", [
-    (["--field.grid_levels", "2"], "field.grid_levels: 3 in the run, 2 now"),
+    (["--field.grid_levels", "2"], "field.grid_levels: 5 in the run, 2 now"),
     (["--preset", "demo"], "train.rays_per_batch: 256 in the run, 1024 now"),
     (["--preset", "default"], "render.num_samples: 32 in the run, 64 now"),
     (["--train.lr", "0.01"], "train.lr: 0.005 in the run, 0.01 now"),
@@ -69,7 +69,7 @@ def test_refused_resume_changes_nothing(run, extra, named, capsys, tiny_scene):
 
 def test_run_damaged_by_an_old_failed_resume_still_loads(run, tmp_path):
     """Before the resume check, a failed resume rewrote config.json (grid_levels 2 for a
-    3-level checkpoint): the checkpoint's own config repairs it, with a warning."""
+    5-level checkpoint): the checkpoint's own config repairs it, with a warning."""
     import shutil
 
     from stochastic_fields.config import load_config, save_config
@@ -83,7 +83,7 @@ def test_run_damaged_by_an_old_failed_resume_still_loads(run, tmp_path):
     save_config(cfg, copy / "config.json")
     with pytest.warns(UserWarning, match="field.grid_levels"):
         cfg, model, _ = load_trained_model(copy)
-    assert cfg.field.grid_levels == 3
+    assert cfg.field.grid_levels == 5
     assert (cfg.render.num_draws, cfg.render.colour_estimator) == (5, "draws")  # config.json's, not the checkpoint's
     assert model.default_render_options().num_draws == 5
 

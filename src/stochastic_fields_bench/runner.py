@@ -72,13 +72,13 @@ _KL_OPTIONS = ("loss.kl", "loss.kl_estimator", "loss.kl_mc_samples", "loss.lambd
 #: Options whose default changed after fingerprints were stored: the value the stored fingerprints
 #: left out as "the default" (lambda_depth was 0.1 until study 4 made it 0.3, then study 6 1.0; lambda_observed
 #: 5e-2 until study 16b; depth_relative_std 0.01 until study 35; the colour branch 8 features per cell and a
-#: decoder 32 wide until study 43), so that a run at the new default gets a new fingerprint and one stored at
+#: decoder 32 wide until study 43; three grid levels until study 51), so that a run at the new default gets a new fingerprint and one stored at
 #: the old value keeps its own. A default changed without an entry here fails
 #: tests/test_eval_tables.py (its snapshot tests/fingerprinted_defaults.json).
 _FINGERPRINT_REFERENCE: dict[str, Any] = {"loss.lambda_depth": 0.1, "render.num_draws": 16,
                                           "render.colour_estimator": "draws", "loss.lambda_observed": 5e-2,
                                           "loss.depth_relative_std": 0.01, "field.grid_feature_dim": 8,
-                                          "field.grid_decoder_width": 32}
+                                          "field.grid_decoder_width": 32, "field.grid_levels": 3}
 
 #: Render-time options a trained run may change (``trainer.RESUMABLE_OPTIONS``): they are left out
 #: of the training fingerprint (a new K or colour estimator re-calibrates and re-scores a stored run,
