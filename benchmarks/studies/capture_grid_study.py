@@ -86,6 +86,16 @@ class Study(NamedTuple):
 NOMINAL = {50: 50.0, 68: 68.27, 90: 90.0, 95: 95.0}
 
 
+#: The rule of studies 47 to 51 (a seed's rows judged on the seeds' means): +0.1 dB on the mean of the captures, no
+#: capture -0.05 dB, every level 50-95% held (no farther than today's where today's misses), bands at most 1 point wider.
+SEED_MEANS_RULE = dict(min_psnr_gain_db=0.1, max_psnr_loss_db=0.05, max_minutes=None, gain_on_mean=True,
+                       levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0)
+#: Today's S-NeRF default row at the paper split, seeds 0-2 (the reference of studies 49b and 51).
+TODAY_PAPER_SEEDS = ("benchmarks/results/adam_beta2_study/tables_0.999/tables.json",
+                     "benchmarks/results/eval_tables_46b/seed_1/tables.json",
+                     "benchmarks/results/eval_tables_46b/seed_2/tables.json")
+
+
 STUDIES = {
     "cells": Study(
         "23", "the finest grid level's cell cap on a capture", "benchmarks/results/grid_cells_study",
@@ -148,8 +158,7 @@ STUDIES = {
          "its tables.json and tables.md copied to benchmarks/results/adam_beta2_study/tables_B"),
         "S-NeRF default, capture split, seeds 3 and 4 (no study's), a schedule of 3300 steps (`--steps`) on two "
         "threads, one row at a time, a seed's two rows one after the other; the table's rows are the seeds' means",
-        min_psnr_gain_db=0.1, max_psnr_loss_db=0.05, max_minutes=None, gain_on_mean=True,
-        levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0,
+        **SEED_MEANS_RULE,
         paper_tables=("benchmarks/results/adam_beta2_study/tables_0.999/tables.json",
                       "benchmarks/results/adam_beta2_study/tables_0.99/tables.json")),
     "adam_beta2_colour": Study(
@@ -162,8 +171,7 @@ STUDIES = {
          "the same with --set train.adam_beta2_colour=0.99 into colour_0.99"),
         "S-NeRF default, capture split, seeds 5 and 6 (no study's), a schedule of 3300 steps (`--steps`) on two "
         "threads, one row at a time, today's rows first; the table's rows are the seeds' means",
-        min_psnr_gain_db=0.1, max_psnr_loss_db=0.05, max_minutes=None, gain_on_mean=True,
-        levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0),
+        **SEED_MEANS_RULE),
     "colour_levels": Study(
         "49", "each grid level's colour features read apart", "benchmarks/results/colour_levels_study",
         {"today (sum)": ("today/seed_6", "today/seed_7"),
@@ -175,8 +183,7 @@ STUDIES = {
         "S-NeRF default, capture split, seeds 6 and 7, a schedule of 3300 steps (`--steps`), two processes of one "
         "thread side by side; the table's rows are the seeds' means; the step's cost ruled apart "
         "(capture_step_cost.py)",
-        min_psnr_gain_db=0.1, max_psnr_loss_db=0.05, max_minutes=None, gain_on_mean=True,
-        levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0,
+        **SEED_MEANS_RULE,
         step_costs=("step_cost_fern.json", "step_cost_flower.json")),
     "colour_levels_minutes": Study(
         "49b", "each grid level's colour features read apart, judged at ten minutes",
@@ -193,11 +200,8 @@ STUDIES = {
          "tables_concat/seed_S (seed 0: study 49's tables_concat)"),
         "S-NeRF default, capture split, seeds 9 and 10, ten minutes of training (train.minutes), a seed's two rows "
         "side by side on one thread each; the table's rows are the seeds' means",
-        min_psnr_gain_db=0.1, max_psnr_loss_db=0.05, max_minutes=None, gain_on_mean=True,
-        levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0,
-        paper_tables=(("benchmarks/results/adam_beta2_study/tables_0.999/tables.json",
-                       "benchmarks/results/eval_tables_46b/seed_1/tables.json",
-                       "benchmarks/results/eval_tables_46b/seed_2/tables.json"),
+        **SEED_MEANS_RULE,
+        paper_tables=(TODAY_PAPER_SEEDS,
                       ("benchmarks/results/colour_levels_study/tables_concat/tables.json",
                        "benchmarks/results/colour_levels_minutes_study/tables_concat/seed_1/tables.json",
                        "benchmarks/results/colour_levels_minutes_study/tables_concat/seed_2/tables.json")),
@@ -214,11 +218,8 @@ STUDIES = {
          "by side), its tables.json and tables.md copied to benchmarks/results/grid_levels_study/tables_levels_5/seed_S"),
         "S-NeRF default, capture split, seeds 35 and 36 (no study's), ten minutes of training (train.minutes), a "
         "seed's two rows side by side on one thread each; the table's rows are the seeds' means",
-        min_psnr_gain_db=0.1, max_psnr_loss_db=0.05, max_minutes=None, gain_on_mean=True,
-        levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0,
-        paper_tables=(("benchmarks/results/adam_beta2_study/tables_0.999/tables.json",
-                       "benchmarks/results/eval_tables_46b/seed_1/tables.json",
-                       "benchmarks/results/eval_tables_46b/seed_2/tables.json"),
+        **SEED_MEANS_RULE,
+        paper_tables=(TODAY_PAPER_SEEDS,
                       ("benchmarks/results/grid_levels_study/tables_levels_5/seed_0/tables.json",
                        "benchmarks/results/grid_levels_study/tables_levels_5/seed_1/tables.json",
                        "benchmarks/results/grid_levels_study/tables_levels_5/seed_2/tables.json")),
@@ -239,8 +240,7 @@ STUDIES = {
         "S-NeRF default, capture split, seeds 5 and 7, a schedule of 3300 steps (`--steps`), two processes of one "
         "thread side by side; the table's rows are the seeds' means; the step's cost ruled apart "
         "(capture_step_cost.py)",
-        min_psnr_gain_db=0.1, max_psnr_loss_db=0.05, max_minutes=None, gain_on_mean=True,
-        levels=(50, 68, 90, 95), level_as_far_as_today=True, max_halfwidth_growth_points=1.0,
+        **SEED_MEANS_RULE,
         step_costs=("step_cost_fern.json", "step_cost_flower.json")),
 }
 
