@@ -58,6 +58,26 @@ def tiny_cpu_config(iterations: int):
     return cfg
 
 
+def train_tiny_run(scene: Path, run_dir: Path, iterations: int = 30) -> Path:
+    """The tiny preset trained ``iterations`` steps on ``scene`` (every 5th view trains) into
+    ``run_dir``, one CPU thread, no checkpoints or evaluations on the way: a run for the scripts that
+    re-score trained runs. Returns ``run_dir``."""
+    import torch
+
+    from stochastic_fields.config import preset
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.trainer import Trainer
+
+    torch.set_num_threads(1)
+    cfg = preset("tiny")
+    cfg.train.iterations = iterations
+    cfg.train.checkpoint_every = 0
+    cfg.train.eval_every = 0
+    cfg.data.path = str(scene)
+    Trainer(cfg, run_dir, load_dataset(scene, split_every=5)).train(progress=False)
+    return run_dir
+
+
 def train_tiny_synthetic_run(run_dir: Path):
     """A tiny preset trained 200 steps in ``run_dir`` on a 20-view synthetic scene (every 5th view
     trains): (model, dataset). The slow calibration tests' shared run."""

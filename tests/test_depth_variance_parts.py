@@ -5,25 +5,11 @@ from __future__ import annotations
 import json
 
 import pytest
-
-
+from conftest import train_tiny_run
 
 
 def test_parts_of_a_trained_run_are_scored_as_the_tables_score(tiny_scene, tmp_path, load_script):
-    import torch
-
-    from stochastic_fields.config import preset
-    from stochastic_fields.data import load_dataset
-    from stochastic_fields.trainer import Trainer
-
-    torch.set_num_threads(1)
-    cfg = preset("tiny")
-    cfg.train.iterations = 30
-    cfg.train.checkpoint_every = 0
-    cfg.train.eval_every = 0
-    cfg.data.path = str(tiny_scene)
-    run = tmp_path / "run"
-    Trainer(cfg, run, load_dataset(tiny_scene, split_every=5)).train(progress=False)
+    run = train_tiny_run(tiny_scene, tmp_path / "run")
     out = tmp_path / "parts"
     script = load_script("benchmarks/studies/depth_variance_parts.py")
     assert script.main(["--run", f"{tiny_scene}={run}", "--out", str(out), "--quiet"]) == 0

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import train_tiny_run
 
 
 def test_cross_scores_by_hand(load_script):
@@ -28,21 +29,9 @@ def test_cross_scores_by_hand(load_script):
 
 
 def test_a_run_against_itself_reproduces_eval(tiny_scene, tmp_path, load_script):
-    import torch
-
     from stochastic_fields.cli import main as cli
-    from stochastic_fields.config import preset
-    from stochastic_fields.data import load_dataset
-    from stochastic_fields.trainer import Trainer
 
-    torch.set_num_threads(1)
-    cfg = preset("tiny")
-    cfg.train.iterations = 30
-    cfg.train.checkpoint_every = 0
-    cfg.train.eval_every = 0
-    cfg.data.path = str(tiny_scene)
-    run = tmp_path / "run"
-    Trainer(cfg, run, load_dataset(tiny_scene, split_every=5)).train(progress=False)
+    run = train_tiny_run(tiny_scene, tmp_path / "run")
     assert cli(["eval", "--run", str(run), "--out", str(tmp_path / "eval"), "--quiet"]) == 0
     script = load_script("benchmarks/studies/ranking_cross_analysis.py")
     out = tmp_path / "cross"
