@@ -36,7 +36,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import spearmanr
 
 #: An error above this share of the depth counts as large (a wrong surface, not noise).
 LARGE_RELATIVE_ERROR = 0.05
@@ -53,7 +52,10 @@ def parse_pair(text: str) -> tuple[str, Path, Path, Path]:
 
 
 def _spearman(x: np.ndarray, y: np.ndarray) -> float:
-    return float(spearmanr(x, y)[0]) if len(x) > 2 else float("nan")
+    """``metrics.spearman`` (eval's ranking and its undefined cases) as a float; NaN for fewer than 3 points."""
+    from stochastic_fields.metrics import spearman
+
+    return float(spearman(x, y).value) if len(x) > 2 else float("nan")
 
 
 def cross_scores(gt: np.ndarray, pred_a: np.ndarray, std_a: np.ndarray, pred_b: np.ndarray,
@@ -101,10 +103,11 @@ def pair_points(run: Path, eval_a: Path, eval_b: Path) -> tuple[np.ndarray, ...]
     points eval scores (SCORE capture points, or SCORE-block pixels of exact depth), opacity > 0.5
     in both."""
     from stochastic_fields.capture_points import dense_depth_score_mask, load_capture_points, score_sparse_depth
-    from stochastic_fields.trainer import load_trained_model
+    from stochastic_fields.config import load_config
+    from stochastic_fields.scenes import load_run_dataset
     from stochastic_fields.view_maps import OPACITY_MASK
 
-    _, _, dataset = load_trained_model(run)
+    dataset = load_run_dataset(load_config(run / "config.json"), run)  # the run's split; no checkpoint needed
     views = [int(name.split("_")[1]) for name in json.loads((eval_a / "metrics.json").read_text())["views"]]
     sparse = score_sparse_depth(dataset, views)
     capture = load_capture_points(dataset) if sparse is None else None
