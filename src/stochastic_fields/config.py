@@ -82,6 +82,8 @@ class FieldConfig:
     """Initial mean of the pre-ReLU density everywhere. Range: a finite number."""
     density_per: Literal["unit", "cell"] = "unit"
     """What the grid's density is counted per: 'unit' (per unit of the capture's length: the same photos in other units train differently, docs/design.md) or 'cell' (optical depth per finest cell: the field outputs relu(g) / L with L the finest cell's side, SceneRegion.cell_length, and the KL priors scale with it, so training does not depend on the unit; grid backend only)."""
+    density_heads: int = 1
+    """Density heads of the grid (1: one density field): M alternative density fields around one centre, trajectory k drawing its density from head k mod M, each head starting from its own noise (docs/studies.md, study 52; a study's option, not the default; the grid backend only). Range: an integer >= 1 and <= 16."""
     grid_coarse_to_fine: float = 0.0
     """Share of training over which the finer grid levels fade in, coarsest first (0: all from the start; a few-view regulariser). Range: a finite number >= 0 and <= 1."""
 
@@ -195,6 +197,7 @@ FIELD_CHECKS: dict[str, V.Checker] = {
     "grid_init_density_loc": V.real(),
     "density_per": V.choice("unit", "cell"),
     "grid_coarse_to_fine": V.real(0.0, 1.0),
+    "density_heads": V.integer(1, 16),
 }
 TRAIN_CHECKS: dict[str, V.Checker] = {
     "iterations": V.integer(1, 10**9),
@@ -252,6 +255,8 @@ def validate_experiment(cfg: "ExperimentConfig") -> None:
     if cfg.field.grid_coarse_to_fine > 0 and cfg.field.backend != "grid":
         raise V.ConfigError("field.grid_coarse_to_fine", "0 with field.backend='mlp' (it fades in grid levels)",
                             cfg.field.grid_coarse_to_fine)
+    if cfg.field.density_heads > 1 and cfg.field.backend != "grid":
+        raise V.ConfigError("field.density_heads", "1 unless field.backend='grid'", cfg.field.density_heads)
     if cfg.field.grid_colour_levels == "concat" and (cfg.field.backend != "grid" or cfg.field.grid_decoder_width == 0):
         raise V.ConfigError("field.grid_colour_levels", "'sum' without a grid colour decoder (field.backend='grid' "
                             "and field.grid_decoder_width > 0)", cfg.field.grid_colour_levels)

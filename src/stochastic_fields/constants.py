@@ -176,3 +176,8 @@ PARALLAX_PROBE_STEP: float = 1e-3
 #: Floor of sin theta in the parallax term kappa d / sin theta (``parallax``): about 0.6 degrees, so
 #: a point fewer than two training views see (theta 0) gets a large but finite term, 100 d kappa.
 PARALLAX_MIN_SIN: float = 0.01
+
+#: Std of the per-member density-cell noise of grid ensembles, relative to the initial mean
+#: density: N(0, (0.5 mu_0)^2) per point, so about 2% of points start below zero. The grid's
+#: density heads (``field.density_heads``) start their offsets with the same noise.
+ENSEMBLE_GRID_DENSITY_NOISE: float = 0.5

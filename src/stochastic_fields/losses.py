@@ -184,18 +184,30 @@ def termination_depth_nll(weights: Tensor, t_mids: Tensor, deltas: Tensor, targe
 def field_kl(params: FieldParams, prior: tuple[Tensor, Tensor, Tensor, Tensor], *,
              estimator: str = "closed_form", mc_samples: int = 8,
              generator: torch.Generator | None = None) -> Tensor:
-    """[*B] KL(q || p) per point: rectified-normal density KL + sum of the 3 colour-logit KLs."""
+    """[*B] KL(q || p) per point: rectified-normal density KL + sum of the 3 colour-logit KLs.
+
+    With density heads (``params.density_offsets`` [*B, M]) q's density is the equal mixture of
+    the heads' rectified normals; its KL is bounded by the mean of theirs (KL is convex in q),
+    which is the term: sum_h KL(q_h || p) / M >= KL(sum_h q_h / M || p), so the loss stays a bound."""
     d_loc, d_scale, c_loc, c_scale = prior
+    loc, scale = params.density_loc, params.density_scale
+    if params.density_offsets is not None:  # [*B, M]: each head's, the prior broadcast over them
+        loc, scale = loc[..., None] + params.density_offsets, scale[..., None].expand_as(params.density_offsets)
+        d_loc, d_scale = (torch.as_tensor(t, device=loc.device) for t in (d_loc, d_scale))
+        d_loc = d_loc[..., None] if d_loc.dim() else d_loc
+        d_scale = d_scale[..., None] if d_scale.dim() else d_scale
     if estimator == "closed_form":
-        kd = kl_rectified_normal(params.density_loc, params.density_scale, d_loc, d_scale)
+        kd = kl_rectified_normal(loc, scale, d_loc, d_scale)
         kc = kl_logistic_normal(params.rgb_loc, params.rgb_scale, c_loc, c_scale).sum(-1)
     elif estimator == "monte_carlo":
-        kd = kl_rectified_normal_mc(params.density_loc, params.density_scale, d_loc, d_scale,
+        kd = kl_rectified_normal_mc(loc, scale, d_loc, d_scale,
                                     num_samples=mc_samples, generator=generator)
         kc = kl_logistic_normal_mc(params.rgb_loc, params.rgb_scale, c_loc, c_scale,
                                    num_samples=mc_samples, generator=generator).sum(-1)
     else:
         raise ValueError(f"kl_estimator must be 'closed_form' or 'monte_carlo', got {estimator!r}")
+    if params.density_offsets is not None:
+        kd = kd.mean(-1)
     return kd + kc
 
 
@@ -214,6 +226,8 @@ def field_kl_means(parts: list[tuple[FieldParams, tuple[Tensor, Tensor, Tensor, 
     sizes = [p.density_loc.shape[0] for p, _ in parts]
     names = ("density_loc", "density_scale", "rgb_loc", "rgb_scale")
     joined = FieldParams(*(torch.cat([getattr(p, name) for p, _ in parts]) for name in names))
+    if all(p.density_offsets is not None for p, _ in parts):
+        joined.density_offsets = torch.cat([p.density_offsets for p, _ in parts])
     prior = tuple(torch.cat([torch.as_tensor(pr[i], device=joined.density_loc.device).expand(n, *getattr(p, name).shape[1:])
                              for (p, pr), n in zip(parts, sizes)])
                   for i, name in enumerate(names))

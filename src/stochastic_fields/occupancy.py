@@ -55,11 +55,14 @@ def density_upper_estimate(field: StochasticField, num_std: float = OCCUPANCY_UP
     """A ``density_fn`` for ``OccupancyGrid.update``: the high quantile ``relu(mu_a + num_std s_a)``.
 
     The density is ``relu(mu_a + s_a eps)``; a draw exceeds this value with probability
-    ``1 - Phi(num_std)`` (0.13% for 3), so cells below it are empty for almost every draw.
+    ``1 - Phi(num_std)`` (0.13% for 3), so cells below it are empty for almost every draw. With
+    density heads (``FieldParams.density_offsets``) mu_a is the highest head's loc.
     """
 
     def density_fn(points: Tensor) -> Tensor:  # [P, 3] -> [P]
-        loc, scale = field.density_params(points)
+        loc, scale, offsets = field.density_head_params(points)
+        if offsets is not None:  # density heads: the highest head's
+            loc = loc + offsets.amax(-1)
         return torch.relu(loc + num_std * scale)
 
     return density_fn

@@ -84,13 +84,29 @@ def draw_blocks(num_draws: int, pairs_per_draw: int) -> list[tuple[int, int]]:
     return [(k0, min(per_block, num_draws - k0)) for k0 in range(0, num_draws, per_block)]
 
 
+def draw_locs(density_loc: Tensor, density_offsets: Tensor | None, first_draw: int, num_draws: int, *,
+              packed: bool) -> Tensor:
+    """The density locs the draws first_draw .. first_draw + k - 1 draw around: mu_a + o_{j mod M}
+    for draw j (``FieldParams.density_offsets``; None: mu_a for every draw). Dense: loc [R, S],
+    offsets [R, S, M] -> [R, k, S] ([R, 1, S] without heads); packed: loc [N], offsets [N, M] ->
+    [k, N] ([1, N] without heads)."""
+    if density_offsets is None:
+        return density_loc[None] if packed else density_loc[:, None, :]
+    heads = torch.arange(first_draw, first_draw + num_draws, device=density_loc.device) % density_offsets.shape[-1]
+    if packed:
+        return density_loc[None] + density_offsets[:, heads].T
+    return density_loc[:, None, :] + density_offsets[..., heads].permute(0, 2, 1)
+
+
 def draw_trajectories(params: FieldParams, num_draws: int, *, shared_noise: bool = False,
                       deterministic: bool = False, generator: torch.Generator | None = None,
-                      noise: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+                      noise: tuple[Tensor, Tensor] | None = None, first_draw: int = 0) -> tuple[Tensor, Tensor]:
     """Reparameterised draws: params [R, S] -> density [R, K, S], rgb [R, K, S, 3].
 
     ``alpha = relu(mu_a + s_a eps_a)``, ``r = sigmoid(mu_c + s_c eps_c)``; ``noise`` fixes
     (eps_a [R, K, S], eps_c [R, K, S, 3]) (or S = 1 to share along rays) instead of drawing it.
+    With density heads draw j (counted from ``first_draw``) draws around mu_a + o_{j mod M}
+    (``draw_locs``); the deterministic draws are the centre's.
     """
     R, S = params.density_loc.shape
     dev, dt = params.density_loc.device, params.density_loc.dtype
@@ -102,7 +118,8 @@ def draw_trajectories(params: FieldParams, num_draws: int, *, shared_noise: bool
     if noise is None:
         noise = dense_noise(R, K, S, shared_noise=shared_noise, generator=generator, device=dev, dtype=dt)
     eps_a, eps_c = noise
-    density = torch.relu(params.density_loc[:, None, :] + params.density_scale[:, None, :] * eps_a)
+    loc = draw_locs(params.density_loc, params.density_offsets, first_draw, K, packed=False)
+    density = torch.relu(loc + params.density_scale[:, None, :] * eps_a)
     rgb = torch.sigmoid(params.rgb_loc[:, None] + params.rgb_scale[:, None] * eps_c)
     return density, rgb
 
@@ -110,12 +127,12 @@ def draw_trajectories(params: FieldParams, num_draws: int, *, shared_noise: bool
 def draw_trajectories_packed(params: FieldParams, num_draws: int, ray_indices: Tensor, num_rays: int, *,
                              shared_noise: bool = False, deterministic: bool = False,
                              generator: torch.Generator | None = None,
-                             noise: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor]:
+                             noise: tuple[Tensor, Tensor] | None = None, first_draw: int = 0) -> tuple[Tensor, Tensor]:
     """Packed draws: params [N] -> density [K, N], rgb [K, N, 3] (draws axis first).
 
     Shared noise draws the dense layout's ``[R, K, 1]`` eps (same generator consumption as
     ``draw_trajectories``) and gathers it per sample, so both layouts give identical draws.
-    ``noise`` fixes (eps_a [K, N], eps_c [K, N, 3]).
+    ``noise`` fixes (eps_a [K, N], eps_c [K, N, 3]); density heads as ``draw_trajectories``.
     """
     N = params.density_loc.shape[0]
     dev, dt = params.density_loc.device, params.density_loc.dtype
@@ -131,7 +148,8 @@ def draw_trajectories_packed(params: FieldParams, num_draws: int, ray_indices: T
             noise = (torch.randn(K, N, generator=generator, device=dev, dtype=dt),
                      torch.randn(K, N, 3, generator=generator, device=dev, dtype=dt))
     eps_a, eps_c = noise
-    density = torch.relu(params.density_loc[None] + params.density_scale[None] * eps_a)
+    loc = draw_locs(params.density_loc, params.density_offsets, first_draw, K, packed=True)
+    density = torch.relu(loc + params.density_scale[None] * eps_a)
     rgb = torch.sigmoid(params.rgb_loc[None] + params.rgb_scale[None] * eps_c)
     return density, rgb
 
@@ -250,7 +268,8 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
         noise = dense_noise(R, num_draws, S, shared_noise=True, generator=generator, device=dev, dtype=dt)
     if rao_blackwell:  # [R, S, 3] each
         rgb_mean, rgb_var = colour_moments or logistic_normal_moments_tabulated(params.rgb_loc, params.rgb_scale)
-        folded = _folded_optical_depth_params(params, samples) if settings.quadrature == "alpha" else None
+        folded = _folded_optical_depth_params(params, samples) \
+            if settings.quadrature == "alpha" and params.density_offsets is None else None
     blocks = [(0, num_draws)] if deterministic else draw_blocks(num_draws, R * S)
     parts, weights = [], []
     for k0, k in blocks:
@@ -262,7 +281,7 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
                 w = weights_alpha_from_optical_depth(torch.relu(torch.addcmul(*folded, eps_a)))
             else:
                 w = trajectory_weights(params.density_loc, params.density_scale, samples, settings, num_draws=k,
-                                       noise=eps_a)
+                                       noise=eps_a, density_offsets=params.density_offsets, first_draw=k0)
             rgb, block_rgb_var = rgb_mean, rgb_var
         elif deterministic:
             density, rgb = draw_trajectories(params, k, deterministic=True)
@@ -271,7 +290,8 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
         else:  # draw_trajectories' draws, the colours composited from their logits (one autograd node)
             eps_a, eps_c = block_noise if block_noise is not None else dense_noise(
                 R, k, S, shared_noise=settings.shared_noise, generator=generator, device=dev, dtype=dt)
-            w = trajectory_weights(params.density_loc, params.density_scale, samples, settings, num_draws=k, noise=eps_a)
+            w = trajectory_weights(params.density_loc, params.density_scale, samples, settings, num_draws=k, noise=eps_a,
+                                   density_offsets=params.density_offsets, first_draw=k0)
             rgb, block_rgb_var = LogitNormalColourDraws(params.rgb_loc, params.rgb_scale, eps_c), None
         parts.append(trajectory_statistics(w, rgb, samples.t_mids[:, None, :], samples.rays.far,
                                            background=_background(settings, w), rgb_var=block_rgb_var,
@@ -284,19 +304,23 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
 
 
 def trajectory_weights(density_loc: Tensor, density_scale: Tensor, samples: RaySamples, settings: RenderSettings, *,
-                       num_draws: int, generator: torch.Generator | None = None, noise: Tensor | None = None) -> Tensor:
+                       num_draws: int, generator: torch.Generator | None = None, noise: Tensor | None = None,
+                       density_offsets: Tensor | None = None, first_draw: int = 0) -> Tensor:
     """The compositing weights [R, K, S] of K density draws at dense ``samples`` from the density
     parameters alone (mu_a, s_a [R, S]; ``field.density_params``): what a loss on the termination
     distribution needs, without evaluating or drawing colours.
     ``alpha = relu(mu_a + s_a eps_a)`` with eps_a [R, K, S] (or [R, K, 1] with
     ``settings.shared_noise``) from ``generator``, or ``noise`` if given; the weights equal
-    ``render_samples``' for the same eps_a."""
-    density_loc, density_scale, samples = upcast_half((density_loc, density_scale, samples))
+    ``render_samples``' for the same eps_a. ``density_offsets`` [R, S, M]: the density heads' (draw j,
+    counted from ``first_draw``, draws around mu_a + o_{j mod M}, ``draw_locs``)."""
+    density_loc, density_scale, samples, density_offsets = upcast_half((density_loc, density_scale, samples,
+                                                                        density_offsets))
     R, S = samples.t_starts.shape
     if noise is None:
         noise = torch.randn(R, num_draws, 1 if settings.shared_noise else S, generator=generator,
                             device=density_loc.device, dtype=density_loc.dtype)
-    density = torch.relu(density_loc[:, None, :] + density_scale[:, None, :] * noise)
+    loc = draw_locs(density_loc, density_offsets, first_draw, num_draws, packed=False)
+    density = torch.relu(loc + density_scale[:, None, :] * noise)
     return render_weights(density, samples.t_starts[:, None, :], samples.t_ends[:, None, :], settings.quadrature)
 
 
@@ -334,12 +358,13 @@ def render_samples_packed(params: FieldParams, samples: PackedRaySamples, settin
         if rao_blackwell:
             eps_a = (torch.randn(k, N, generator=generator, device=dev, dtype=dt) if block_noise is None
                      else block_noise[0])
-            density = torch.relu(params.density_loc[None] + params.density_scale[None] * eps_a)
+            loc = draw_locs(params.density_loc, params.density_offsets, k0, k, packed=True)
+            density = torch.relu(loc + params.density_scale[None] * eps_a)
             rgb, block_rgb_var = rgb_mean, rgb_var
         else:
             density, rgb = draw_trajectories_packed(params, k, samples.ray_indices, R,
                                                     shared_noise=settings.shared_noise, deterministic=deterministic,
-                                                    generator=generator, noise=block_noise)
+                                                    generator=generator, noise=block_noise, first_draw=k0)
             block_rgb_var = None
         w = render_weights_packed(density, samples.t_starts, samples.t_ends, samples.ray_indices, R, "alpha")
         parts.append(trajectory_statistics_packed(w, rgb, samples.t_mids, samples.ray_indices, R, samples.rays.far,
@@ -373,9 +398,10 @@ def skip_empty(samples: RaySamples, occupied: OccupiedFn | None) -> RaySamples |
     return pack_samples(samples, keep)
 
 
-#: ``colour_where(density_loc [P], density_scale [P]) -> [P] bool``: which of a field evaluation's
-#: points need their colour decoded (``StochasticField.forward_colour_where``).
-ColourWhereFn = Callable[[Tensor, Tensor], Tensor]
+#: ``colour_where(density_loc [P], density_scale [P][, density_offsets [P, M]]) -> [P] bool``: which
+#: of a field evaluation's points need their colour decoded (``StochasticField.forward_colour_where``;
+#: a field with density heads passes their offsets as a third argument).
+ColourWhereFn = Callable[[Tensor, Tensor, "Tensor | None"], Tensor]
 
 
 def render_noise(samples: RaySamples | PackedRaySamples, num_draws: int, settings: RenderSettings, *,
@@ -399,7 +425,7 @@ def render_noise(samples: RaySamples | PackedRaySamples, num_draws: int, setting
 
 @torch.no_grad()
 def colour_reaching(density_loc: Tensor, density_scale: Tensor, samples: RaySamples | PackedRaySamples,
-                    eps_a: Tensor | None, min_transmittance: float) -> Tensor:
+                    eps_a: Tensor | None, min_transmittance: float, density_offsets: Tensor | None = None) -> Tensor:
     """Which samples' colours reach a pixel: some trajectory has density there and reaches it with
     transmittance at least ``min_transmittance`` (alpha compositing). [R, S] dense (density
     params [R, S], eps_a [R, K, S'] or None for the mean field), [N] packed (params [N], eps_a
@@ -413,15 +439,18 @@ def colour_reaching(density_loc: Tensor, density_scale: Tensor, samples: RaySamp
     along a ray, so the samples a trajectory leaves out for T < tau follow its first such sample
     i0, and their weights sum to at most T_i0k < tau: a colour composited without them (any values
     in [0, 1] in their place) is within tau of the full sum, per trajectory and channel, and the
-    gradients change by as little (d C_k / d a_ik carries the factor T_ik)."""
+    gradients change by as little (d C_k / d a_ik carries the factor T_ik). With density heads
+    (``density_offsets`` [R, S, M] or [N, M]) draw k draws around its head's loc (``draw_locs``)."""
     if isinstance(samples, PackedRaySamples):
         eps = torch.zeros_like(density_loc)[None] if eps_a is None else eps_a  # [K, N]
-        density = torch.relu(density_loc[None] + density_scale[None] * eps)
+        loc = draw_locs(density_loc, None if eps_a is None else density_offsets, 0, eps.shape[0], packed=True)
+        density = torch.relu(loc + density_scale[None] * eps)
         tau = density * samples.deltas[None]
         transmittance = torch.exp(-exclusive_cumsum_packed(tau, samples.ray_indices, samples.num_rays))
         return ((density > 0) & (transmittance >= min_transmittance)).any(dim=0)
     eps = torch.zeros_like(density_loc)[:, None] if eps_a is None else eps_a  # [R, K, S']
-    density = torch.relu(density_loc[:, None, :] + density_scale[:, None, :] * eps)
+    loc = draw_locs(density_loc, None if eps_a is None else density_offsets, 0, eps.shape[1], packed=False)
+    density = torch.relu(loc + density_scale[:, None, :] * eps)
     transmittance = transmittance_alpha(density, samples.deltas[:, None, :])
     return ((density > 0) & (transmittance >= min_transmittance)).any(dim=1)
 
@@ -452,9 +481,10 @@ def colour_plan(samples: RaySamples | PackedRaySamples, settings: RenderSettings
         generator=generator)
     shape = samples.t_starts.shape
 
-    def where(density_loc: Tensor, density_scale: Tensor) -> Tensor:
+    def where(density_loc: Tensor, density_scale: Tensor, density_offsets: Tensor | None = None) -> Tensor:
+        offsets = None if density_offsets is None else density_offsets.reshape(*shape, density_offsets.shape[-1])
         reach = colour_reaching(density_loc.reshape(shape), density_scale.reshape(shape), samples,
-                                None if noise is None else noise[0], tau)
+                                None if noise is None else noise[0], tau, offsets)
         return reach.reshape(-1)
 
     return ColourPlan(noise=noise, where=where)

@@ -54,6 +54,9 @@ class FieldParams:
         rgb_loc: [*B, 3] mean of the colour logits (mu_c).
         rgb_scale: [*B, 3] standard deviation of the colour logits (s_c > 0).
         noise_scale: None, or [*B] the observation-noise std beta(x) >= 0 of a field with a noise head.
+        density_offsets: None, or [*B, M] the density heads' offsets o_h of a field with M density
+            heads (``field.density_heads``): trajectory k draws its density around
+            density_loc + o_{k mod M}; the offsets sum to 0 over the heads, so density_loc is their centre.
     """
 
     density_loc: Tensor
@@ -61,13 +64,14 @@ class FieldParams:
     rgb_loc: Tensor
     rgb_scale: Tensor
     noise_scale: Tensor | None = None
+    density_offsets: Tensor | None = None
 
     @property
     def shape(self) -> torch.Size:
         return self.density_loc.shape
 
     def map(self, fn) -> "FieldParams":
-        """``fn`` applied to every tensor (an absent ``noise_scale`` stays None)."""
+        """``fn`` applied to every tensor (an absent ``noise_scale`` or ``density_offsets`` stays None)."""
         return replace(self, **{f.name: fn(getattr(self, f.name)) for f in fields(self)
                                 if getattr(self, f.name) is not None})
 
@@ -78,12 +82,15 @@ class FieldParams:
             rgb_loc=self.rgb_loc.reshape(*shape, 3),
             rgb_scale=self.rgb_scale.reshape(*shape, 3),
             noise_scale=None if self.noise_scale is None else self.noise_scale.reshape(*shape),
+            density_offsets=None if self.density_offsets is None
+            else self.density_offsets.reshape(*shape, self.density_offsets.shape[-1]),
         )
 
     @staticmethod
     def cat(parts: list["FieldParams"], dim: int = 0) -> "FieldParams":
-        if len({p.noise_scale is None for p in parts}) > 1:
-            raise ValueError("cannot concatenate field parameters with and without noise_scale")
+        for name in ("noise_scale", "density_offsets"):
+            if len({getattr(p, name) is None for p in parts}) > 1:
+                raise ValueError(f"cannot concatenate field parameters with and without {name}")
         return FieldParams(**{f.name: torch.cat([getattr(p, f.name) for p in parts], dim) for f in fields(parts[0])
                               if getattr(parts[0], f.name) is not None})
 
@@ -124,3 +131,9 @@ class StochasticField(nn.Module, abc.ABC):
         directions[..., 2] = 1.0
         out = self.forward(positions, directions)
         return out.density_loc, out.density_scale
+
+    def density_head_params(self, positions: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        """``density_params`` and the density heads' offsets ([*B, M], ``FieldParams.density_offsets``;
+        None for a field of one head, as every backend but a grid with ``density_heads`` > 1)."""
+        loc, scale = self.density_params(positions)
+        return loc, scale, None

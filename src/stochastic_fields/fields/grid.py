@@ -13,6 +13,14 @@ trilinear interpolation of every level is summed:
     level's colour features its own inputs (instant-NGP's concatenation; the density stays summed)
     or, with ``decoder_width=0``: mu_c, raw_s_c = g_2..7(x)  (view-independent, no MLP)
     with ``noise_head``: beta(x) = softplus(g_last(x))      (observation-noise std, one more channel)
+    with M density heads: o_h(x) = k (e_h(x) - mean_h' e_h'(x)) from M channels after g_1 (the
+    colour features follow them); trajectory k draws its density around mu_a + o_{k mod M}
+
+Density heads (``field.density_heads``, a study's option): M alternative density fields around one
+centre mu_a, each head a geometry of its own that the trajectories it draws must explain (the
+likelihood is each trajectory's), sharing the colour features and the density scale, as a deep
+ensemble's members would differ, inside one model: their channels start with independent noise
+per cell (the deep ensemble's ``ENSEMBLE_GRID_DENSITY_NOISE`` rule), so the heads do not start equal.
 
 Coarse to fine (``field.grid_coarse_to_fine``, a few-view regulariser): during training each level
 may carry a weight a_l in [0, 1], g(x) = sum_l a_l g_l(x), set by the trainer from the training
@@ -89,8 +97,10 @@ class GridField(StochasticField):
                  feature_dim: int = 8, decoder_width: int = 32, concat_colour_levels: bool = False,
                  direction_frequencies: int = 2,
                  init_density_loc: float = -1.0, init_std: float = 1.0, noise_head: bool = False,
-                 density_unit: float = 1.0):
+                 density_unit: float = 1.0, density_heads: int = 1, head_init_std: float = 0.0):
         super().__init__()
+        if density_heads < 1:
+            raise ValueError(f"density_heads must be an integer >= 1, got {density_heads}")
         if not (math.isfinite(density_unit) and density_unit > 0):
             raise ValueError(f"density_unit must be a finite number > 0, got {density_unit}")
         #: k: world density = k * grid density (1: per unit of length; 1 / cell length: per cell)
@@ -99,9 +109,15 @@ class GridField(StochasticField):
         self.resolution = tuple(int(r) for r in resolution)
         self.decoder_width = decoder_width
         colour_channels = feature_dim if decoder_width > 0 else 6
-        self.colour_channels = slice(2, 2 + colour_channels)
+        #: M density heads: channels 2 .. 2 + M hold each head's raw offset (none for one head)
+        self.density_heads = int(density_heads)
+        heads = self.density_heads if self.density_heads > 1 else 0
+        self.head_channels = slice(2, 2 + heads)
+        #: what a density-only read gathers: the density's loc and scale, and the heads' offsets
+        self.density_channels = slice(0, 2 + heads)
+        self.colour_channels = slice(2 + heads, 2 + heads + colour_channels)
         self.noise_head = bool(noise_head)
-        self.num_channels = 2 + colour_channels + int(self.noise_head)
+        self.num_channels = 2 + heads + colour_channels + int(self.noise_head)
         self.level_shapes = level_resolutions(self.resolution, num_levels)  # (X, Y, Z) per level
         if concat_colour_levels and decoder_width == 0:
             raise ValueError("concat_colour_levels needs a colour decoder (decoder_width > 0)")
@@ -113,6 +129,8 @@ class GridField(StochasticField):
             g = torch.zeros(rz * ry * rx, self.num_channels)  # cell (x, y, z) is row (z * Y + y) * X + x
             if decoder_width > 0:
                 g[:, self.colour_channels] = 0.1 * torch.randn_like(g[:, self.colour_channels])
+            if heads:  # independent per level: the summed std is head_init_std
+                g[:, self.head_channels] = head_init_std / math.sqrt(num_levels) * torch.randn_like(g[:, self.head_channels])
             self.levels.append(nn.Parameter(g))
         #: per-level weights a_l (``coarse_to_fine_weights``) while training; None: every level at 1
         self.level_weights: list[float] | None = None
@@ -121,7 +139,7 @@ class GridField(StochasticField):
         offset = torch.zeros(self.num_channels)
         offset[0], offset[1] = init_density_loc, raw_std
         if decoder_width == 0:
-            offset[5:8] = raw_std
+            offset[self.colour_channels.start + 3:self.colour_channels.start + 6] = raw_std
         if self.noise_head:
             offset[-1] = inverse_softplus(NOISE_HEAD_INIT_STD)
         self.register_buffer("offset", offset)
@@ -198,7 +216,8 @@ class GridField(StochasticField):
         x, y, z = self.resolution
         unit = float(self.density_unit)
         per = "" if unit == 1.0 else f", density per cell of side {1.0 / unit:.3g}"
-        return f"{x} x {y} x {z} cells at the finest of {len(self.level_shapes)} levels ({x * y * z / 1e6:.2f}M){per}"
+        heads = "" if self.density_heads == 1 else f", {self.density_heads} density heads"
+        return f"{x} x {y} x {z} cells at the finest of {len(self.level_shapes)} levels ({x * y * z / 1e6:.2f}M){per}{heads}"
 
     def forward(self, positions: Tensor, directions: Tensor) -> FieldParams:
         unit = self.region.to_unit(positions.reshape(-1, 3))
@@ -223,6 +242,14 @@ class GridField(StochasticField):
         loc = torch.where(outside, torch.full_like(values[:, 0], OUTSIDE_DENSITY_LOC), k * values[:, 0])
         return loc, k * positive_scale(values[:, 1])
 
+    def _head_offsets(self, values: Tensor) -> Tensor | None:
+        """Grid values [P, >= 2 + M] -> the heads' offsets [P, M], k (e_h - mean_h e_h) (None: one head).
+        Outside the cube every head is empty as the centre (its loc is far below 0)."""
+        if self.density_heads == 1:
+            return None
+        e = values[:, self.head_channels]
+        return self.density_unit.to(values) * (e - e.mean(-1, keepdim=True))
+
     def _decode_colour(self, features: Tensor, directions: Tensor, hidden_transform=None) -> Tensor:
         """Colour features [P, F] and view directions [P, 3] -> [P, 6] (logit locs, raw scales)."""
         d = self.dir_enc(directions)
@@ -240,30 +267,44 @@ class GridField(StochasticField):
         decoder's hidden layer; with ``colour_where`` (``forward_colour_where``) the decoder runs only
         at the points it keeps (the others: rgb_loc 0, the scale of a raw 0)."""
         density_loc, density_scale = self._density(values, unit)
+        offsets = self._head_offsets(values)
         if self.decoder_width > 0:
             levels = (values[:, self.colour_channels],) if features is None else features
             dirs = directions.reshape(-1, 3)
             if colour_where is None:
                 col = self._decode_colour(_side_by_side(levels), dirs, hidden_transform)
             else:
-                keep = colour_where(density_loc.detach(), density_scale.detach()).nonzero().squeeze(1)  # [p]
+                dens = (density_loc.detach(), density_scale.detach()) + (() if offsets is None else (offsets.detach(),))
+                keep = colour_where(*dens).nonzero().squeeze(1)  # [p]
                 kept = _side_by_side([f[keep] for f in levels])  # the kept points' only: [p, L F]
                 col = self._decode_colour(kept, dirs[keep], hidden_transform)
                 col = col.new_zeros(values.shape[0], 6).index_copy(0, keep, col)
         else:  # colours are grid channels: nothing to save
-            col = values[:, 2:8]
+            col = values[:, self.colour_channels]
         return FieldParams(
             density_loc=density_loc.reshape(batch),
             density_scale=density_scale.reshape(batch),
             rgb_loc=col[:, :3].reshape(*batch, 3),
             rgb_scale=positive_scale(col[:, 3:]).reshape(*batch, 3),
             noise_scale=F.softplus(values[:, -1]).reshape(batch) if self.noise_head else None,
+            density_offsets=None if offsets is None else offsets.reshape(*batch, self.density_heads),
         )
 
     def density_params(self, positions: Tensor) -> tuple[Tensor, Tensor]:
         unit = self.region.to_unit(positions.reshape(-1, 3))
         loc, scale = self._density(self._interpolate(unit, slice(0, 2)), unit)
         return loc.reshape(positions.shape[:-1]), scale.reshape(positions.shape[:-1])
+
+    def density_head_params(self, positions: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        """``density_params`` and the heads' offsets [*B, M] (None with one head), in one read of
+        the density channels."""
+        if self.density_heads == 1:
+            return (*self.density_params(positions), None)
+        unit = self.region.to_unit(positions.reshape(-1, 3))
+        values = self._interpolate(unit, self.density_channels)
+        loc, scale = self._density(values, unit)
+        batch = positions.shape[:-1]
+        return loc.reshape(batch), scale.reshape(batch), self._head_offsets(values).reshape(*batch, self.density_heads)
 
     def total_variation(self, num_cells: int = 4096, generator: torch.Generator | None = None) -> Tensor:
         """Mean squared difference between neighbouring cells, on a random subset of cells of

@@ -54,7 +54,7 @@ from typing import Callable, Iterator
 import torch
 from torch import Tensor, nn
 
-from ..constants import FIELD_STD_FLOOR, NERFW_BETA_MIN
+from ..constants import ENSEMBLE_GRID_DENSITY_NOISE, FIELD_STD_FLOOR, NERFW_BETA_MIN
 from ..fields.base import FieldParams, StochasticField
 from ..fields.grid import GridField
 from ..losses import LossConfig, gaussian_likelihood_nll
@@ -70,9 +70,6 @@ DEFAULT_DROPOUT_RATE: float = 0.2
 DEFAULT_MC_DROPOUT_PASSES: int = 5
 #: Members of the deep ensemble (the paper: 5).
 DEFAULT_ENSEMBLE_SIZE: int = 5
-#: Std of the per-member density-cell noise of grid ensembles, relative to the initial mean
-#: density: N(0, (0.5 mu_0)^2) per point, so about 2% of points start below zero.
-ENSEMBLE_GRID_DENSITY_NOISE: float = 0.5
 
 
 # --------------------------------------------------------------------------------------------

@@ -6,6 +6,7 @@ from torch import nn
 
 from ..cameras import image_size, intrinsics_3x3
 from ..config import ExperimentConfig
+from ..constants import ENSEMBLE_GRID_DENSITY_NOISE
 from ..fields.base import StochasticField
 from ..fields.grid import GridField, RESOLUTION_RULES
 from ..fields.mlp import MLPField
@@ -61,5 +62,7 @@ def build_field(cfg: ExperimentConfig, region: SceneRegion, dataset, *, noise_he
         return GridField(region, res, num_levels=f.grid_levels, feature_dim=f.grid_feature_dim,
                          decoder_width=f.grid_decoder_width,
                          concat_colour_levels=f.grid_colour_levels == "concat", init_density_loc=f.grid_init_density_loc,
-                         init_std=f.init_std, noise_head=noise_head, density_unit=unit)
+                         init_std=f.init_std, noise_head=noise_head, density_unit=unit,
+                         density_heads=f.density_heads,
+                         head_init_std=ENSEMBLE_GRID_DENSITY_NOISE * abs(f.grid_init_density_loc))
     raise ValueError(f"field.backend must be 'grid' or 'mlp', got {f.backend!r}")

@@ -198,8 +198,9 @@ class SNeRF(RadianceModel):
         if plan is None:
             params_all = self.field(positions, directions)
         else:
-            def colour_where(loc: Tensor, scale: Tensor) -> Tensor:  # [P] -> [P]: reached, picked or random
-                need = plan.where(loc[:n_ray], scale[:n_ray])
+            def colour_where(loc: Tensor, scale: Tensor, offsets: Tensor | None = None) -> Tensor:
+                # [P] -> [P]: reached, picked or random
+                need = plan.where(loc[:n_ray], scale[:n_ray], None if offsets is None else offsets[:n_ray])
                 if observed_pick is not None:
                     need = need.index_fill(0, observed_pick, True)
                 return torch.cat([need, need.new_ones(loc.shape[0] - n_ray)])
@@ -278,10 +279,11 @@ class SNeRF(RadianceModel):
         settings = self.render_settings
         samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing, stratified=True,
                                     generator=generator)
-        loc, scale = self.field.density_params(samples.positions)  # [M, S] each
+        loc, scale, offsets = self.field.density_head_params(samples.positions)  # [M, S] each, offsets [M, S, H]
         num_draws = self.loss_config.depth_draws or self.train_draws
         drawn_scale = scale if self.loss_config.depth_trains_scale else scale.detach()
-        weights = trajectory_weights(loc, drawn_scale, samples, settings, num_draws=num_draws, generator=generator)
+        weights = trajectory_weights(loc, drawn_scale, samples, settings, num_draws=num_draws, generator=generator,
+                                     density_offsets=offsets)
         return samples, loc, scale, weights
 
     def _depth_nll(self, rays: RayBundle, target_t: Tensor, *, generator: torch.Generator | None) -> Tensor:
