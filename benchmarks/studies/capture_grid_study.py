@@ -1,6 +1,6 @@
-"""Studies 23 to 25, 36, 47 to 50 and 51: the grid's finest level, the samples along a ray, the colour's
-capacity, Adam's second-moment decay, the colour levels, the rays' sampling and the grid's levels on a
-capture, each judged by its rule.
+"""Studies 23 to 25, 36, 47 to 51 and 53: the grid's finest level, the samples along a ray, the colour's
+capacity, Adam's second-moment decay, the colour levels, the rays' sampling, the grid's levels and its
+density heads on a capture, each judged by its rule.
 
 Each study's rows are runs of the capture benchmark (``benchmarks/capture_quality.py``, S-NeRF,
 seed 1, the ten-minute schedule), today's setting and the candidate's (the commands are in
@@ -18,6 +18,7 @@ the table and the rule's verdict (docs/studies.md; each rule fixed before its ro
     python benchmarks/studies/capture_grid_study.py --study colour_levels_minutes
     python benchmarks/studies/capture_grid_study.py --study error_sampling
     python benchmarks/studies/capture_grid_study.py --study grid_levels
+    python benchmarks/studies/capture_grid_study.py --study density_heads
 
 A row may be several runs (seeds): the rule then reads their means.
 
@@ -223,6 +224,25 @@ STUDIES = {
                       ("benchmarks/results/grid_levels_study/tables_levels_5/seed_0/tables.json",
                        "benchmarks/results/grid_levels_study/tables_levels_5/seed_1/tables.json",
                        "benchmarks/results/grid_levels_study/tables_levels_5/seed_2/tables.json")),
+        paper_levels=True),
+    "density_heads": Study(
+        "53", "four density heads, judged at ten minutes", "benchmarks/results/density_heads_study",
+        {"today (1 head)": ("today/seed_38", "today/seed_40"),
+         "candidate (4 heads)": ("heads_4_capture/seed_38", "heads_4_capture/seed_40")},
+        ("OMP_NUM_THREADS=1 python benchmarks/capture_quality.py --methods snerf --minutes 10 --marks 1 --threads 1 "
+         "--quiet --seed S [--set field.density_heads=4] --out "
+         "benchmarks/results/density_heads_study/{today,heads_4_capture}/seed_S --work runs/s78/{today,heads_4}/seed_S "
+         "(S = 38, then 40; a seed's two rows side by side)",
+         "the paper split: study 52's rows (benchmarks/results/density_heads_study/heads_4/seed_S, S = 0, 1, 2)"),
+        "S-NeRF default, capture split, seeds 38 and 40 (no study's), ten minutes of training (train.minutes), a "
+        "seed's two rows side by side on one thread each; the table's rows are the seeds' means",
+        **SEED_MEANS_RULE,
+        paper_tables=(("benchmarks/results/grid_levels_study/tables_levels_5/seed_0/tables.json",
+                       "benchmarks/results/grid_levels_study/tables_levels_5/seed_1/tables.json",
+                       "benchmarks/results/grid_levels_study/tables_levels_5/seed_2/tables.json"),
+                      ("benchmarks/results/density_heads_study/heads_4/seed_0/tables.json",
+                       "benchmarks/results/density_heads_study/heads_4/seed_1/tables.json",
+                       "benchmarks/results/density_heads_study/heads_4/seed_2/tables.json")),
         paper_levels=True),
     "error_sampling": Study(
         "50", "training rays drawn by their blocks' colour error", "benchmarks/results/error_sampling_study",
