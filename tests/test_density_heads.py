@@ -255,3 +255,37 @@ def test_study_rule_on_hand_made_scores(load_script):
     # a level today's misses by more may stay as far out
     far = {"fern": _scores(coverage_90=83.0), "flower": today["flower"]}
     assert study.verdict(far, {"fern": _scores(coverage_90=83.5), "flower": _scores(depth_spearman=0.7)})["taken"]
+
+
+def test_products_read_the_heads():
+    """The occupancy map's P(density > tau) is the heads' mixture; a free-path draw k crosses head k mod M."""
+    from stochastic_fields.products.free_path import segment_optical_depths, segment_free_probability
+    from stochastic_fields.products.occupancy_map import probability_density_exceeds
+
+    loc, scale = torch.tensor([1.0], dtype=torch.float64), torch.tensor([1.0], dtype=torch.float64)
+    off = torch.tensor([[1.644853627, -1.644853627]], dtype=torch.float64)
+    torch.testing.assert_close(probability_density_exceeds(loc, scale, 1.0, off), torch.tensor([0.5], dtype=torch.float64))
+    from scipy.stats import norm
+    torch.testing.assert_close(probability_density_exceeds(loc, scale, 0.0, off),
+                               torch.tensor([0.5 * (norm.cdf(2.644853627) + norm.cdf(-0.644853627))],
+                                            dtype=torch.float64), atol=1e-12, rtol=0)
+
+    # density 2 +- 1.5 per head, a tiny scale: a draw's optical depth over a unit segment is its head's density
+    def heads_params(points):
+        n = points.shape[0]
+        o = torch.tensor([1.5, -1.5], dtype=points.dtype).expand(n, 2)
+        return torch.full((n,), 2.0, dtype=points.dtype), torch.full((n,), 1e-9, dtype=points.dtype), o
+
+    starts = torch.zeros(1, 3, dtype=torch.float64)
+    ends = torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64)
+    tau, _ = segment_optical_depths(heads_params, starts, ends, num_draws=5, step=0.1,
+                                    generator=torch.Generator().manual_seed(0))
+    torch.testing.assert_close(tau[0], torch.tensor([3.5, 0.5, 3.5, 0.5, 3.5], dtype=torch.float64), atol=1e-6, rtol=0)
+    # P(free at transmittance 0.5): exp(-0.5) > 0.5 in the light head's draws only
+    field = _field()
+    res = segment_free_probability(field, torch.zeros(4, 3), torch.full((4, 3), 0.5), num_draws=8, step=0.05,
+                                   generator=torch.Generator().manual_seed(1))
+    assert res.probability.shape == (4,)
+    one = segment_free_probability(heads_params, starts, ends, num_draws=6, step=0.1,
+                                   generator=torch.Generator().manual_seed(1))
+    assert float(one.probability[0]) == 0.5

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 from ..defaults import (FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL)  # noqa: F401  (defaults the command line shows)
+from ..renderer import draw_locs
 from .occupancy_map import run_voxel_size
 
 #: Points per chunk (segments x samples) of field evaluations.
@@ -75,7 +76,9 @@ def segment_optical_depths(density_params, starts: Tensor, ends: Tensor, *, num_
                            chunk_points: int = FREE_PATH_CHUNK_POINTS) -> tuple[Tensor, Tensor]:
     """Per-draw optical depth tau [B, K] of segments starts/ends [B, 3] and samples per segment [B].
 
-    ``density_params(points [N, 3]) -> (loc [N], scale [N])``. Every segment gets
+    ``density_params(points [N, 3]) -> (loc [N], scale [N])``, or (loc, scale, offsets [N, M] or None)
+    of a field with density heads (``density_head_params``): draw k then draws around loc + o_{k mod M},
+    as the renderer's trajectories (``renderer.draw_locs``). Every segment gets
     ``n = max(1, ceil(L / step))`` midpoint samples; segments are padded to the longest n
     (padding has delta 0). Noise eps [B, K, n] (or [B, K, 1] shared) from ``generator``.
     """
@@ -101,14 +104,26 @@ def segment_optical_depths(density_params, starts: Tensor, ends: Tensor, *, num_
     rows = max(1, chunk_points // n_max)
     for b0 in range(0, B, rows):
         b1 = min(B, b0 + rows)
-        loc, scale = density_params(points[b0:b1].reshape(-1, 3))
-        loc = loc.reshape(b1 - b0, 1, n_max).double()
+        loc, scale, *heads = density_params(points[b0:b1].reshape(-1, 3))
+        offsets = heads[0] if heads else None
+        if offsets is not None:  # [b, K, n_max]: each draw its head's loc
+            loc = draw_locs(loc.reshape(b1 - b0, n_max), offsets.reshape(b1 - b0, n_max, -1), 0, num_draws, packed=False)
+        loc = loc.reshape(b1 - b0, -1, n_max).double()
         scale = scale.reshape(b1 - b0, 1, n_max).double()
         eps = torch.randn(b1 - b0, num_draws, 1 if shared_noise else n_max, generator=generator, device=device,
                           dtype=torch.float64)
         alpha = torch.relu(loc + scale * eps)  # [b, K, n_max]
         tau[b0:b1] = (alpha * delta[b0:b1, None, :].double()).sum(-1)
     return tau, n
+
+
+def density_reader(field):
+    """What ``segment_optical_depths`` reads of ``field``: its ``density_head_params`` (a field with density
+    heads gives their offsets), else its ``density_params``, else ``field`` itself (a callable)."""
+    for name in ("density_head_params", "density_params"):
+        if hasattr(field, name):
+            return getattr(field, name)
+    return field
 
 
 class FloatField:
@@ -119,6 +134,9 @@ class FloatField:
 
     def density_params(self, points: Tensor):
         return self.field.density_params(points.float())
+
+    def density_head_params(self, points: Tensor):
+        return self.field.density_head_params(points.float())
 
 
 def default_step(model, dataset) -> float:
@@ -139,11 +157,12 @@ def segment_free_probability(field, starts: Tensor, ends: Tensor, *, num_draws: 
                              generator: torch.Generator | None = None) -> FreePathResult:
     """P(each segment is free) for a batch of segments starts/ends [B, 3] (module doc).
 
-    ``field``: a StochasticField (``density_params``) or any callable points -> (loc, scale).
+    ``field``: a StochasticField (``density_head_params``: its heads' draws too) or any callable
+    points -> (loc, scale) (or (loc, scale, offsets), ``segment_optical_depths``).
     """
     if not 0.0 < level < 1.0:
         raise ValueError(f"transmittance level must lie in (0, 1), got {level}")
-    fn = field.density_params if hasattr(field, "density_params") else field
+    fn = density_reader(field)
     tau, n = segment_optical_depths(fn, starts, ends, num_draws=num_draws, step=step, shared_noise=shared_noise,
                                     generator=generator)
     return _result(tau, n, level)
@@ -158,7 +177,7 @@ def path_free_probability(field, waypoints: Tensor, *, num_draws: int = FREE_PAT
     segment of a draw shares its eps (one consistent realisation along the whole path)."""
     if waypoints.ndim != 2 or waypoints.shape[-1] != 3 or waypoints.shape[0] < 2:
         raise ValueError(f"a path needs waypoints [M >= 2, 3], got {tuple(waypoints.shape)}")
-    fn = field.density_params if hasattr(field, "density_params") else field
+    fn = density_reader(field)
     starts, ends = waypoints[:-1], waypoints[1:]
     if shared_noise and generator is None:
         generator = torch.Generator(device=waypoints.device)

@@ -62,11 +62,17 @@ OCTOMAP_CLAMP: float = 1e-6
 OCCUPANCY_CHUNK: int = 65_536
 
 
-def probability_density_exceeds(density_loc: Tensor, density_scale: Tensor, threshold: float) -> Tensor:
+def probability_density_exceeds(density_loc: Tensor, density_scale: Tensor, threshold: float,
+                                density_offsets: Tensor | None = None) -> Tensor:
     """P(relu(mu + s eps) > tau) = Phi((mu - tau) / s) for tau >= 0. Shapes [...] -> [...].
-    Example: mu = 1, s = 1, tau = 1 -> 0.5; mu = 0, s = 1, tau = 1.645 -> 0.05."""
+    Example: mu = 1, s = 1, tau = 1 -> 0.5; mu = 0, s = 1, tau = 1.645 -> 0.05.
+    With density heads (``density_offsets`` [..., M]) the density is their equal mixture:
+    mean_h Phi((mu + o_h - tau) / s)."""
     if not threshold >= 0:
         raise ValueError(f"density threshold must be >= 0, got {threshold}")
+    if density_offsets is not None:
+        return torch.special.ndtr((density_loc[..., None] + density_offsets - threshold)
+                                  / density_scale[..., None]).mean(-1)
     return torch.special.ndtr((density_loc - threshold) / density_scale)
 
 
@@ -161,7 +167,8 @@ def occupancy_map(field, region, voxel_size: float, *, density_threshold: float 
     """Evaluate P(occupied) at the centres of a grid over ``region`` (module doc).
 
     Args:
-        field: anything with ``density_params(points [N, 3]) -> (loc [N], scale [N])`` (world points).
+        field: anything with ``density_params(points [N, 3]) -> (loc [N], scale [N])`` (world points);
+            a field's ``density_head_params`` where it has one (density heads: their mixture).
         region: a SceneRegion (its world AABB is gridded; voxels whose centre is outside are unknown).
         voxel_size: edge length; the origin is floor(lo / voxel_size) * voxel_size.
         density_threshold: tau (default: :func:`blocking_threshold` of ``blocking_length``,
@@ -190,8 +197,12 @@ def occupancy_map(field, region, voxel_size: float, *, density_threshold: float 
         inside[start:start + len(flat)] = ins.cpu().numpy()
         if not bool(ins.any()):
             continue
-        loc, scale = field.density_params(centres[ins])
-        p = probability_density_exceeds(loc.double(), scale.double(), tau)
+        if hasattr(field, "density_head_params"):
+            loc, scale, offsets = field.density_head_params(centres[ins])
+        else:
+            (loc, scale), offsets = field.density_params(centres[ins]), None
+        p = probability_density_exceeds(loc.double(), scale.double(), tau,
+                                        None if offsets is None else offsets.double())
         sel = p >= min_probability
         keep_idx.append(ijk[ins][sel].cpu().numpy().astype(np.int32))
         keep_p.append(p[sel].float().cpu().numpy())
