@@ -19,12 +19,12 @@ from stochastic_fields.fields.grid import GridField
 from stochastic_fields.fields.row_gather import row_gradient
 from stochastic_fields.losses import field_kl, field_kl_means
 from stochastic_fields.occupancy import density_upper_estimate
-from stochastic_fields.rays import RayBundle
 from stochastic_fields.renderer import (RenderSettings, colour_reaching, draw_locs, pack_samples, render_samples,
                                         render_samples_packed, trajectory_weights)
 from stochastic_fields.samplers import sample_along_rays
 from stochastic_fields.scene_region import SceneRegion
 from stochastic_fields.validation import ConfigError
+from test_colour_reach import _rays
 
 HEADS = 3
 
@@ -41,17 +41,6 @@ def _field(heads: int = HEADS, seed: int = 0) -> GridField:
             if heads > 1:
                 table[:, field.head_channels] = 3.0 * torch.randn_like(table[:, field.head_channels])
     return field
-
-
-def _rays(n: int = 24, seed: int = 1) -> RayBundle:
-    g = torch.Generator().manual_seed(seed)
-    origins = torch.zeros(n, 3, dtype=torch.float64)
-    origins[:, 2] = -2.0
-    directions = torch.randn(n, 3, generator=g, dtype=torch.float64) * 0.25
-    directions[:, 2] = 1.0
-    directions = directions / directions.norm(dim=-1, keepdim=True)
-    ones = torch.ones(n, dtype=torch.float64)
-    return RayBundle(origins, directions, 0.5 * ones, 3.5 * ones, ones)
 
 
 def _head(params: FieldParams, h: int) -> FieldParams:

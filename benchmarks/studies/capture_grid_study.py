@@ -96,6 +96,10 @@ TODAY_PAPER_SEEDS = ("benchmarks/results/adam_beta2_study/tables_0.999/tables.js
                      "benchmarks/results/eval_tables_46b/seed_1/tables.json",
                      "benchmarks/results/eval_tables_46b/seed_2/tables.json")
 
+#: The S-NeRF default row with five grid levels at the paper split, seeds 0-2 (study 51's candidate,
+#: today's since; the reference of study 53).
+LEVELS_5_PAPER_SEEDS = tuple(f"benchmarks/results/grid_levels_study/tables_levels_5/seed_{s}/tables.json" for s in range(3))
+
 
 STUDIES = {
     "cells": Study(
@@ -221,9 +225,7 @@ STUDIES = {
         "seed's two rows side by side on one thread each; the table's rows are the seeds' means",
         **SEED_MEANS_RULE,
         paper_tables=(TODAY_PAPER_SEEDS,
-                      ("benchmarks/results/grid_levels_study/tables_levels_5/seed_0/tables.json",
-                       "benchmarks/results/grid_levels_study/tables_levels_5/seed_1/tables.json",
-                       "benchmarks/results/grid_levels_study/tables_levels_5/seed_2/tables.json")),
+                      LEVELS_5_PAPER_SEEDS),
         paper_levels=True),
     "density_heads": Study(
         "53", "four density heads, judged at ten minutes", "benchmarks/results/density_heads_study",
@@ -237,12 +239,8 @@ STUDIES = {
         "S-NeRF default, capture split, seeds 38 and 40 (no study's), ten minutes of training (train.minutes), a "
         "seed's two rows side by side on one thread each; the table's rows are the seeds' means",
         **SEED_MEANS_RULE,
-        paper_tables=(("benchmarks/results/grid_levels_study/tables_levels_5/seed_0/tables.json",
-                       "benchmarks/results/grid_levels_study/tables_levels_5/seed_1/tables.json",
-                       "benchmarks/results/grid_levels_study/tables_levels_5/seed_2/tables.json"),
-                      ("benchmarks/results/density_heads_study/heads_4/seed_0/tables.json",
-                       "benchmarks/results/density_heads_study/heads_4/seed_1/tables.json",
-                       "benchmarks/results/density_heads_study/heads_4/seed_2/tables.json")),
+        paper_tables=(LEVELS_5_PAPER_SEEDS,
+                      tuple(f"benchmarks/results/density_heads_study/heads_4/seed_{s}/tables.json" for s in range(3))),
         paper_levels=True),
     "error_sampling": Study(
         "50", "training rays drawn by their blocks' colour error", "benchmarks/results/error_sampling_study",
