@@ -14,7 +14,7 @@ rule's verdict (docs/studies.md, fixed before any candidate row ran) to ``--out`
 
     python benchmarks/studies/density_heads_study.py \\
         --today benchmarks/results/grid_levels_study/tables_levels_5/seed_{0,1,2}/tables.json \\
-        --candidate runs/heads_4/seed_{0,1,2}/tables.json --label "4 heads" --out benchmarks/results/density_heads_study
+        --candidate runs/heads_4/seed_{0,1,2}/tables.json --label "4 heads" --out benchmarks/results/density_heads_study/paper_verdict
 """
 
 from __future__ import annotations
