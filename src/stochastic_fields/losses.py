@@ -193,9 +193,7 @@ def field_kl(params: FieldParams, prior: tuple[Tensor, Tensor, Tensor, Tensor], 
     loc, scale = params.density_loc, params.density_scale
     if params.density_offsets is not None:  # [*B, M]: each head's, the prior broadcast over them
         loc, scale = loc[..., None] + params.density_offsets, scale[..., None].expand_as(params.density_offsets)
-        d_loc, d_scale = (torch.as_tensor(t, device=loc.device) for t in (d_loc, d_scale))
-        d_loc = d_loc[..., None] if d_loc.dim() else d_loc
-        d_scale = d_scale[..., None] if d_scale.dim() else d_scale
+        d_loc, d_scale = (torch.as_tensor(t, device=loc.device).unsqueeze(-1) for t in (d_loc, d_scale))
     if estimator == "closed_form":
         kd = kl_rectified_normal(loc, scale, d_loc, d_scale)
         kc = kl_logistic_normal(params.rgb_loc, params.rgb_scale, c_loc, c_scale).sum(-1)
@@ -225,9 +223,9 @@ def field_kl_means(parts: list[tuple[FieldParams, tuple[Tensor, Tensor, Tensor, 
                 for p, prior in parts]
     sizes = [p.density_loc.shape[0] for p, _ in parts]
     names = ("density_loc", "density_scale", "rgb_loc", "rgb_scale")
-    joined = FieldParams(*(torch.cat([getattr(p, name) for p, _ in parts]) for name in names))
-    if all(p.density_offsets is not None for p, _ in parts):
-        joined.density_offsets = torch.cat([p.density_offsets for p, _ in parts])
+    heads = all(p.density_offsets is not None for p, _ in parts)
+    joined = FieldParams(*(torch.cat([getattr(p, name) for p, _ in parts]) for name in names),
+                         density_offsets=torch.cat([p.density_offsets for p, _ in parts]) if heads else None)
     prior = tuple(torch.cat([torch.as_tensor(pr[i], device=joined.density_loc.device).expand(n, *getattr(p, name).shape[1:])
                              for (p, pr), n in zip(parts, sizes)])
                   for i, name in enumerate(names))

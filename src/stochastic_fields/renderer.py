@@ -401,7 +401,7 @@ def skip_empty(samples: RaySamples, occupied: OccupiedFn | None) -> RaySamples |
 #: ``colour_where(density_loc [P], density_scale [P][, density_offsets [P, M]]) -> [P] bool``: which
 #: of a field evaluation's points need their colour decoded (``StochasticField.forward_colour_where``;
 #: a field with density heads passes their offsets as a third argument).
-ColourWhereFn = Callable[[Tensor, Tensor, "Tensor | None"], Tensor]
+ColourWhereFn = Callable[..., Tensor]
 
 
 def render_noise(samples: RaySamples | PackedRaySamples, num_draws: int, settings: RenderSettings, *,

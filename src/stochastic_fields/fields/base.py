@@ -95,6 +95,21 @@ class FieldParams:
                               if getattr(parts[0], f.name) is not None})
 
 
+def density_reader(source):
+    """``points [N, 3] -> (loc [N], scale [N], offsets [N, M] or None)`` of ``source``: its
+    ``density_head_params`` (a field with density heads gives their offsets), else its
+    ``density_params`` (no heads), else ``source`` itself (a callable returning either)."""
+    if hasattr(source, "density_head_params"):
+        return source.density_head_params
+    fn = getattr(source, "density_params", source)
+
+    def read(points: Tensor):
+        loc, scale, *heads = fn(points)
+        return loc, scale, heads[0] if heads else None
+
+    return read
+
+
 class StochasticField(nn.Module, abc.ABC):
     """Base class: ``forward(positions [*B, 3], directions [*B, 3]) -> FieldParams [*B]``.
 

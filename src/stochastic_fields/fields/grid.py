@@ -291,20 +291,19 @@ class GridField(StochasticField):
         )
 
     def density_params(self, positions: Tensor) -> tuple[Tensor, Tensor]:
-        unit = self.region.to_unit(positions.reshape(-1, 3))
-        loc, scale = self._density(self._interpolate(unit, slice(0, 2)), unit)
-        return loc.reshape(positions.shape[:-1]), scale.reshape(positions.shape[:-1])
+        loc, scale, _ = self.density_head_params(positions)
+        return loc, scale
 
     def density_head_params(self, positions: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
         """``density_params`` and the heads' offsets [*B, M] (None with one head), in one read of
-        the density channels."""
-        if self.density_heads == 1:
-            return (*self.density_params(positions), None)
+        the density channels (``density_channels``: loc and scale, and the heads' offsets)."""
         unit = self.region.to_unit(positions.reshape(-1, 3))
         values = self._interpolate(unit, self.density_channels)
         loc, scale = self._density(values, unit)
+        offsets = self._head_offsets(values)
         batch = positions.shape[:-1]
-        return loc.reshape(batch), scale.reshape(batch), self._head_offsets(values).reshape(*batch, self.density_heads)
+        return (loc.reshape(batch), scale.reshape(batch),
+                None if offsets is None else offsets.reshape(*batch, self.density_heads))
 
     def total_variation(self, num_cells: int = 4096, generator: torch.Generator | None = None) -> Tensor:
         """Mean squared difference between neighbouring cells, on a random subset of cells of

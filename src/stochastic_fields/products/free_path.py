@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 from ..defaults import (FREE_PATH_NUM_DRAWS, FREE_TRANSMITTANCE_LEVEL)  # noqa: F401  (defaults the command line shows)
+from ..fields.base import density_reader
 from ..renderer import draw_locs
 from .occupancy_map import run_voxel_size
 
@@ -101,11 +102,11 @@ def segment_optical_depths(density_params, starts: Tensor, ends: Tensor, *, num_
     delta = torch.where(real, (length / n)[:, None], torch.zeros((), device=device, dtype=length.dtype))
     points = starts[:, None, :] + frac.clamp(max=1.0)[..., None] * seg[:, None, :]  # [B, n_max, 3]
     tau = torch.zeros(B, num_draws, dtype=torch.float64, device=device)
+    read = density_reader(density_params)
     rows = max(1, chunk_points // n_max)
     for b0 in range(0, B, rows):
         b1 = min(B, b0 + rows)
-        loc, scale, *heads = density_params(points[b0:b1].reshape(-1, 3))
-        offsets = heads[0] if heads else None
+        loc, scale, offsets = read(points[b0:b1].reshape(-1, 3))
         if offsets is not None:  # [b, K, n_max]: each draw its head's loc
             loc = draw_locs(loc.reshape(b1 - b0, n_max), offsets.reshape(b1 - b0, n_max, -1), 0, num_draws, packed=False)
         loc = loc.reshape(b1 - b0, -1, n_max).double()
@@ -115,15 +116,6 @@ def segment_optical_depths(density_params, starts: Tensor, ends: Tensor, *, num_
         alpha = torch.relu(loc + scale * eps)  # [b, K, n_max]
         tau[b0:b1] = (alpha * delta[b0:b1, None, :].double()).sum(-1)
     return tau, n
-
-
-def density_reader(field):
-    """What ``segment_optical_depths`` reads of ``field``: its ``density_head_params`` (a field with density
-    heads gives their offsets), else its ``density_params``, else ``field`` itself (a callable)."""
-    for name in ("density_head_params", "density_params"):
-        if hasattr(field, name):
-            return getattr(field, name)
-    return field
 
 
 class FloatField:

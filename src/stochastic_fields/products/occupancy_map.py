@@ -48,6 +48,7 @@ import torch
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from ..fields.base import density_reader
 from ..io_utils import atomic_path, atomic_write_text
 from ..cameras import image_size, intrinsics_3x3
 from ..scene_region import frustum_points
@@ -189,6 +190,7 @@ def occupancy_map(field, region, voxel_size: float, *, density_threshold: float 
     inside = np.zeros(total, bool)
     keep_idx, keep_p = [], []
     o = torch.as_tensor(origin, dtype=torch.float64, device=device)
+    read = density_reader(field)
     for start in tqdm(range(0, total, chunk), desc="occupancy", disable=not progress, dynamic_ncols=True):
         flat = torch.arange(start, min(start + chunk, total), device=device)
         ijk = torch.stack([flat // (Y * Z), (flat // Z) % Y, flat % Z], dim=-1)
@@ -197,10 +199,7 @@ def occupancy_map(field, region, voxel_size: float, *, density_threshold: float 
         inside[start:start + len(flat)] = ins.cpu().numpy()
         if not bool(ins.any()):
             continue
-        if hasattr(field, "density_head_params"):
-            loc, scale, offsets = field.density_head_params(centres[ins])
-        else:
-            (loc, scale), offsets = field.density_params(centres[ins]), None
+        loc, scale, offsets = read(centres[ins])
         p = probability_density_exceeds(loc.double(), scale.double(), tau,
                                         None if offsets is None else offsets.double())
         sel = p >= min_probability
