@@ -26,7 +26,7 @@ from torch.profiler import ProfilerActivity, profile
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # capture_quality, beside this folder
 
-from capture_quality import LLFF_ROOT, config_for  # noqa: E402
+from capture_quality import LLFF_ROOT, config_for, parse_setting  # noqa: E402
 
 from stochastic_fields.io_utils import atomic_write_text  # noqa: E402
 from stochastic_fields.scenes import load_run_dataset  # noqa: E402
@@ -39,13 +39,13 @@ def _self_ms(prof) -> dict[str, tuple[float, int]]:
 
 
 def profile_steps(scene: str, method: str, *, warmup: int, steps: int, seed: int = 0,
-                  llff_root: Path = LLFF_ROOT) -> tuple[float, list[tuple[str, float, float]]]:
+                  settings: tuple[tuple[str, object], ...] = (), llff_root: Path = LLFF_ROOT) -> tuple[float, list[tuple[str, float, float]]]:
     """(ms per step over ``steps`` steps after ``warmup``, by the trainer's loop clock, unprofiled;
     [(operation, self ms per step, calls per step)] of the next ``steps`` profiled steps, largest first).
     Each ``train`` call first builds its ray batches' source; the profile of a call with no step is
     subtracted, so the table holds the steps alone."""
     # a schedule far past the profiled steps: the learning rate is where the capture bench has it
-    cfg = config_for(scene, method, 10 * (warmup + 2 * steps), seed, (), llff_root)
+    cfg = config_for(scene, method, 10 * (warmup + 2 * steps), seed, settings, llff_root)
     cfg.train.minutes = 0.0
     with tempfile.TemporaryDirectory() as tmp:
         with warnings.catch_warnings():
@@ -75,14 +75,18 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=20)
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (stated in the table)")
     ap.add_argument("--rows", type=int, default=25)
+    ap.add_argument("--set", type=parse_setting, action="append", default=[], metavar="KEY=VALUE",
+                    help="Config overrides on top of the capture bench's configuration (repeatable).")
     ap.add_argument("--out", type=Path, required=True, help="markdown table")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    ms, rows = profile_steps(args.scene, args.method, warmup=args.warmup, steps=args.steps)
+    ms, rows = profile_steps(args.scene, args.method, warmup=args.warmup, steps=args.steps,
+                             settings=tuple(args.set))
     total = sum(r[1] for r in rows)
     lines = [f"# A capture training step's operations: {args.scene}, {args.method}", "",
              f"Command: `python benchmarks/studies/capture_step_profile.py --scene {args.scene} --method {args.method} "
-             f"--warmup {args.warmup} --steps {args.steps} --threads {args.threads}` ({args.threads} torch threads; "
+             f"--warmup {args.warmup} --steps {args.steps} --threads {args.threads}"
+             + "".join(f" --set {k}={v}" for k, v in args.set) + f"` ({args.threads} torch threads; "
              f"steps {args.warmup + args.steps + 1}-{args.warmup + 2 * args.steps} profiled, the training call's set-up "
              f"subtracted). Unprofiled, by the trainer's loop clock: {ms:.0f} ms a step; profiled self time "
              f"{total:.0f} ms a step.", "",
