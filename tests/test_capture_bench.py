@@ -127,6 +127,26 @@ def test_capture_grid_study_verdicts_follow_their_rules(load_script):
     assert "or its depth abs-rel at least 0.005 below" in script.rule_text(rule)
 
 
+
+def test_capture_grid_study_54_asks_the_captures_only_to_hold(load_script):
+    """Study 54's capture part asks no gain: each capture within 0.05 dB, abs-rel +0.002 at most, every level
+    50-95% held (no farther than today's), the 95% band at most 1 point wider."""
+    script = load_script("benchmarks/studies/capture_grid_study.py")
+    study = script.STUDIES["density_heads_2"]
+
+    def row(psnr, abs_rel=0.05, c90=0.89, hw=0.05):
+        return {"psnr": psnr, "abs_rel": abs_rel, "coverage_50": 0.5, "coverage_68": 0.68, "coverage_90": c90,
+                "coverage_95": 0.94, "halfwidth_95": hw, "minutes": 10.0}
+
+    today = {"fern": row(24.0), "flower": row(25.0)}
+    v = script.verdict(study, today, {"fern": row(23.96), "flower": row(24.96)})
+    assert v["taken"] and "gain" not in v["scenes"]["fern"]["checks"] and "mean_psnr_gain_db" not in v
+    for scene, bad in [("fern", row(23.94)), ("flower", row(25.2, abs_rel=0.0521)),
+                       ("fern", row(24.1, c90=0.84)), ("flower", row(25.2, hw=0.0601))]:
+        v = script.verdict(study, today, {**{"fern": row(24.0), "flower": row(25.0)}, scene: bad})
+        assert not v["taken"] and not v["scenes"][scene]["passes"], (scene, bad)
+    assert "no gain asked" in script.rule_text(study)
+
 def test_capture_grid_study_checks_the_paper_split_where_its_rule_asks(load_script, tmp_path):
     """Study 36's rule adds the paper split: the candidate's tables row may lose at most 0.2 dB and
     0.005 of abs-rel on each scene; a missing scene fails the check; studies without it ignore it."""

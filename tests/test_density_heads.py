@@ -246,6 +246,26 @@ def test_study_rule_on_hand_made_scores(load_script):
     assert study.verdict(far, {"fern": _scores(coverage_90=83.5), "flower": _scores(depth_spearman=0.7)})["taken"]
 
 
+
+def test_study_54_rule_on_hand_made_scores(load_script):
+    """Study 54 asks the PSNR gain on the scenes' mean (no scene falling) and lets each ranking fall 0.03."""
+    study = load_script("benchmarks/studies/density_heads_study.py")
+    rule = study.RULES["54"]
+    today = {"fern": _scores(), "flower": _scores()}
+    good = {"fern": _scores(psnr=22.05, depth_spearman=0.621), "flower": _scores(psnr=22.36, depth_spearman=0.63)}
+    assert study.verdict(today, good, rule) == {"taken": True, "failed": []}
+    cases = {
+        "PSNR gain averaged": {"flower": _scores(psnr=22.34)},
+        "fern PSNR": {"fern": _scores(psnr=21.99), "flower": _scores(psnr=22.5)},
+        "flower depth ranking": {"flower": _scores(psnr=22.36, depth_spearman=0.619)},
+        "fern abs-rel": {"fern": _scores(psnr=22.05, depth_abs_rel=0.0751)},
+        "flower 50% coverage": {"flower": _scores(psnr=22.36, coverage_50=44.9)},
+        "fern interval_score_95": {"fern": _scores(psnr=22.05, interval_score_95=0.841)},
+    }
+    for expected, change in cases.items():
+        out = study.verdict(today, {**good, **change}, rule)
+        assert not out["taken"] and len(out["failed"]) == 1 and out["failed"][0].startswith(expected), (expected, out)
+
 def test_products_read_the_heads():
     """The occupancy map's P(density > tau) is the heads' mixture; a free-path draw k crosses head k mod M."""
     from stochastic_fields.products.free_path import segment_optical_depths, segment_free_probability
