@@ -23,7 +23,6 @@ from stochastic_fields.renderer import (RenderSettings, colour_reaching, draw_lo
                                         render_samples_packed, trajectory_weights)
 from stochastic_fields.samplers import sample_along_rays
 from stochastic_fields.scene_region import SceneRegion
-from stochastic_fields.validation import ConfigError
 from test_colour_reach import _rays
 
 HEADS = 3
@@ -209,12 +208,32 @@ def test_training_gradient_reaches_every_head_and_a_run_renders(tiny_scene, tmp_
     assert torch.isfinite(maps["colour_mean"]).all() and torch.isfinite(maps["depth_var_total"]).all()
 
 
-def test_density_heads_need_the_grid():
+def test_heads_are_the_grid_snerfs_only(tiny_scene):
+    """The default's heads build on S-NeRF's grid; the MLP backend and the baselines build one density
+    field (a baseline's deterministic passes read the centre only); a run saved before the option
+    existed loads with one head."""
+    from stochastic_fields.config import saved_config, to_dict
+    from stochastic_fields.data import load_dataset
+    from stochastic_fields.models.baselines import BASELINE_BUILDERS
+    from stochastic_fields.models.field_builder import build_field, fit_scene_region
+
     cfg = ExperimentConfig()
+    assert cfg.field.density_heads == 2
+    cfg.field.grid_max_cells = 8 ** 3
+    dataset = load_dataset(tiny_scene, split_every=5)
+    region = fit_scene_region(dataset, cfg)
+    assert build_field(cfg, region, dataset).density_heads == 2
     cfg.field.backend = "mlp"
-    cfg.field.density_heads = 2
-    with pytest.raises(ConfigError, match="density_heads"):
-        validate_experiment(cfg)
+    validate_experiment(cfg)
+    loc, scale, offsets = build_field(cfg, region, dataset).density_head_params(torch.zeros(3, 3))
+    assert offsets is None and loc.shape == (3,)
+    cfg.field.backend = "grid"
+    for name, build in BASELINE_BUILDERS.items():
+        grids = [m for m in build(cfg, dataset, region).modules() if isinstance(m, GridField)]
+        assert grids and all(g.density_heads == 1 for g in grids), name
+    old = to_dict(ExperimentConfig())
+    del old["field"]["density_heads"]
+    assert saved_config(old).field.density_heads == 1
 
 
 def _scores(**changes) -> dict:

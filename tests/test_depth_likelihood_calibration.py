@@ -681,7 +681,8 @@ def test_depth_term_reads_density_only_and_matches_the_full_field_pass(tiny_scen
     noise = torch.randn(len(rays), depth_draws or model.train_draws, st.num_samples, generator=g, dtype=torch.float64)
 
     def reference(scale):
-        w = trajectory_weights(params.density_loc, scale, samples, st, num_draws=noise.shape[1], noise=noise)
+        w = trajectory_weights(params.density_loc, scale, samples, st, num_draws=noise.shape[1], noise=noise,
+                               density_offsets=params.density_offsets)  # the default's heads, each draw its own
         return termination_depth_nll(w, samples.t_mids, samples.deltas, target, model.loss_config.depth_relative_std, form)
 
     assert noise.shape[1] == (depth_draws or cfg.train.train_draws)

@@ -137,8 +137,9 @@ def test_occupancy_and_free_path_commands(tmp_path, run_dir):  # noqa: F811
     _, model, _ = load_trained_model(run_dir, device="cpu")
     centres = torch.from_numpy(occ.centres()[:200]).float()
     with torch.no_grad():
-        loc, scale = model.field.density_params(centres)
-    p = probability_density_exceeds(loc.double(), scale.double(), occ.density_threshold)
+        loc, scale, offsets = model.field.density_head_params(centres)  # the default's heads: their mixture
+    assert offsets is not None
+    p = probability_density_exceeds(loc.double(), scale.double(), occ.density_threshold, offsets.double())
     np.testing.assert_allclose(occ.probability[:200], p.float().numpy(), rtol=1e-4, atol=1e-6)
     # free-path: the CLI's answer equals the API's with the same seed and step
     lo, hi = occ.origin, occ.origin + np.asarray(occ.shape) * occ.voxel_size
@@ -152,7 +153,7 @@ def test_occupancy_and_free_path_commands(tmp_path, run_dir):  # noqa: F811
     from stochastic_fields.products.free_path import segment_free_probability
 
     seg = torch.tensor(q["segments"], dtype=torch.float64)
-    ref = segment_free_probability(lambda x: model.field.density_params(x.float()), seg[:, 0], seg[:, 1],
+    ref = segment_free_probability(lambda x: model.field.density_head_params(x.float()), seg[:, 0], seg[:, 1],
                                    num_draws=64, step=0.05, shared_noise=model.render_settings.shared_noise,
                                    generator=torch.Generator().manual_seed(0))
     np.testing.assert_allclose(ans["segments"]["probability_free"], ref.probability.numpy())

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import NamedTuple
@@ -243,9 +244,10 @@ STUDIES = {
                       tuple(f"benchmarks/results/density_heads_study/heads_4/seed_{s}/tables.json" for s in range(3))),
         paper_levels=True),
     "density_heads_2": Study(
-        "54", "two density heads for the paper split, with the captures held", "benchmarks/results/density_heads_study",
-        {"today (1 head)": ("today/seed_42", "today/seed_44"),
-         "candidate (2 heads)": ("heads_2_capture/seed_42", "heads_2_capture/seed_44")},
+        "54", "two density heads for the paper split, with the captures held",
+        "benchmarks/results/density_heads_study/capture_verdict_2",  # study 53's verdict is the folder's top
+        {"today (1 head)": ("../today/seed_42", "../today/seed_44"),
+         "candidate (2 heads)": ("../heads_2_capture/seed_42", "../heads_2_capture/seed_44")},
         ("OMP_NUM_THREADS=1 python benchmarks/capture_quality.py --methods snerf --minutes 10 --marks 1 --threads 1 "
          "--quiet --seed S [--set field.density_heads=2] --out "
          "benchmarks/results/density_heads_study/{today,heads_2_capture}/seed_S --work runs/s79/{today,heads_2}/seed_S "
@@ -324,13 +326,16 @@ def has_seeds(study: Study) -> bool:
 def read_rows(study: Study, out: Path) -> tuple[dict[str, dict], dict[str, dict[str, dict]]]:
     """Each row's scores (``row_scores``; the ``mean_scores`` of its seeds where it is several runs) and,
     per row of seeds, each seed folder's own scores (name -> ``row_scores``), every file read once."""
+    def at(folder: str) -> Path:  # a row beside the verdict's folder ('../x') reads without the folder existing
+        return Path(os.path.normpath(out / folder))
+
     rows, seeds = {}, {}
     for label, folder in study.rows.items():
         if isinstance(folder, tuple):
-            seeds[label] = {Path(f).name: row_scores(out / f) for f in folder}
+            seeds[label] = {Path(f).name: row_scores(at(f)) for f in folder}
             rows[label] = mean_scores(list(seeds[label].values()))
         else:
-            rows[label] = row_scores(out / folder)
+            rows[label] = row_scores(at(folder))
     return rows, seeds
 
 
@@ -530,6 +535,7 @@ def main() -> None:
     paper = tuple(paper_means(paths) for paths in study.paper_tables) if study.paper_tables else None
     costs = step_cost_ratios(study, out)
     v = verdict(study, today, candidate, paper, costs)
+    out.mkdir(parents=True, exist_ok=True)
     (out / "verdict.json").write_text(json.dumps({"rows": rows, "paper_split": paper, "step_cost": costs,
                                                   "verdict": v}, indent=2) + "\n")
     lines = [f"# Study {study.number}: {study.title}", "",

@@ -97,6 +97,7 @@ def semantic_options(flat: dict[str, Any]) -> dict[str, Any]:
     ignored = set(_NON_SEMANTIC)
     if flat.get("method", "snerf") != "snerf":
         ignored.update(_NOISE_HEAD_OPTIONS)  # S-NeRF's field only: the baselines build none
+        ignored.add("field.density_heads")  # nor density heads (deterministic_density_init: one field)
         ignored.update(_DEPTH_OPTIONS)  # nor do they take the depth likelihood
         ignored.update(_LIKELIHOOD_OPTIONS)
         ignored.update(_KL_OPTIONS)  # nor any KL term

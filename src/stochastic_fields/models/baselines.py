@@ -448,8 +448,11 @@ def mean_relu(loc: float, scale: float) -> float:
 
 
 def deterministic_density_init(cfg):
-    """A copy of ``cfg`` whose grid starts at S-NeRF's initial *mean* density (see module doc)."""
+    """A copy of ``cfg`` whose grid starts at S-NeRF's initial *mean* density (see module doc), with
+    one density field (``field.density_heads`` 1: the heads are alternatives for S-NeRF's trajectories
+    to draw; a baseline's deterministic passes read the centre only, and the heads would be idle channels)."""
     cfg = copy.deepcopy(cfg)
+    cfg.field.density_heads = 1
     if cfg.field.backend == "grid":
         cfg.field.grid_init_density_loc = mean_relu(cfg.field.grid_init_density_loc, cfg.field.init_std)
     return cfg

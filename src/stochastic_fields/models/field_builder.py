@@ -53,7 +53,7 @@ def build_field(cfg: ExperimentConfig, region: SceneRegion, dataset, *, noise_he
     ``loss.per_point_noise``); ``grid_resolution``: the finest level's cells per axis (a saved
     run's), instead of sizing it from the dataset's training views."""
     f = cfg.field
-    if f.backend == "mlp":
+    if f.backend == "mlp":  # one density field: field.density_heads is the grid's
         return MLPField(region, depth=f.mlp_depth, width=f.mlp_width, dropout=f.dropout, init_std=f.init_std,
                         noise_head=noise_head)
     if f.backend == "grid":
