@@ -86,7 +86,7 @@ def test_train_prints_the_split_and_eval_scores_depth_at_the_capture_points(shar
         printed = capsys.readouterr().out
         assert "fern: 17 photos train, 3 validate (capture split: every 8th photo validates" in printed
         # fern's 17 photos: the depth axis gets the cells its parallax resolves (docs/design.md)
-        assert "grid: 246 x 177 x 47 cells at the finest of 5 levels (2.05M), sized by the parallax rule" in printed
+        assert "grid: 246 x 177 x 47 cells at the finest of 5 levels (2.05M), 2 density heads, sized by the parallax rule" in printed
         assert main(["eval", "--run", str(run), "--views", "8", "--no-products", "--quiet"]) in (0, None)
         printed = capsys.readouterr().out
         metrics = json.loads((run / "metrics.json").read_text())
