@@ -389,9 +389,10 @@ def verdict(study: Study, today: dict, candidate: dict,
     for scene in sorted(set(today) & set(candidate)):
         a, b = today[scene], candidate[scene]
         psnr_gain, abs_rel_change = b["psnr"] - a["psnr"], b["abs_rel"] - a["abs_rel"]
-        gains = study.min_psnr_gain_db is None or psnr_gain >= study.min_psnr_gain_db or (
-            study.min_abs_rel_gain is not None and -abs_rel_change >= study.min_abs_rel_gain)
-        checks = {} if study.gain_on_mean or study.min_psnr_gain_db is None else {"gain": gains}
+        checks = {}
+        if not study.gain_on_mean and study.min_psnr_gain_db is not None:  # a gain asked of each scene
+            checks["gain"] = psnr_gain >= study.min_psnr_gain_db or (
+                study.min_abs_rel_gain is not None and -abs_rel_change >= study.min_abs_rel_gain)
         checks.update({
             "psnr_kept": study.max_psnr_loss_db is None or psnr_gain >= -study.max_psnr_loss_db,
             "abs_rel": abs_rel_change <= study.max_abs_rel_loss,

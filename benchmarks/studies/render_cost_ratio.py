@@ -6,8 +6,8 @@ validation view with its own settings, today's run first, then the candidate's, 
 turn, so that the machine's drifts hit both alike; the ratio is of the medians. Run it on an otherwise idle
 machine (the threads are stated in the output).
 
-    OMP_NUM_THREADS=2 python benchmarks/studies/render_cost_ratio.py runs/s79/today/seed_44/work/flower/snerf \\
-        runs/s79/heads_2/seed_44/work/flower/snerf --threads 2 --out benchmarks/results/density_heads_study/render_cost_flower.json
+    OMP_NUM_THREADS=2 python benchmarks/studies/render_cost_ratio.py runs/s79/today/seed_44/flower/snerf/run \\
+        runs/s79/heads_2/seed_44/flower/snerf/run --threads 2 --out benchmarks/results/density_heads_study/render_cost_flower.json
 """
 
 from __future__ import annotations
