@@ -16,7 +16,7 @@ trilinear interpolation of every level is summed:
     with M density heads: o_h(x) = k (e_h(x) - mean_h' e_h'(x)) from M channels after g_1 (the
     colour features follow them); trajectory k draws its density around mu_a + o_{k mod M}
 
-Density heads (``field.density_heads``, a study's option): M alternative density fields around one
+Density heads (``field.density_heads``, 2 by default, study 54): M alternative density fields around one
 centre mu_a, each head a geometry of its own that the trajectories it draws must explain (the
 likelihood is each trajectory's), sharing the colour features and the density scale, as a deep
 ensemble's members would differ, inside one model: their channels start with independent noise
