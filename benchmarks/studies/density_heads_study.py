@@ -1,4 +1,4 @@
-"""Studies 52 and 54: density heads (``field.density_heads``) at the paper split, judged by a study's rule (``--rule``).
+"""Studies 52, 54 and 55: density heads (``field.density_heads``) at the paper split, judged by a study's rule (``--rule``).
 
 The rows are the tables' S-NeRF (default) row (``benchmarks/eval_tables.py``, paper split, fern and
 flower) on seeds 0-2: today's (one head, study 51's ``tables_levels_5``) and the candidate's, the
@@ -17,7 +17,9 @@ rule's verdict (docs/studies.md, fixed before any candidate row ran) to ``--out`
         --candidate runs/heads_4/seed_{0,1,2}/tables.json --label "4 heads" --out benchmarks/results/density_heads_study/paper_verdict
 
 Study 54 (two heads) is the same with ``--rule 54``: the PSNR gain asked of the scenes' mean, no scene's
-PSNR falling, each scene's depth ranking falling at most 0.03 (``RULES``).
+PSNR falling, each scene's depth ranking falling at most 0.03 (``RULES``). Study 55 (the heads' bootstrap
+of the training pixels, ``--set loss.head_bootstrap_keep=0.5`` against today's two heads) judges by
+study 52's rule with ``--rule 55``.
 """
 
 from __future__ import annotations
@@ -64,6 +66,8 @@ RULES = {
                max_ranking_loss={"fern": 0.01}, max_psnr_loss_db=0.2),
     "54": Rule("54", "two density heads for the paper split", min_flower_ranking_gain=None,
                max_ranking_loss={"fern": 0.03, "flower": 0.03}, max_psnr_loss_db=0.0, min_mean_psnr_gain_db=0.2),
+    "55": Rule("55", "the density heads' bootstrap of the training pixels", min_flower_ranking_gain=0.03,
+               max_ranking_loss={"fern": 0.01}, max_psnr_loss_db=0.2),
 }
 
 

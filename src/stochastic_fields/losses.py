@@ -70,7 +70,8 @@ def gaussian_likelihood_nll(colours: Tensor, target: Tensor, std: float | Tensor
         E[-log N(target | C_k, v_k) | w_k] = ((m_k - target)^2 + W_k) / (2 v_k) + log(2 pi v_k) / 2
 
     ``ray_weights`` [R] (None: all 1) weight each ray's term in the mean over rays (the error-guided
-    sampler's likelihood weights, stochastic_fields.ray_sampling).
+    sampler's likelihood weights, stochastic_fields.ray_sampling); [R, K] weight each ray's draws
+    (the heads' bootstrap, ``draw_weights``).
 
     Shapes: colours [R, K, 3], target [R, 3], std a float or [3], extra_variance and
     colour_variance None or [R, K, 3] -> scalar.
@@ -86,10 +87,35 @@ def gaussian_likelihood_nll(colours: Tensor, target: Tensor, std: float | Tensor
 
 
 def _ray_mean(per_draw: Tensor, ray_weights: Tensor | None) -> Tensor:
-    """[R, K] -> scalar: the mean over draws and rays, each ray weighted by ``ray_weights`` [R] (None: 1)."""
+    """[R, K] -> scalar: the mean over draws and rays, each ray weighted by ``ray_weights`` [R], or
+    each ray's draw by ``ray_weights`` [R, K] (None: 1)."""
     if ray_weights is None:
         return per_draw.mean()
+    if ray_weights.dim() == 2:
+        return (per_draw * ray_weights).mean()
     return (per_draw.mean(-1) * ray_weights).mean()
+
+
+def bootstrap_head_weights(num_pixels: int, heads: int, keep: float, generator: torch.Generator) -> Tensor:
+    """[N, M] each training pixel's weight in each density head's likelihood (``loss.head_bootstrap_keep``).
+
+    Head h keeps pixel n with probability ``keep`` (independently); a pixel no head keeps is given
+    to one head drawn uniformly. Then w_nh = M 1[h keeps n] / (number of heads keeping n): every
+    pixel's weights sum to M (its weight in the loss is that of today's, where each is 1) and, by
+    symmetry, each head's expected weight is 1. ``keep`` = 1: all ones."""
+    kept = torch.rand(num_pixels, heads, generator=generator) < keep
+    orphans = (~kept.any(1)).nonzero().squeeze(1)
+    if len(orphans):
+        kept[orphans, torch.randint(0, heads, (len(orphans),), generator=generator)] = True
+    kept = kept.to(torch.float32)
+    return heads * kept / kept.sum(1, keepdim=True)
+
+
+def draw_weights(head_weights: Tensor, num_draws: int) -> Tensor:
+    """[R, M] each ray's head weights -> [R, K] each draw's: draw k draws around head k mod M
+    (``renderer.draw_locs``, training draws counted from 0)."""
+    heads = torch.arange(num_draws, device=head_weights.device) % head_weights.shape[-1]
+    return head_weights[:, heads]
 
 
 def _expected_square_error(colours: Tensor, target: Tensor, colour_variance: Tensor | None) -> Tensor:

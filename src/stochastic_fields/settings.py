@@ -54,6 +54,8 @@ class LossConfig:
     """How the depth likelihood combines the K trajectories of a capture-point ray: 'expected' (the ELBO's expected log-likelihood, -1/K sum_k log p(t* | w_k): every trajectory must put mass at the point) or 'predictive' (the log of the predictive mixture, -log 1/K sum_k p(t* | w_k): the trajectories together must, so they may disagree where the data do not decide; a proper scoring rule on the predictive termination distribution, as predictive / PAC^2 variational objectives, Masegosa 2020). The two are equal for K = 1 (termination_depth_nll). Default 'expected': 'predictive' changed nothing on the validation scenes, whose trajectories agree at the capture points to 0.03-0.08% of the depth (docs/studies.md, study 34)."""
     depth_outlier_share: float = 0.0
     """The share eps of capture points the depth likelihood treats as possible outliers of the structure from motion: each point's likelihood under a trajectory is (1 - eps) sum_i w_i N(t* | t_i, s_i^2) + eps / L, L the ray's sampled range (termination_depth_nll), so a point far from the rendered surface pulls on it less the farther it lies (a heavy-tailed likelihood). 0 = the Gaussian mixture alone (the default): at 0.05 the paper split's depth got worse (flower's abs-rel 0.113 -> 0.122, PSNR -0.11 / -0.12 dB on fern / flower; benchmarks/results/depth_outlier_paper_study, study 41). Range: a finite number >= 0 and < 1."""
+    head_bootstrap_keep: float = 1.0
+    """With density heads (``field.density_heads`` M > 1): the chance that a head keeps a training pixel in its likelihood, drawn once per pixel and head for the whole training (a bootstrap of the pixels per head, as Bootstrapped DQN's heads, Osband et al. 2016), so that the heads fit different subsets of the photos and may hold different surfaces where the photos leave them open. A pixel no head keeps goes to one head drawn at random, and a pixel's weights are M / (heads keeping it) for the heads that keep it: each pixel's total weight in the loss is unchanged and each head's mean weight is 1 (losses.bootstrap_head_weights). 1 = every head fits every pixel (the default). Range: a finite number > 0 and <= 1."""
     depth_trains_scale: bool = True
     """Whether the sparse-depth likelihood's gradient reaches the density's scale s_a. On (the ELBO): the likelihood asks every trajectory to stop at each capture point, which shrinks the density's scale at the surfaces until the K trajectories agree. Off: its trajectories are drawn with stopgrad(s_a), so the capture points place the surfaces through the density's location mu_a only and the scale is set by the pixels and the priors. Off changed nothing measurable on a validation scene (benchmarks/results/predictive_depth_study/objective_knobs): the sharp surfaces, not the scale's gradient, keep the trajectories together."""
     depth_final_factor: float = 1.0
@@ -100,6 +102,7 @@ def _loss_checks() -> dict:
         "depth_outlier_share": real(0.0, 1.0, hi_open=True),
         "depth_draws": integer(0, 4096),
         "depth_trains_scale": boolean(),
+        "head_bootstrap_keep": real(0.0, 1.0, lo_open=True),
         "depth_final_factor": real(0.0, 1.0),
         "lambda_distortion": real(0.0),
         "lambda_occlusion": real(0.0),

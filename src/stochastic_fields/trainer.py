@@ -34,6 +34,7 @@ from .ray_sampling import ErrorMap, pixel_blocks
 from .rays import RayBundle
 from .capture_points import FIT, load_capture_points, rays_through_points, sparse_depth_for_role
 from .holdout import holdout_masks
+from .losses import bootstrap_head_weights
 from .metrics import psnr
 from .scenes import load_run_dataset
 from .virtual_views import PatchSampler
@@ -47,6 +48,9 @@ RESUMABLE_OPTIONS: tuple[str, ...] = ("train.iterations", "train.minutes", "trai
 LOG_NAME = "train_log.jsonl"
 #: Added to the depth smoothness patches' seed so they draw apart from the batches of the same seed.
 SMOOTHNESS_SEED_OFFSET = 0x5A17
+#: Offset of the density heads' bootstrap table's seed from ``train.seed`` (``loss.head_bootstrap_keep``):
+#: one table for the whole training, the same on every rank and after a resume.
+HEAD_BOOTSTRAP_SEED_OFFSET = 0xB007
 
 
 def _comparable_data_path(value: str) -> str:
@@ -137,7 +141,11 @@ class TrainingRays:
 
     def batch(self, n: int, generator: torch.Generator) -> tuple[RayBundle, torch.Tensor]:
         """``n`` rays drawn uniformly with replacement, and their colours."""
-        return self.at(torch.randint(0, len(self.colours), (n,), generator=generator))
+        return self.at(self.draw(n, generator))
+
+    def draw(self, n: int, generator: torch.Generator) -> torch.Tensor:
+        """[n] pixel indices drawn uniformly with replacement (what ``batch`` reads)."""
+        return torch.randint(0, len(self.colours), (n,), generator=generator)
 
     def at(self, idx: torch.Tensor) -> tuple[RayBundle, torch.Tensor]:
         """The rays [n] and colours [n, 3] of the pixels ``idx`` [n]."""
@@ -238,6 +246,15 @@ class Trainer:
             if not self.model.accepts_ray_weights:
                 raise ValueError(f"train.ray_sampling = 'error' needs a method whose likelihood takes ray weights "
                                  f"(snerf, deterministic); method {cfg.method!r} does not")
+        if cfg.loss.head_bootstrap_keep < 1:
+            heads = int(getattr(getattr(self.model, "field", None), "density_heads", 1))
+            if not getattr(self.model, "accepts_head_weights", False) or heads < 2:
+                raise ValueError(f"loss.head_bootstrap_keep = {cfg.loss.head_bootstrap_keep:g} needs density heads "
+                                 f"(field.density_heads > 1, the grid S-NeRF's); method {cfg.method!r} here has "
+                                 f"{heads} density field(s): leave it at 1")
+        #: [N, M] each training pixel's weight per density head (``loss.head_bootstrap_keep`` < 1), built
+        #: with the training rays.
+        self._head_table: torch.Tensor | None = None
         #: The error-guided sampler's map (``train.ray_sampling`` 'error'), built with the training rays.
         self.error_map: ErrorMap | None = None
         self._error_map_state: dict | None = None  # a resumed checkpoint's map, loaded once it is built
@@ -500,6 +517,18 @@ class Trainer:
         patches = sampler.sample(self.cfg.loss.smoothness_patches, self.cfg.loss.smoothness_patch_size, cpu)
         return self.model.add_smoothness(loss, logs, patches, generator=device)
 
+    def _head_weights(self, data: TrainingRays, picked: torch.Tensor) -> dict[str, torch.Tensor]:
+        """``{"head_weights": [n, M]}`` of the pixels ``picked`` [n] (``loss.head_bootstrap_keep`` < 1),
+        else ``{}``: the table of ``losses.bootstrap_head_weights``, drawn once from ``train.seed``."""
+        keep = self.cfg.loss.head_bootstrap_keep
+        if keep >= 1:
+            return {}
+        if self._head_table is None or len(self._head_table) != len(data.colours):
+            heads = int(self.model.field.density_heads)
+            generator = torch.Generator().manual_seed(self.cfg.train.seed + HEAD_BOOTSTRAP_SEED_OFFSET)
+            self._head_table = bootstrap_head_weights(len(data.colours), heads, keep, generator).to(self.device)
+        return {"head_weights": self._head_table[picked.to(self.device)]}
+
     def compute_gradients(self, data: TrainingRays, depth_data: TrainingDepth | None,
                           patch_sampler: PatchSampler | None = None) -> tuple[float, dict[str, float]]:
         """Draw this step's batch, compute the loss and leave its gradients in the parameters
@@ -513,16 +542,16 @@ class Trainer:
         A non-finite loss on any rank raises FloatingPointError on every rank."""
         cfg = self.cfg
         if self.dist is None:
-            picked = None
+            weights = None
             if self.error_map is None:
-                rays, target = data.batch(cfg.train.rays_per_batch, self.generator)
+                picked = data.draw(cfg.train.rays_per_batch, self.generator)
             else:
                 picked, weights = self.error_map.sample(cfg.train.rays_per_batch, self.generator)
-                rays, target = data.at(picked)
-            extra = {}
+            rays, target = data.at(picked)
+            extra = self._head_weights(data, picked)
             if depth_data is not None:
                 extra["depth"] = depth_data.batch(cfg.loss.depth_rays_per_batch, self.generator)
-            if picked is not None:
+            if weights is not None:
                 extra["ray_weights"] = weights
             loss, logs = self.model.training_loss(rays, target, step=self.step, generator=self.draw_generator, **extra)
             loss = self._add_smoothness(loss, logs, patch_sampler)
@@ -530,13 +559,14 @@ class Trainer:
                 raise FloatingPointError(f"loss is {float(loss)} at step {self.step}: {logs}")
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
-            if picked is not None:
+            if self.error_map is not None:
                 self.error_map.update(picked, self.model.last_ray_errors)
             return loss.item(), logs
         rank, world, total = self.dist.rank, self.dist.world_size, cfg.train.rays_per_batch
         n = shard_size(total, rank, world)
-        rays, target = data.batch(n, self.generator)
-        extra = {}
+        picked = data.draw(n, self.generator)
+        rays, target = data.at(picked)
+        extra = self._head_weights(data, picked)
         if depth_data is not None:
             extra["depth"] = depth_data.batch(shard_size(cfg.loss.depth_rays_per_batch, rank, world), self.generator)
         loss, logs = self.model.training_loss(rays, target, step=self.step, generator=self.draw_generator, **extra)

@@ -38,6 +38,9 @@ class RadianceModel(nn.Module, abc.ABC):
     #: likelihood) and leaves each ray's squared colour error in ``last_ray_errors`` [R]: what the
     #: error-guided ray sampler needs (``train.ray_sampling`` 'error', stochastic_fields.ray_sampling).
     accepts_ray_weights: bool = False
+    #: Whether ``training_loss`` takes ``head_weights`` [R, M] (each ray's weight in each density
+    #: head's likelihood, ``loss.head_bootstrap_keep``): S-NeRF.
+    accepts_head_weights: bool = False
     last_ray_errors: Tensor | None = None
 
     @abc.abstractmethod

@@ -28,8 +28,8 @@ from ..adaptive import render_image_adaptive
 from ..distortion import distortion_loss, distortion_loss_packed, normalised_coordinate, sample_bounds
 from ..fields.base import StochasticField
 from ..fields.grid import GridField
-from ..losses import (LossConfig, Priors, decoupled_likelihood_nll, field_kl_means, gaussian_likelihood_nll,
-                      depth_weight, termination_depth_nll)
+from ..losses import (LossConfig, Priors, decoupled_likelihood_nll, depth_weight, draw_weights, field_kl_means,
+                      gaussian_likelihood_nll, termination_depth_nll)
 from ..occupancy import OccupancyGrid, density_threshold, density_upper_estimate
 from ..rays import PackedRaySamples, RayBundle, RaySamples
 from ..renderer import (ChunkGenerators, ChunkRender, RayRender, RenderOptions, RenderSettings, colour_plan,
@@ -160,19 +160,27 @@ class SNeRF(RadianceModel):
     #: the trainer passes capture-point depth batches (``depth=``) to this model
     accepts_depth = True
     accepts_ray_weights = True
+    #: ``training_loss`` takes each ray's density-head weights (``loss.head_bootstrap_keep``)
+    accepts_head_weights = True
     #: the density is a rectified normal; its regularisers read its mean
     mean_field_density = False
 
     def training_loss(self, rays: RayBundle, target: Tensor, *, step: int,
                       generator: torch.Generator | None = None,
                       depth: tuple[RayBundle, Tensor] | None = None,
-                      ray_weights: Tensor | None = None) -> tuple[Tensor, dict[str, float]]:
+                      ray_weights: Tensor | None = None,
+                      head_weights: Tensor | None = None) -> tuple[Tensor, dict[str, float]]:
         """The variational loss (losses module doc) on a batch of rays [R] with colours [R, 3];
         ``depth``: capture-point rays [M] and their surface ray distances t* [M] for the
         sparse-depth likelihood (weighted by ``loss.lambda_depth``); ``ray_weights`` [R]: each ray's
-        weight in the colour likelihood (the error-guided sampler's, stochastic_fields.ray_sampling).
-        Leaves each ray's squared colour error in ``last_ray_errors`` [R]."""
+        weight in the colour likelihood (the error-guided sampler's, stochastic_fields.ray_sampling);
+        ``head_weights`` [R, M]: each ray's weight in each density head's colour likelihood
+        (``loss.head_bootstrap_keep``, ``losses.bootstrap_head_weights``), applied to the draws of
+        each head. Leaves each ray's squared colour error in ``last_ray_errors`` [R]."""
         cfg = self.loss_config
+        if head_weights is not None:
+            per_draw = draw_weights(head_weights, self.train_draws)
+            ray_weights = per_draw if ray_weights is None else ray_weights[:, None] * per_draw
         settings = self.render_settings
         samples = sample_along_rays(rays, settings.num_samples, spacing=settings.spacing, stratified=True,
                                     generator=generator)
