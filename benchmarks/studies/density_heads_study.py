@@ -145,6 +145,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--today", type=Path, nargs="+", required=True, help="today's tables.json, one per seed")
     ap.add_argument("--candidate", type=Path, nargs="+", required=True, help="the candidate's, the same seeds in order")
     ap.add_argument("--label", default="candidate", help="the candidate's name in the table")
+    ap.add_argument("--today-label", default="today (1 head)", help="today's name in the table (studies 52 and 54: "
+                    "one head; 55: two)")
     ap.add_argument("--rule", choices=sorted(RULES), default="52", help="which study's rule judges the rows")
     ap.add_argument("--out", type=Path, required=True)
     args = ap.parse_args(argv)
@@ -153,9 +155,11 @@ def main(argv: list[str] | None = None) -> None:
     today, candidate = read_side(args.today), read_side(args.candidate)
     rule = RULES[args.rule]
     result = verdict(today, candidate, rule)
-    sides = {"today (1 head)": today, args.label: candidate}
+    sides = {args.today_label: today, args.label: candidate}
     command = ("python benchmarks/studies/density_heads_study.py --today " + " ".join(map(str, args.today))
-               + " --candidate " + " ".join(map(str, args.candidate)) + f" --label '{args.label}' --rule {args.rule} --out {args.out}")
+               + " --candidate " + " ".join(map(str, args.candidate)) + f" --label '{args.label}'"
+               + ("" if args.today_label == "today (1 head)" else f" --today-label '{args.today_label}'")
+               + f" --rule {args.rule} --out {args.out}")
     lines = [f"# Study {rule.number}: {rule.title} ({args.label})", "", f"Command: `{command}`", "",
              f"Means of {len(args.today)} seeds (the tables' S-NeRF (default) row; per-view means for PSNR, the "
              "rankings and abs-rel, intervals pooled over the SCORE points, relative to the depth):", "",
