@@ -263,6 +263,10 @@ def test_study_rule_on_hand_made_scores(load_script):
     # a level today's misses by more may stay as far out
     far = {"fern": _scores(coverage_90=83.0), "flower": today["flower"]}
     assert study.verdict(far, {"fern": _scores(coverage_90=83.5), "flower": _scores(depth_spearman=0.7)})["taken"]
+    # study 55 (the heads' bootstrap) judges by this same rule
+    assert {k: v for k, v in vars(study.RULES["55"]).items() if k not in ("number", "title")} \
+        == {k: v for k, v in vars(study.RULES["52"]).items() if k not in ("number", "title")}
+    assert study.verdict(today, good, study.RULES["55"]) == {"taken": True, "failed": []}
 
 
 
