@@ -50,3 +50,30 @@ def test_scores_by_hand(load_script):
     # the rank quantiles of points 1 and 2 in between (0.01, 2.89, 0.01, 0)
     assert s["large_rank_quantile_between"] == pytest.approx((3 / 3 + 2 / 3) / 2)  # ranks 3 and 2 of 0..3 (ties stable)
     assert s["variance_share_spread"] == pytest.approx(np.median(1.0 / (between + 1.0)))
+
+
+def test_a_tiny_run_reproduces_the_total_ranking(tiny_scene, tmp_path, load_script):
+    """End to end on a trained run with two heads: the pooled ranking by the total std is the tables'
+    evaluation's (the same views, points and render seed), and the parts' shares are shares."""
+    import json
+
+    from conftest import train_tiny_run
+
+    run = train_tiny_run(tiny_scene, tmp_path / "run")
+    assert json.loads((run / "config.json").read_text())["field"]["density_heads"] == 2
+    script = load_script("benchmarks/studies/heads_disagreement_analysis.py")
+    assert script.main(["--run", f"{tiny_scene}={run}", "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    row = json.loads((tmp_path / "out" / "heads_disagreement.json").read_text())["rows"][0]
+    assert row["heads"] == 2 and row["points"] > 100
+    shares = [row[f"variance_share_{p}"] for p in ("between", "within", "spread")]
+    assert all(0 <= s <= 1 for s in shares)
+    from stochastic_fields.calibration import load_run_calibration
+    from stochastic_fields.trainer import load_trained_model
+    from stochastic_fields_bench.budget import BenchmarkSettings
+    from stochastic_fields_bench.runner import evaluate_run, scene_inputs
+
+    _, dataset, views, sparse = scene_inputs(str(tiny_scene), BenchmarkSettings(), log=lambda _m: None)
+    _, model, _ = load_trained_model(run, dataset=dataset)
+    metrics = evaluate_run(model, dataset, tmp_path / "eval", views=views, sparse_depth=sparse, product_views=0,
+                           progress=False, calibration=load_run_calibration(run))
+    assert row["ranking_pooled_total"] == pytest.approx(metrics["pooled"]["depth"]["spearman"], abs=1e-6)

@@ -30,11 +30,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
 import sys
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
+from study_helpers import parse_runs, study_command  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_DATA_ROOT = REPO_ROOT / ".." / "shared" / "data" / "nerf_llff_data"
@@ -139,7 +141,7 @@ def scores(points: list[dict]) -> dict[str, float]:
 
 ROWS: tuple[tuple[str, str, str], ...] = (
     ("points scored", "points", "{:d}"),
-    ("depth abs-rel", "abs_rel", "{:.4f}"),
+    ("depth abs-rel, pooled over the points", "abs_rel", "{:.4f}"),
     ("share of errors > 5% of the depth", "large_share", "{:.3f}"),
     ("ranking by the total std (the tables'), views / pooled", "total", "rank"),
     ("ranking by BETWEEN heads alone", "between", "rank"),
@@ -168,13 +170,6 @@ def table(rows: list[dict]) -> list[str]:
     return lines
 
 
-def parse_run(text: str) -> tuple[str, Path]:
-    scene, sep, folder = text.partition("=")
-    if not sep or not scene or not folder:
-        raise ValueError(f"--run {text!r}: expected SCENE=FOLDER")
-    return scene, Path(folder)
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--run", action="append", required=True, metavar="SCENE=FOLDER")
@@ -184,18 +179,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
-    try:
-        runs = [parse_run(r) for r in args.run]
-    except ValueError as exc:
-        p.error(str(exc))
-    missing = [str(f) for _, f in runs if not (f / "config.json").is_file()]
-    if missing:
-        p.error(f"not a trained run (no config.json): {', '.join(missing)}")
+    runs = parse_runs(p, args.run, required="config.json").items()
 
     import torch
     from tqdm import tqdm
 
     from stochastic_fields.calibration import apply_calibration, load_run_calibration
+    from stochastic_fields.capture_points import dense_depth_score_mask, load_capture_points
     from stochastic_fields.io_utils import atomic_write_text
     from stochastic_fields.renderer import seeded_chunks
     from stochastic_fields.trainer import load_trained_model
@@ -215,22 +205,25 @@ def main(argv: list[str] | None = None) -> int:
         options = model.default_render_options().with_changes(keep_draws=True)
         device = next(model.parameters()).device
         gt_depths = getattr(dataset, "depths", None)
+        # exact depth maps score the SCORE blocks' pixels only where the scene has capture points (as eval)
+        capture = load_capture_points(dataset) if sparse is None and gt_depths is not None else None
         points = []
         for v in tqdm(views, desc=f"{scene}: views", disable=args.quiet):
             maps = model.render_view(dataset.rays(v).to(device), options, generator=seeded_chunks(args.seed, v, device))
             camera = view_camera_arrays(dataset, v)
             products = apply_calibration(camera_z_maps(maps), calibration,
                                          camera=(camera["intrinsics"], camera["world_to_camera"]))
-            got = view_points(products, None if gt_depths is None else gt_depths[v].numpy(),
-                              None if sparse is None else sparse[v], heads)
+            gt_depth = None if gt_depths is None else gt_depths[v].numpy()
+            if gt_depth is not None and capture is not None:
+                gt_depth = np.where(dense_depth_score_mask(dataset, capture, v), gt_depth, 0.0)
+            got = view_points(products, gt_depth, None if sparse is None else sparse[v], heads)
             if got is not None and len(got["gt"]):
                 points.append(got)
         if not points:
             p.error(f"{folder}: no scored depth points on the test views")
         rows.append({"scene": dataset.name, "run": str(folder), "heads": heads, **scores(points)})
 
-    command = "python benchmarks/studies/heads_disagreement_analysis.py " + " ".join(
-        shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+    command = study_command("heads_disagreement_analysis.py", argv)
     lines = ["# Do the density heads hold alternative surfaces where the depth is wrong?", "",
              f"Command: `{command}`", "",
              "Spearman |depth error| against each std: per-view mean / pooled over the scored test views. "
