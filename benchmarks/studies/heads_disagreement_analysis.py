@@ -29,14 +29,13 @@ surface) against the share where every head's is beyond it.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
-from study_helpers import parse_runs, study_command  # noqa: E402
+from study_helpers import parse_runs, study_command, write_study  # noqa: E402
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_DATA_ROOT = REPO_ROOT / ".." / "shared" / "data" / "nerf_llff_data"
@@ -121,7 +120,7 @@ def scores(points: list[dict]) -> dict[str, float]:
     rel = err / gt
     large = rel > LARGE_RELATIVE_ERROR
     total_var = pool["between"] + pool["within"] + pool["spread"]
-    head_rel = np.abs(pool["head_means"] - gt[:, None]) / gt[:, None]
+    head_off = pool["head_means"] - gt[:, None]  # [P, M] each head's signed error
     out: dict[str, float] = {"points": int(len(gt)), "abs_rel": float(rel.mean()), "large_share": float(large.mean())}
     out.update({f"ranking_views_{k}": float(np.nanmean(v)) for k, v in per_view.items()})
     out["ranking_pooled_total"] = _spearman(err, pool["std"])
@@ -131,11 +130,11 @@ def scores(points: list[dict]) -> dict[str, float]:
     out["between_std_over_depth"] = float(np.median(np.sqrt(pool["between"]) / gt))
     out["large_rank_quantile_between"] = rank_quantile(pool["between"], large)
     out["large_rank_quantile_total"] = rank_quantile(pool["std"], large)
-    out["large_some_head_right"] = float((head_rel[large].min(1) <= LARGE_RELATIVE_ERROR).mean()) if large.any() \
-        else float("nan")
-    out["large_heads_straddle"] = float((((pool["head_means"] - gt[:, None]).min(1) < 0)
-                                         & ((pool["head_means"] - gt[:, None]).max(1) > 0))[large].mean()) \
-        if large.any() else float("nan")
+    if large.any():
+        out["large_some_head_right"] = float((np.abs(head_off[large]).min(1) <= LARGE_RELATIVE_ERROR * gt[large]).mean())
+        out["large_heads_straddle"] = float(((head_off[large].min(1) < 0) & (head_off[large].max(1) > 0)).mean())
+    else:
+        out["large_some_head_right"] = out["large_heads_straddle"] = float("nan")
     return out
 
 
@@ -186,7 +185,6 @@ def main(argv: list[str] | None = None) -> int:
 
     from stochastic_fields.calibration import apply_calibration, load_run_calibration
     from stochastic_fields.capture_points import dense_depth_score_mask, load_capture_points
-    from stochastic_fields.io_utils import atomic_write_text
     from stochastic_fields.renderer import seeded_chunks
     from stochastic_fields.trainer import load_trained_model
     from stochastic_fields.view_maps import camera_z_maps, view_camera_arrays
@@ -230,9 +228,7 @@ def main(argv: list[str] | None = None) -> int:
              "BETWEEN: the variance of the heads' mean depths; WITHIN: the draws' variance around their head; "
              "SPREAD: the mean termination variance along the ray (raw, before the recalibration).", ""]
     lines += table(rows)
-    args.out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out / "heads_disagreement.md", "\n".join(lines) + "\n")
-    atomic_write_text(args.out / "heads_disagreement.json", json.dumps({"command": command, "rows": rows}, indent=2))
+    write_study(args.out, {"command": command, "rows": rows}, "\n".join(lines) + "\n", name="heads_disagreement")
     print("\n".join(lines))
     return 0
 

@@ -139,11 +139,11 @@ def cached(path: Path, compute) -> dict:
     return json.loads(path.read_text())
 
 
-def write_study(out: Path, results: dict, text: str) -> None:
-    """``OUT/study.json`` (``results``) and ``OUT/study.md`` (``text``), written atomically."""
+def write_study(out: Path, results: dict, text: str, *, name: str = "study") -> None:
+    """``OUT/NAME.json`` (``results``) and ``OUT/NAME.md`` (``text``), written atomically."""
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "study.json", json.dumps(results, indent=1))
-    atomic_write_text(out / "study.md", text)
+    atomic_write_text(out / f"{name}.json", json.dumps(results, indent=1))
+    atomic_write_text(out / f"{name}.md", text)
 
 
 def begin_study(parser: argparse.ArgumentParser, argv: list[str] | None, script: str
