@@ -19,8 +19,8 @@ from stochastic_fields.fields.grid import GridField
 from stochastic_fields.fields.row_gather import row_gradient
 from stochastic_fields.losses import field_kl, field_kl_means
 from stochastic_fields.occupancy import density_upper_estimate
-from stochastic_fields.renderer import (RenderSettings, colour_reaching, draw_locs, pack_samples, render_samples,
-                                        render_samples_packed, trajectory_weights)
+from stochastic_fields.renderer import (RenderSettings, colour_reaching, draw_locs, drawn_density, pack_samples,
+                                        render_samples, render_samples_packed, trajectory_weights)
 from stochastic_fields.samplers import sample_along_rays
 from stochastic_fields.scene_region import SceneRegion
 from test_colour_reach import _rays
@@ -56,6 +56,28 @@ def test_draw_locs_by_hand():
     packed = draw_locs(loc[0], off[0], 0, 2, packed=True)  # [K=2, N=2]
     torch.testing.assert_close(packed, torch.tensor([[1.5, 3.0], [0.5, 1.0]]))
     assert draw_locs(loc, None, 5, 3, packed=False).shape == (1, 1, 2)
+
+
+@pytest.mark.parametrize("heads", [2, 3])
+def test_drawn_density_broadcasts_the_heads_with_the_gathers_bits(heads):
+    """relu(mu + o_{j mod M} + s eps_j) by broadcasting over whole rounds of heads equals, bit for bit,
+    the per-draw gather of ``draw_locs``; blocks that start mid-round take the gather (same values)."""
+    g = torch.Generator().manual_seed(4)
+    R, S, K = 5, 7, 2 * heads
+    loc, scale = torch.randn(R, S, generator=g), torch.rand(R, S, generator=g)
+    off = torch.randn(R, S, heads, generator=g)
+    for eps in (torch.randn(R, K, S, generator=g), torch.randn(R, K, 1, generator=g)):  # independent, shared
+        for first in (0, heads, 1):
+            k = K if first % heads == 0 else K - 1
+            e = eps[:, :k]
+            gathered = torch.relu(draw_locs(loc, off, first, k, packed=False) + scale[:, None, :] * e)
+            assert torch.equal(drawn_density(loc, scale, off, e, first, packed=False), gathered)
+            pe = e[..., 0].T.contiguous() if e.shape[-1] == 1 else e[0]  # packed: [k, N] over one ray's S samples
+            pl, ps, po = (loc[0], scale[0], off[0]) if e.shape[-1] != 1 else (loc[:, 0], scale[:, 0], off[:, 0])
+            packed_gathered = torch.relu(draw_locs(pl, po, first, k, packed=True) + ps[None] * pe)
+            assert torch.equal(drawn_density(pl, ps, po, pe, first, packed=True), packed_gathered)
+    no_heads = drawn_density(loc, scale, None, eps[:, :3], 1, packed=False)
+    assert torch.equal(no_heads, torch.relu(loc[:, None, :] + scale[:, None, :] * eps[:, :3]))
 
 
 def test_grid_offsets_centre_and_density_read():
