@@ -124,6 +124,35 @@ def test_composited_colours_within_tau_of_the_full_decode(layout, estimator, dev
     torch.testing.assert_close(lazy.stats.depth_draws, full.stats.depth_draws, rtol=0, atol=0)
 
 
+@pytest.mark.parametrize("heads", [1, 2])
+@pytest.mark.parametrize("estimator", ["draws", "rao_blackwell"])
+def test_a_render_reuses_the_plans_draws_bit_for_bit(estimator, heads):
+    """Without autograd a dense render composites from the densities and transmittances the plan drew to
+    find the reached samples (``ColourPlan.drawn``): the same maps bit for bit as drawing them again;
+    with autograd (training) the plan keeps nothing."""
+    torch.manual_seed(0)
+    region = SceneRegion("aabb", torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]]))
+    field = GridField(region, (8, 7, 9), num_levels=2, decoder_width=8, feature_dim=4, density_heads=heads).double()
+    with torch.no_grad():
+        for table in field.levels:
+            table.normal_(0.0, 1.0)
+            table[:, 0] *= 3.0
+    settings = _settings(colour_min_transmittance=TAU, colour_estimator=estimator)
+    samples = sample_along_rays(_rays(), settings.num_samples, stratified=True, generator=torch.Generator().manual_seed(4))
+    with torch.no_grad():
+        plan = colour_plan(samples, settings, 6, generator=torch.Generator().manual_seed(6))
+        params = field.forward_colour_where(samples.positions, samples.directions, plan.where)
+        assert set(plan.drawn) == {"density", "transmittance"} and plan.drawn["density"].shape == (48, 6, 24)
+        reused = render_any_samples(params, samples, settings, num_draws=6, noise=plan.noise, drawn=plan.drawn)
+        anew = render_any_samples(params, samples, settings, num_draws=6, noise=plan.noise)
+    for name in ("colour_draws", "depth_draws", "spread_draws", "opacity_draws", "colour_var"):
+        assert torch.equal(getattr(reused.stats, name), getattr(anew.stats, name)), name
+    assert torch.equal(reused.extras["weights"], anew.extras["weights"])
+    training_plan = colour_plan(samples, settings, 6, generator=torch.Generator().manual_seed(6))
+    field.forward_colour_where(samples.positions, samples.directions, training_plan.where)
+    assert training_plan.drawn == {}
+
+
 def test_gradients_within_the_bound_of_the_full_decode():
     """d (sum of colours) / d grid and decoder: the left-out samples' colours move the composited
     colour by less than tau, so every gradient changes by at most about tau times its scale."""

@@ -272,7 +272,7 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
                    deterministic: bool = False, generator: torch.Generator | None = None,
                    noise: tuple[Tensor, Tensor] | None = None, colour_estimator: str | None = None,
                    colour_moments: tuple[Tensor, Tensor] | None = None,
-                   observation_noise: bool | None = None) -> RayRender:
+                   observation_noise: bool | None = None, drawn: dict | None = None) -> RayRender:
     """K trajectories from field parameters already evaluated at ``samples`` ([R, S]).
 
     Draws are made and composited in blocks of ``draw_blocks(K, R * S)``; independent noise is
@@ -281,9 +281,16 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
     ``colour_estimator`` overrides ``settings.colour_estimator``; ``colour_moments`` gives the
     Rao-Blackwellised estimator's per-sample moments if already computed (``colour_moments()``).
     ``observation_noise``: add the noise head's per-draw variance (``observation_variance``).
+    ``drawn``: the K draws' densities and transmittances [R, K, S] a ``ColourPlan`` already drew from
+    ``noise`` (``ColourPlan.drawn``); without autograd the weights are composited from them, the same
+    values bit for bit, instead of drawing them again (the Rao-Blackwellised render with density heads
+    and drawn colours; the one-head Rao-Blackwellised render folds its optical depths and draws anew).
     float16/bfloat16 inputs are rendered in float32 (``upcast_half``); the statistics are float32.
     """
     params, samples, noise, colour_moments = upcast_half((params, samples, noise, colour_moments))
+    reuse = (bool(drawn) and not deterministic and not torch.is_grad_enabled()
+             and drawn["density"].shape == (*samples.t_starts.shape[:1], num_draws, samples.t_starts.shape[1])
+             and drawn["density"].dtype == params.density_loc.dtype)
     obs_var = observation_variance(params, settings, observation_noise)
     R, S = samples.t_starts.shape
     dev, dt = params.density_loc.device, params.density_loc.dtype
@@ -303,6 +310,8 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
                      else block_noise[0])
             if folded is not None:  # tau = relu(mu_a delta + s_a delta eps): two passes over [R, k, S]
                 w = weights_alpha_from_optical_depth(torch.relu(torch.addcmul(*folded, eps_a)))
+            elif reuse:
+                w = _weights_from_drawn(drawn, samples, k0, k)
             else:
                 w = trajectory_weights(params.density_loc, params.density_scale, samples, settings, num_draws=k,
                                        noise=eps_a, density_offsets=params.density_offsets, first_draw=k0)
@@ -314,8 +323,9 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
         else:  # draw_trajectories' draws, the colours composited from their logits (one autograd node)
             eps_a, eps_c = block_noise if block_noise is not None else dense_noise(
                 R, k, S, shared_noise=settings.shared_noise, generator=generator, device=dev, dtype=dt)
-            w = trajectory_weights(params.density_loc, params.density_scale, samples, settings, num_draws=k, noise=eps_a,
-                                   density_offsets=params.density_offsets, first_draw=k0)
+            w = _weights_from_drawn(drawn, samples, k0, k) if reuse else trajectory_weights(
+                params.density_loc, params.density_scale, samples, settings, num_draws=k, noise=eps_a,
+                density_offsets=params.density_offsets, first_draw=k0)
             rgb, block_rgb_var = LogitNormalColourDraws(params.rgb_loc, params.rgb_scale, eps_c), None
         parts.append(trajectory_statistics(w, rgb, samples.t_mids[:, None, :], samples.rays.far,
                                            background=_background(settings, w), rgb_var=block_rgb_var,
@@ -325,6 +335,15 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
     return RayRender(stats=concatenate_draws(parts), params=params, samples=samples,
                      extras={"weights": torch.cat(weights, dim=1) if len(weights) > 1 else weights[0],
                              "field_evals": evals})
+
+
+def _weights_from_drawn(drawn: dict, samples: RaySamples, first_draw: int, num_draws: int) -> Tensor:
+    """[R, k, S] alpha weights of draws first_draw .. + k - 1 from a plan's densities and transmittances:
+    ``w = T (1 - exp(-a delta))``, computed as ``weights_alpha_from_optical_depth`` does without autograd
+    (the same values bit for bit)."""
+    block = slice(first_draw, first_draw + num_draws)
+    tau = drawn["density"][:, block] * samples.deltas[:, None, :]
+    return torch.neg(tau).expm1_().mul_(drawn["transmittance"][:, block]).neg_()
 
 
 def trajectory_weights(density_loc: Tensor, density_scale: Tensor, samples: RaySamples, settings: RenderSettings, *,
@@ -470,10 +489,18 @@ def colour_reaching(density_loc: Tensor, density_scale: Tensor, samples: RaySamp
         tau = density * samples.deltas[None]
         transmittance = torch.exp(-exclusive_cumsum_packed(tau, samples.ray_indices, samples.num_rays))
         return ((density > 0) & (transmittance >= min_transmittance)).any(dim=0)
+    return _reaching_dense(density_loc, density_scale, samples, eps_a, min_transmittance, density_offsets)[0]
+
+
+def _reaching_dense(density_loc: Tensor, density_scale: Tensor, samples: RaySamples, eps_a: Tensor | None,
+                    min_transmittance: float, density_offsets: Tensor | None = None
+                    ) -> tuple[Tensor, Tensor, Tensor]:
+    """``colour_reaching`` on dense samples, with what it drew: (reached [R, S], the draws' densities
+    [R, K, S] and transmittances T [R, K, S]), which a render without autograd reuses (``ColourPlan.drawn``)."""
     eps = torch.zeros_like(density_loc)[:, None] if eps_a is None else eps_a  # [R, K, S']
     density = drawn_density(density_loc, density_scale, None if eps_a is None else density_offsets, eps, packed=False)
     transmittance = transmittance_alpha(density, samples.deltas[:, None, :])
-    return ((density > 0) & (transmittance >= min_transmittance)).any(dim=1)
+    return ((density > 0) & (transmittance >= min_transmittance)).any(dim=1), density, transmittance
 
 
 @dataclass
@@ -485,6 +512,9 @@ class ColourPlan:
 
     noise: tuple[Tensor, Tensor | None] | None
     where: ColourWhereFn
+    #: What ``where`` drew on dense samples without autograd: the draws' densities and transmittances
+    #: [R, K, S] (``render_samples(drawn=...)`` composites from them instead of drawing them again).
+    drawn: dict = dataclass_field(default_factory=dict)
 
 
 def colour_plan(samples: RaySamples | PackedRaySamples, settings: RenderSettings, num_draws: int, *,
@@ -504,23 +534,31 @@ def colour_plan(samples: RaySamples | PackedRaySamples, settings: RenderSettings
 
     def where(density_loc: Tensor, density_scale: Tensor, density_offsets: Tensor | None = None) -> Tensor:
         offsets = None if density_offsets is None else density_offsets.reshape(*shape, density_offsets.shape[-1])
-        reach = colour_reaching(density_loc.reshape(shape), density_scale.reshape(shape), samples,
-                                None if noise is None else noise[0], tau, offsets)
+        eps_a = None if noise is None else noise[0]
+        if eps_a is None or isinstance(samples, PackedRaySamples) or torch.is_grad_enabled():
+            reach = colour_reaching(density_loc.reshape(shape), density_scale.reshape(shape), samples, eps_a, tau, offsets)
+        else:  # a render: its draws are kept for the compositing (plan.drawn)
+            reach, density, transmittance = _reaching_dense(density_loc.reshape(shape), density_scale.reshape(shape),
+                                                            samples, eps_a, tau, offsets)
+            plan.drawn.update(density=density, transmittance=transmittance)
         return reach.reshape(-1)
 
-    return ColourPlan(noise=noise, where=where)
+    plan = ColourPlan(noise=noise, where=where)
+    return plan
 
 
 def render_any_samples(params: FieldParams, samples: RaySamples | PackedRaySamples, settings: RenderSettings, *,
                        num_draws: int, deterministic: bool = False, generator: torch.Generator | None = None,
                        noise: tuple[Tensor, Tensor] | None = None, colour_estimator: str | None = None,
                        colour_moments: tuple[Tensor, Tensor] | None = None,
-                       observation_noise: bool | None = None) -> RayRender:
-    """``render_samples`` or ``render_samples_packed``, whichever layout ``samples`` has."""
-    render = render_samples_packed if isinstance(samples, PackedRaySamples) else render_samples
-    return render(params, samples, settings, num_draws=num_draws, deterministic=deterministic, generator=generator,
-                  noise=noise, colour_estimator=colour_estimator, colour_moments=colour_moments,
-                  observation_noise=observation_noise)
+                       observation_noise: bool | None = None, drawn: dict | None = None) -> RayRender:
+    """``render_samples`` or ``render_samples_packed``, whichever layout ``samples`` has (``drawn``: a
+    plan's draws, which the dense layout reuses)."""
+    kwargs = dict(num_draws=num_draws, deterministic=deterministic, generator=generator, noise=noise,
+                  colour_estimator=colour_estimator, colour_moments=colour_moments, observation_noise=observation_noise)
+    if isinstance(samples, PackedRaySamples):
+        return render_samples_packed(params, samples, settings, **kwargs)
+    return render_samples(params, samples, settings, drawn=drawn, **kwargs)
 
 
 def render_rays(field: StochasticField, rays: RayBundle, settings: RenderSettings, *, num_draws: int | None = None,
@@ -538,7 +576,7 @@ def render_rays(field: StochasticField, rays: RayBundle, settings: RenderSetting
     else:
         params = field.forward_colour_where(samples.positions, samples.directions, plan.where)
     return render_any_samples(params, samples, settings, num_draws=K, deterministic=deterministic, generator=generator,
-                              noise=None if plan is None else plan.noise)
+                              noise=None if plan is None else plan.noise, drawn=None if plan is None else plan.drawn)
 
 
 MAP_NAMES = ("colour_mean", "colour_var", "depth_mean", "depth_var_epistemic", "depth_var_spread",
