@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
-
 import pytest
 
 
@@ -19,10 +17,16 @@ def test_report_orders_by_the_first_runs_excess(load_script):
     assert "| snerf | 1600 |" in text and "| deterministic | 960 |" in text
 
 
-def test_run_arguments_are_checked(load_script, tmp_path):
+def test_run_arguments_are_checked(load_script, tmp_path, capsys):
     script = load_script("benchmarks/studies/render_profile.py")
-    assert script.parse_run(f"a={tmp_path}") == ("a", tmp_path)
-    with pytest.raises(argparse.ArgumentTypeError, match="LABEL=RUN_FOLDER"):
-        script.parse_run(str(tmp_path))
-    with pytest.raises(argparse.ArgumentTypeError, match="is not a folder"):
-        script.parse_run(f"a={tmp_path / 'missing'}")
+    (tmp_path / "checkpoint.pt").write_bytes(b"")
+    out = ["--out", str(tmp_path / "profile.md")]
+    with pytest.raises(SystemExit):
+        script.main(["--run", str(tmp_path), "--run", f"b={tmp_path}", *out])
+    assert "expects SCENE=RUN_DIR" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        script.main(["--run", f"a={tmp_path / 'missing'}", "--run", f"b={tmp_path}", *out])
+    assert "has no checkpoint.pt" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        script.main(["--run", f"a={tmp_path}", *out])
+    assert "at least two --run" in capsys.readouterr().err

@@ -25,6 +25,9 @@ from stochastic_fields.cameras import generate_rays_for_view
 from stochastic_fields.io_utils import atomic_write_text
 from stochastic_fields.trainer import load_trained_model
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the studies' shared helpers
+from study_helpers import parse_runs, study_command  # noqa: E402
+
 
 def self_ms(run: Path) -> tuple[dict[str, tuple[float, int]], float]:
     """({operation: (self ms, calls)}, total self ms) of one full render of the run's first test view."""
@@ -67,26 +70,18 @@ def report(rows: dict[str, tuple[dict[str, tuple[float, int]], float]], command:
     return "\n".join(lines) + "\n"
 
 
-def parse_run(text: str) -> tuple[str, Path]:
-    label, sep, path = text.partition("=")
-    if not sep or not label or not path:
-        raise argparse.ArgumentTypeError(f"--run wants LABEL=RUN_FOLDER, got {text!r}")
-    if not Path(path).is_dir():
-        raise argparse.ArgumentTypeError(f"--run {text!r}: {path} is not a folder")
-    return label, Path(path)
-
-
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--run", type=parse_run, action="append", required=True,
-                   help="LABEL=RUN_FOLDER (repeatable; the first is compared with the last).")
+    p.add_argument("--run", action="append", required=True, metavar="LABEL=RUN_DIR",
+                   help="A trained run (repeatable; the first is compared with the last).")
     p.add_argument("--rows", type=int, default=20, help="Operations listed.")
     p.add_argument("--out", type=Path, required=True, help="Markdown table.")
     args = p.parse_args(argv)
-    if len(args.run) < 2:
-        raise SystemExit("render_profile.py: give at least two --run to compare")
-    rows = {label: self_ms(path) for label, path in args.run}
-    command = "python benchmarks/studies/render_profile.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    runs = parse_runs(p, args.run, required="checkpoint.pt")
+    if len(runs) < 2:
+        p.error("give at least two --run with different labels to compare")
+    rows = {label: self_ms(path) for label, path in runs.items()}
+    command = study_command("render_profile.py", argv)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_text(args.out, report(rows, command, torch.get_num_threads(), args.rows))
     print(args.out.read_text())

@@ -272,7 +272,8 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
                    deterministic: bool = False, generator: torch.Generator | None = None,
                    noise: tuple[Tensor, Tensor] | None = None, colour_estimator: str | None = None,
                    colour_moments: tuple[Tensor, Tensor] | None = None,
-                   observation_noise: bool | None = None, drawn: dict | None = None) -> RayRender:
+                   observation_noise: bool | None = None,
+                   drawn: tuple[Tensor, Tensor] | None = None) -> RayRender:
     """K trajectories from field parameters already evaluated at ``samples`` ([R, S]).
 
     Draws are made and composited in blocks of ``draw_blocks(K, R * S)``; independent noise is
@@ -281,19 +282,18 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
     ``colour_estimator`` overrides ``settings.colour_estimator``; ``colour_moments`` gives the
     Rao-Blackwellised estimator's per-sample moments if already computed (``colour_moments()``).
     ``observation_noise``: add the noise head's per-draw variance (``observation_variance``).
-    ``drawn``: the K draws' densities and transmittances [R, K, S] a ``ColourPlan`` already drew from
+    ``drawn``: (densities, transmittances) [R, K, S] of the K draws a ``ColourPlan`` already drew from
     ``noise`` (``ColourPlan.drawn``); without autograd the weights are composited from them, the same
     values bit for bit, instead of drawing them again (the Rao-Blackwellised render with density heads
     and drawn colours; the one-head Rao-Blackwellised render folds its optical depths and draws anew).
     float16/bfloat16 inputs are rendered in float32 (``upcast_half``); the statistics are float32.
     """
     params, samples, noise, colour_moments = upcast_half((params, samples, noise, colour_moments))
-    reuse = (bool(drawn) and not deterministic and not torch.is_grad_enabled()
-             and drawn["density"].shape == (*samples.t_starts.shape[:1], num_draws, samples.t_starts.shape[1])
-             and drawn["density"].dtype == params.density_loc.dtype)
     obs_var = observation_variance(params, settings, observation_noise)
     R, S = samples.t_starts.shape
     dev, dt = params.density_loc.device, params.density_loc.dtype
+    reuse = (drawn is not None and not deterministic and not torch.is_grad_enabled()
+             and drawn[0].shape == (R, num_draws, S) and drawn[0].dtype == dt)
     rao_blackwell = _use_rao_blackwell(settings, colour_estimator, deterministic)
     if noise is None and settings.shared_noise and not deterministic:
         noise = dense_noise(R, num_draws, S, shared_noise=True, generator=generator, device=dev, dtype=dt)
@@ -337,13 +337,13 @@ def render_samples(params: FieldParams, samples: RaySamples, settings: RenderSet
                              "field_evals": evals})
 
 
-def _weights_from_drawn(drawn: dict, samples: RaySamples, first_draw: int, num_draws: int) -> Tensor:
+def _weights_from_drawn(drawn: tuple[Tensor, Tensor], samples: RaySamples, first_draw: int, num_draws: int) -> Tensor:
     """[R, k, S] alpha weights of draws first_draw .. + k - 1 from a plan's densities and transmittances:
     ``w = T (1 - exp(-a delta))``, computed as ``weights_alpha_from_optical_depth`` does without autograd
     (the same values bit for bit)."""
-    block = slice(first_draw, first_draw + num_draws)
-    tau = drawn["density"][:, block] * samples.deltas[:, None, :]
-    return torch.neg(tau).expm1_().mul_(drawn["transmittance"][:, block]).neg_()
+    density, transmittance = (x[:, first_draw:first_draw + num_draws] for x in drawn)
+    tau = density * samples.deltas[:, None, :]
+    return torch.neg(tau).expm1_().mul_(transmittance).neg_()
 
 
 def trajectory_weights(density_loc: Tensor, density_scale: Tensor, samples: RaySamples, settings: RenderSettings, *,
@@ -492,6 +492,7 @@ def colour_reaching(density_loc: Tensor, density_scale: Tensor, samples: RaySamp
     return _reaching_dense(density_loc, density_scale, samples, eps_a, min_transmittance, density_offsets)[0]
 
 
+@torch.no_grad()
 def _reaching_dense(density_loc: Tensor, density_scale: Tensor, samples: RaySamples, eps_a: Tensor | None,
                     min_transmittance: float, density_offsets: Tensor | None = None
                     ) -> tuple[Tensor, Tensor, Tensor]:
@@ -512,9 +513,9 @@ class ColourPlan:
 
     noise: tuple[Tensor, Tensor | None] | None
     where: ColourWhereFn
-    #: What ``where`` drew on dense samples without autograd: the draws' densities and transmittances
+    #: What ``where`` drew on dense samples without autograd: the draws' (densities, transmittances)
     #: [R, K, S] (``render_samples(drawn=...)`` composites from them instead of drawing them again).
-    drawn: dict = dataclass_field(default_factory=dict)
+    drawn: tuple[Tensor, Tensor] | None = None
 
 
 def colour_plan(samples: RaySamples | PackedRaySamples, settings: RenderSettings, num_draws: int, *,
@@ -535,12 +536,12 @@ def colour_plan(samples: RaySamples | PackedRaySamples, settings: RenderSettings
     def where(density_loc: Tensor, density_scale: Tensor, density_offsets: Tensor | None = None) -> Tensor:
         offsets = None if density_offsets is None else density_offsets.reshape(*shape, density_offsets.shape[-1])
         eps_a = None if noise is None else noise[0]
-        if eps_a is None or isinstance(samples, PackedRaySamples) or torch.is_grad_enabled():
-            reach = colour_reaching(density_loc.reshape(shape), density_scale.reshape(shape), samples, eps_a, tau, offsets)
-        else:  # a render: its draws are kept for the compositing (plan.drawn)
-            reach, density, transmittance = _reaching_dense(density_loc.reshape(shape), density_scale.reshape(shape),
-                                                            samples, eps_a, tau, offsets)
-            plan.drawn.update(density=density, transmittance=transmittance)
+        if isinstance(samples, PackedRaySamples):
+            return colour_reaching(density_loc, density_scale, samples, eps_a, tau, offsets)
+        reach, *drawn = _reaching_dense(density_loc.reshape(shape), density_scale.reshape(shape), samples, eps_a, tau,
+                                        offsets)
+        if eps_a is not None and not torch.is_grad_enabled():  # a render: it composites these draws
+            plan.drawn = tuple(drawn)
         return reach.reshape(-1)
 
     plan = ColourPlan(noise=noise, where=where)
@@ -551,7 +552,8 @@ def render_any_samples(params: FieldParams, samples: RaySamples | PackedRaySampl
                        num_draws: int, deterministic: bool = False, generator: torch.Generator | None = None,
                        noise: tuple[Tensor, Tensor] | None = None, colour_estimator: str | None = None,
                        colour_moments: tuple[Tensor, Tensor] | None = None,
-                       observation_noise: bool | None = None, drawn: dict | None = None) -> RayRender:
+                       observation_noise: bool | None = None,
+                       drawn: tuple[Tensor, Tensor] | None = None) -> RayRender:
     """``render_samples`` or ``render_samples_packed``, whichever layout ``samples`` has (``drawn``: a
     plan's draws, which the dense layout reuses)."""
     kwargs = dict(num_draws=num_draws, deterministic=deterministic, generator=generator, noise=noise,
