@@ -15,7 +15,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("foundations", ("", "constants", "defaults", "validation", "io_utils", "launch", "settings", "data.errors",
                      "visualize", "holdout", "pose_alignment", "pose_check", "predictive")),
     ("geometry and maths", ("rays", "scene_region", "cameras", "distortion", "distributions", "occlusion", "depth_edges", "depth_smoothness", "logistic_normal_table",
-                            "volume_rendering", "samplers", "ray_sampling", "metrics", "row_kernels", "optim", "checkpoint", "view_maps", "plots")),
+                            "volume_rendering", "samplers", "ray_sampling", "metrics", "row_kernels", "draw_kernels", "optim", "checkpoint", "view_maps", "plots")),
     ("fields", ("fields", "fields.encoding", "fields.row_gather", "fields.base", "fields.grid", "fields.mlp")),
     ("data", ("data", "data.colmap", "data.capture", "data.dataset", "data.synthetic", "data.blender", "data.llff",
               "data.colmap_scene", "data.loading", "data.prepare", "sparse_depth", "capture_points", "virtual_views")),

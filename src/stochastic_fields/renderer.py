@@ -52,6 +52,7 @@ from .volume_rendering import (LogitNormalColourDraws, TrajectoryStatistics, con
                                exclusive_cumsum_packed, observation_noise, observation_noise_packed, render_weights,
                                render_weights_packed, trajectory_statistics, trajectory_statistics_packed,
                                transmittance_alpha, weights_alpha_from_optical_depth)
+from . import draw_kernels
 
 #: ``occupied(positions [R, S, 3]) -> [R, S] bool``: which dense samples to keep (empty-space skipping).
 OccupiedFn = Callable[[Tensor], Tensor]
@@ -219,6 +220,25 @@ def colour_moments(params: FieldParams, settings: RenderSettings) -> tuple[Tenso
     if not _use_rao_blackwell(settings, None, False):
         return None
     return logistic_normal_moments_tabulated(params.rgb_loc, params.rgb_scale)
+
+
+def reached_colour_moments(params: FieldParams, reached: Tensor) -> tuple[Tensor, Tensor]:
+    """``colour_moments`` [R, S, 3] read from the table only at the samples a ``ColourPlan`` kept
+    (``reached`` [R, S] bool): at a capture's end of training a sixth to a quarter of them. The others
+    hold the field's placeholder colours (``forward_colour_where``), whose weight is below the plan's
+    transmittance in every trajectory; they take the moments of the first of them (the grid field's
+    placeholders are all one value, so its render is the full table read's to float rounding)."""
+    loc, scale = params.rgb_loc.reshape(-1, 3), params.rgb_scale.reshape(-1, 3)
+    keep = reached.reshape(-1)
+    kept = keep.nonzero().squeeze(1)
+    if kept.numel() == keep.numel():
+        return logistic_normal_moments_tabulated(params.rgb_loc, params.rgb_scale)
+    first_skipped = torch.argmin(keep.to(torch.uint8)).reshape(1)
+    read = torch.cat([kept, first_skipped])
+    mean, var = logistic_normal_moments_tabulated(loc[read], scale[read])
+    full_mean = mean[-1:].expand(keep.numel(), 3).index_copy(0, kept, mean[:-1])
+    full_var = var[-1:].expand(keep.numel(), 3).index_copy(0, kept, var[:-1])
+    return full_mean.reshape(params.rgb_loc.shape), full_var.reshape(params.rgb_loc.shape)
 
 
 def observation_variance(params: FieldParams, settings: RenderSettings,
@@ -498,6 +518,10 @@ def _reaching_dense(density_loc: Tensor, density_scale: Tensor, samples: RaySamp
                     ) -> tuple[Tensor, Tensor, Tensor]:
     """``colour_reaching`` on dense samples, with what it drew: (reached [R, S], the draws' densities
     [R, K, S] and transmittances T [R, K, S]), which a render without autograd reuses (``ColourPlan.drawn``)."""
+    if eps_a is not None and draw_kernels.available(density_loc, density_scale, eps_a, samples.deltas):
+        centre = density_loc[:, None, :] if density_offsets is None else \
+            density_loc[:, None, :] + density_offsets.permute(0, 2, 1)  # [R, M, S], as drawn_density adds them
+        return draw_kernels.draw_reach(centre, density_scale, eps_a, samples.deltas, min_transmittance)
     eps = torch.zeros_like(density_loc)[:, None] if eps_a is None else eps_a  # [R, K, S']
     density = drawn_density(density_loc, density_scale, None if eps_a is None else density_offsets, eps, packed=False)
     transmittance = transmittance_alpha(density, samples.deltas[:, None, :])
@@ -516,6 +540,8 @@ class ColourPlan:
     #: What ``where`` drew on dense samples without autograd: the draws' (densities, transmittances)
     #: [R, K, S] (``render_samples(drawn=...)`` composites from them instead of drawing them again).
     drawn: tuple[Tensor, Tensor] | None = None
+    #: Which samples ``where`` kept, [R, S] bool, on dense samples without autograd (``reached_colour_moments``).
+    reached: Tensor | None = None
 
 
 def colour_plan(samples: RaySamples | PackedRaySamples, settings: RenderSettings, num_draws: int, *,
@@ -541,7 +567,7 @@ def colour_plan(samples: RaySamples | PackedRaySamples, settings: RenderSettings
         reach, *drawn = _reaching_dense(density_loc.reshape(shape), density_scale.reshape(shape), samples, eps_a, tau,
                                         offsets)
         if eps_a is not None and not torch.is_grad_enabled():  # a render: it composites these draws
-            plan.drawn = tuple(drawn)
+            plan.drawn, plan.reached = tuple(drawn), reach
         return reach.reshape(-1)
 
     plan = ColourPlan(noise=noise, where=where)
@@ -577,8 +603,12 @@ def render_rays(field: StochasticField, rays: RayBundle, settings: RenderSetting
         params = field(samples.positions, samples.directions)
     else:
         params = field.forward_colour_where(samples.positions, samples.directions, plan.where)
+    moments = None
+    if plan is not None and plan.reached is not None and _use_rao_blackwell(settings, None, deterministic):
+        moments = reached_colour_moments(params, plan.reached)
     return render_any_samples(params, samples, settings, num_draws=K, deterministic=deterministic, generator=generator,
-                              noise=None if plan is None else plan.noise, drawn=None if plan is None else plan.drawn)
+                              noise=None if plan is None else plan.noise, drawn=None if plan is None else plan.drawn,
+                              colour_moments=moments)
 
 
 MAP_NAMES = ("colour_mean", "colour_var", "depth_mean", "depth_var_epistemic", "depth_var_spread",
