@@ -75,11 +75,9 @@ if numba is not None:
 
 
 def available(*tensors: Tensor) -> bool:
-    """Whether the compiled loops can run on ``tensors`` (module doc); a strided input is copied."""
-    if torch.is_grad_enabled() or numba is None or row_kernels._disabled:
-        return False
-    floats = {t.dtype for t in tensors if t.is_floating_point()}
-    return all(t.device.type == "cpu" for t in tensors) and len(floats) == 1 and floats <= set(row_kernels.KERNEL_DTYPES)
+    """Whether the compiled loops can run on ``tensors`` (module doc): without autograd, and where the row
+    loops can (``row_kernels.available``), a strided input being copied."""
+    return not torch.is_grad_enabled() and row_kernels.available(*tensors, contiguous=False)
 
 
 def draw_reach(centre: Tensor, scale: Tensor, eps: Tensor, deltas: Tensor, min_transmittance: float

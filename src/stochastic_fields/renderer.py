@@ -92,11 +92,19 @@ def draw_locs(density_loc: Tensor, density_offsets: Tensor | None, first_draw: i
     offsets [R, S, M] -> [R, k, S] ([R, 1, S] without heads); packed: loc [N], offsets [N, M] ->
     [k, N] ([1, N] without heads)."""
     if density_offsets is None:
-        return density_loc[None] if packed else density_loc[:, None, :]
+        return head_centres(density_loc, None, packed=packed)
     heads = torch.arange(first_draw, first_draw + num_draws, device=density_loc.device) % density_offsets.shape[-1]
     if packed:
         return density_loc[None] + density_offsets[:, heads].T
     return density_loc[:, None, :] + density_offsets[..., heads].permute(0, 2, 1)
+
+
+def head_centres(density_loc: Tensor, density_offsets: Tensor | None, *, packed: bool) -> Tensor:
+    """The M density heads' locs ``mu_a + o_h``: dense loc [R, S], offsets [R, S, M] -> [R, M, S]; packed
+    loc [N], offsets [N, M] -> [M, N]; without heads (None) [R, 1, S] / [1, N]."""
+    if density_offsets is None:
+        return density_loc[None] if packed else density_loc[:, None, :]
+    return density_loc[None] + density_offsets.T if packed else density_loc[:, None, :] + density_offsets.permute(0, 2, 1)
 
 
 def drawn_density(density_loc: Tensor, density_scale: Tensor, density_offsets: Tensor | None, eps: Tensor,
@@ -112,11 +120,10 @@ def drawn_density(density_loc: Tensor, density_scale: Tensor, density_offsets: T
     k = eps.shape[0] if packed else eps.shape[1]
     heads = 0 if density_offsets is None else density_offsets.shape[-1]
     if heads and first_draw % heads == 0 and k % heads == 0:
+        centre = head_centres(density_loc, density_offsets, packed=packed)  # [M, N] / [R, M, S]
         if packed:
-            centre = density_loc[None] + density_offsets.T  # [M, N]
             drawn = centre[None] + density_scale[None, None] * eps.reshape(k // heads, heads, -1)
             return torch.relu(drawn).reshape(k, -1)
-        centre = density_loc[:, None, :] + density_offsets.permute(0, 2, 1)  # [R, M, S]
         drawn = centre[:, None] + density_scale[:, None, None, :] * eps.reshape(eps.shape[0], k // heads, heads, -1)
         return torch.relu(drawn).reshape(eps.shape[0], k, -1)
     loc = draw_locs(density_loc, density_offsets, first_draw, k, packed=packed)
@@ -519,9 +526,8 @@ def _reaching_dense(density_loc: Tensor, density_scale: Tensor, samples: RaySamp
     """``colour_reaching`` on dense samples, with what it drew: (reached [R, S], the draws' densities
     [R, K, S] and transmittances T [R, K, S]), which a render without autograd reuses (``ColourPlan.drawn``)."""
     if eps_a is not None and draw_kernels.available(density_loc, density_scale, eps_a, samples.deltas):
-        centre = density_loc[:, None, :] if density_offsets is None else \
-            density_loc[:, None, :] + density_offsets.permute(0, 2, 1)  # [R, M, S], as drawn_density adds them
-        return draw_kernels.draw_reach(centre, density_scale, eps_a, samples.deltas, min_transmittance)
+        return draw_kernels.draw_reach(head_centres(density_loc, density_offsets, packed=False), density_scale, eps_a,
+                                       samples.deltas, min_transmittance)
     eps = torch.zeros_like(density_loc)[:, None] if eps_a is None else eps_a  # [R, K, S']
     density = drawn_density(density_loc, density_scale, None if eps_a is None else density_offsets, eps, packed=False)
     transmittance = transmittance_alpha(density, samples.deltas[:, None, :])

@@ -222,13 +222,14 @@ def without_prefetch():
     return _switched_on("_no_prefetch")
 
 
-def available(*tensors: Tensor) -> bool:
+def available(*tensors: Tensor, contiguous: bool = True) -> bool:
     """Whether the compiled loops can run on ``tensors``: numba imported, not inside
-    ``torch_ops_only``, all on the CPU, contiguous, and the float ones of one dtype of ``KERNEL_DTYPES``."""
+    ``torch_ops_only``, all on the CPU, contiguous (unless ``contiguous`` is False: a caller that copies
+    strided inputs), and the float ones of one dtype of ``KERNEL_DTYPES``."""
     if numba is None or _disabled:
         return False
     floats = {t.dtype for t in tensors if t.is_floating_point()}
-    return (all(t.device.type == "cpu" and t.is_contiguous() for t in tensors)
+    return (all(t.device.type == "cpu" and (t.is_contiguous() or not contiguous) for t in tensors)
             and len(floats) == 1 and floats <= set(KERNEL_DTYPES))
 
 
