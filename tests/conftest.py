@@ -77,6 +77,7 @@ def train_tiny_run(scene: Path, run_dir: Path, iterations: int = 30) -> Path:
     cfg.train.checkpoint_every = 0
     cfg.train.eval_every = 0
     cfg.data.path = str(scene)
+    cfg.data.split, cfg.data.split_every = "paper", 5  # the config says what trained: every 5th view
     Trainer(cfg, run_dir, load_dataset(scene, split_every=5)).train(progress=False)
     return run_dir
 

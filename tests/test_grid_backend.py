@@ -316,6 +316,55 @@ def test_prefetch_hints_change_no_value(monkeypatch, blocks, pattern):
 
 @pytest.mark.skipif(row_kernels.numba is None, reason="numba not installed")
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("blocks", [1, 3])
+def test_zero_gradient_samples_mark_their_rows_and_change_no_value(monkeypatch, dtype, blocks):
+    """A sample whose gradient row is all 0 (+0 or -0) adds nothing but still marks its rows: the
+    scatter and two Adam steps give the values of the loop that adds its zeros bit for bit, the rows
+    only such samples read are stepped (their momentum), and a NaN row is carried like any other."""
+    monkeypatch.setattr(row_kernels, "row_blocks", lambda: blocks)
+    g = torch.Generator().manual_seed(13)
+    N, C, M, J = 60, 4, 300, 8
+    idx = torch.randint(0, N, (M, J), generator=g)
+    w = torch.rand(M, J, generator=g, dtype=dtype)
+    grad = torch.randn(M, C, generator=g, dtype=dtype)
+    silent = torch.rand(M, generator=g) < 0.6
+    grad[silent] = 0.0
+    grad[silent.nonzero()[::2, 0]] = -0.0
+    idx[silent] = idx[silent] % 20  # rows 0..19 read mostly by silent samples
+    idx[~silent] = 20 + idx[~silent] % (N - 20)
+    idx[silent.nonzero()[0, 0]] = torch.arange(J)  # rows 0..7 read by a silent sample at least
+    x0, m1_0, m2_0 = torch.randn(N, C, generator=g, dtype=dtype), torch.randn(N, C, generator=g, dtype=dtype), \
+        torch.rand(N, C, generator=g, dtype=dtype)
+
+    def run(coeff):
+        acc, touched = torch.zeros(N, C, dtype=dtype), torch.zeros(N, dtype=torch.bool)
+        x, m1, m2 = x0.clone(), m1_0.clone(), m2_0.clone()
+        for step in (1, 2):
+            row_kernels.scatter_weighted_rows(acc, touched, idx, w, coeff)
+            summed, marked = acc.clone(), touched.clone()
+            row_kernels.adam_touched_rows(x, m1, m2, acc, touched, lr=0.03, betas=(0.9, 0.99), eps=1e-8, step=step)
+        return summed, marked, x, m1, m2
+
+    skipped = run(grad)
+    with row_kernels.adding_zero_rows():
+        added = run(grad)
+    for a, b in zip(skipped, added):
+        assert torch.equal(a, b)
+    summed, marked, x = skipped[:3]
+    assert marked[:8].all() and torch.equal(marked.nonzero().squeeze(1), torch.unique(idx))
+    reference = torch.zeros(N, C, dtype=torch.float64)  # float64 loop over the samples that carry a gradient
+    for m in (~silent).nonzero().squeeze(1).tolist():
+        for j in range(J):
+            reference[idx[m, j]] += float(w[m, j]) * grad[m].double()
+    torch.testing.assert_close(summed.double(), reference, rtol=1e-5, atol=1e-5)
+    assert (x[:8] != x0[:8]).any(dim=1).all()  # stepped by their momentum although no gradient arrived
+    nan_grad = grad.clone()
+    nan_grad[silent.nonzero()[1, 0], 0] = float("nan")
+    assert run(nan_grad)[0].isnan().any()
+
+
+@pytest.mark.skipif(row_kernels.numba is None, reason="numba not installed")
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_compiled_adam_matches_torch_ops_and_is_used(monkeypatch, dtype):
     """Five steps of RowSparseAdam with the compiled loop against the same steps as torch ops: same
     table and moments (float rounding), untouched rows unchanged, and the loop really ran."""

@@ -8,7 +8,11 @@ passes over the touched rows, each pass a random access into a table of millions
 
       acc[idx[m, j], c0 + c] += w[m, j] g[m, c],     touched[idx[m, j]] = True
 
-  torch forms the [M J, C] products (an einsum) and ``index_add_``s them (one pass each);
+  torch forms the [M J, C] products (an einsum) and ``index_add_``s them (one pass each). The loop adds
+  nothing for a sample whose gradient row g[m] is all 0 (it still marks its rows, so the same rows step
+  and every value is the same as adding its zeros): late in a capture's training most samples are empty
+  space in every draw (52-60% of a step's), and adding zeros into their rows was a random access into
+  the table for each of their corners. The bitmap, a byte a row, is what is left of their cost;
 * **Adam** (``optim.RowSparseAdam``'s lazy update), for every touched row r and channel c, with
   ``step_size = lr / (1 - b1^t)`` and ``bias2_c = 1 - b2_c^t`` of the table's step t (the second
   moment's decay b2_c may differ per channel: ``train.adam_beta2_colour`` on the colour channels):
@@ -38,6 +42,24 @@ arrives: the loops add and update in the same order as without it, bit for bit. 
 step is 1.09x faster for S-NeRF and 1.13-1.21x for the deterministic NeRF than without the hints on one
 thread, 1.08x and 1.16-1.21x on two (``benchmarks/results/row_kernels_prefetch/``, ``..._threads/``;
 ``benchmarks/row_kernels_speed.py --prefetch``). Where the hint cannot be compiled it is left out.
+
+They are not bound by memory alone: replayed on a trained capture's real inputs, the scatter into the
+coarsest level (816 rows, in the L1 cache) took as long as into the finest (2M rows). So each loop is
+written for LLVM to vectorise its channel loop: the scatter copies the sample's gradient row into a local
+buffer and adds it to each corner row through a view of its channels; the Adam update reads and writes
+each row through views when it runs on one thread, takes the square root as LLVM's ``llvm.sqrt``
+(``_sqrt``; numba's ``np.sqrt`` calls libm's, which no loop vectorises; both are IEEE's correctly rounded
+root) and divides under numpy's error model (no Python ``ZeroDivisionError`` check per element, which
+also stops vectorisation; the divisors here are never 0). Split over threads the Adam update keeps the
+element-by-element loop: there it waits on memory, and the vectorised loop's checks that a row's views do
+not overlap made it 1-2 ms slower a step (medians of 40 replays, two threads). Every value is the same bit for bit: each channel's operations and their
+order are unchanged, and LLVM fuses no multiply-add without fast-math. Replayed on fern and flower's
+ten-minute captures (``benchmarks/studies/row_kernels_replay.py``, medians of 40 replays,
+``benchmarks/results/row_kernels_replay/``): on one thread the Adam update is 1.6x as fast as before
+(47-55 -> 29-34 ms a step) and the scatter 1.3-1.6x (46-56 -> 35-36 ms), the scatter's gain nearly all the
+skip of samples without gradient (50-57% of a step's; the vectorised loop adding their zeros takes 46-50 ms).
+On two threads both stay within the machine's noise of before: the minima agree within 1 ms, and the
+medians move by several ms from one replay to the next.
 
 ``available(*tensors)`` says when they apply: numba imported (a dependency; without it the torch
 ops run), and every tensor on the CPU and contiguous. CUDA tensors always take the torch ops. The
@@ -76,6 +98,8 @@ PREFETCH_SAMPLES: int = 8
 PREFETCH_ROWS: int = 8
 #: Set by ``without_prefetch``: the loops ask for no row ahead (to time the hints).
 _no_prefetch: bool = False
+#: Set by ``adding_zero_rows``: the scatter adds the products of samples whose gradient is all 0 too.
+_add_zero_rows: bool = False
 
 if numba is not None:
     from llvmlite import ir as _ir
@@ -102,6 +126,18 @@ if numba is not None:
             return numba.types.void(flat, index), codegen
         return None
 
+    @_intrinsic
+    def _sqrt(typingctx, value):
+        """IEEE square root as LLVM's ``llvm.sqrt`` (correctly rounded, as libm's ``sqrt`` that numba's
+        ``np.sqrt`` calls, so the same bits): unlike the call, the intrinsic lets LLVM vectorise a loop."""
+        def codegen(context, builder, signature, args):
+            fn = builder.module.declare_intrinsic("llvm.sqrt", [context.get_value_type(signature.args[0])])
+            return builder.call(fn, [args[0]])
+
+        if isinstance(value, numba.types.Float):
+            return value(value), codegen
+        return None
+
     @numba.njit(cache=True, nogil=True, inline="always")
     def _prefetch_row(flat, row, width, first, count):  # pragma: no cover - compiled
         # the first and last element of row ``row``'s ``count`` channels from ``first`` (a row of a
@@ -113,30 +149,53 @@ if numba is not None:
     # Each loop is written once, over the rows [lo, hi): the serial kernels run it on every row (no
     # thread pool is started on one thread), the split kernels on one contiguous block per thread.
     @numba.njit(cache=True, nogil=True, inline="always")
-    def _scatter_rows_in(acc, touched, idx, w, g, c0, lo, hi, ahead):  # pragma: no cover - compiled; tested through the wrappers
+    def _in_block(r, lo, span):  # pragma: no cover - compiled
+        # lo <= r < lo + span, as one unsigned comparison
+        return np.uint64(r - lo) < np.uint64(span)
+
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def _scatter_rows_in(acc, touched, idx, w, g, c0, lo, hi, ahead, add_zero_rows):  # pragma: no cover - compiled; tested through the wrappers
         # every sample is read, only rows in [lo, hi) are added to, in the samples' then corners' order;
-        # the rows of sample m + ahead are asked for while sample m is added (ahead 0: none)
+        # a sample whose gradient row is all 0 marks its rows and adds nothing (module doc); the rows of
+        # sample m + ahead are asked for while sample m is added (ahead 0: none): the gradient rows of
+        # a sample that adds, the bitmap's entries of one that only marks. The sample's gradient row is
+        # copied into ``carried`` once and each corner row is added to through a view of its channels:
+        # LLVM then vectorises the channel loop (about twice as fast as indexing both 2-d arrays in it)
         M, J = idx.shape
         C = g.shape[1]
         width = acc.shape[1]
         flat = acc.reshape(-1)
+        span = hi - lo
+        carried = np.empty(C, dtype=acc.dtype)
         for m in range(M):
             if ahead > 0 and m + ahead < M:
+                adds_ahead = add_zero_rows
+                for c in range(C):
+                    adds_ahead = adds_ahead or g[m + ahead, c] != 0.0
                 for j in range(J):
                     q = idx[m + ahead, j]
-                    if q >= lo and q < hi:
-                        _prefetch_row(flat, q, width, c0, C)
+                    if _in_block(q, lo, span):
+                        if adds_ahead:
+                            _prefetch_row(flat, q, width, c0, C)
+                        else:
+                            _prefetch(touched, q)
+            adds = add_zero_rows
+            for c in range(C):
+                carried[c] = g[m, c]
+                adds = adds or carried[c] != 0.0  # a NaN counts: it is carried
             for j in range(J):
                 r = idx[m, j]
-                if r >= lo and r < hi:
-                    wj = w[m, j]
+                if _in_block(r, lo, span):
                     touched[r] = True
-                    for c in range(C):
-                        acc[r, c0 + c] += wj * g[m, c]
+                    if adds:
+                        wj = w[m, j]
+                        row = acc[r, c0:c0 + C]
+                        for c in range(C):
+                            row[c] += wj * carried[c]
 
-    @numba.njit(cache=True, nogil=True, inline="always")
+    @numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
     def _adam_rows_in(x, m1, m2, acc, touched, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2, eps,
-                      lo, hi, ahead):  # pragma: no cover - compiled; tested through the wrappers
+                      lo, hi, ahead, vectorised):  # pragma: no cover - compiled; tested through the wrappers
         # the next ``ahead`` touched rows after r are asked for (in all four tables) while r is updated:
         # ``seek`` scans the bitmap ahead of r, ``pending`` counts the touched rows in (r, seek), asked for
         C = x.shape[1]
@@ -155,40 +214,52 @@ if numba is not None:
                     _prefetch_row(fa, seek, C, 0, C)
                     pending += 1
                 seek += 1
-            if touched[r]:
+            if touched[r] and vectorised:
                 touched[r] = False
-                for c in range(x.shape[1]):
+                xr, m1r, m2r, gr = x[r], m1[r], m2[r], acc[r]  # the row's views: a loop LLVM vectorises
+                for c in range(C):
+                    g = gr[c]
+                    a = b1 * m1r[c] + one_minus_b1 * g
+                    b = b2[c] * m2r[c] + one_minus_b2[c] * g * g
+                    m1r[c] = a
+                    m2r[c] = b
+                    xr[c] -= step_size * (a / (_sqrt(b / bias2[c]) + eps))
+                for c in range(C):
+                    gr[c] = 0.0
+            elif touched[r]:  # the same operations element by element (module doc: the split loops)
+                touched[r] = False
+                for c in range(C):
                     g = acc[r, c]
                     acc[r, c] = 0.0
                     a = b1 * m1[r, c] + one_minus_b1 * g
                     b = b2[c] * m2[r, c] + one_minus_b2[c] * g * g
                     m1[r, c] = a
                     m2[r, c] = b
-                    x[r, c] -= step_size * (a / (np.sqrt(b / bias2[c]) + eps))
+                    x[r, c] -= step_size * (a / (_sqrt(b / bias2[c]) + eps))
 
     @numba.njit(cache=True, nogil=True)
-    def _scatter_weighted(acc, touched, idx, w, g, c0, ahead):  # pragma: no cover - compiled; tested through the wrappers
-        _scatter_rows_in(acc, touched, idx, w, g, c0, 0, acc.shape[0], ahead)
+    def _scatter_weighted(acc, touched, idx, w, g, c0, ahead, add_zero_rows):  # pragma: no cover - compiled; tested through the wrappers
+        _scatter_rows_in(acc, touched, idx, w, g, c0, 0, acc.shape[0], ahead, add_zero_rows)
 
-    @numba.njit(cache=True, nogil=True)
+    @numba.njit(cache=True, nogil=True, error_model="numpy")
     def _adam_touched(x, m1, m2, acc, touched, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2,
                       eps, ahead):  # pragma: no cover - compiled; tested through the wrappers
         _adam_rows_in(x, m1, m2, acc, touched, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2, eps, 0, x.shape[0],
-                      ahead)
+                      ahead, True)
 
     @numba.njit(cache=True, nogil=True, parallel=True)
-    def _scatter_weighted_blocks(acc, touched, idx, w, g, c0, blocks, ahead):  # pragma: no cover - compiled
+    def _scatter_weighted_blocks(acc, touched, idx, w, g, c0, blocks, ahead, add_zero_rows):  # pragma: no cover - compiled
         N = acc.shape[0]
         for b in numba.prange(blocks):
-            _scatter_rows_in(acc, touched, idx, w, g, c0, N * b // blocks, N * (b + 1) // blocks, ahead)
+            _scatter_rows_in(acc, touched, idx, w, g, c0, N * b // blocks, N * (b + 1) // blocks, ahead, add_zero_rows)
 
-    @numba.njit(cache=True, nogil=True, parallel=True)
+    @numba.njit(cache=True, nogil=True, parallel=True, error_model="numpy")
     def _adam_touched_blocks(x, m1, m2, acc, touched, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2,
                              eps, blocks, ahead):  # pragma: no cover - compiled
         N = x.shape[0]
         for b in numba.prange(blocks):
             _adam_rows_in(x, m1, m2, acc, touched, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2, eps,
-                          N * b // blocks, N * (b + 1) // blocks, ahead)
+                          N * b // blocks, N * (b + 1) // blocks, ahead, False)
 
 
 def row_blocks() -> int:
@@ -201,7 +272,7 @@ def row_blocks() -> int:
 
 @contextlib.contextmanager
 def _switched_on(flag: str):
-    """Within it the module's switch ``flag`` (``_serial``, ``_no_prefetch``, ``_disabled``) is True."""
+    """Within it the module's switch ``flag`` (``_serial``, ``_no_prefetch``, ``_add_zero_rows``, ``_disabled``) is True."""
     before = globals()[flag]
     globals()[flag] = True
     try:
@@ -220,6 +291,13 @@ def without_prefetch():
     """Within it the compiled loops ask for no row ahead (the same values): to time the hints
     (``benchmarks/row_kernels_speed.py --prefetch``)."""
     return _switched_on("_no_prefetch")
+
+
+def adding_zero_rows():
+    """Within it the compiled scatter adds the (zero) products of samples whose gradient row is all 0
+    as well, as it did before it skipped them (the same values): to time the skip
+    (``benchmarks/studies/row_kernels_replay.py``)."""
+    return _switched_on("_add_zero_rows")
 
 
 def available(*tensors: Tensor, contiguous: bool = True) -> bool:
@@ -253,10 +331,10 @@ def scatter_weighted_rows(acc: Tensor, touched: Tensor, idx: Tensor, weights: Te
     ahead = 0 if _no_prefetch else PREFETCH_SAMPLES
     if blocks > 1:
         _scatter_weighted_blocks(acc.numpy(), touched.numpy(), idx.numpy(), weights.numpy(), grad.numpy(),
-                                 int(first_channel), blocks, ahead)
+                                 int(first_channel), blocks, ahead, _add_zero_rows)
     else:
         _scatter_weighted(acc.numpy(), touched.numpy(), idx.numpy(), weights.numpy(), grad.numpy(), int(first_channel),
-                          ahead)
+                          ahead, _add_zero_rows)
 
 
 def adam_touched_rows(table: Tensor, exp_avg: Tensor, exp_avg_sq: Tensor, acc: Tensor, touched: Tensor, *,
