@@ -1,4 +1,5 @@
-"""A capture's training steps on one thread: their time and a checksum of the trained model.
+"""A capture's training steps on one thread: their time and a checksum of the trained model
+(``checkpoint.state_checksum``, the checkpoints' own, of its parameters and buffers).
 
 For a change that must keep every value (a compiled loop rewritten, a pass skipped that adds only zeros):
 run this with the code before and the code after side by side, one thread each, the code before from a
@@ -16,7 +17,6 @@ saves in training. The configuration is ``make bench-capture``'s (``capture_qual
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import shutil
 import sys
@@ -29,17 +29,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # capture_quality,
 
 import stochastic_fields  # noqa: E402
 from capture_quality import LLFF_ROOT, config_for  # noqa: E402
+from stochastic_fields.checkpoint import state_checksum  # noqa: E402
 from stochastic_fields.scenes import load_run_dataset  # noqa: E402
 from stochastic_fields.trainer import Trainer  # noqa: E402
-
-
-def model_checksum(model: torch.nn.Module) -> str:
-    """SHA-256 (first 16 hex digits) of every parameter and buffer, by name."""
-    digest = hashlib.sha256()
-    for name, value in sorted(model.state_dict().items()):
-        digest.update(name.encode())
-        digest.update(value.detach().cpu().contiguous().numpy().tobytes())
-    return digest.hexdigest()[:16]
 
 
 def main(argv=None) -> dict:
@@ -65,7 +57,7 @@ def main(argv=None) -> dict:
         result = {"code": str(Path(stochastic_fields.__file__).parent), "scene": args.scene, "steps": trainer.step,
                   "first_half_s": round(half, 2),
                   "second_half_ms_per_step": round(1e3 * (trainer.elapsed - half) / (args.steps - args.steps // 2), 1),
-                  "model_sha256": model_checksum(trainer.model)}
+                  "model_sha256": state_checksum(dict(trainer.model.state_dict()))[:16]}
     finally:
         shutil.rmtree(args.work, ignore_errors=True)
     print(json.dumps(result), flush=True)

@@ -52,8 +52,9 @@ each row through views when it runs on one thread, takes the square root as LLVM
 root) and divides under numpy's error model (no Python ``ZeroDivisionError`` check per element, which
 also stops vectorisation; the divisors here are never 0). Split over threads the Adam update keeps the
 element-by-element loop: there it waits on memory, and the vectorised loop's checks that a row's views do
-not overlap made it 1-2 ms slower a step (medians of 40 replays, two threads). Every value is the same bit for bit: each channel's operations and their
-order are unchanged, and LLVM fuses no multiply-add without fast-math. Replayed on fern and flower's
+not overlap made it 1-2 ms slower a step (medians of 40 replays, two threads). Every value is the same
+bit for bit: each channel's operations (``_adam_element``, one formula for both loops) and their order are
+unchanged, and LLVM fuses no multiply-add without fast-math. Replayed on fern and flower's
 ten-minute captures (``benchmarks/studies/row_kernels_replay.py``, medians of 40 replays,
 ``benchmarks/results/row_kernels_replay/``): on one thread the Adam update is 1.6x as fast as before
 (47-55 -> 29-34 ms a step) and the scatter 1.3-1.6x (46-56 -> 35-36 ms), the scatter's gain nearly all the
@@ -156,42 +157,50 @@ if numba is not None:
     @numba.njit(cache=True, nogil=True, inline="always")
     def _scatter_rows_in(acc, touched, idx, w, g, c0, lo, hi, ahead, add_zero_rows):  # pragma: no cover - compiled; tested through the wrappers
         # every sample is read, only rows in [lo, hi) are added to, in the samples' then corners' order;
-        # a sample whose gradient row is all 0 marks its rows and adds nothing (module doc); the rows of
-        # sample m + ahead are asked for while sample m is added (ahead 0: none): the gradient rows of
-        # a sample that adds, the bitmap's entries of one that only marks. The sample's gradient row is
-        # copied into ``carried`` once and each corner row is added to through a view of its channels:
-        # LLVM then vectorises the channel loop (about twice as fast as indexing both 2-d arrays in it)
+        # a sample whose gradient row is all 0 marks its rows and adds nothing (module doc: ``adds``, one
+        # pass over g first; a NaN counts as carried); the rows of sample m + ahead are asked for while
+        # sample m is added (ahead 0: none): the gradient rows of a sample that adds, the bitmap's entries
+        # of one that only marks. An adding sample's gradient row is copied into ``carried`` and each
+        # corner row is added to through a view of its channels: LLVM then vectorises the channel loop
         M, J = idx.shape
         C = g.shape[1]
         width = acc.shape[1]
         flat = acc.reshape(-1)
         span = hi - lo
+        adds = np.empty(M, dtype=np.bool_)
+        for m in range(M):
+            adds[m] = add_zero_rows
+            for c in range(C):
+                adds[m] = adds[m] or g[m, c] != 0.0
         carried = np.empty(C, dtype=acc.dtype)
         for m in range(M):
             if ahead > 0 and m + ahead < M:
-                adds_ahead = add_zero_rows
-                for c in range(C):
-                    adds_ahead = adds_ahead or g[m + ahead, c] != 0.0
                 for j in range(J):
                     q = idx[m + ahead, j]
                     if _in_block(q, lo, span):
-                        if adds_ahead:
+                        if adds[m + ahead]:
                             _prefetch_row(flat, q, width, c0, C)
                         else:
                             _prefetch(touched, q)
-            adds = add_zero_rows
-            for c in range(C):
-                carried[c] = g[m, c]
-                adds = adds or carried[c] != 0.0  # a NaN counts: it is carried
+            if adds[m]:
+                for c in range(C):
+                    carried[c] = g[m, c]
             for j in range(J):
                 r = idx[m, j]
                 if _in_block(r, lo, span):
                     touched[r] = True
-                    if adds:
+                    if adds[m]:
                         wj = w[m, j]
                         row = acc[r, c0:c0 + C]
                         for c in range(C):
                             row[c] += wj * carried[c]
+
+    @numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
+    def _adam_element(g, m1, m2, x, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2, eps):  # pragma: no cover - compiled
+        # one channel's update (module doc): the new (m1, m2, x)
+        a = b1 * m1 + one_minus_b1 * g
+        b = b2 * m2 + one_minus_b2 * g * g
+        return a, b, x - step_size * (a / (_sqrt(b / bias2) + eps))
 
     @numba.njit(cache=True, nogil=True, inline="always", error_model="numpy")
     def _adam_rows_in(x, m1, m2, acc, touched, step_size, b1, one_minus_b1, b2, one_minus_b2, bias2, eps,
@@ -214,28 +223,22 @@ if numba is not None:
                     _prefetch_row(fa, seek, C, 0, C)
                     pending += 1
                 seek += 1
-            if touched[r] and vectorised:
-                touched[r] = False
-                xr, m1r, m2r, gr = x[r], m1[r], m2[r], acc[r]  # the row's views: a loop LLVM vectorises
+            if not touched[r]:
+                continue
+            touched[r] = False
+            if vectorised:  # the row's views: a loop LLVM vectorises
+                xr, m1r, m2r, gr = x[r], m1[r], m2[r], acc[r]
                 for c in range(C):
-                    g = gr[c]
-                    a = b1 * m1r[c] + one_minus_b1 * g
-                    b = b2[c] * m2r[c] + one_minus_b2[c] * g * g
-                    m1r[c] = a
-                    m2r[c] = b
-                    xr[c] -= step_size * (a / (_sqrt(b / bias2[c]) + eps))
+                    m1r[c], m2r[c], xr[c] = _adam_element(gr[c], m1r[c], m2r[c], xr[c], step_size, b1, one_minus_b1,
+                                                          b2[c], one_minus_b2[c], bias2[c], eps)
                 for c in range(C):
                     gr[c] = 0.0
-            elif touched[r]:  # the same operations element by element (module doc: the split loops)
-                touched[r] = False
+            else:  # element by element (module doc: the split loops)
                 for c in range(C):
                     g = acc[r, c]
                     acc[r, c] = 0.0
-                    a = b1 * m1[r, c] + one_minus_b1 * g
-                    b = b2[c] * m2[r, c] + one_minus_b2[c] * g * g
-                    m1[r, c] = a
-                    m2[r, c] = b
-                    x[r, c] -= step_size * (a / (_sqrt(b / bias2[c]) + eps))
+                    m1[r, c], m2[r, c], x[r, c] = _adam_element(g, m1[r, c], m2[r, c], x[r, c], step_size, b1,
+                                                                one_minus_b1, b2[c], one_minus_b2[c], bias2[c], eps)
 
     @numba.njit(cache=True, nogil=True)
     def _scatter_weighted(acc, touched, idx, w, g, c0, ahead, add_zero_rows):  # pragma: no cover - compiled; tested through the wrappers
@@ -272,7 +275,8 @@ def row_blocks() -> int:
 
 @contextlib.contextmanager
 def _switched_on(flag: str):
-    """Within it the module's switch ``flag`` (``_serial``, ``_no_prefetch``, ``_add_zero_rows``, ``_disabled``) is True."""
+    """Within it the module's switch ``flag`` (``_serial``, ``_no_prefetch``, ``_add_zero_rows``,
+    ``_disabled``) is True."""
     before = globals()[flag]
     globals()[flag] = True
     try:
